@@ -1,0 +1,1 @@
+"""File formats at the edges: meshes, PDS4 products, SPICE kernels."""

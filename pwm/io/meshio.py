@@ -1,0 +1,136 @@
+"""Read and write meshes: Wavefront OBJ and binary PLY (with per-vertex albedo), in km."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pwm.mesh import Mesh
+
+
+def read_obj(path: str | Path) -> Mesh:
+    """Read a triangle OBJ (v and f records; polygons are fanned). An albedo is read from
+    'v x y z a' or 'v x y z r g b' records (first colour channel)."""
+    verts: list[list[float]] = []
+    faces: list[list[int]] = []
+    albedo: list[float] = []
+    with open(path, "r", encoding="ascii", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            parts = line.split()
+            if not parts:
+                continue
+            if parts[0] == "v":
+                vals = [float(x) for x in parts[1:]]
+                if len(vals) < 3:
+                    raise ValueError(f"{path}:{lineno}: vertex needs 3 coordinates")
+                verts.append(vals[:3])
+                if len(vals) >= 4:
+                    albedo.append(vals[3])
+            elif parts[0] == "f":
+                idx = [int(p.split("/")[0]) for p in parts[1:]]
+                idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
+                for k in range(1, len(idx) - 1):
+                    faces.append([idx[0], idx[k], idx[k + 1]])
+    if not verts or not faces:
+        raise ValueError(f"{path}: no vertices or faces")
+    a = np.array(albedo) if len(albedo) == len(verts) else None
+    return Mesh(np.array(verts), np.array(faces), a)
+
+
+def write_obj(path: str | Path, mesh: Mesh) -> None:
+    """Write OBJ, km; the albedo, if any, goes as a vertex colour (a a a)."""
+    with open(path, "w", encoding="ascii") as fh:
+        fh.write("# pwm mesh, body-fixed frame, km\n")
+        if mesh.albedo is not None:
+            data = np.column_stack([mesh.vertices, mesh.albedo, mesh.albedo, mesh.albedo])
+            np.savetxt(fh, data, fmt="v %.9f %.9f %.9f %.6f %.6f %.6f")
+        else:
+            np.savetxt(fh, mesh.vertices, fmt="v %.9f %.9f %.9f")
+        np.savetxt(fh, mesh.faces + 1, fmt="f %d %d %d")
+
+
+def write_ply(path: str | Path, mesh: Mesh) -> None:
+    """Write binary little-endian PLY: float64 x y z (km), float32 albedo if present."""
+    n, m = len(mesh.vertices), len(mesh.faces)
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if mesh.albedo is not None:
+        fields.append(("albedo", "<f4"))
+    vert = np.empty(n, dtype=fields)
+    vert["x"], vert["y"], vert["z"] = mesh.vertices.T
+    if mesh.albedo is not None:
+        vert["albedo"] = mesh.albedo
+    face = np.empty(m, dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    face["n"] = 3
+    face["i"] = mesh.faces
+    header = ["ply", "format binary_little_endian 1.0", "comment pwm mesh, body-fixed frame, km",
+              f"element vertex {n}", "property double x", "property double y", "property double z"]
+    if mesh.albedo is not None:
+        header.append("property float albedo")
+    header += [f"element face {m}", "property list uchar int vertex_indices", "end_header"]
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vert.tobytes())
+        fh.write(face.tobytes())
+
+
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
+              "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+              "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
+
+
+def read_ply(path: str | Path) -> Mesh:
+    """Read a binary little-endian triangle PLY as written by `write_ply` (albedo optional)."""
+    with open(path, "rb") as fh:
+        if fh.readline().strip() != b"ply":
+            raise ValueError(f"{path}: not a PLY file")
+        elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+        fmt = ""
+        while True:
+            line = fh.readline()
+            if not line:
+                raise ValueError(f"{path}: header not terminated")
+            parts = line.decode("ascii").split()
+            if not parts:
+                continue
+            if parts[0] == "format":
+                fmt = parts[1]
+            elif parts[0] == "element":
+                elements.append((parts[1], int(parts[2]), []))
+            elif parts[0] == "property":
+                elements[-1][2].append((parts[-1], " ".join(parts[1:-1])))
+            elif parts[0] == "end_header":
+                break
+        if fmt != "binary_little_endian":
+            raise ValueError(f"{path}: only binary_little_endian PLY is supported, got {fmt!r}")
+        verts = albedo = faces = None
+        for name, count, props in elements:
+            if name == "vertex":
+                dt = np.dtype([(p, "<" + _PLY_TYPES[t]) for p, t in props])
+                data = np.frombuffer(fh.read(dt.itemsize * count), dtype=dt, count=count)
+                verts = np.column_stack([data["x"], data["y"], data["z"]]).astype(np.float64)
+                if "albedo" in data.dtype.names:
+                    albedo = data["albedo"].astype(np.float64)
+            elif name == "face":
+                (pname, ptype), = props
+                _, ctype, itype = ptype.split()
+                dt = np.dtype([("n", "<" + _PLY_TYPES[ctype]), ("i", "<" + _PLY_TYPES[itype], (3,))])
+                data = np.frombuffer(fh.read(dt.itemsize * count), dtype=dt, count=count)
+                if np.any(data["n"] != 3):
+                    raise ValueError(f"{path}: only triangle faces are supported")
+                faces = data["i"].astype(np.int64)
+            else:
+                raise ValueError(f"{path}: unsupported element {name!r}")
+    if verts is None or faces is None:
+        raise ValueError(f"{path}: missing vertex or face element")
+    return Mesh(verts, faces, albedo)
+
+
+def read_mesh(path: str | Path) -> Mesh:
+    """Read a mesh by file extension (.obj or .ply)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".obj":
+        return read_obj(path)
+    if suffix == ".ply":
+        return read_ply(path)
+    raise ValueError(f"{path}: unsupported mesh format {suffix!r} (use .obj or .ply)")

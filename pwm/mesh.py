@@ -1,0 +1,55 @@
+"""Triangle meshes in the body-fixed frame (km) with optional per-vertex albedo."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh.
+
+    vertices: (N, 3) float64, body-fixed frame, km.
+    faces: (M, 3) int64 vertex indices, counter-clockwise seen from outside.
+    albedo: (N,) float64 normal albedo per vertex, or None.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    albedo: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64)
+        if self.albedo is not None:
+            self.albedo = np.ascontiguousarray(self.albedo, dtype=np.float64)
+            if self.albedo.shape != (len(self.vertices),):
+                raise ValueError("albedo must have one value per vertex")
+
+    def face_normals(self) -> np.ndarray:
+        """Unit outward normals per face, (M, 3)."""
+        v = self.vertices[self.faces]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+    def vertex_normals(self) -> np.ndarray:
+        """Area-weighted unit normals per vertex, (N, 3)."""
+        v = self.vertices[self.faces]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        out = np.zeros_like(self.vertices)
+        for k in range(3):
+            np.add.at(out, self.faces[:, k], n)
+        return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+
+    def face_areas(self) -> np.ndarray:
+        """Area per face, km^2."""
+        v = self.vertices[self.faces]
+        return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+    def mean_edge_length(self) -> float:
+        """Mean edge length, km."""
+        v = self.vertices[self.faces]
+        e = np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2)
+        return float(e.mean())
