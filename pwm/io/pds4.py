@@ -1,0 +1,343 @@
+"""PDS4 image products: a FITS data file (primary header + 2-D array) with its XML label.
+
+Written as OSIRIS-REx OCAMS products are (Product_Observational, Header + Array_2D_Image in one
+FITS file); read back, with the data file checked against its label, through pds4_tools.
+Arrays are [line, sample]; physical value = dn * scaling_factor + value_offset.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pds4_tools
+from astropy.io import fits
+from pds4_tools.reader.data_types import pds_to_numpy_type
+
+PDS_NS = "http://pds.nasa.gov/pds4/pds/v1"
+IMG_NS = "http://pds.nasa.gov/pds4/img/v1"
+XSI_NS = "http://www.w3.org/2001/XMLSchema-instance"
+INFORMATION_MODEL = "1.14.0.0"  # schema files 1E00
+_SCHEMAS = {PDS_NS: "https://pds.nasa.gov/pds4/pds/v1/PDS4_PDS_1E00",
+            IMG_NS: "https://pds.nasa.gov/pds4/img/v1/PDS4_IMG_1E00_1800"}
+MISSING_DN = -32768  # stored value of saturated/missing pixels (FITS BLANK, PDS4 missing_constant)
+_FITS_STRUCTURAL = {"SIMPLE", "BITPIX", "NAXIS", "NAXIS1", "NAXIS2", "EXTEND", "BSCALE", "BZERO",
+                    "BLANK", "END"}
+_NS = {"pds": PDS_NS, "img": IMG_NS}
+_SECONDS = {"s": 1.0, "ms": 1e-3, "microseconds": 1e-6, "ns": 1e-9, "min": 60.0}  # PDS4 time units
+
+
+class ProductError(ValueError):
+    """A label or data file that cannot be ingested; `code` is short and machine-friendly."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True)
+class ImageProduct:
+    """One PDS4 2-D image: label metadata and the scaled array (float64 [line, sample], NaN where
+    the label's special constants flag a pixel). file_size (bytes) and md5 are as the label
+    declares them (None where it does not); they have been checked against the data file."""
+
+    lid: str
+    vid: str
+    title: str
+    start_utc: str
+    stop_utc: str
+    mission: str | None
+    host_name: str | None
+    instrument_name: str | None
+    target_name: str | None
+    target_type: str | None
+    exposure_s: float | None
+    data_path: Path
+    file_size: int | None
+    md5: str | None
+    lines: int
+    samples: int
+    data: np.ndarray
+    fits_header: dict[str, Any] | None
+
+
+def _digest(path: Path, algorithm: str) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, algorithm).hexdigest()
+
+
+def checksum_md5(path: Path) -> str:
+    """MD5 of a file as PDS4 md5_checksum gives it (lower-case hex), read in chunks."""
+    return _digest(path, "md5")
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file (lower-case hex), read in chunks."""
+    return _digest(path, "sha256")
+
+
+def _utc(stamp: str) -> str:
+    """ISO-8601 UTC time as PDS4 writes it, with a trailing Z."""
+    parsed = datetime.fromisoformat(stamp)
+    if parsed.utcoffset():  # None (naive, taken as UTC) and zero are both falsy
+        raise ValueError(f"time {stamp!r} is not UTC")
+    return stamp.removesuffix("Z").removesuffix("+00:00") + "Z"
+
+
+def _build(parent: ET.Element, items: list[tuple]) -> None:
+    """Add (tag, text or [children], optional unit) items under parent; ElementTree escapes."""
+    for tag, content, *unit in items:
+        element = ET.SubElement(parent, tag, {"unit": unit[0]} if unit else {})
+        if isinstance(content, list):
+            _build(element, content)
+        else:
+            element.text = str(content)
+
+
+def _label_text(body: list[tuple]) -> str:
+    # Namespaces are written as plain attributes so the label keeps the usual prefixes
+    # (default pds, img, xsi) without touching ElementTree's global prefix registry.
+    root = ET.Element("Product_Observational", {
+        "xmlns": PDS_NS, "xmlns:img": IMG_NS, "xmlns:xsi": XSI_NS,
+        "xsi:schemaLocation": " ".join(f"{ns} {base}.xsd" for ns, base in _SCHEMAS.items())})
+    _build(root, body)
+    ET.indent(root, space="    ")
+    models = [ET.ProcessingInstruction("xml-model", f'href="{base}.sch" '
+                                       'schematypens="http://purl.oclc.org/dsdl/schematron"')
+              for base in _SCHEMAS.values()]
+    return "\n".join(['<?xml version="1.0" encoding="UTF-8"?>',
+                      *(ET.tostring(e, encoding="unicode") for e in [*models, root]), ""])
+
+
+def _write_fits(path: Path, dn: np.ndarray, scaling_factor: float, value_offset: float,
+                cards: dict[str, Any]) -> int:
+    """Write the FITS file; return the primary header length in bytes."""
+    hdu = fits.PrimaryHDU(data=dn.astype(">i2"))
+    # Cards set after construction are written as given and the int16 array stays raw, so a
+    # FITS reader applying BSCALE/BZERO/BLANK sees the values the PDS4 label describes.
+    hdu.header["BSCALE"] = float(scaling_factor)
+    hdu.header["BZERO"] = float(value_offset)
+    hdu.header["BLANK"] = MISSING_DN
+    for key, value in cards.items():
+        hdu.header[key] = value
+    hdu.writeto(path)
+    with fits.open(path) as hdul:
+        return int(hdul[0].fileinfo()["datLoc"])
+
+
+def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scaling_factor: float,
+                        value_offset: float, lid: str, vid: str = "1.0", start_utc: str,
+                        stop_utc: str, mission: str, host_name: str, instrument_name: str,
+                        target_name: str, target_type: str = "Asteroid", title: str,
+                        exposure_s: float | None = None,
+                        extra_fits_header: dict | None = None) -> tuple[Path, Path]:
+    """Write basename.fits (int16 big-endian [line, sample] with BSCALE/BZERO = the PDS4 scaling,
+    BLANK = MISSING_DN) and its PDS4 label basename.xml. Times are UTC ISO-8601; exposure in s;
+    extra_fits_header values may be (value, comment) pairs. Existing files are never
+    overwritten. Returns (label_path, data_path)."""
+    dn = np.asarray(dn)
+    if dn.dtype != np.int16 or dn.ndim != 2:
+        raise ValueError(f"dn must be a 2-D int16 array, got {dn.ndim}-D {dn.dtype}")
+    if not np.isfinite(scaling_factor) or scaling_factor == 0 or not np.isfinite(value_offset):
+        raise ValueError("scaling_factor must be finite and non-zero, value_offset finite")
+    extra = dict(extra_fits_header or {})
+    if clash := _FITS_STRUCTURAL & {k.upper() for k in extra}:
+        raise ValueError(f"extra_fits_header may not set structural cards {sorted(clash)}")
+    if Path(basename).name != basename:
+        raise ValueError(f"basename {basename!r} must be a bare file name")
+    start, stop = _utc(start_utc), _utc(stop_utc)
+    label_path, data_path = (Path(directory) / f"{basename}.{ext}" for ext in ("xml", "fits"))
+    for path in (label_path, data_path):
+        if path.exists():
+            raise FileExistsError(f"{path} exists; a product is written once")
+
+    cards = {"DATE-OBS": start[:-1], "DATE-END": stop[:-1], "TELESCOP": host_name,
+             "INSTRUME": instrument_name, "TARGET": target_name}
+    discipline = []
+    if exposure_s is not None:
+        cards["EXPTIME"] = float(exposure_s)
+        discipline = [("Discipline_Area", [("img:Exposure", [
+            ("img:exposure_duration", repr(float(exposure_s)), "s")])])]
+    header_bytes = _write_fits(data_path, dn, scaling_factor, value_offset, cards | extra)
+    lines, samples = dn.shape
+    text = _label_text([
+        ("Identification_Area", [
+            ("logical_identifier", lid), ("version_id", vid), ("title", title),
+            ("information_model_version", INFORMATION_MODEL),
+            ("product_class", "Product_Observational")]),
+        ("Observation_Area", [
+            ("Time_Coordinates", [("start_date_time", start), ("stop_date_time", stop)]),
+            ("Investigation_Area", [("name", mission), ("type", "Mission")]),
+            ("Observing_System", [
+                ("Observing_System_Component", [("name", host_name), ("type", "Host")]),
+                ("Observing_System_Component", [("name", instrument_name),
+                                                ("type", "Instrument")])]),
+            ("Target_Identification", [("name", target_name), ("type", target_type)]),
+            *discipline]),
+        ("File_Area_Observational", [
+            ("File", [
+                ("file_name", data_path.name),
+                ("creation_date_time",
+                 datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")),
+                ("file_size", data_path.stat().st_size, "byte"),
+                ("md5_checksum", checksum_md5(data_path))]),
+            ("Header", [("offset", 0, "byte"), ("object_length", header_bytes, "byte"),
+                        ("parsing_standard_id", "FITS 3.0")]),
+            ("Array_2D_Image", [
+                ("offset", header_bytes, "byte"), ("axes", 2),
+                ("axis_index_order", "Last Index Fastest"),
+                ("Element_Array", [("data_type", "SignedMSB2"),
+                                   ("scaling_factor", repr(float(scaling_factor))),
+                                   ("value_offset", repr(float(value_offset)))]),
+                ("Axis_Array", [("axis_name", "Line"), ("elements", lines),
+                                ("sequence_number", 1)]),
+                ("Axis_Array", [("axis_name", "Sample"), ("elements", samples),
+                                ("sequence_number", 2)]),
+                ("Special_Constants", [("missing_constant", MISSING_DN)])])])])
+    with open(label_path, "x", encoding="utf-8") as fh:
+        fh.write(text)
+    return label_path, data_path
+
+
+def _text(node: ET.Element, path: str, required: bool = True) -> str | None:
+    found = node.find(path, _NS)
+    if found is None or found.text is None:
+        if required:
+            raise ProductError("missing_element", f"label lacks {path.replace('pds:', '')}")
+        return None
+    return found.text.strip()
+
+
+def _int(node: ET.Element, path: str, required: bool = True) -> int | None:
+    text = _text(node, path, required)
+    try:
+        return None if text is None else int(text)
+    except ValueError as exc:
+        raise ProductError("bad_value", f"{path} = {text!r} is not an integer") from exc
+
+
+def _component(obs: ET.Element, kinds: tuple[str, ...]) -> str | None:
+    for component in obs.iterfind("pds:Observing_System/pds:Observing_System_Component", _NS):
+        if _text(component, "pds:type", False) in kinds:
+            return _text(component, "pds:name", False)
+    return None
+
+
+def _check_file(data_path: Path, size: int | None, md5: str | None) -> None:
+    if not data_path.is_file():
+        raise ProductError("missing_file", f"data file {data_path} not found")
+    actual = data_path.stat().st_size
+    if size is not None and actual != size:
+        raise ProductError("size_mismatch", f"{data_path.name} is {actual} bytes, label says {size}"
+                           + (" (truncated)" if actual < size else ""))
+    if md5 is not None and checksum_md5(data_path) != md5.lower():
+        raise ProductError("md5_mismatch", f"{data_path.name} md5 differs from the label's {md5}")
+
+
+def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int) -> dict | None:
+    """Check the array fits in the data file and agrees with a FITS header; return that header."""
+    image = area.find("pds:Array_2D_Image", _NS)
+    data_type = _text(image, "pds:Element_Array/pds:data_type")
+    dtype = pds_to_numpy_type(data_type)  # unknown names come back as a zero-length string type
+    if dtype.kind not in "iufc":
+        raise ProductError("unsupported", f"array data_type {data_type!r} is not binary numeric")
+    end = _int(image, "pds:offset") + lines * samples * dtype.itemsize
+    if end > data_path.stat().st_size:
+        raise ProductError("bad_dimensions", f"{lines}x{samples} {data_type} array ends at byte "
+                           f"{end}, past the end of {data_path.name}")
+    header = area.find("pds:Header", _NS)
+    if header is None or "FITS" not in (_text(header, "pds:parsing_standard_id", False) or ""):
+        return None
+    offset, length = _int(header, "pds:offset"), _int(header, "pds:object_length")
+    with open(data_path, "rb") as fh:
+        fh.seek(offset)
+        raw = fh.read(length)
+    try:
+        cards = fits.Header.fromstring(raw.decode("ascii"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ProductError("bad_header", f"FITS header of {data_path.name} unreadable") from exc
+    if (cards.get("NAXIS2"), cards.get("NAXIS1")) != (lines, samples):
+        raise ProductError("bad_dimensions", f"label says {lines}x{samples}, FITS header says "
+                           f"{cards.get('NAXIS2')}x{cards.get('NAXIS1')}")
+    return {c.keyword: c.value for c in cards.cards if c.keyword not in ("", "COMMENT", "HISTORY")}
+
+
+def _read_array(label: Path, lines: int, samples: int) -> np.ndarray:
+    hook = sys.excepthook  # pds4_tools.read replaces the process-wide hook; put it back
+    try:
+        structures = pds4_tools.read(str(label), lazy_load=True, quiet=True)
+        image = next(s for s in structures if s.type == "Array_2D_Image")
+        data = np.ma.asarray(image.as_masked().data).astype(np.float64).filled(np.nan)
+    except Exception as exc:  # pds4_tools has no exception hierarchy of its own to catch
+        raise ProductError("unreadable", f"pds4_tools could not read {label.name}: {exc}") from exc
+    finally:
+        sys.excepthook = hook
+    if data.shape != (lines, samples):
+        raise ProductError("bad_dimensions", f"array read as {data.shape}, label says "
+                           f"{(lines, samples)}")
+    return data
+
+
+def read_image_product(label: Path) -> ImageProduct:
+    """Read a Product_Observational with one Array_2D_Image, verifying the data file's size and
+    md5 (where the label declares them) and the array extent before reading the array."""
+    label = Path(label)
+    try:
+        root = ET.parse(label).getroot()
+    except ET.ParseError as exc:
+        raise ProductError("malformed_xml", f"{label.name} is not well-formed XML: {exc}") from exc
+    kind = root.tag.rpartition("}")[2]
+    areas = [a for a in root if a.tag.rpartition("}")[2].startswith("File_Area")]
+    objects = sorted({o.tag.rpartition("}")[2] for a in areas for o in a} - {"File"})
+    images = [a for a in root.findall("pds:File_Area_Observational", _NS)
+              if a.find("pds:Array_2D_Image", _NS) is not None]
+    if kind != "Product_Observational" or not images:
+        what = f"{kind} with {', '.join(objects) or 'no data objects'}"
+        raise ProductError("not_image", f"{label.name} is a {what}, not a Product_Observational "
+                           "with an Array_2D_Image")
+    area = images[0]
+    if len(images) > 1 or len(area.findall("pds:Array_2D_Image", _NS)) > 1:
+        raise ProductError("unsupported", f"{label.name} holds more than one Array_2D_Image")
+    axes = sorted(area.findall("pds:Array_2D_Image/pds:Axis_Array", _NS),
+                  key=lambda a: _int(a, "pds:sequence_number"))
+    if [(_text(a, "pds:axis_name") or "").lower() for a in axes] != ["line", "sample"]:
+        raise ProductError("unsupported", f"{label.name}: axes are not Line, Sample")
+    lines, samples = (_int(a, "pds:elements") for a in axes)
+
+    file_name = _text(area, "pds:File/pds:file_name")
+    if Path(file_name).name != file_name:
+        raise ProductError("bad_file_name", f"file_name {file_name!r} is not a bare file name")
+    data_path = label.parent / file_name
+    size = _int(area, "pds:File/pds:file_size", False)
+    md5 = _text(area, "pds:File/pds:md5_checksum", False)
+    _check_file(data_path, size, md5)
+    fits_header = _check_array(area, data_path, lines, samples)
+    data = _read_array(label, lines, samples)
+
+    obs = root.find("pds:Observation_Area", _NS)
+    if obs is None:
+        raise ProductError("missing_element", f"{label.name} lacks Observation_Area")
+    exposure = obs.find(".//img:exposure_duration", _NS)
+    if exposure is not None and (unit := exposure.get("unit")) not in _SECONDS:
+        raise ProductError("unsupported", f"exposure_duration unit {unit!r}")
+    return ImageProduct(
+        lid=_text(root, "pds:Identification_Area/pds:logical_identifier"),
+        vid=_text(root, "pds:Identification_Area/pds:version_id"),
+        title=_text(root, "pds:Identification_Area/pds:title"),
+        start_utc=_text(obs, "pds:Time_Coordinates/pds:start_date_time"),
+        stop_utc=_text(obs, "pds:Time_Coordinates/pds:stop_date_time"),
+        mission=_text(obs, "pds:Investigation_Area/pds:name", False),
+        # older labels (IM < 1.9) call the host "Spacecraft"
+        host_name=_component(obs, ("Host", "Spacecraft")),
+        instrument_name=_component(obs, ("Instrument",)),
+        target_name=_text(obs, "pds:Target_Identification/pds:name", False),
+        target_type=_text(obs, "pds:Target_Identification/pds:type", False),
+        exposure_s=None if exposure is None else float(exposure.text) * _SECONDS[unit],
+        data_path=data_path, file_size=size, md5=md5,
+        lines=lines, samples=samples, data=data, fits_header=fits_header)

@@ -1,0 +1,132 @@
+"""Observation geometry read from the loaded SPICE kernel pool: camera, pose, Sun, coverage.
+
+Pure functions of the pool (load kernels with pwm.io.spice_kernels.kernel_pool). Positions in km,
+times in ET seconds. The instrument frame is taken as the camera frame of pwm.camera (+Z
+boresight, +X along samples, +Y along lines); an instrument whose image axes differ from its
+SPICE frame axes needs that permutation applied by whoever reads its images.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import spiceypy as sp
+
+from pwm.camera import Camera, Pose
+from pwm.io.spice_kernels import KernelError
+
+FOV_ROOM = 64  # boundary vectors getfov may return; camera FOVs have 4
+FOCAL_TOLERANCE = 0.02  # keyword focal length must match the FOV-derived one to 2 %
+MAX_BORESIGHT_TILT = np.radians(1.0)  # pwm.camera puts the boresight on +Z
+
+
+def spacecraft_of(instrument_id: int) -> int:
+    """NAIF spacecraft id of an instrument or spacecraft frame id (-64361 -> -64)."""
+    if instrument_id > -1000:
+        raise ValueError(f"{instrument_id} is not a NAIF instrument id (spacecraft * 1000 - n)")
+    return -(-instrument_id // 1000)
+
+
+def camera_from_kernel(instrument_id: int) -> Camera:
+    """Pinhole camera (pixels) from the instrument kernel of `instrument_id`.
+
+    Size from INS<id>_PIXEL_SAMPLES/LINES; principal point from INS<id>_CCD_CENTER (taken as
+    zero-based pixel-centre coordinates, as in the OCAMS IK) or the detector centre. The focal
+    length comes from the FOV corners, or from FOCAL_LENGTH / PIXEL_SIZE (or PIXEL_PITCH) when
+    both exist: their unit ratio is inferred as the power of 1000 that agrees with the FOV to 2 %
+    (KernelError if none does), and the keyword value is then used for its extra digits.
+    """
+    width = int(_keyword(instrument_id, "PIXEL_SAMPLES")[0])
+    height = int(_keyword(instrument_id, "PIXEL_LINES")[0])
+    center = _optional_keyword(instrument_id, "CCD_CENTER")
+    cx, cy = center[:2] if center is not None else ((width - 1) / 2, (height - 1) / 2)
+    fov_focal = _fov_focal(instrument_id, width, height)
+    focal = _keyword_focal(instrument_id, fov_focal)
+    fx, fy = focal if focal is not None else fov_focal
+    return Camera(width=width, height=height, fx=float(fx), fy=float(fy), cx=float(cx),
+                  cy=float(cy))
+
+
+def _optional_keyword(instrument_id: int, name: str) -> np.ndarray | None:
+    variable = f"INS{instrument_id}_{name}"
+    if not sp.expool(variable):
+        return None
+    return np.atleast_1d(sp.gdpool(variable, 0, sp.dtpool(variable)[0]))
+
+
+def _keyword(instrument_id: int, name: str) -> np.ndarray:
+    value = _optional_keyword(instrument_id, name)
+    if value is None:
+        raise KernelError(f"INS{instrument_id}_{name} is not in the kernel pool (IK loaded?)")
+    return value
+
+
+def _fov_focal(instrument_id: int, width: int, height: int) -> np.ndarray:
+    """(fx, fy) px putting the FOV edges on the detector edges (width/2 from the centre)."""
+    shape, frame, boresight, _, bounds = sp.getfov(instrument_id, FOV_ROOM)
+    if shape not in ("RECTANGLE", "POLYGON"):
+        raise KernelError(f"instrument {instrument_id}: FOV shape {shape} is not a camera's")
+    if np.arccos(np.clip(boresight[2] / np.linalg.norm(boresight), -1, 1)) > MAX_BORESIGHT_TILT:
+        raise KernelError(f"instrument {instrument_id}: boresight {boresight} is not +Z of {frame}")
+    tangents = np.abs(bounds[:, :2] / bounds[:, 2:3]).max(axis=0)
+    return np.array([width, height]) / 2 / tangents
+
+
+def _keyword_focal(instrument_id: int, fov_focal: np.ndarray) -> np.ndarray | None:
+    """(fx, fy) px from FOCAL_LENGTH and the pixel size, units inferred; None without them."""
+    length = _optional_keyword(instrument_id, "FOCAL_LENGTH")
+    pixel = _optional_keyword(instrument_id, "PIXEL_SIZE")
+    if pixel is None:
+        pixel = _optional_keyword(instrument_id, "PIXEL_PITCH")
+    if length is None or pixel is None:
+        return None
+    ratio = length[0] / np.resize(pixel, 2)
+    for unit_ratio in 1000.0 ** np.arange(-2, 3):  # m/m, mm/micron, m/mm, mm/m, ...
+        if np.all(np.abs(ratio * unit_ratio / fov_focal - 1) < FOCAL_TOLERANCE):
+            return ratio * unit_ratio
+    raise KernelError(
+        f"instrument {instrument_id}: FOCAL_LENGTH {length[0]} / pixel size {pixel} agrees with "
+        f"the FOV focal length {fov_focal} px in no unit ratio")
+
+
+def instrument_frame(instrument_id: int) -> str:
+    """Name of the frame the instrument's FOV is defined in."""
+    return sp.getfov(instrument_id, FOV_ROOM)[1]
+
+
+def camera_pose(*, et: float, instrument_id: int, target: str, body_frame: str) -> Pose:
+    """Pose at `et`: spacecraft position relative to `target` in `body_frame` (km, geometric, no
+    aberration correction) and the rotation `body_frame` -> instrument frame."""
+    position, _ = sp.spkpos(str(spacecraft_of(instrument_id)), et, body_frame, "NONE", target)
+    rotation = sp.pxform(body_frame, instrument_frame(instrument_id), et)
+    return Pose(position=np.asarray(position, dtype=float), rotation=np.asarray(rotation))
+
+
+def sun_direction(*, et: float, target: str, body_frame: str, abcorr: str = "LT+S") -> np.ndarray:
+    """Unit vector from `target` towards the Sun in `body_frame` at `et`.
+
+    'LT+S' (default) gives the apparent direction of the Sun as seen from the body at `et`: the
+    light arriving then left the Sun one light time earlier and is aberrated by the body's
+    motion, so this is the direction that illuminates the surface. 'NONE' gives the geometric one
+    (they differ by about 1e-4 rad).
+    """
+    position, _ = sp.spkpos("SUN", et, body_frame, abcorr, target)
+    return np.asarray(position) / np.linalg.norm(position)
+
+
+def coverage_spk(path: str | Path, body: int) -> list[tuple[float, float]]:
+    """Coverage windows (start, stop) ET of `body` in an SPK file."""
+    return _windows(sp.spkcov(str(path), body))
+
+
+def coverage_ck(path: str | Path, frame_id: int) -> list[tuple[float, float]]:
+    """Coverage windows (start, stop) ET of the interpolation intervals of `frame_id` in a CK file.
+
+    Needs the LSK and the SCLK kernel loaded.
+    """
+    return _windows(sp.ckcov(str(path), frame_id, False, "INTERVAL", 0.0, "TDB"))
+
+
+def _windows(cover) -> list[tuple[float, float]]:
+    return [tuple(sp.wnfetd(cover, i)) for i in range(sp.wncard(cover))]

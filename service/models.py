@@ -1,0 +1,537 @@
+"""The catalog schema: downlinks, kernels, instruments, images and their geometry, maplets,
+maplet revisions, model versions and jobs (SQLAlchemy 2.0 declarative, SQLite and PostgreSQL).
+
+Units are in column names (km, m, deg, px); positions are body-fixed (e.g. IAU_BENNU). Times
+are timezone-aware UTC datetimes, and ephemeris times (ET) are TDB seconds past J2000 as SPICE
+gives them. Enumerations are stored as VARCHAR with a CHECK constraint on both databases.
+"""
+
+from __future__ import annotations
+
+import enum
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    CheckConstraint,
+    Column,
+    DateTime,
+    Dialect,
+    Double,
+    ForeignKey,
+    MetaData,
+    String,
+    Table,
+    Text,
+    TypeDecorator,
+    UniqueConstraint,
+    event,
+    inspect,
+)
+from sqlalchemy import Enum as SAEnum
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
+
+# Explicit constraint names keep migrations identical on both databases and let Alembic's
+# SQLite batch mode find constraints again.
+NAMING_CONVENTION = {
+    "ix": "ix_%(table_name)s_%(column_0_N_name)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+ENUM_LENGTH = 16
+
+
+def utcnow() -> datetime:
+    """The current time, timezone-aware UTC."""
+    return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """Timezone-aware UTC datetimes on both databases; naive datetimes are refused.
+
+    SQLite keeps no zone, so values are converted to UTC before storage and marked UTC on load.
+    """
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError(f"naive datetime {value!r}: give a timezone (UTC)")
+        return value.astimezone(UTC)
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            return value.replace(tzinfo=UTC)
+        return value.astimezone(UTC)
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+    # float pinned to Double (64-bit on both databases), not left to the SQLAlchemy release.
+    type_annotation_map = {
+        float: Double(),
+        datetime: UTCDateTime(),
+        dict[str, Any]: JSON,
+        list[Any]: JSON,
+    }
+
+
+def _enum(cls: type[enum.StrEnum], name: str) -> SAEnum:
+    """A portable enumeration column type storing the members' values, checked by the database."""
+    return SAEnum(
+        cls,
+        name=name,
+        native_enum=False,
+        create_constraint=True,
+        length=ENUM_LENGTH,
+        validate_strings=True,
+        values_callable=lambda members: [m.value for m in members],
+    )
+
+
+class Acceptance(enum.StrEnum):
+    ACCEPTED = "accepted"
+    REJECTED = "rejected"
+
+
+class DownlinkStatus(enum.StrEnum):
+    RECEIVED = "received"
+    INGESTING = "ingesting"
+    INGESTED = "ingested"
+    FAILED = "failed"
+
+
+class KernelKind(enum.StrEnum):
+    LSK = "lsk"
+    PCK = "pck"
+    FK = "fk"
+    IK = "ik"
+    SCLK = "sclk"
+    SPK = "spk"
+    CK = "ck"
+    MK = "mk"
+    DSK = "dsk"
+
+
+class ImageStatus(enum.StrEnum):
+    ACCEPTED = "accepted"
+    REJECTED = "rejected"
+    # Same LIDVID delivered again with different content; the first copy stays authoritative.
+    CONFLICT = "conflict"
+
+
+class GeometryStatus(enum.StrEnum):
+    PENDING = "pending"
+    COMPUTED = "computed"
+    UNAVAILABLE = "unavailable"
+
+
+class CoverageRole(enum.StrEnum):
+    """The part an image plays in a maplet's image set (nadir plus four azimuths)."""
+
+    NADIR = "nadir"
+    EAST = "east"
+    WEST = "west"
+    NORTH = "north"
+    SOUTH = "south"
+
+
+class ModelKind(enum.StrEnum):
+    START = "start"
+    PHOTOGRAMMETRIC = "photogrammetric"
+    REFINED = "refined"
+    IMPORTED = "imported"
+
+
+class JobKind(enum.StrEnum):
+    INGEST = "ingest"
+    REFINE = "refine"
+    FUSE = "fuse"
+
+
+class JobStatus(enum.StrEnum):
+    QUEUED = "queued"
+    RUNNING = "running"
+    DONE = "done"
+    FAILED = "failed"
+
+
+class Downlink(Base):
+    """One delivery of PDS4 products and SPICE kernels."""
+
+    __tablename__ = "downlinks"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(255), unique=True)
+    path: Mapped[str] = mapped_column(Text)
+    received_at: Mapped[datetime] = mapped_column(default=utcnow)
+    status: Mapped[DownlinkStatus] = mapped_column(
+        _enum(DownlinkStatus, "downlink_status"), default=DownlinkStatus.RECEIVED
+    )
+    manifest_sha256: Mapped[str | None] = mapped_column(String(64))
+
+    kernels: Mapped[list[Kernel]] = relationship(back_populates="downlink")
+    images: Mapped[list[Image]] = relationship(back_populates="downlink")
+
+
+class Kernel(Base):
+    """A SPICE kernel file, catalogued once per content (sha256)."""
+
+    __tablename__ = "kernels"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    path: Mapped[str] = mapped_column(Text)
+    kind: Mapped[KernelKind] = mapped_column(_enum(KernelKind, "kernel_kind"))
+    sha256: Mapped[str] = mapped_column(String(64), unique=True)
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    status: Mapped[Acceptance] = mapped_column(_enum(Acceptance, "kernel_status"))
+    rejection_reason: Mapped[str | None] = mapped_column(Text)
+    downlink_id: Mapped[int | None] = mapped_column(
+        ForeignKey("downlinks.id", ondelete="SET NULL"), index=True
+    )
+
+    downlink: Mapped[Downlink | None] = relationship(back_populates="kernels")
+    coverage: Mapped[list[KernelCoverage]] = relationship(
+        back_populates="kernel", cascade="all, delete-orphan"
+    )
+
+
+class KernelCoverage(Base):
+    """A time window an SPK (body NAIF id) or CK (frame/instrument NAIF id) covers."""
+
+    __tablename__ = "kernel_coverage"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    kernel_id: Mapped[int] = mapped_column(ForeignKey("kernels.id", ondelete="CASCADE"), index=True)
+    naif_id: Mapped[int] = mapped_column(index=True)
+    start_et: Mapped[float]
+    stop_et: Mapped[float]
+    start_utc: Mapped[datetime]
+    stop_utc: Mapped[datetime]
+
+    kernel: Mapped[Kernel] = relationship(back_populates="coverage")
+
+    __table_args__ = (CheckConstraint("stop_et >= start_et", name="window_order"),)
+
+
+class Instrument(Base):
+    """A camera: pinhole intrinsics in pixels (pwm.camera.Camera) as derived from its kernels."""
+
+    __tablename__ = "instruments"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    naif_id: Mapped[int] = mapped_column(unique=True)
+    name: Mapped[str] = mapped_column(String(64))
+    spacecraft_id: Mapped[int]
+    frame_name: Mapped[str] = mapped_column(String(64))
+    width_px: Mapped[int]
+    height_px: Mapped[int]
+    fx_px: Mapped[float]
+    fy_px: Mapped[float]
+    cx_px: Mapped[float]
+    cy_px: Mapped[float]
+    # Which kernel keywords gave the focal length, and the units they were found in.
+    focal_length_source: Mapped[str] = mapped_column(String(64))
+    units_note: Mapped[str | None] = mapped_column(Text)
+
+    images: Mapped[list[Image]] = relationship(back_populates="instrument")
+
+
+class Image(Base):
+    """A PDS4 image product (label + data file) and its place in the pipeline."""
+
+    __tablename__ = "images"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    lidvid: Mapped[str] = mapped_column(String(255), unique=True)
+    lid: Mapped[str] = mapped_column(String(255), index=True)
+    vid: Mapped[str] = mapped_column(String(32))
+    label_path: Mapped[str] = mapped_column(Text)
+    data_path: Mapped[str] = mapped_column(Text)
+    md5: Mapped[str | None] = mapped_column(String(32))
+    sha256: Mapped[str] = mapped_column(String(64))
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    instrument_id: Mapped[int | None] = mapped_column(ForeignKey("instruments.id"), index=True)
+    target: Mapped[str | None] = mapped_column(String(64))
+    start_utc: Mapped[datetime | None] = mapped_column(index=True)
+    stop_utc: Mapped[datetime | None]
+    start_et: Mapped[float | None]
+    stop_et: Mapped[float | None]
+    status: Mapped[ImageStatus] = mapped_column(_enum(ImageStatus, "image_status"), index=True)
+    rejection_reason: Mapped[str | None] = mapped_column(Text)
+    geometry_status: Mapped[GeometryStatus] = mapped_column(
+        _enum(GeometryStatus, "geometry_status"), default=GeometryStatus.PENDING
+    )
+    geometry_unavailable_reason: Mapped[str | None] = mapped_column(Text)
+    downlink_id: Mapped[int | None] = mapped_column(
+        ForeignKey("downlinks.id", ondelete="SET NULL"), index=True
+    )
+    # Pose correction from bundle adjustment: camera position offset (body-fixed, km) and a
+    # small rotation vector (rad) applied on top of the SPICE body -> camera rotation.
+    pose_dx_km: Mapped[float | None]
+    pose_dy_km: Mapped[float | None]
+    pose_dz_km: Mapped[float | None]
+    pose_rx_rad: Mapped[float | None]
+    pose_ry_rad: Mapped[float | None]
+    pose_rz_rad: Mapped[float | None]
+    pose_corrected_at: Mapped[datetime | None]
+
+    instrument: Mapped[Instrument | None] = relationship(back_populates="images")
+    downlink: Mapped[Downlink | None] = relationship(back_populates="images")
+    geometry: Mapped[ImageGeometry | None] = relationship(
+        back_populates="image", cascade="all, delete-orphan"
+    )
+    coverage: Mapped[list[Coverage]] = relationship(
+        back_populates="image", cascade="all, delete-orphan"
+    )
+
+
+class ImageGeometry(Base):
+    """Viewing geometry of one image at mid-exposure, from SPICE, in the body-fixed frame."""
+
+    __tablename__ = "image_geometry"
+
+    image_id: Mapped[int] = mapped_column(
+        ForeignKey("images.id", ondelete="CASCADE"), primary_key=True
+    )
+    camera_x_km: Mapped[float]
+    camera_y_km: Mapped[float]
+    camera_z_km: Mapped[float]
+    # 3x3 rotation body-fixed -> camera, row-major (pwm.camera.Pose.rotation).
+    camera_rotation: Mapped[list[Any]]
+    sun_x: Mapped[float]
+    sun_y: Mapped[float]
+    sun_z: Mapped[float]
+    range_km: Mapped[float]
+    # Boresight quantities are null when the boresight misses the body.
+    pixel_scale_m: Mapped[float | None]
+    phase_deg: Mapped[float | None]
+    incidence_deg: Mapped[float | None]
+    emission_deg: Mapped[float | None]
+    intercept_lat_deg: Mapped[float | None]
+    intercept_lon_deg: Mapped[float | None]
+    # [[lat_deg, lon_deg], ...] of the image corners that hit the body.
+    footprint: Mapped[list[Any] | None]
+    body_frame: Mapped[str] = mapped_column(String(64))
+    abcorr: Mapped[str] = mapped_column(String(16))
+    computed_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    image: Mapped[Image] = relationship(back_populates="geometry")
+
+
+class Maplet(Base):
+    """A square surface patch with its local frame: Pl = rotation (P - origin), z along the
+    regional normal, x parallel to the equator."""
+
+    __tablename__ = "maplets"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    center_lat_deg: Mapped[float]
+    center_lon_deg: Mapped[float]
+    origin_x_km: Mapped[float]
+    origin_y_km: Mapped[float]
+    origin_z_km: Mapped[float]
+    # 3x3 rotation body-fixed -> local, row-major (rows x, y, z).
+    rotation: Mapped[list[Any]]
+    size_km: Mapped[float]
+    gsd_m: Mapped[float]
+    nodes_per_side: Mapped[int]
+    # w_PWM: lower for a weak image set, which holds the maplet closer to the starting shape.
+    region_weight: Mapped[float] = mapped_column(default=1.0)
+    # use_alter: maplets and maplet_revisions reference each other.
+    current_revision_id: Mapped[int | None] = mapped_column(
+        ForeignKey("maplet_revisions.id", ondelete="SET NULL", use_alter=True)
+    )
+
+    revisions: Mapped[list[MapletRevision]] = relationship(
+        back_populates="maplet",
+        foreign_keys="MapletRevision.maplet_id",
+        cascade="all, delete-orphan",
+        order_by="MapletRevision.revision",
+    )
+    current_revision: Mapped[MapletRevision | None] = relationship(
+        foreign_keys=[current_revision_id], post_update=True
+    )
+    coverage: Mapped[list[Coverage]] = relationship(
+        back_populates="maplet", cascade="all, delete-orphan"
+    )
+
+    __table_args__ = (CheckConstraint("region_weight > 0", name="region_weight_positive"),)
+
+
+class Coverage(Base):
+    """How one image sees one maplet, and its weight in that maplet's refinement."""
+
+    __tablename__ = "coverage"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    # The (image_id, maplet_id) unique index also serves lookups by image.
+    image_id: Mapped[int] = mapped_column(ForeignKey("images.id", ondelete="CASCADE"))
+    maplet_id: Mapped[int] = mapped_column(
+        ForeignKey("maplets.id", ondelete="CASCADE"), index=True
+    )
+    visible_fraction: Mapped[float]
+    shadowed_fraction: Mapped[float]
+    incidence_deg: Mapped[float]
+    emission_deg: Mapped[float]
+    phase_deg: Mapped[float]
+    sun_azimuth_deg: Mapped[float]
+    resolution_m_per_px: Mapped[float]
+    weight: Mapped[float]
+    role: Mapped[CoverageRole | None] = mapped_column(_enum(CoverageRole, "coverage_role"))
+
+    image: Mapped[Image] = relationship(back_populates="coverage")
+    maplet: Mapped[Maplet] = relationship(back_populates="coverage")
+
+    __table_args__ = (
+        UniqueConstraint("image_id", "maplet_id"),
+        CheckConstraint("visible_fraction BETWEEN 0 AND 1", name="visible_fraction_range"),
+        CheckConstraint("shadowed_fraction BETWEEN 0 AND 1", name="shadowed_fraction_range"),
+        CheckConstraint("weight >= 0", name="weight_nonnegative"),
+    )
+
+
+class MapletRevision(Base):
+    """One solved state of a maplet. input_hash identifies the image set and parameters, so the
+    same inputs are never solved twice."""
+
+    __tablename__ = "maplet_revisions"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    maplet_id: Mapped[int] = mapped_column(ForeignKey("maplets.id", ondelete="CASCADE"))
+    revision: Mapped[int]
+    input_hash: Mapped[str] = mapped_column(String(64))
+    mode: Mapped[str] = mapped_column(String(32))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    statistics: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    artifact_path: Mapped[str] = mapped_column(Text)
+    sha256: Mapped[str] = mapped_column(String(64))
+
+    maplet: Mapped[Maplet] = relationship(back_populates="revisions", foreign_keys=[maplet_id])
+
+    __table_args__ = (
+        UniqueConstraint("maplet_id", "revision"),
+        UniqueConstraint("maplet_id", "input_hash"),
+    )
+
+
+# Lineage of a model version: the maplet revisions it was fused from and the downlinks whose
+# data it contains.
+model_version_maplet_revisions = Table(
+    "model_version_maplet_revisions",
+    Base.metadata,
+    Column(
+        "model_version_id",
+        ForeignKey("model_versions.id", ondelete="CASCADE"),
+        primary_key=True,
+    ),
+    Column(
+        "maplet_revision_id",
+        ForeignKey("maplet_revisions.id", ondelete="RESTRICT"),
+        primary_key=True,
+    ),
+)
+
+model_version_downlinks = Table(
+    "model_version_downlinks",
+    Base.metadata,
+    Column(
+        "model_version_id",
+        ForeignKey("model_versions.id", ondelete="CASCADE"),
+        primary_key=True,
+    ),
+    Column("downlink_id", ForeignKey("downlinks.id", ondelete="RESTRICT"), primary_key=True),
+)
+
+
+class ModelVersion(Base):
+    """A published global shape model. Its content and lineage never change after it is
+    written; only the release flag and tag may be set later."""
+
+    __tablename__ = "model_versions"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    version: Mapped[int] = mapped_column(unique=True)
+    kind: Mapped[ModelKind] = mapped_column(_enum(ModelKind, "model_kind"))
+    parent_id: Mapped[int | None] = mapped_column(
+        ForeignKey("model_versions.id", ondelete="RESTRICT"), index=True
+    )
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    statistics: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    # {name: {"path": ..., "sha256": ...}} for the mesh and its companions.
+    artifacts: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    released: Mapped[bool] = mapped_column(Boolean, default=False)
+    release_tag: Mapped[str | None] = mapped_column(String(64), unique=True)
+
+    parent: Mapped[ModelVersion | None] = relationship(
+        back_populates="children", remote_side=[id]
+    )
+    children: Mapped[list[ModelVersion]] = relationship(back_populates="parent")
+    maplet_revisions: Mapped[list[MapletRevision]] = relationship(
+        secondary=model_version_maplet_revisions
+    )
+    downlinks: Mapped[list[Downlink]] = relationship(secondary=model_version_downlinks)
+
+
+MUTABLE_MODEL_VERSION_FIELDS = frozenset({"released", "release_tag", "children"})
+
+
+@event.listens_for(Session, "before_flush")
+def _refuse_model_version_edits(session: Session, _context: Any, _instances: Any) -> None:
+    """Refuse changes to a stored model version's content or lineage (flag and tag excepted)."""
+    for obj in session.dirty:
+        if not isinstance(obj, ModelVersion):
+            continue
+        state = inspect(obj)
+        changed = {a.key for a in state.attrs if a.history.has_changes()}
+        frozen = changed - MUTABLE_MODEL_VERSION_FIELDS
+        if frozen:
+            raise ValueError(
+                f"model version {obj.version} is immutable; refused changes to {sorted(frozen)}"
+            )
+
+
+class Job(Base):
+    """A unit of background work; `key` makes submission idempotent."""
+
+    __tablename__ = "jobs"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    kind: Mapped[JobKind] = mapped_column(_enum(JobKind, "job_kind"))
+    key: Mapped[str] = mapped_column(String(255), unique=True)
+    status: Mapped[JobStatus] = mapped_column(
+        _enum(JobStatus, "job_status"), default=JobStatus.QUEUED, index=True
+    )
+    attempts: Mapped[int] = mapped_column(default=0)
+    progress: Mapped[float] = mapped_column(default=0.0)
+    message: Mapped[str | None] = mapped_column(Text)
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+    downlink_id: Mapped[int | None] = mapped_column(
+        ForeignKey("downlinks.id", ondelete="SET NULL"), index=True
+    )
+    maplet_id: Mapped[int | None] = mapped_column(
+        ForeignKey("maplets.id", ondelete="SET NULL"), index=True
+    )
+
+    downlink: Mapped[Downlink | None] = relationship()
+    maplet: Mapped[Maplet | None] = relationship()
+
+    __table_args__ = (
+        CheckConstraint("progress BETWEEN 0 AND 1", name="progress_range"),
+        CheckConstraint("attempts >= 0", name="attempts_nonnegative"),
+    )
