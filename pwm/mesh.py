@@ -38,9 +38,10 @@ class Mesh:
         """Area-weighted unit normals per vertex, (N, 3)."""
         v = self.vertices[self.faces]
         n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-        out = np.zeros_like(self.vertices)
-        for k in range(3):
-            np.add.at(out, self.faces[:, k], n)
+        n_vert = len(self.vertices)
+        idx = self.faces.ravel()
+        # bincount is an order of magnitude faster than np.add.at on millions of faces
+        out = np.column_stack([np.bincount(idx, weights=np.repeat(n[:, c], 3), minlength=n_vert) for c in range(3)])
         return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
 
     def face_areas(self) -> np.ndarray:

@@ -7,6 +7,7 @@ kilometre-sized body. Callers offset ray origins off the surface (see `surface_o
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from embreex import rtcore_scene
@@ -33,7 +34,10 @@ class Hits:
 
 
 class RayTracer:
-    """An Embree scene over one mesh; thread-compatible but not shared across processes."""
+    """An Embree scene over one mesh; thread-compatible but not shared across processes.
+
+    The mesh must not change while the tracer lives: its normals and surface offset are cached.
+    """
 
     def __init__(self, mesh: Mesh) -> None:
         self.mesh = mesh
@@ -82,6 +86,19 @@ class RayTracer:
             )
             result[s:e] = out >= 0
         return result
+
+    @cached_property
+    def face_normals(self) -> np.ndarray:
+        return self.mesh.face_normals()
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        return self.mesh.vertex_normals()
+
+    @cached_property
+    def offset(self) -> float:
+        """Distance (km) to lift ray origins off this mesh's surface (see `surface_offset`)."""
+        return surface_offset(self.mesh)
 
     def hit_points(self, origins: np.ndarray, directions: np.ndarray, hits: Hits) -> np.ndarray:
         """Hit positions recomputed in float64 from the face and barycentrics (km), nan on miss."""

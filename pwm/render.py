@@ -12,7 +12,7 @@ import numpy as np
 
 from pwm.camera import Camera, Pose
 from pwm.photometry import angles, lunar_lambert
-from pwm.raytrace import RayTracer, surface_offset
+from pwm.raytrace import RayTracer
 
 
 @dataclass
@@ -52,14 +52,14 @@ def render(
 
     sun = np.asarray(sun_direction, float)
     sun = sun / np.linalg.norm(sun)
-    normals = tracer.interpolate(mesh.vertex_normals(), hits)[ok]
+    normals = tracer.interpolate(tracer.vertex_normals, hits)[ok]
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     p = points[ok]
     to_cam = -dirs[ok]
     mu0, mu, phase = angles(normals, np.broadcast_to(sun, p.shape), to_cam)
 
-    face_n = mesh.face_normals()[hits.face[ok]]
-    lift = surface_offset(mesh)
+    face_n = tracer.face_normals[hits.face[ok]]
+    lift = tracer.offset
     in_shadow = np.ones(len(p), dtype=bool)
     facing = (mu0 > 0) & (np.einsum("ij,j->i", face_n, sun) > -0.2)
     if facing.any():

@@ -254,6 +254,8 @@ class Image(Base):
     __tablename__ = "images"
 
     id: Mapped[int] = mapped_column(primary_key=True)
+    # A conflicting copy (status conflict) is stored as lidvid + "#" + its sha256's first 16 hex
+    # digits: the authoritative copy holds the LIDVID itself.
     lidvid: Mapped[str] = mapped_column(String(255), unique=True)
     lid: Mapped[str] = mapped_column(String(255), index=True)
     vid: Mapped[str] = mapped_column(String(32))
@@ -269,6 +271,9 @@ class Image(Base):
     start_et: Mapped[float | None]
     stop_et: Mapped[float | None]
     status: Mapped[ImageStatus] = mapped_column(_enum(ImageStatus, "image_status"), index=True)
+    # Short machine-friendly cause of a rejection (a pwm.io.pds4.ProductError code, or an ingest
+    # code such as unknown_instrument or outside_coverage); rejection_reason gives the detail.
+    rejection_code: Mapped[str | None] = mapped_column(String(32))
     rejection_reason: Mapped[str | None] = mapped_column(Text)
     geometry_status: Mapped[GeometryStatus] = mapped_column(
         _enum(GeometryStatus, "geometry_status"), default=GeometryStatus.PENDING
@@ -308,20 +313,25 @@ class ImageGeometry(Base):
     camera_x_km: Mapped[float]
     camera_y_km: Mapped[float]
     camera_z_km: Mapped[float]
-    # 3x3 rotation body-fixed -> camera, row-major (pwm.camera.Pose.rotation).
+    # 3x3 body-fixed -> image frame (+X sample, +Y line, +Z boresight), row-major, as
+    # pwm.camera.Pose.rotation; a mirror of the SPICE instrument frame for OCAMS.
     camera_rotation: Mapped[list[Any]]
     sun_x: Mapped[float]
     sun_y: Mapped[float]
     sun_z: Mapped[float]
+    # Camera to the body centre.
     range_km: Mapped[float]
     # Boresight quantities are null when the boresight misses the body.
+    intercept_range_km: Mapped[float | None]
     pixel_scale_m: Mapped[float | None]
     phase_deg: Mapped[float | None]
     incidence_deg: Mapped[float | None]
     emission_deg: Mapped[float | None]
     intercept_lat_deg: Mapped[float | None]
     intercept_lon_deg: Mapped[float | None]
-    # [[lat_deg, lon_deg], ...] of the image corners that hit the body.
+    # [lat_deg, lon_deg] of the four image corners (outer corners of the first and last pixels:
+    # first line first sample, first line last sample, last line last sample, last line first
+    # sample); null for a corner whose ray misses the body.
     footprint: Mapped[list[Any] | None]
     body_frame: Mapped[str] = mapped_column(String(64))
     abcorr: Mapped[str] = mapped_column(String(16))

@@ -58,6 +58,8 @@ class ImageProduct:
     target_name: str | None
     target_type: str | None
     exposure_s: float | None
+    first_line: int  # zero-based detector position of the array (img:Subframe), 0 for full frames
+    first_sample: int
     data_path: Path
     file_size: int | None
     md5: str | None
@@ -135,11 +137,12 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
                         value_offset: float, lid: str, vid: str = "1.0", start_utc: str,
                         stop_utc: str, mission: str, host_name: str, instrument_name: str,
                         target_name: str, target_type: str = "Asteroid", title: str,
-                        exposure_s: float | None = None,
+                        exposure_s: float | None = None, subframe: tuple[int, int] | None = None,
                         extra_fits_header: dict | None = None) -> tuple[Path, Path]:
     """Write basename.fits (int16 big-endian [line, sample] with BSCALE/BZERO = the PDS4 scaling,
     BLANK = MISSING_DN) and its PDS4 label basename.xml. Times are UTC ISO-8601; exposure in s;
-    extra_fits_header values may be (value, comment) pairs. Existing files are never
+    subframe: zero-based (first_line, first_sample) of a detector window, written as img:Subframe
+    (1-based, as PDS4 counts). extra_fits_header values may be (value, comment) pairs. Existing files are never
     overwritten. Returns (label_path, data_path)."""
     dn = np.asarray(dn)
     if dn.dtype != np.int16 or dn.ndim != 2:
@@ -159,13 +162,19 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
 
     cards = {"DATE-OBS": start[:-1], "DATE-END": stop[:-1], "TELESCOP": host_name,
              "INSTRUME": instrument_name, "TARGET": target_name}
-    discipline = []
+    lines, samples = dn.shape
+    imaging = []
     if exposure_s is not None:
         cards["EXPTIME"] = float(exposure_s)
-        discipline = [("Discipline_Area", [("img:Exposure", [
-            ("img:exposure_duration", repr(float(exposure_s)), "s")])])]
+        imaging.append(("img:Exposure", [("img:exposure_duration", repr(float(exposure_s)), "s")]))
+    if subframe is not None:
+        first_line, first_sample = (int(v) for v in subframe)
+        if first_line < 0 or first_sample < 0:
+            raise ValueError("subframe offsets are zero-based and non-negative")
+        imaging.append(("img:Subframe", [("img:first_line", first_line + 1), ("img:first_sample", first_sample + 1),
+                                         ("img:lines", lines), ("img:samples", samples)]))
+    discipline = [("Discipline_Area", imaging)] if imaging else []
     header_bytes = _write_fits(data_path, dn, scaling_factor, value_offset, cards | extra)
-    lines, samples = dn.shape
     text = _label_text([
         ("Identification_Area", [
             ("logical_identifier", lid), ("version_id", vid), ("title", title),
@@ -339,5 +348,20 @@ def read_image_product(label: Path) -> ImageProduct:
         target_name=_text(obs, "pds:Target_Identification/pds:name", False),
         target_type=_text(obs, "pds:Target_Identification/pds:type", False),
         exposure_s=None if exposure is None else float(exposure.text) * _SECONDS[unit],
+        first_line=_subframe_start(obs, "first_line"), first_sample=_subframe_start(obs, "first_sample"),
         data_path=data_path, file_size=size, md5=md5,
         lines=lines, samples=samples, data=data, fits_header=fits_header)
+
+
+def _subframe_start(obs: ET.Element, name: str) -> int:
+    """Zero-based detector offset from img:Subframe (1-based there), 0 without one."""
+    element = obs.find(f".//img:Subframe/img:{name}", _NS)
+    if element is None:
+        return 0
+    try:
+        value = int(element.text or "")
+    except ValueError:
+        raise ProductError("bad_value", f"img:{name} {element.text!r} is not an integer") from None
+    if value < 1:
+        raise ProductError("bad_value", f"img:{name} {value} is not a 1-based line/sample number")
+    return value - 1

@@ -1,9 +1,9 @@
 """Observation geometry read from the loaded SPICE kernel pool: camera, pose, Sun, coverage.
 
 Pure functions of the pool (load kernels with pwm.io.spice_kernels.kernel_pool). Positions in km,
-times in ET seconds. The instrument frame is taken as the camera frame of pwm.camera (+Z
-boresight, +X along samples, +Y along lines); an instrument whose image axes differ from its
-SPICE frame axes needs that permutation applied by whoever reads its images.
+times in ET seconds. Poses are returned in pwm.camera's image frame (+X along samples, +Y along
+lines, +Z boresight), which `image_axes` relates to the SPICE instrument frame: for OCAMS the
+sample axis is the instrument +Y, so the image frame is a mirror of the instrument frame.
 """
 
 from __future__ import annotations
@@ -95,11 +95,25 @@ def instrument_frame(instrument_id: int) -> str:
     return sp.getfov(instrument_id, FOV_ROOM)[1]
 
 
+def image_axes(instrument_id: int) -> np.ndarray:
+    """Rows: instrument-frame directions of increasing sample, increasing line, and boresight.
+
+    From the IK's INS<id>_SPOC_FITS_NAXIS1 and _NAXIS2 (sample and line directions, as OCAMS
+    kernels give them) when present, else the identity. For MapCam NAXIS1 = +Y and NAXIS2 = +X:
+    samples run along the instrument +Y axis and lines along +X (a mirror, determinant -1).
+    """
+    names = [f"INS{instrument_id}_SPOC_FITS_NAXIS{n}" for n in (1, 2)]
+    if not all(sp.expool(name) for name in names):
+        return np.eye(3)
+    sample, line = (np.asarray(sp.gdpool(name, 0, 3), dtype=float) for name in names)
+    return np.vstack([sample, line, [0.0, 0.0, 1.0]])
+
+
 def camera_pose(*, et: float, instrument_id: int, target: str, body_frame: str) -> Pose:
     """Pose at `et`: spacecraft position relative to `target` in `body_frame` (km, geometric, no
-    aberration correction) and the rotation `body_frame` -> instrument frame."""
+    aberration correction) and the rotation `body_frame` -> image frame (see `image_axes`)."""
     position, _ = sp.spkpos(str(spacecraft_of(instrument_id)), et, body_frame, "NONE", target)
-    rotation = sp.pxform(body_frame, instrument_frame(instrument_id), et)
+    rotation = image_axes(instrument_id) @ sp.pxform(body_frame, instrument_frame(instrument_id), et)
     return Pose(position=np.asarray(position, dtype=float), rotation=np.asarray(rotation))
 
 

@@ -1,0 +1,104 @@
+"""Evaluation figures written as PNG files (matplotlib's Agg canvas, no pyplot state)."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+
+def height_error_map(
+    path: str | os.PathLike[str],
+    x_km: np.ndarray,
+    y_km: np.ndarray,
+    error_m: np.ndarray,
+    *,
+    title: str,
+) -> None:
+    """Map of model minus truth height (m) on a site-frame grid: x_km (nx,), y_km (ny,) node
+    coordinates, error_m (ny, nx); nan where there is no model. Axes in metres, diverging colours
+    with limits symmetric about zero at the 99th percentile of |error|."""
+    error = np.ma.masked_invalid(np.asarray(error_m, float))
+    limit = float(np.percentile(np.abs(error.compressed()), 99)) if error.count() else 1.0
+    limit = limit if limit > 0 else 1.0
+    fig = _figure(6.0, 5.0)
+    ax = fig.add_subplot()
+    mesh = ax.pcolormesh(
+        np.asarray(x_km) * 1e3,
+        np.asarray(y_km) * 1e3,
+        error,
+        cmap="RdBu_r",
+        vmin=-limit,
+        vmax=limit,
+        shading="auto",
+    )
+    fig.colorbar(mesh, ax=ax, label="model - truth height (m)", extend="both")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x, site frame (m)")
+    ax.set_ylabel("y, site frame (m)")
+    ax.set_title(title)
+    fig.savefig(path, dpi=120)
+
+
+def profiles(
+    path: str | os.PathLike[str],
+    profiles: list[tuple[np.ndarray, np.ndarray, np.ndarray, str]],
+    *,
+    columns: int = 3,
+) -> None:
+    """Small multiples of height profiles: each (distance_m, truth_height_m, model_height_m,
+    label) in its own panel, truth and model on the same axes."""
+    columns = min(columns, max(len(profiles), 1))
+    rows = max(math.ceil(len(profiles) / columns), 1)
+    fig = _figure(4.0 * columns, 3.0 * rows)
+    for i, (distance, truth, model, label) in enumerate(profiles):
+        ax = fig.add_subplot(rows, columns, i + 1)
+        ax.plot(distance, truth, color="black", label="truth")
+        ax.plot(distance, model, color="tab:red", linestyle="--", label="model")
+        ax.set_title(label, fontsize="medium")
+        ax.set_xlabel("distance (m)")
+        ax.set_ylabel("height (m)")
+        if i == 0:
+            ax.legend(fontsize="small")
+    fig.savefig(path, dpi=120)
+
+
+def image_comparison(
+    path: str | os.PathLike[str],
+    truth_image: np.ndarray,
+    model_image: np.ndarray,
+    *,
+    title: str,
+) -> None:
+    """Truth and model images side by side on the same grey scale, and model minus truth."""
+    truth = np.asarray(truth_image, float)
+    model = np.asarray(model_image, float)
+    finite = truth[np.isfinite(truth)]
+    low, high = np.percentile(finite, [0.5, 99.5]) if finite.size else (0.0, 1.0)
+    difference = model - truth
+    finite_diff = np.abs(difference[np.isfinite(difference)])
+    limit = float(np.percentile(finite_diff, 99)) if finite_diff.size else 1.0
+    limit = limit if limit > 0 else 1.0
+    fig = _figure(13.0, 4.5)
+    panels = [
+        ("truth", truth, {"cmap": "gray", "vmin": low, "vmax": high}),
+        ("model", model, {"cmap": "gray", "vmin": low, "vmax": high}),
+        ("model - truth", difference, {"cmap": "RdBu_r", "vmin": -limit, "vmax": limit}),
+    ]
+    for i, (name, image, style) in enumerate(panels):
+        ax = fig.add_subplot(1, 3, i + 1)
+        shown = ax.imshow(image, interpolation="nearest", **style)
+        ax.set_title(name)
+        ax.set_axis_off()
+        fig.colorbar(shown, ax=ax, shrink=0.75)
+    fig.suptitle(title)
+    fig.savefig(path, dpi=120)
+
+
+def _figure(width_in: float, height_in: float) -> Figure:
+    fig = Figure(figsize=(width_in, height_in), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig

@@ -1,0 +1,286 @@
+"""Simulate a mission downlink from a truth asteroid: the orchestration, with all its file output.
+
+OUT/downlink/ holds what a real downlink holds (PDS4 products, SPICE kernels with a meta-kernel,
+a starting shape model, and a manifest written last); OUT/truth/ holds what only the proving
+ground knows (the truth model, the true kernels, held-out views, the manifest of true geometry).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import spiceypy as sp
+
+from pwm.camera import Camera, Pose
+from pwm.io.meshio import read_obj, write_obj
+from pwm.io.pds4 import file_sha256, write_image_product
+from pwm.io.spice_geometry import camera_from_kernel, camera_pose, instrument_frame, spacecraft_of, sun_direction
+from pwm.io.spice_kernels import CkSegment, SpkSegment, bundled_kernels, kernel_pool, write_ck, write_metakernel, write_spk
+from pwm.raytrace import RayTracer
+from pwm.render import render
+from pwm.simulate.detector import choose_exposure, to_dn
+from pwm.simulate.plan import Observation, local_sun, plan_global, plan_site, sun_states
+from pwm.simulate.scenarios import Scenario
+from pwm.simulate.truth import Truth, build_truth, low_pass, save as save_truth
+
+log = logging.getLogger(__name__)
+
+SUN, SSB = 10, 0
+SPACECRAFT_FRAME = -64000
+WINDOW_S = 60.0  # each image sits in the middle of a short observation window of the kernels
+FIXED_KERNELS = {  # bundled real kernels and the folder of the downlink they go in
+    "naif0012.tls": "lsk", "bennu_v16.tpc": "pck", "orx_v14.tf": "fk",
+    "orx_ocams_v07.ti": "ik", "orx_sclkscet_00065.tsc": "sclk",
+}
+MISSION, HOST = "OSIRIS-REx", "OSIRIS-REX"
+
+
+def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_error_m: float = 0.0, pointing_error_rad: float = 0.0) -> dict:
+    """Write OUT/downlink and OUT/truth for `scenario`; returns the truth manifest."""
+    out = Path(out)
+    downlink, truth_dir = out / "downlink", out / "truth"
+    for d in (downlink, truth_dir):
+        if d.exists():
+            shutil.rmtree(d)
+    rng = np.random.default_rng(seed)
+    clock = time.perf_counter()
+
+    fixed = _copy_fixed_kernels(downlink / "kernels")
+    base = read_obj(Path(__file__).resolve().parent.parent / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj")
+    log.info("building the truth asteroid (%s)", scenario.name)
+    truth = build_truth(
+        base=base, site_lat_deg=scenario.site_lat_deg, site_lon_deg=scenario.site_lon_deg,
+        site_size_km=scenario.site_size_km, resolution_km=scenario.truth_resolution_km, seed=seed,
+        base_edge_km=scenario.base_edge_km, global_roughness_km=scenario.global_roughness_km,
+        n_craters=scenario.n_craters, n_boulders=scenario.n_boulders, steep_boulders=scenario.steep_boulders,
+        cobble_cover=scenario.cobble_cover,
+    )
+    log.info("truth: %d vertices, %d faces (%.1f s)", len(truth.mesh.vertices), len(truth.mesh.faces), time.perf_counter() - clock)
+
+    with kernel_pool(fixed):
+        detector = camera_from_kernel(scenario.instrument_id)
+        camera, window = _readout(detector, scenario)
+        start_et = sp.str2et(scenario.start_utc)
+        campaign_s = scenario.campaign_days * 86400.0
+        sun_spk = downlink / "kernels" / "spk" / f"pwm_{scenario.name}_sun.bsp"
+        _write_sun(sun_spk, scenario=scenario, start_et=start_et, campaign_s=campaign_s)
+        sp.furnsh(str(sun_spk))
+        observations, validation = _plan(scenario, truth=truth, camera=detector, start_et=start_et, campaign_s=campaign_s, rng=rng)
+
+        true_kernels = _write_pose_kernels(truth_dir / "kernels", scenario=scenario, observations=observations + validation)
+        noisy = _perturb(observations, position_error_m=position_error_m, pointing_error_rad=pointing_error_rad, rng=rng)
+        downlink_kernels = _write_pose_kernels(downlink / "kernels", scenario=scenario, observations=noisy)
+
+    all_fixed = fixed + [sun_spk]
+    (downlink / "kernels" / "mk").mkdir(parents=True, exist_ok=True)
+    write_metakernel(downlink / "kernels" / "mk" / f"pwm_{scenario.name}.tm", kernels=all_fixed + downlink_kernels)
+    truth_mk = truth_dir / "kernels" / "truth.tm"
+    write_metakernel(truth_mk, kernels=all_fixed + true_kernels)
+
+    tracer = RayTracer(truth.mesh)
+    images = []
+    with kernel_pool([truth_mk]):
+        # Render from the pose read back through SPICE, so products and kernels agree.
+        for k, obs in enumerate(observations):
+            pose, sun = _geometry(obs.et, scenario)
+            view = render(tracer, camera=camera, pose=pose, sun_direction=sun)
+            images.append(_write_product(downlink / "images", obs=obs, view=view.reflectance, scenario=scenario, window=window, rng=rng))
+            images[-1].update(_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera))
+            log.info("image %d/%d %s rendered", k + 1, len(observations), obs.name)
+        held_out = []
+        for obs in validation:
+            pose, sun = _geometry(obs.et, scenario)
+            view = render(tracer, camera=camera, pose=pose, sun_direction=sun)
+            path = truth_dir / "validation" / f"{obs.name}.npz"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(path, reflectance=view.reflectance.astype(np.float32), hit=view.hit, shadow=view.shadow,
+                                in_site=_in_site(view.points, truth), position=pose.position, rotation=pose.rotation, sun=sun)
+            held_out.append({"name": obs.name, "file": f"validation/{obs.name}.npz", **_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera)})
+
+    # "Low-passed to ten GSD": vertices every 10 GSD, and an anti-aliasing filter that keeps
+    # half the amplitude at 30 GSD, so little remains at the 20 GSD Nyquist wavelength.
+    wavelength_km = 30.0 * scenario.gsd_km
+    write_obj(downlink / "start_model.obj", low_pass(truth, wavelength_km=wavelength_km, spacing_km=10.0 * scenario.gsd_km))
+    save_truth(truth, truth_dir)
+
+    manifest = {
+        "scenario": scenario.model_dump(mode="json"),
+        "seed": seed,
+        "gsd_m": scenario.gsd_km * 1e3,
+        "image_count": len(images),
+        "knowledge_error": {"position_m": position_error_m, "pointing_rad": pointing_error_rad},
+        "subframe": None if window is None else {"first_line": window[0], "first_sample": window[1]},
+        "camera": {"instrument_id": scenario.instrument_id, "width": camera.width, "height": camera.height,
+                   "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy},
+        "start_model": {"file": "downlink/start_model.obj", "low_pass_wavelength_m": wavelength_km * 1e3,
+                        "vertex_spacing_m": 10.0 * scenario.gsd_km * 1e3},
+        "images": images,
+        "validation": held_out,
+        "truth_kernels": "kernels/truth.tm",
+        "elapsed_s": round(time.perf_counter() - clock, 2),
+    }
+    (truth_dir / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    _write_downlink_manifest(downlink, scenario=scenario)
+    log.info("simulated %d images in %.1f s", len(images), time.perf_counter() - clock)
+    return manifest
+
+
+def _readout(detector: Camera, scenario: Scenario) -> tuple[Camera, tuple[int, int] | None]:
+    """The camera of the pixels read out, and the zero-based (first_line, first_sample) of the window."""
+    if scenario.subframe_px is None:
+        return detector, None
+    n = scenario.subframe_px
+    first_sample, first_line = int(round(detector.cx + 0.5 - n / 2)), int(round(detector.cy + 0.5 - n / 2))
+    return detector.subframe(first_sample=first_sample, first_line=first_line, samples=n, lines=n), (first_line, first_sample)
+
+
+def _copy_fixed_kernels(kernel_dir: Path) -> list[Path]:
+    bundled = bundled_kernels()
+    paths = []
+    for name, kind in FIXED_KERNELS.items():
+        dest = kernel_dir / kind / name
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(bundled[name], dest)
+        paths.append(dest)
+    return paths
+
+
+def _write_sun(path: Path, *, scenario: Scenario, start_et: float, campaign_s: float) -> None:
+    """Bennu relative to the Sun, and the Sun at the barycentre, as real kernel sets chain them."""
+    epochs = np.arange(start_et - 86400.0, start_et + campaign_s + 2 * 86400.0, 3600.0)
+    pole = sp.pxform(scenario.body_frame, "J2000", start_et) @ np.array([0.0, 0.0, 1.0])
+    sun = sun_states(epochs, pole=pole, subsolar_lat_deg=scenario.subsolar_lat_deg)
+    body = sp.bodn2c(scenario.target)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_spk(path, segments=[SpkSegment(body=body, center=SUN, epochs=epochs, states=-sun),
+                              SpkSegment(body=SUN, center=SSB, epochs=epochs, states=np.zeros_like(sun))])
+
+
+def _plan(scenario: Scenario, *, truth: Truth, camera: Camera, start_et: float, campaign_s: float, rng: np.random.Generator) -> tuple[list[Observation], list[Observation]]:
+    def sun(ets: np.ndarray) -> np.ndarray:
+        return np.array([sun_direction(et=float(t), target=scenario.target, body_frame=scenario.body_frame) for t in ets])
+
+    range_km = scenario.gsd_km * camera.fx
+    if scenario.global_views:
+        radius = float(np.linalg.norm(truth.mesh.vertices, axis=1).mean())
+        kw = dict(sun=sun, campaign_s=campaign_s, range_km=range_km + radius, phases_deg=scenario.incidences_deg, rng=rng)
+        return (plan_global(start_et=start_et, n=scenario.n_azimuths, prefix="img", **kw),
+                plan_global(start_et=start_et + 0.37 * 86400.0, n=scenario.n_validation, prefix="val", **kw))
+    views = [(0.0, 0.0)] * scenario.n_nadir + scenario.off_nadir_views()
+    kw = dict(frame=truth.site_frame, sun=sun, campaign_s=campaign_s, range_km=range_km, aim_scatter_km=scenario.pointing_scatter_km, rng=rng)
+    val_views = [(25.0, 45.0 + 360.0 * k / max(scenario.n_validation, 1)) for k in range(scenario.n_validation)]
+    val_inc = tuple(np.linspace(min(scenario.incidences_deg) + 5, max(scenario.incidences_deg) - 5, max(scenario.n_validation, 1)))
+    return (plan_site(start_et=start_et, views=views, incidences_deg=scenario.incidences_deg, prefix="img", **kw),
+            plan_site(start_et=start_et + 0.41 * 86400.0, views=val_views, incidences_deg=val_inc, prefix="val", **kw))
+
+
+def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, observations: list[Observation]) -> list[Path]:
+    """SPK of the spacecraft and CKs of the spacecraft and the camera mount, one window per image.
+
+    The spacecraft holds an inertial attitude and position through each short window, so the
+    kernels give exactly the planned pose at the image epoch.
+    """
+    sc = spacecraft_of(scenario.instrument_id)
+    body = sp.bodn2c(scenario.target)
+    order = sorted(observations, key=lambda o: o.et)
+    gaps = np.diff([o.et for o in order])
+    if (gaps <= 2 * WINDOW_S).any():
+        raise ValueError("two planned images are closer in time than their kernel windows")
+    spk_segments, epochs, rotations = [], [], []
+    for obs in order:
+        window = obs.et + np.array([-WINDOW_S, 0.0, WINDOW_S])
+        to_j2000 = sp.pxform(scenario.body_frame, "J2000", obs.et)
+        position = to_j2000 @ obs.position
+        states = np.tile(np.concatenate([position, np.zeros(3)]), (3, 1))
+        spk_segments.append(SpkSegment(body=sc, center=body, epochs=window, states=states))
+        epochs.append(window)
+        # camera == spacecraft attitude: the mount CK below is the identity
+        rotations.append(np.repeat((obs.rotation @ to_j2000.T)[None], 3, axis=0))
+    epochs_a = np.concatenate(epochs)
+    rot_a = np.concatenate(rotations)
+    name = f"pwm_{scenario.name}"
+    spk = kernel_dir / "spk" / f"{name}_sc.bsp"
+    ck_sc = kernel_dir / "ck" / f"{name}_sc.bc"
+    ck_mount = kernel_dir / "ck" / f"{name}_struct.bc"
+    for p in (spk, ck_sc, ck_mount):
+        p.parent.mkdir(parents=True, exist_ok=True)
+    write_spk(spk, segments=spk_segments)
+    sclk = sc
+    write_ck(ck_sc, segments=[CkSegment(frame_id=SPACECRAFT_FRAME, sclk_id=sclk, epochs=epochs_a, rotations=rot_a,
+                                        angular_velocities=np.zeros((len(epochs_a), 3)), interval_starts=[e[0] for e in epochs])])
+    span = np.array([epochs_a[0], epochs_a[-1]])
+    frame_id = sp.namfrm(instrument_frame(scenario.instrument_id))
+    write_ck(ck_mount, segments=[CkSegment(frame_id=frame_id, sclk_id=sclk, epochs=span, rotations=np.repeat(np.eye(3)[None], 2, axis=0),
+                                           angular_velocities=np.zeros((2, 3)), interval_starts=[span[0]], reference="ORX_SPACECRAFT")])
+    return [spk, ck_sc, ck_mount]
+
+
+def _perturb(observations: list[Observation], *, position_error_m: float, pointing_error_rad: float, rng: np.random.Generator) -> list[Observation]:
+    """Navigation knowledge: the true poses with Gaussian position (per axis) and pointing errors."""
+    from scipy.spatial.transform import Rotation
+
+    noisy = []
+    for obs in observations:
+        dpos = rng.normal(0.0, position_error_m * 1e-3, 3)
+        drot = Rotation.from_rotvec(rng.normal(0.0, pointing_error_rad, 3)).as_matrix()
+        noisy.append(Observation(obs.name, obs.et, obs.position + dpos, drot @ obs.rotation,
+                                 obs.emission_deg, obs.azimuth_deg, obs.target_incidence_deg))
+    return noisy
+
+
+def _geometry(et: float, scenario: Scenario) -> tuple[Pose, np.ndarray]:
+    pose = camera_pose(et=et, instrument_id=scenario.instrument_id, target=scenario.target, body_frame=scenario.body_frame)
+    return pose, sun_direction(et=et, target=scenario.target, body_frame=scenario.body_frame)
+
+
+def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scenario: Scenario, window: tuple[int, int] | None, rng: np.random.Generator) -> dict:
+    expected_max = max(float(np.percentile(view[view > 0], 99.9)) if (view > 0).any() else 0.05, 1e-4)
+    exposure = choose_exposure(expected_max, full_well_dn=scenario.full_well_dn, fill=scenario.exposure_fill, error=scenario.exposure_error, rng=rng)
+    dn = to_dn(view, exposure, full_well_dn=scenario.full_well_dn, gain_e_per_dn=scenario.gain_e_per_dn, read_noise_dn=scenario.read_noise_dn, rng=rng)
+    utc = sp.et2utc(obs.et, "ISOC", 3) + "Z"
+    stop = sp.et2utc(obs.et + 0.005, "ISOC", 3) + "Z"
+    basename = f"pwm_{scenario.name}_{obs.name}"
+    directory.mkdir(parents=True, exist_ok=True)
+    label, data = write_image_product(
+        directory=directory, basename=basename, dn=dn, scaling_factor=exposure.scaling, value_offset=0.0,
+        lid=f"urn:nasa:pds:pwm_sim:{scenario.name.replace('-', '_')}:{basename}", start_utc=utc, stop_utc=stop,
+        mission=MISSION, host_name=HOST, instrument_name=instrument_frame(scenario.instrument_id),
+        target_name=scenario.target.title(), title=f"Simulated {scenario.name} image {obs.name}", exposure_s=0.005, subframe=window,
+    )
+    return {"name": obs.name, "label": f"images/{label.name}", "data": f"images/{data.name}", "utc": utc, "et": obs.et,
+            "scaling": exposure.scaling, "true_gain": exposure.true_gain}
+
+
+def _true_geometry(obs: Observation, *, pose: Pose, sun: np.ndarray, truth: Truth, camera: Camera) -> dict:
+    """The geometry the proving ground knows: true pose, Sun, and angles at the site centre."""
+    frame = truth.site_frame
+    incidence, sun_az = local_sun(sun, frame)
+    to_cam = pose.position - frame.origin
+    rng_km = float(np.linalg.norm(to_cam))
+    emission = float(np.degrees(np.arccos(np.clip(to_cam @ frame.normal / rng_km, -1, 1))))
+    phase = float(np.degrees(np.arccos(np.clip(to_cam @ sun / rng_km, -1, 1))))
+    return {"position_km": pose.position.tolist(), "rotation": pose.rotation.tolist(), "sun_direction": sun.tolist(),
+            "site_incidence_deg": float(incidence), "site_sun_azimuth_deg": float(sun_az), "site_emission_deg": emission,
+            "site_phase_deg": phase, "site_range_km": rng_km, "site_gsd_m": rng_km / camera.fx * 1e3}
+
+
+def _in_site(points: np.ndarray, truth: Truth) -> np.ndarray:
+    """Pixels whose surface point lies in the evaluation disc (False off the body)."""
+    flat = points.reshape(-1, 3)
+    ok = np.isfinite(flat[:, 0])
+    inside = np.zeros(len(flat), dtype=bool)
+    local = truth.site_frame.to_local(flat[ok])
+    inside[ok] = np.hypot(local[:, 0], local[:, 1]) <= truth.eval_radius_km
+    return inside.reshape(points.shape[:2])
+
+
+def _write_downlink_manifest(downlink: Path, *, scenario: Scenario) -> None:
+    """List every file with its checksum; written last, so its presence marks the downlink complete."""
+    files = sorted(p for p in downlink.rglob("*") if p.is_file())
+    entries = [{"path": p.relative_to(downlink).as_posix(), "bytes": p.stat().st_size, "sha256": file_sha256(p)} for p in files]
+    (downlink / "manifest.json").write_text(json.dumps({"scenario": scenario.name, "files": entries}, indent=1))

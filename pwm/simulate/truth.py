@@ -1,0 +1,418 @@
+"""The truth asteroid of the proving ground: a real shape with a synthetic high-resolution site.
+
+The base body is a shape model (e.g. the Bennu radar model) loop-subdivided to a target edge,
+with optional global fractal roughness and a fractal albedo. At the site, a height-field patch on
+a regular grid of the site's local frame (pwm.frames) carries roughness, craters, boulders and
+albedo patches; it is blended into the base over a margin and stitched into the body mesh.
+Simulated images are rendered from `Truth.mesh`; models are measured against it. Units: km.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+from trimesh.remesh import subdivide_loop
+
+from pwm.frames import LocalFrame, latlon_to_unit, local_frame
+from pwm.io.meshio import read_ply, write_ply
+from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
+from pwm.simulate.terrain import (
+    Boulder, Crater, albedo_patches, boulder_relief, cobble_relief, crater_relief, fractal_grid, gaussian_sigma_km,
+    plane_waves, sample_boulders, sample_craters,
+)
+
+BENNU_ALBEDO = 0.044
+"""Normal albedo of Bennu (Lauretta et al. 2019)."""
+
+GLOBAL_ALBEDO_LOG_RMS = 0.15
+SITE_ALBEDO_LOG_RMS = 0.10
+SITE_ROUGHNESS_KM = 3e-5
+"""RMS of the site's fractal roughness (3 cm over wavelengths up to the site size)."""
+
+GLOBAL_WAVELENGTHS_KM = (2e-4, 1.0)
+"""Wavelength band of the global roughness and albedo waves; fixed so that a field does not depend
+on the base resolution (waves below 4 base edges are filtered out at evaluation)."""
+
+RESOLVED_NODES = 4
+"""Shortest wavelength of any fractal detail, in grid spacings or mean base edges."""
+
+_STREAMS = {"roughness": 1, "albedo": 2, "site_roughness": 3, "site_albedo": 4, "craters": 5,
+            "boulders": 6, "patches": 7, "cobbles": 8}
+
+
+def _rng(seed: int, stream: str) -> np.random.Generator:
+    """Independent generator per component, so adding craters leaves the roughness unchanged."""
+    return np.random.default_rng([seed, _STREAMS[stream]])
+
+
+@dataclass
+class Truth:
+    """The truth asteroid.
+
+    mesh: body mesh with per-vertex albedo (body-fixed, km): base vertices and faces first
+    (n_base_vertices, n_base_faces), then the site patch, one vertex per grid node in row-major
+    order and two faces per grid cell.
+    site_frame: local frame at the site (origin on the base surface, z regional normal, x east).
+    x_km, y_km: patch grid axes in the site frame; height_km: (len(y), len(x)) heights along z.
+    eval_radius_km: the evaluation region is the disc of this radius about the site origin,
+    inscribed in the site square where the detail has full weight.
+    zero_band_km: width of the patch border where the detail is zero (the patch lies on the base);
+    the detail then ramps up to full weight at the edge of the site square.
+    craters, boulders: the features placed, in site-frame coordinates.
+    params: the build_truth arguments other than the base shape, for provenance.
+    """
+
+    mesh: Mesh
+    site_frame: LocalFrame
+    site_size_km: float
+    x_km: np.ndarray
+    y_km: np.ndarray
+    height_km: np.ndarray
+    eval_radius_km: float
+    zero_band_km: float
+    craters: list[Crater]
+    boulders: list[Boulder]
+    n_base_vertices: int
+    n_base_faces: int
+    params: dict = field(default_factory=dict)
+
+    @property
+    def resolution_km(self) -> float:
+        return float(self.x_km[1] - self.x_km[0])
+
+    @property
+    def albedo_grid(self) -> np.ndarray:
+        """Patch albedo per grid node, (len(y), len(x)) (a view into the mesh albedo)."""
+        return self.mesh.albedo[self.n_base_vertices :].reshape(self.height_km.shape)
+
+    def blend_weight(self) -> np.ndarray:
+        """Weight of the detail per grid node: 0 in the zero band, 1 in the site square."""
+        return _blend_weight(self.x_km, self.y_km, self.zero_band_km, self.site_size_km)
+
+    def base_mesh(self) -> Mesh:
+        """The base body with the hole under the patch (km, with albedo)."""
+        return Mesh(self.mesh.vertices[: self.n_base_vertices], self.mesh.faces[: self.n_base_faces],
+                    self.mesh.albedo[: self.n_base_vertices])
+
+
+def build_base(
+    base: Mesh, *, base_edge_km: float, seed: int, global_roughness_km: float = 0.0,
+    low_pass_km: float | None = None,
+) -> Mesh:
+    """The base body: `base` loop-subdivided until its mean edge is at most base_edge_km, displaced
+    radially by fractal roughness of RMS global_roughness_km, with a fractal albedo about Bennu's.
+
+    low_pass_km: Gaussian cut-off wavelength applied to the roughness, for a smoothed copy of the
+    same body (same seed) to start a global model from.
+    """
+    v, f = base.vertices, base.faces
+    edge = base.mean_edge_length()
+    # each level halves the edges; measuring them only once keeps fine bodies cheap
+    while edge > base_edge_km:
+        levels = max(1, int(np.ceil(np.log2(edge / base_edge_km) - 1e-3)))
+        v, f = subdivide_loop(v, f, iterations=levels)
+        edge = Mesh(v, f).mean_edge_length()
+    lo, hi = GLOBAL_WAVELENGTHS_KM
+    resolved = RESOLVED_NODES * edge
+    albedo = BENNU_ALBEDO * np.exp(GLOBAL_ALBEDO_LOG_RMS * plane_waves(
+        _rng(seed, "albedo"), wavelength_min_km=lo, wavelength_max_km=hi)(v, cutoff_km=resolved))
+    if global_roughness_km > 0:
+        cutoff = max(resolved, low_pass_km or 0.0)
+        h = global_roughness_km * plane_waves(_rng(seed, "roughness"), wavelength_min_km=lo,
+                                              wavelength_max_km=hi)(v, cutoff_km=cutoff)
+        v = v + h[:, None] * (v / np.linalg.norm(v, axis=1, keepdims=True))
+    return Mesh(v, f, albedo)
+
+
+def _faces_where(mesh: Mesh, vertex_mask: np.ndarray) -> Mesh:
+    """The faces with a vertex in vertex_mask, over all the vertices (for a small ray-tracing scene)."""
+    return Mesh(mesh.vertices, mesh.faces[vertex_mask[mesh.faces].any(axis=1)], mesh.albedo)
+
+
+def site_frame(mesh: Mesh, *, lat_deg: float, lon_deg: float, radius_km: float, max_edge_km: float) -> LocalFrame:
+    """Local frame at the site: origin where the ray from far outside towards the centre along
+    (lat, lon) first meets the surface; z the area-weighted mean normal of the faces with a vertex
+    within radius_km of it (or of one facet, if larger); x parallel to the equator.
+    max_edge_km: bound on the facet size."""
+    u = latlon_to_unit(lat_deg, lon_deg)
+    v = mesh.vertices
+    # only faces with a vertex within one facet of the ray line can meet it
+    along = v @ u
+    line = _faces_where(mesh, (along > 0) & (np.linalg.norm(v - along[:, None] * u, axis=1) <= max_edge_km))
+    far = 4.0 * float(along.max())
+    tracer = RayTracer(line)
+    hits = tracer.intersect(far * u[None], -u[None])
+    if not hits.hit[0]:
+        raise ValueError(f"no surface along latitude {lat_deg}, longitude {lon_deg}")
+    # back onto the ray line, which float32 hits miss by micrometres, so the site is exactly at (lat, lon)
+    origin = u * (tracer.hit_points(far * u[None], -u[None], hits)[0] @ u)
+    t = v[_faces_where(mesh, np.linalg.norm(v - origin, axis=1) <= max(radius_km, max_edge_km)).faces]
+    normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]).sum(axis=0)
+    return local_frame(origin, normal)
+
+
+def _edge_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(M, 3) undirected edge ids, edge k joining corners k and k+1."""
+    a = faces
+    b = np.roll(faces, -1, axis=1)
+    return np.minimum(a, b) * n_vertices + np.maximum(a, b)
+
+
+def _split(mesh: Mesh, red: np.ndarray) -> Mesh:
+    """One red-green refinement step: `red` faces split 1-to-4 at edge midpoints; faces left with
+    one split edge split 1-to-2, faces with more become red. Midpoints lie on the old facets, so
+    the surface is unchanged and stays conforming (no T-junctions)."""
+    n = len(mesh.vertices)
+    keys = _edge_keys(mesh.faces, n)
+    uniq, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(keys.shape)
+    red = red.copy()
+    while True:
+        split_edge = np.zeros(len(uniq), dtype=bool)
+        split_edge[inv[red]] = True
+        count = split_edge[inv].sum(axis=1)
+        grown = red | (count >= 2)
+        if np.array_equal(grown, red):
+            break
+        red = grown
+    green = ~red & (count == 1)
+    ends = np.stack([uniq // n, uniq % n], axis=1)[split_edge]
+    mid_id = np.full(len(uniq), -1, dtype=np.int64)
+    mid_id[split_edge] = n + np.arange(split_edge.sum())
+    vertices = np.vstack([mesh.vertices, 0.5 * (mesh.vertices[ends[:, 0]] + mesh.vertices[ends[:, 1]])])
+    albedo = None
+    if mesh.albedo is not None:
+        albedo = np.concatenate([mesh.albedo, 0.5 * (mesh.albedo[ends[:, 0]] + mesh.albedo[ends[:, 1]])])
+    f, m = mesh.faces[red], mid_id[inv[red]]
+    a, b, c = f.T
+    ab, bc, ca = m.T
+    children = [np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
+    f, m = mesh.faces[green], mid_id[inv[green]]
+    k = np.argmax(m >= 0, axis=1)
+    rows = np.arange(len(f))
+    p, q, o, mid = f[rows, k], f[rows, (k + 1) % 3], f[rows, (k + 2) % 3], m[rows, k]
+    children += [np.stack([p, mid, o], axis=1), np.stack([mid, q, o], axis=1)]
+    faces = np.vstack([mesh.faces[~red & ~green]] + children)
+    return Mesh(vertices, faces, albedo)
+
+
+def _refine_near(mesh: Mesh, centre: np.ndarray, radius_km: float, max_edge_km: float) -> Mesh:
+    """Refine the faces with a vertex within radius_km of centre (plus a ring of their largest
+    edge) until none of them has an edge longer than max_edge_km; the surface is unchanged."""
+    while True:
+        dist = np.linalg.norm(mesh.vertices - centre, axis=1)[mesh.faces].min(axis=1)
+        reach = radius_km + _longest_edges(mesh, dist <= radius_km).max()
+        near = dist <= reach
+        longest = _longest_edges(mesh, near)
+        if longest.max() <= max_edge_km:
+            return mesh
+        red = np.zeros(len(mesh.faces), dtype=bool)
+        red[near] = longest > 0.5 * max_edge_km
+        mesh = _split(mesh, red)
+
+
+def _longest_edges(mesh: Mesh, face_mask: np.ndarray) -> np.ndarray:
+    """Longest edge (km) of each face in face_mask."""
+    tri = mesh.vertices[mesh.faces[face_mask]]
+    return np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+
+
+def _blend_weight(x_km: np.ndarray, y_km: np.ndarray, zero_band_km: float, site_size_km: float) -> np.ndarray:
+    """C2 ramp from 0 (within zero_band_km of the patch edge) to 1 (inside the site square)."""
+    half = x_km[-1]
+    depth = half - np.maximum(np.abs(x_km)[None, :], np.abs(y_km)[:, None])
+    t = np.clip((depth - zero_band_km) / (half - site_size_km / 2 - zero_band_km), 0.0, 1.0)
+    return t**3 * (10 - 15 * t + 6 * t**2)
+
+
+def _grid_faces(ny: int, nx: int) -> np.ndarray:
+    """Two triangles per grid cell, counter-clockwise seen from local +z (outside)."""
+    corner = np.arange(ny * nx, dtype=np.int64).reshape(ny, nx)[:-1, :-1]
+    faces = np.empty((ny - 1, nx - 1, 2, 3), dtype=np.int64)
+    for k, offset in enumerate((0, 1, nx + 1, 0, nx + 1, nx)):
+        faces[:, :, k // 3, k % 3] = corner + offset
+    return faces.reshape(-1, 3)
+
+
+def _grid_vertices(frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray, height_km: np.ndarray) -> np.ndarray:
+    """Body-fixed positions (km) of the grid nodes, row-major: `frame.to_body` done axis by axis,
+    because a BLAS product with an inner size of 3 is several times slower on millions of nodes."""
+    ex, ey, ez = frame.rotation
+    body = frame.origin + (x_km[None, :, None] * ex + y_km[:, None, None] * ey)
+    body += height_km[..., None] * ez
+    return body.reshape(-1, 3)
+
+
+def _drape(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray, *, max_edge_km: float,
+           rows_per_chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Height along the frame's z (km) and interpolated albedo of the surface under each grid
+    node: the first hit of a ray cast along -z from above the highest vertex near the patch.
+    max_edge_km: bound on the facet size, to keep only the faces that can lie under the grid."""
+    half = max(abs(x_km[0]), abs(x_km[-1]), abs(y_km[0]), abs(y_km[-1]))
+    local = frame.to_local(mesh.vertices)
+    near = np.all(np.abs(local) <= 2 * half + max_edge_km, axis=1)
+    top = local[near, 2].max() + half
+    tracer = RayTracer(_faces_where(mesh, near))
+    height = np.empty((len(y_km), len(x_km)))
+    albedo = np.empty_like(height)
+    down = np.broadcast_to(-frame.normal, (rows_per_chunk * len(x_km), 3))
+    for i0 in range(0, len(y_km), rows_per_chunk):
+        ys = y_km[i0 : i0 + rows_per_chunk]
+        origins = _grid_vertices(frame, x_km, ys, np.full((len(ys), len(x_km)), top))
+        hits = tracer.intersect(origins, down[: len(origins)])
+        if not hits.hit.all():
+            raise ValueError("the site patch overhangs the edge of the body: choose a smaller site")
+        height[i0 : i0 + len(ys)] = (top - hits.t).reshape(len(ys), -1)
+        albedo[i0 : i0 + len(ys)] = tracer.interpolate(mesh.albedo, hits).reshape(len(ys), -1)
+    return height, albedo
+
+
+def _cut(base: Mesh, frame: LocalFrame, half_km: float) -> tuple[Mesh, float]:
+    """Remove the base faces that lie wholly over the patch square (near side only) and drop the
+    vertices left unused. Returns the cut base and a bound on how far (km) the remaining faces
+    reach inside the square from its edge."""
+    local = frame.to_local(base.vertices)
+    depth = half_km - np.maximum(np.abs(local[:, 0]), np.abs(local[:, 1]))
+    near_side = np.abs(local[:, 2]) < half_km
+    removed = ((depth >= 0) & near_side)[base.faces].all(axis=1)
+    kept = ~removed & near_side[base.faces].all(axis=1)
+    # depth is 1-Lipschitz, so no point of a face lies deeper than any of its corners plus its longest edge
+    reach = float(np.max(depth[base.faces[kept]].min(axis=1) + _longest_edges(base, kept), initial=0.0))
+    faces = base.faces[~removed]
+    used = np.zeros(len(base.vertices), dtype=bool)
+    used[faces] = True
+    new_id = np.cumsum(used) - 1
+    return Mesh(base.vertices[used], new_id[faces], base.albedo[used]), reach
+
+
+def _site_detail(seed: int, axis_km: np.ndarray, site_size_km: float, craters: list[Crater],
+                 boulders: list[Boulder], cobble_cover: float) -> tuple[np.ndarray, np.ndarray]:
+    """Relief along z (km) and log-albedo of the site on the square grid with this axis."""
+    shape = (len(axis_km), len(axis_km))
+    spacing = float(axis_km[1] - axis_km[0])
+    band = dict(shape=shape, spacing_km=spacing, wavelength_min_km=RESOLVED_NODES * spacing,
+                wavelength_max_km=site_size_km)
+    relief, log_albedo = boulder_relief(axis_km, axis_km, boulders)
+    relief += crater_relief(axis_km, axis_km, craters)
+    if cobble_cover > 0:
+        relief += cobble_relief(_rng(seed, "cobbles"), axis_km, axis_km, cover=cobble_cover,
+                                site_size_km=site_size_km, resolution_km=spacing)
+    relief += SITE_ROUGHNESS_KM * fractal_grid(_rng(seed, "site_roughness"), **band)
+    log_albedo += SITE_ALBEDO_LOG_RMS * fractal_grid(_rng(seed, "site_albedo"), **band)
+    log_albedo += albedo_patches(_rng(seed, "patches"), axis_km, axis_km, site_size_km=site_size_km)
+    return relief, log_albedo
+
+
+def build_truth(
+    *, base: Mesh, site_lat_deg: float, site_lon_deg: float, site_size_km: float, resolution_km: float,
+    seed: int, base_edge_km: float, global_roughness_km: float = 0.0, n_craters: int, n_boulders: int,
+    steep_boulders: int, cobble_cover: float = 0.0, margin_km: float | None = None,
+) -> Truth:
+    """Build the truth asteroid (see the module docstring). Lengths in km, angles in degrees.
+
+    base: the input shape (km); the site is the square of side site_size_km centred at the
+    planetocentric (lat, lon), sampled every resolution_km over the site plus margin_km per side
+    (default a quarter of the site size) where the detail blends into the base. Deterministic for
+    a given seed. steep_boulders of the n_boulders have side slopes above 60 degrees;
+    cobble_cover is the fraction of the site strewn with sub-metre rocks.
+    """
+    margin = 0.25 * site_size_km if margin_km is None else margin_km
+    body = build_base(base, base_edge_km=base_edge_km, seed=seed, global_roughness_km=global_roughness_km)
+    max_edge = _longest_edges(body, np.ones(len(body.faces), dtype=bool)).max()
+    frame = site_frame(body, lat_deg=site_lat_deg, lon_deg=site_lon_deg, radius_km=site_size_km / 2,
+                       max_edge_km=max_edge)
+
+    n = int(np.ceil((site_size_km / 2 + margin) / resolution_km - 1e-9))
+    axis = np.arange(-n, n + 1) * resolution_km
+    half = float(axis[-1])
+    ground, ground_albedo = _drape(body, frame, axis, axis, max_edge_km=max_edge)
+
+    # The patch replaces the base faces lying wholly over it; base faces crossing its border stay
+    # and overlap it by at most their size. The detail is zero over that overlap, so there the
+    # patch lies on those faces within the error of sampling their creases (about 1 mm at 5 cm
+    # spacing): no gap and no visible seam, at the price of a thin doubly covered band outside the
+    # site. Clipping base triangles against the grid would avoid the overlap but not improve any
+    # image. Refining the base near the border keeps the band within a third of the margin.
+    refined = _refine_near(body, frame.origin, np.sqrt(2) * half, margin / 3)
+    cut, reach = _cut(refined, frame, half)
+    zero_band = reach + 2 * resolution_km
+    if zero_band >= margin:
+        raise ValueError(f"margin {margin * 1e3:g} m is too narrow for grid spacing {resolution_km * 1e3:g} m")
+    weight = _blend_weight(axis, axis, zero_band, site_size_km)
+
+    craters = sample_craters(_rng(seed, "craters"), n=n_craters, site_size_km=site_size_km, resolution_km=resolution_km)
+    boulders = sample_boulders(_rng(seed, "boulders"), n=n_boulders, n_steep=steep_boulders,
+                               site_size_km=site_size_km, resolution_km=resolution_km)
+    detail, log_albedo = _site_detail(seed, axis, site_size_km, craters, boulders, cobble_cover)
+    height = ground + weight * detail
+    albedo = ground_albedo * np.exp(weight * log_albedo)
+
+    mesh = Mesh(np.vstack([cut.vertices, _grid_vertices(frame, axis, axis, height)]),
+                np.vstack([cut.faces, _grid_faces(*height.shape) + len(cut.vertices)]),
+                np.concatenate([cut.albedo, albedo.ravel()]))
+    params = dict(site_lat_deg=site_lat_deg, site_lon_deg=site_lon_deg, site_size_km=site_size_km,
+                  resolution_km=resolution_km, seed=seed, base_edge_km=base_edge_km,
+                  global_roughness_km=global_roughness_km, n_craters=n_craters, n_boulders=n_boulders,
+                  steep_boulders=steep_boulders, cobble_cover=cobble_cover, margin_km=margin)
+    return Truth(mesh=mesh, site_frame=frame, site_size_km=site_size_km, x_km=axis, y_km=axis.copy(),
+                 height_km=height, eval_radius_km=site_size_km / 2, zero_band_km=zero_band, craters=craters,
+                 boulders=boulders, n_base_vertices=len(cut.vertices), n_base_faces=len(cut.faces), params=params)
+
+
+def low_pass_heights(truth: Truth, *, wavelength_km: float) -> np.ndarray:
+    """Patch heights (km) with the detail low-passed by the Gaussian filter whose gain is 1/2 at
+    wavelength_km (ISO 16610-21); unchanged in the zero band, so the border still meets the base."""
+    sigma = gaussian_sigma_km(wavelength_km) / truth.resolution_km
+    smooth = ndimage.gaussian_filter(truth.height_km, sigma, mode="nearest")
+    return truth.height_km + truth.blend_weight() * (smooth - truth.height_km)
+
+
+def low_pass(truth: Truth, *, wavelength_km: float, spacing_km: float | None = None) -> Mesh:
+    """A starting shape model: the truth low-passed to wavelength_km over the patch, remeshed on
+    a grid of spacing about spacing_km (default wavelength_km / 2), and the truth's base
+    elsewhere (km, no albedo).
+
+    Over the border band the coarse patch lies on the base faces only within the error of linear
+    interpolation at that spacing (about a centimetre for 1 m): overlapping, never leaving a gap.
+    """
+    smooth = low_pass_heights(truth, wavelength_km=wavelength_km)
+    half = float(truth.x_km[-1])
+    m = int(np.ceil(2 * half / (spacing_km or wavelength_km / 2))) + 1
+    axis = np.linspace(-half, half, m)
+    index = (axis - truth.x_km[0]) / truth.resolution_km
+    coarse = ndimage.map_coordinates(smooth, np.meshgrid(index, index, indexing="ij"), order=1, mode="nearest")
+    base = truth.base_mesh()
+    return Mesh(np.vstack([base.vertices, _grid_vertices(truth.site_frame, axis, axis, coarse)]),
+                np.vstack([base.faces, _grid_faces(m, m) + len(base.vertices)]))
+
+
+def save(truth: Truth, directory: str | Path) -> None:
+    """Write a truth directory: mesh.ply (with albedo), grid.npz (axes, heights), truth.json."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    write_ply(d / "mesh.ply", truth.mesh)
+    np.savez(d / "grid.npz", x_km=truth.x_km, y_km=truth.y_km, height_km=truth.height_km)
+    meta = dict(origin_km=truth.site_frame.origin.tolist(), rotation=truth.site_frame.rotation.tolist(),
+                site_size_km=truth.site_size_km, eval_radius_km=truth.eval_radius_km,
+                zero_band_km=truth.zero_band_km, n_base_vertices=truth.n_base_vertices,
+                n_base_faces=truth.n_base_faces, craters=[asdict(c) for c in truth.craters],
+                boulders=[asdict(b) for b in truth.boulders], params=truth.params)
+    (d / "truth.json").write_text(json.dumps(meta, indent=1))
+
+
+def load(directory: str | Path) -> Truth:
+    """Read a truth directory written by `save`."""
+    d = Path(directory)
+    meta = json.loads((d / "truth.json").read_text())
+    grid = np.load(d / "grid.npz")
+    frame = LocalFrame(origin=np.array(meta["origin_km"]), rotation=np.array(meta["rotation"]))
+    return Truth(mesh=read_ply(d / "mesh.ply"), site_frame=frame, site_size_km=meta["site_size_km"],
+                 x_km=grid["x_km"], y_km=grid["y_km"], height_km=grid["height_km"],
+                 eval_radius_km=meta["eval_radius_km"], zero_band_km=meta["zero_band_km"],
+                 craters=[Crater(**c) for c in meta["craters"]], boulders=[Boulder(**b) for b in meta["boulders"]],
+                 n_base_vertices=meta["n_base_vertices"], n_base_faces=meta["n_base_faces"], params=meta["params"])

@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Set up everything the tests need (Debian's PostgreSQL and Redis, the venv) and run them.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
+
+have_servers() { command -v redis-server >/dev/null && ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; }
+if ! have_servers; then
+  as_root apt-get update -qq
+  as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql redis-server >/dev/null
+fi
+bash scripts/setup.sh test
+exec .venv/bin/python -m pytest "$@"

@@ -1,0 +1,611 @@
+"""`pwm ingest DIR`: catalogue a downlink's SPICE kernels and PDS4 image products, with the
+viewing geometry of each image.
+
+Kernels come first (service.kernels). Then every *.xml label is read with
+pwm.io.pds4.read_image_product, inside a kernel pool holding the catalog's accepted kernels, and
+becomes one Image row:
+- accepted with its geometry (service.geometry);
+- accepted with geometry unavailable, and why, when the catalog has no kernels at all for its
+  observer (products of other missions, ground telescopes);
+- rejected with a code and a reason: a ProductError code, unknown_instrument, instrument_kernel,
+  unknown_target, outside_coverage (no SPK of the spacecraft or no CK of the camera frames then),
+  geometry (another SPICE failure), bad_time, bad_dimensions (array outside the detector);
+- conflict: the LIDVID is catalogued already with other content (label + data sha256); the
+  first copy stays authoritative.
+
+Idempotent: a product already catalogued with the same content is left alone, except that one
+whose outcome depends on kernels (rejected for instrument, target, coverage or geometry, or
+accepted without geometry) is judged again, so images that arrive before their kernels are
+taken up by a later ingest. One bad file never stops the rest.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+import time
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+import spiceypy as sp
+from sqlalchemy import Engine, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from pwm.camera import Camera
+from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
+from pwm.io.spice_geometry import camera_from_kernel, instrument_frame, spacecraft_of
+from pwm.io.spice_kernels import KernelError, kernel_pool
+from pwm.mesh import Mesh
+from service.db import make_sessionmaker, session_scope
+from service.geometry import (ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry,
+                              ellipsoid_of, observe)
+from service.kernels import (KernelOutcome, accepted_kernels, coverage_windows, et_to_datetime,
+                             register_kernels, spice_message)
+from service.models import (Downlink, DownlinkStatus, GeometryStatus, Image, ImageGeometry,
+                            ImageStatus, Instrument, KernelKind)
+
+log = logging.getLogger(__name__)
+
+COMMIT_EVERY = 200  # products per transaction: a crash loses at most this much, re-run resumes
+# Outcomes that new kernels can change: such products are judged again on every ingest.
+KERNEL_DEPENDENT_CODES = frozenset(
+    {"unknown_instrument", "instrument_kernel", "unknown_target", "outside_coverage", "geometry"})
+# SPICE errors that mean "no data for that time" rather than a broken kernel set.
+_COVERAGE_ERRORS = frozenset({"SPICE(SPKINSUFFDATA)", "SPICE(NOFRAMECONNECT)"})
+_UNIDENTIFIED = "unidentified:"
+_HASH_CHUNK = 1 << 20
+
+
+@dataclass
+class Counts:
+    accepted: int = 0
+    rejected: int = 0
+    unchanged: int = 0
+
+
+@dataclass(frozen=True)
+class Failure:
+    """A file rejected by this ingest: what, the short code, and why."""
+
+    path: str
+    code: str
+    reason: str
+
+
+@dataclass
+class IngestReport:
+    """What one ingest did. Rejections include conflicts; failures list this run's rejections
+    (files left unchanged are not repeated); warnings are about the catalog, not this downlink."""
+
+    downlink: str
+    kernels: Counts = field(default_factory=Counts)
+    images: Counts = field(default_factory=Counts)
+    geometry_unavailable: int = 0
+    failures: list[Failure] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    elapsed_s: float = 0.0
+
+    @property
+    def failed(self) -> int:
+        return len(self.failures)
+
+    def summary(self) -> str:
+        k, i = self.kernels, self.images
+        return (f"{self.downlink}: kernels {k.accepted} accepted, {k.rejected} rejected, "
+                f"{k.unchanged} unchanged; images {i.accepted} accepted "
+                f"({self.geometry_unavailable} without geometry), {i.rejected} rejected, "
+                f"{i.unchanged} unchanged; {self.failed} failed; {self.elapsed_s:.1f} s")
+
+
+@dataclass(frozen=True)
+class _Identity:
+    """A label's product key and the sha256 of the label and the data files it names."""
+
+    lid: str
+    vid: str
+    data_path: Path | None
+    sha256: str
+    size_bytes: int
+
+    @property
+    def lidvid(self) -> str:
+        return f"{self.lid}::{self.vid}"
+
+
+@dataclass
+class _Known:
+    """A catalogued product version: enough to decide what a new copy of it means."""
+
+    id: int | None
+    sha256: str
+    status: ImageStatus
+    code: str | None
+    geometry_status: GeometryStatus
+
+    @property
+    def kernel_dependent(self) -> bool:
+        if self.status is ImageStatus.ACCEPTED:
+            return self.geometry_status is not GeometryStatus.COMPUTED
+        return self.status is ImageStatus.REJECTED and self.code in KERNEL_DEPENDENT_CODES
+
+
+@dataclass(frozen=True)
+class _Outcome:
+    status: ImageStatus
+    code: str | None = None
+    reason: str | None = None
+    geometry_status: GeometryStatus = GeometryStatus.UNAVAILABLE
+    geometry_reason: str | None = None
+    product: ImageProduct | None = None
+    instrument_id: int | None = None
+    times: tuple[datetime, datetime, float | None, float | None] | None = None
+    geometry: ImageGeometry | None = None
+
+    @property
+    def verdict(self) -> tuple:
+        return (self.status, self.code, self.reason, self.geometry_status, self.geometry_reason)
+
+
+class _Rejected(Exception):
+    def __init__(self, code: str, reason: str, instrument_id: int | None = None) -> None:
+        super().__init__(reason)
+        self.code, self.instrument_id = code, instrument_id
+
+
+def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
+                     downlink_name: str | None = None, shape: Mesh | None = None) -> IngestReport:
+    """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
+
+    downlink_name defaults to the directory's name (a suffix is added when another directory
+    holds that name). shape: the current shape model of the target (body-fixed, km); boresight
+    and corner intercepts use it instead of the PCK ellipsoid. SPICE's process-wide kernel pool
+    is cleared on the way in and out (pwm.io.spice_kernels.kernel_pool).
+    """
+    sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
+    directory = Path(directory).resolve()
+    if not directory.is_dir():
+        raise NotADirectoryError(f"{directory} is not a directory")
+    clock = time.perf_counter()
+    with session_scope(sessions) as session:
+        downlink = _downlink(session, directory, downlink_name)
+        downlink.status = DownlinkStatus.INGESTING
+        session.flush()
+        downlink_id, report = downlink.id, IngestReport(downlink=downlink.name)
+    try:
+        with session_scope(sessions) as session:
+            outcomes = register_kernels(session, directory, downlink_id=downlink_id)
+        _count_kernels(report, outcomes)
+        _ingest_images(sessions, directory, downlink_id, report,
+                       None if shape is None else MeshSurface(shape))
+    except BaseException:
+        with session_scope(sessions) as session:
+            session.get(Downlink, downlink_id).status = DownlinkStatus.FAILED
+        raise
+    with session_scope(sessions) as session:
+        session.get(Downlink, downlink_id).status = DownlinkStatus.INGESTED
+    report.elapsed_s = time.perf_counter() - clock
+    log.info("%s", report.summary())
+    return report
+
+
+def _downlink(session: Session, directory: Path, name: str | None) -> Downlink:
+    """The downlink row for `directory`: found by name if given, else by path, else new."""
+    if name is not None:
+        found = session.scalars(select(Downlink).filter_by(name=name)).one_or_none()
+    else:
+        found = session.scalars(select(Downlink).filter_by(path=str(directory))).first()
+    if found is not None:
+        found.path = str(directory)
+        return found
+    if name is None:
+        taken = set(session.scalars(select(Downlink.name).where(
+            Downlink.name.startswith(directory.name))))
+        name = next(n for n in (directory.name if i == 0 else f"{directory.name}-{i + 1}"
+                                for i in range(len(taken) + 1)) if n not in taken)
+    manifest = directory / "manifest.json"
+    downlink = Downlink(name=name, path=str(directory),
+                        manifest_sha256=_sha256([manifest]) if manifest.is_file() else None)
+    session.add(downlink)
+    return downlink
+
+
+def _count_kernels(report: IngestReport, outcomes: list[KernelOutcome]) -> None:
+    for outcome in outcomes:
+        setattr(report.kernels, outcome.result, getattr(report.kernels, outcome.result) + 1)
+        if outcome.result == "rejected":
+            report.failures.append(Failure(str(outcome.path), "kernel", outcome.reason or ""))
+
+
+def _sha256(paths: list[Path]) -> str:
+    digest = hashlib.sha256()
+    for path in paths:
+        with open(path, "rb") as fh:
+            while chunk := fh.read(_HASH_CHUNK):
+                digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _identify(label: Path) -> _Identity:
+    """The product's LIDVID and content digest, read leniently: a label too broken to name its
+    product is keyed by its own sha256 (lid 'unidentified:<sha256>', vid '0')."""
+    raw = label.read_bytes()
+    try:
+        root = ET.fromstring(raw)
+    except ET.ParseError:
+        root = None
+    lid = vid = None
+    names: list[str] = []
+    if root is not None:
+        lid = root.findtext("{*}Identification_Area/{*}logical_identifier")
+        vid = root.findtext("{*}Identification_Area/{*}version_id")
+        names = [e.text.strip() for e in root.iterfind(".//{*}File/{*}file_name") if e.text]
+    files = [label.parent / n for n in names if Path(n).name == n]
+    existing = [f for f in files if f.is_file()]
+    digest = _sha256([label, *existing])
+    if not lid or not vid:
+        lid, vid = _UNIDENTIFIED + hashlib.sha256(raw).hexdigest(), "0"
+    return _Identity(lid=lid.strip(), vid=vid.strip(), data_path=files[0] if files else None,
+                     sha256=digest, size_bytes=sum(f.stat().st_size for f in existing))
+
+
+class _Catalog:
+    """The image pass's view of the catalog and of the loaded kernel pool."""
+
+    def __init__(self, session: Session, downlink_id: int, shape: Surface | None) -> None:
+        self.session, self.downlink_id, self.shape = session, downlink_id, shape
+        self.spk = coverage_windows(session, KernelKind.SPK)
+        self.ck = coverage_windows(session, KernelKind.CK)
+        self.instruments: dict[int, Instrument | str] = {
+            i.naif_id: i for i in session.scalars(select(Instrument))}
+        self.ellipsoids: dict[str, Ellipsoid] = {}
+        self.known: dict[tuple[str, str], list[_Known]] = {}
+        rows = session.execute(select(Image.id, Image.lid, Image.vid, Image.sha256, Image.status,
+                                      Image.rejection_code, Image.geometry_status))
+        for id_, lid, vid, digest, status, code, geometry_status in rows:
+            self.known.setdefault((lid, vid), []).append(
+                _Known(id_, digest, status, code, geometry_status))
+        self.has_lsk = bool(sp.expool("DELTET/DELTA_AT"))
+
+    def instrument(self, naif_id: int) -> Instrument:
+        """The catalogued camera of `naif_id`, read from its IK once (_Rejected if unusable)."""
+        if naif_id not in self.instruments:
+            try:
+                self.instruments[naif_id] = self._new_instrument(naif_id)
+            except KernelError as exc:
+                self.instruments[naif_id] = f"instrument {naif_id}: {exc}"
+            except sp.utils.exceptions.SpiceyError as exc:
+                self.instruments[naif_id] = f"instrument {naif_id}: {spice_message(exc)}"
+        found = self.instruments[naif_id]
+        if isinstance(found, str):
+            raise _Rejected("instrument_kernel", found)
+        return found
+
+    def _new_instrument(self, naif_id: int) -> Instrument:
+        camera = camera_from_kernel(naif_id)
+        source, note = _focal_source(naif_id, camera.fx)
+        with sp.no_found_check():
+            name, found = sp.bodc2n(naif_id)
+        row = Instrument(naif_id=naif_id, name=name if found else str(naif_id),
+                         spacecraft_id=spacecraft_of(naif_id),
+                         frame_name=instrument_frame(naif_id), width_px=camera.width,
+                         height_px=camera.height, fx_px=camera.fx, fy_px=camera.fy,
+                         cx_px=camera.cx, cy_px=camera.cy, focal_length_source=source,
+                         units_note=note)
+        self.session.add(row)
+        self.session.flush()
+        return row
+
+    def ellipsoid(self, target: str) -> Ellipsoid:
+        if target not in self.ellipsoids:
+            self.ellipsoids[target] = ellipsoid_of(target)
+        return self.ellipsoids[target]
+
+
+def _focal_source(naif_id: int, fx: float) -> tuple[str, str]:
+    """Which IK keywords gave the focal length, and the unit ratio they were read with."""
+    length_name = f"INS{naif_id}_FOCAL_LENGTH"
+    pixel_names = [f"INS{naif_id}_{k}" for k in ("PIXEL_SIZE", "PIXEL_PITCH")]
+    pixel_name = next((n for n in pixel_names if sp.expool(n)), None)
+    if not sp.expool(length_name) or pixel_name is None:
+        return "FOV", "focal length from the FOV corners and the pixel count"
+    length, pixel = sp.gdpool(length_name, 0, 1)[0], sp.gdpool(pixel_name, 0, 1)[0]
+    ratio = fx / (length / pixel)
+    return (f"FOCAL_LENGTH/{pixel_name.removeprefix(f'INS{naif_id}_')}",
+            f"{length_name} = {length:g} over {pixel_name} = {pixel:g}, times {ratio:g} (the "
+            f"unit ratio that agrees with the FOV) = {fx:.6g} px")
+
+
+def _ingest_images(sessions: sessionmaker[Session], directory: Path, downlink_id: int,
+                   report: IngestReport, shape: Surface | None) -> None:
+    labels = [p for p in sorted(directory.rglob("*")) if p.suffix.lower() == ".xml"
+              and p.is_file()]
+    with sessions() as session:
+        kernels = accepted_kernels(session)
+        missing = [k.path for k in kernels if not Path(k.path).is_file()]
+        report.warnings += [f"catalogued kernel {p} is missing on disk" for p in missing]
+        with kernel_pool(Path(k.path) for k in kernels if k.path not in missing):
+            catalog = _Catalog(session, downlink_id, shape)
+            for n, label in enumerate(labels, 1):
+                _ingest_product(catalog, label, report)
+                if n % COMMIT_EVERY == 0:
+                    session.commit()
+            session.commit()
+
+
+def _ingest_product(catalog: _Catalog, label: Path, report: IngestReport) -> None:
+    """Catalogue one label and count what it did in `report`."""
+    try:
+        identity = _identify(label)
+    except OSError as exc:  # unreadable files cannot be keyed: reported, not catalogued
+        report.images.rejected += 1
+        report.failures.append(Failure(str(label), "unreadable", str(exc)))
+        return
+    versions = catalog.known.setdefault((identity.lid, identity.vid), [])
+    same = next((k for k in versions if k.sha256 == identity.sha256), None)
+    if same is not None and (same.id is None or not same.kernel_dependent):
+        report.images.unchanged += 1
+        return
+    if same is None and any(k.status is not ImageStatus.CONFLICT for k in versions):
+        outcome = _conflict(catalog, label, identity, versions)
+    else:
+        outcome = _judge(catalog, label)
+        if not _record(catalog, label, identity, same, outcome):
+            report.images.unchanged += 1
+            return
+    if outcome.status is ImageStatus.ACCEPTED:
+        report.images.accepted += 1
+        report.geometry_unavailable += outcome.geometry_status is GeometryStatus.UNAVAILABLE
+    else:
+        report.images.rejected += 1
+        report.failures.append(Failure(str(label), outcome.code or "", outcome.reason or ""))
+
+
+def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | None,
+            outcome: _Outcome) -> bool:
+    """Store the outcome as a new row, or over `same`; False if `same` already says it."""
+    versions = catalog.known[(identity.lid, identity.vid)]
+    if same is not None:
+        image = catalog.session.get(Image, same.id)
+        if _verdict(image) == outcome.verdict:
+            return False
+        same.status, same.code = outcome.status, outcome.code
+        same.geometry_status = outcome.geometry_status
+    else:
+        image = Image(lidvid=identity.lidvid, lid=identity.lid, vid=identity.vid,
+                      downlink_id=catalog.downlink_id)
+        catalog.session.add(image)
+        versions.append(_Known(None, identity.sha256, outcome.status, outcome.code,
+                               outcome.geometry_status))
+    _apply(image, identity, label, outcome)
+    return True
+
+
+def _conflict(catalog: _Catalog, label: Path, identity: _Identity,
+              versions: list[_Known]) -> _Outcome:
+    """Record a copy of a catalogued LIDVID with other content; the first copy stays."""
+    original = next(k for k in versions if k.status is not ImageStatus.CONFLICT)
+    reason = (f"{identity.lidvid} is catalogued already with other content (sha256 "
+              f"{original.sha256}); this copy (sha256 {identity.sha256}) is not used")
+    outcome = _Outcome(status=ImageStatus.CONFLICT, code="conflict", reason=reason)
+    image = Image(lidvid=f"{identity.lidvid}#{identity.sha256[:16]}", lid=identity.lid,
+                  vid=identity.vid, downlink_id=catalog.downlink_id)
+    _apply(image, identity, label, outcome)
+    catalog.session.add(image)
+    versions.append(_Known(None, identity.sha256, outcome.status, outcome.code,
+                           outcome.geometry_status))
+    return outcome
+
+
+def _verdict(image: Image) -> tuple:
+    return (image.status, image.rejection_code, image.rejection_reason, image.geometry_status,
+            image.geometry_unavailable_reason)
+
+
+def _apply(image: Image, identity: _Identity, label: Path, outcome: _Outcome) -> None:
+    product = outcome.product
+    image.label_path = str(label)
+    image.data_path = str(product.data_path if product is not None else identity.data_path or "")
+    image.sha256, image.size_bytes = identity.sha256, identity.size_bytes
+    image.md5 = product.md5 if product is not None else None
+    image.target = product.target_name[:64] if product and product.target_name else None
+    image.start_utc, image.stop_utc, image.start_et, image.stop_et = (
+        outcome.times or (None, None, None, None))
+    image.instrument_id = outcome.instrument_id
+    image.status, image.rejection_code = outcome.status, outcome.code
+    image.rejection_reason = outcome.reason
+    image.geometry_status = outcome.geometry_status
+    image.geometry_unavailable_reason = outcome.geometry_reason
+    image.geometry = outcome.geometry
+
+
+def _judge(catalog: _Catalog, label: Path) -> _Outcome:
+    """Read the product and work out its geometry from the loaded kernels."""
+    try:
+        product = read_image_product(label)
+    except ProductError as exc:
+        return _Outcome(ImageStatus.REJECTED, exc.code, str(exc))
+    except OSError as exc:  # e.g. a file gone since it was hashed
+        return _Outcome(ImageStatus.REJECTED, "unreadable", str(exc))
+    try:
+        times = _times(product, catalog.has_lsk)
+    except _Rejected as exc:
+        return _Outcome(ImageStatus.REJECTED, exc.code, str(exc), product=product)
+    try:
+        return _geometry(catalog, product, times)
+    except _Rejected as exc:
+        return _Outcome(ImageStatus.REJECTED, exc.code, str(exc), product=product, times=times,
+                        instrument_id=exc.instrument_id)
+    except sp.utils.exceptions.SpiceyError as exc:  # kernels that resolve names but lack data
+        return _Outcome(ImageStatus.REJECTED, "geometry", spice_message(exc), product=product,
+                        times=times)
+
+
+def _parse_utc(stamp: str) -> datetime:
+    """A PDS4 date_time (calendar or day-of-year form, UTC) as an aware datetime."""
+    text = stamp.strip().removesuffix("Z")
+    try:
+        if re.fullmatch(r"\d{4}-\d{3}T.*", text):
+            parsed = datetime.strptime(text, "%Y-%jT%H:%M:%S.%f" if "." in text
+                                       else "%Y-%jT%H:%M:%S")
+        else:
+            parsed = datetime.fromisoformat(text)
+    except ValueError as exc:
+        raise _Rejected("bad_time", f"time {stamp!r} is not a PDS4 UTC date_time") from exc
+    if parsed.utcoffset():
+        raise _Rejected("bad_time", f"time {stamp!r} is not UTC")
+    return parsed.replace(tzinfo=UTC)
+
+
+def _times(product: ImageProduct, has_lsk: bool
+           ) -> tuple[datetime, datetime, float | None, float | None]:
+    start, stop = _parse_utc(product.start_utc), _parse_utc(product.stop_utc)
+    if stop < start:
+        raise _Rejected("bad_time", f"stop {product.stop_utc} precedes start {product.start_utc}")
+    if not has_lsk:
+        return start, stop, None, None
+    try:
+        return start, stop, sp.str2et(product.start_utc), sp.str2et(product.stop_utc)
+    except sp.utils.exceptions.SpiceyError as exc:
+        raise _Rejected("bad_time", spice_message(exc)) from exc
+
+
+def _name_variants(name: str) -> list[str]:
+    """Names SPICE may know a label's name by: as given, upper case, spaces and hyphens as
+    underscores; '(101955) Bennu' also as 'BENNU' and '101955 BENNU'."""
+    upper = " ".join(name.split()).upper()
+    numbered = re.fullmatch(r"\((\d+)\)\s*(.+)", upper)
+    forms = [name.strip(), upper, re.sub(r"[\s\-]+", "_", upper)]
+    if numbered:
+        forms += [numbered[2], f"{numbered[1]} {numbered[2]}", re.sub(r"[\s\-]+", "_",
+                                                                       numbered[2])]
+    return list(dict.fromkeys(forms))
+
+
+def _body_code(names: list[str]) -> int | None:
+    with sp.no_found_check():
+        for name in names:
+            code, found = sp.bodn2c(name)
+            if found:
+                return int(code)
+    return None
+
+
+def _instrument_code(product: ImageProduct, observer: int) -> int | None:
+    """The NAIF id of the product's instrument on `observer`: bodn2c of the label's (or FITS
+    INSTRUME) name in its variants, bare or prefixed with the host's, else the one instrument
+    of that spacecraft whose kernel-pool name ends in _<name>."""
+    names = [n for n in (product.instrument_name, (product.fits_header or {}).get("INSTRUME"))
+             if isinstance(n, str) and n.strip()]
+    variants = [v for n in names for v in _name_variants(n)]
+    hosts = _name_variants(product.host_name) if product.host_name else []
+    candidates = variants + [f"{h}_{v}" for h in hosts for v in variants]
+
+    def on_observer(code: int) -> bool:
+        return code <= -1000 and spacecraft_of(code) == observer
+
+    with sp.no_found_check():
+        for name in candidates:
+            code, found = sp.bodn2c(name)
+            if found and on_observer(int(code)):
+                return int(code)
+    with sp.no_found_check():
+        count, _, defined = sp.dtpool("NAIF_BODY_NAME")
+    if not defined:
+        return None
+    pool_names = sp.gcpool("NAIF_BODY_NAME", 0, count)
+    pool_codes = sp.gipool("NAIF_BODY_CODE", 0, count)
+    suffixes = {"_" + v for v in variants}
+    matches = {int(c) for n, c in zip(pool_names, pool_codes)
+               if on_observer(int(c)) and any(n.upper().endswith(s) for s in suffixes)}
+    return matches.pop() if len(matches) == 1 else None
+
+
+def _covered(windows: list[tuple[float, float]], et: float) -> bool:
+    return any(start <= et <= stop for start, stop in windows)
+
+
+def _geometry(catalog: _Catalog, product: ImageProduct,
+              times: tuple[datetime, datetime, float | None, float | None]) -> _Outcome:
+    host = product.host_name or ""
+    observer = _body_code(_name_variants(host)) if host else None
+    if observer is None or observer not in catalog.spk:
+        why = ("the label names no host (spacecraft)" if not host else
+               f"observer {host!r} is not a body SPICE knows" if observer is None else
+               f"the catalog has no SPK for observer {host!r} ({observer})")
+        return _Outcome(ImageStatus.ACCEPTED, geometry_reason=f"no kernels: {why}",
+                        product=product, times=times)
+    instrument_id = _instrument_code(product, observer)
+    if instrument_id is None:
+        raise _Rejected("unknown_instrument", f"instrument {product.instrument_name!r} of "
+                        f"{host!r} is not an instrument of {observer} in the catalog's kernels")
+    instrument = catalog.instrument(instrument_id)
+    target = _body_code(_name_variants(product.target_name or ""))
+    with sp.no_found_check():
+        _, body_frame, has_frame = sp.cidfrm(target) if target is not None else (0, "", False)
+    if target is None or not has_frame:
+        raise _Rejected("unknown_target", f"target {product.target_name!r} is "
+                        + ("not a body SPICE knows" if target is None
+                           else f"{target}, which has no body-fixed frame in the catalog"),
+                        instrument.id)
+    start_et, stop_et = times[2:]
+    if start_et is None or stop_et is None:
+        raise _Rejected("geometry", "the catalog has no leapseconds kernel (LSK)", instrument.id)
+    et = (start_et + stop_et) / 2  # mid-exposure
+    when = f"{sp.et2utc(et, 'ISOC', 3)} UTC (ET {et:.3f})"
+    if not _covered(catalog.spk[observer], et):
+        raise _Rejected("outside_coverage", f"{when} is outside the SPK coverage of observer "
+                        f"{observer}: {_describe(catalog.spk[observer])}", instrument.id)
+    camera = _image_camera(instrument, product)
+    surface = catalog.shape or catalog.ellipsoid(str(target))
+    try:
+        view = observe(et=et, instrument_id=instrument_id, target=str(target),
+                       body_frame=body_frame, camera=camera, surface=surface)
+    except sp.utils.exceptions.SpiceyError as exc:
+        gaps = [f for f, w in catalog.ck.items()
+                if f <= -1000 and spacecraft_of(f) == observer and not _covered(w, et)]
+        if exc.short in _COVERAGE_ERRORS or gaps:
+            detail = (f"; no CK data then for frames {', '.join(map(str, sorted(gaps)))}"
+                      if gaps else "")
+            raise _Rejected("outside_coverage", f"no geometry at {when}{detail}: "
+                            f"{spice_message(exc)}", instrument.id) from exc
+        raise _Rejected("geometry", f"no geometry at {when}: {spice_message(exc)}",
+                        instrument.id) from exc
+    return _Outcome(ImageStatus.ACCEPTED, geometry_status=GeometryStatus.COMPUTED,
+                    product=product, instrument_id=instrument.id, times=times,
+                    geometry=_geometry_row(view, body_frame))
+
+
+def _describe(windows: list[tuple[float, float]]) -> str:
+    first, last = min(w[0] for w in windows), max(w[1] for w in windows)
+    return (f"{len(windows)} window(s) spanning {et_to_datetime(first).isoformat()} to "
+            f"{et_to_datetime(last).isoformat()}")
+
+
+def _image_camera(instrument: Instrument, product: ImageProduct) -> Camera:
+    """The camera of the product's array: the detector window it covers (img:Subframe; a
+    product without one starts at the detector's first line and sample)."""
+    detector = Camera(width=instrument.width_px, height=instrument.height_px,
+                      fx=instrument.fx_px, fy=instrument.fy_px, cx=instrument.cx_px,
+                      cy=instrument.cy_px)
+    try:
+        return detector.subframe(first_sample=product.first_sample, first_line=product.first_line,
+                                 samples=product.samples, lines=product.lines)
+    except ValueError as exc:
+        raise _Rejected("bad_dimensions", f"{instrument.name}: {exc}", instrument.id) from exc
+
+
+def _geometry_row(view: ViewGeometry, body_frame: str) -> ImageGeometry:
+    x, y, z = (float(v) for v in view.position_km)
+    sx, sy, sz = (float(v) for v in view.sun)
+    return ImageGeometry(
+        camera_x_km=x, camera_y_km=y, camera_z_km=z, camera_rotation=view.rotation.tolist(),
+        sun_x=sx, sun_y=sy, sun_z=sz, range_km=view.range_km,
+        intercept_range_km=view.intercept_range_km, pixel_scale_m=view.pixel_scale_m,
+        phase_deg=view.phase_deg, incidence_deg=view.incidence_deg,
+        emission_deg=view.emission_deg, intercept_lat_deg=view.intercept_lat_deg,
+        intercept_lon_deg=view.intercept_lon_deg,
+        footprint=[None if c is None else list(c) for c in view.footprint],
+        body_frame=body_frame, abcorr=ABCORR)
