@@ -70,5 +70,48 @@ def evaluate(
         json_out.write_text(json.dumps(result, indent=2))
 
 
+@app.command()
+def ingest(
+    directory: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 labels, SPICE kernels)"),
+    shape: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="current shape model for boresight intercepts (.obj/.ply, km); default: the PCK ellipsoid"),
+    name: Optional[str] = typer.Option(None, help="downlink name (default: the directory name)"),
+    verbose: bool = typer.Option(False, "--verbose", "-v"),
+) -> None:
+    """Catalogue a downlink: kernels first, then every PDS4 product, accepted or rejected with a reason.
+
+    Idempotent. The exit status is the number of files that failed (capped at 100); 0 means all went in.
+    """
+    from pwm.io.meshio import read_mesh
+    from service.catalog import open_catalog
+    from service.ingest import ingest_directory
+
+    _logging(verbose)
+    report = ingest_directory(open_catalog(), directory, downlink_name=name, shape=read_mesh(shape) if shape else None)
+    typer.echo(report.summary())
+    raise typer.Exit(min(report.failed, 100))
+
+
+@app.command()
+def images(
+    status: Optional[str] = typer.Option(None, help="accepted | rejected | conflict"),
+    limit: int = typer.Option(50, min=1, help="at most this many rows"),
+) -> None:
+    """List catalogued images: LIDVID, status, time, range and angles at the boresight intercept."""
+    from sqlalchemy import select
+
+    from service.catalog import open_catalog
+    from service.models import Image
+
+    with open_catalog()() as session:
+        query = select(Image).order_by(Image.start_utc, Image.id).limit(limit)
+        if status:
+            query = query.where(Image.status == status)
+        for image in session.scalars(query):
+            g = image.geometry
+            where = (f"range {g.range_km:.3f} km  inc {g.incidence_deg:.1f}  emi {g.emission_deg:.1f}  pha {g.phase_deg:.1f}"
+                     if g is not None and g.incidence_deg is not None else (image.rejection_reason or image.geometry_unavailable_reason or ""))
+            typer.echo(f"{image.lidvid}  {image.status}  {image.start_utc}  {where}")
+
+
 if __name__ == "__main__":
     app()

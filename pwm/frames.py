@@ -17,11 +17,12 @@ class LocalFrame:
 
     def to_local(self, points_body: np.ndarray) -> np.ndarray:
         """Body-fixed points (km) to local coordinates Pl = R (P - P0), km."""
-        return (np.asarray(points_body, float) - self.origin) @ self.rotation.T
+        # einsum: a (N, 3) @ (3, 3) product through BLAS is several times slower
+        return np.einsum("ij,...j->...i", self.rotation, np.asarray(points_body, float) - self.origin)
 
     def to_body(self, points_local: np.ndarray) -> np.ndarray:
         """Local coordinates (km) to body-fixed points (km)."""
-        return np.asarray(points_local, float) @ self.rotation + self.origin
+        return np.einsum("ji,...j->...i", self.rotation, np.asarray(points_local, float)) + self.origin
 
     @property
     def normal(self) -> np.ndarray:

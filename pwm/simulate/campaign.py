@@ -38,6 +38,7 @@ FIXED_KERNELS = {  # bundled real kernels and the folder of the downlink they go
     "orx_ocams_v07.ti": "ik", "orx_sclkscet_00065.tsc": "sclk",
 }
 MISSION, HOST = "OSIRIS-REx", "OSIRIS-REX"
+EXPOSURE_S = 0.004  # labels carry start and stop; the geometry is at mid-exposure
 
 
 def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_error_m: float = 0.0, pointing_error_rad: float = 0.0) -> dict:
@@ -71,6 +72,9 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
         _write_sun(sun_spk, scenario=scenario, start_et=start_et, campaign_s=campaign_s)
         sp.furnsh(str(sun_spk))
         observations, validation = _plan(scenario, truth=truth, camera=detector, start_et=start_et, campaign_s=campaign_s, rng=rng)
+        for obs in observations + validation:
+            # on the millisecond grid of the labels' UTC times, so that mid-exposure is exact
+            obs.et = sp.utc2et(sp.et2utc(obs.et, "ISOC", 3))
 
         true_kernels = _write_pose_kernels(truth_dir / "kernels", scenario=scenario, observations=observations + validation)
         noisy = _perturb(observations, position_error_m=position_error_m, pointing_error_rad=pointing_error_rad, rng=rng)
@@ -242,17 +246,17 @@ def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scena
     expected_max = max(float(np.percentile(view[view > 0], 99.9)) if (view > 0).any() else 0.05, 1e-4)
     exposure = choose_exposure(expected_max, full_well_dn=scenario.full_well_dn, fill=scenario.exposure_fill, error=scenario.exposure_error, rng=rng)
     dn = to_dn(view, exposure, full_well_dn=scenario.full_well_dn, gain_e_per_dn=scenario.gain_e_per_dn, read_noise_dn=scenario.read_noise_dn, rng=rng)
-    utc = sp.et2utc(obs.et, "ISOC", 3) + "Z"
-    stop = sp.et2utc(obs.et + 0.005, "ISOC", 3) + "Z"
+    utc = sp.et2utc(obs.et - EXPOSURE_S / 2, "ISOC", 3) + "Z"
+    stop = sp.et2utc(obs.et + EXPOSURE_S / 2, "ISOC", 3) + "Z"
     basename = f"pwm_{scenario.name}_{obs.name}"
     directory.mkdir(parents=True, exist_ok=True)
     label, data = write_image_product(
         directory=directory, basename=basename, dn=dn, scaling_factor=exposure.scaling, value_offset=0.0,
         lid=f"urn:nasa:pds:pwm_sim:{scenario.name.replace('-', '_')}:{basename}", start_utc=utc, stop_utc=stop,
         mission=MISSION, host_name=HOST, instrument_name=instrument_frame(scenario.instrument_id),
-        target_name=scenario.target.title(), title=f"Simulated {scenario.name} image {obs.name}", exposure_s=0.005, subframe=window,
+        target_name=scenario.target.title(), title=f"Simulated {scenario.name} image {obs.name}", exposure_s=EXPOSURE_S, subframe=window,
     )
-    return {"name": obs.name, "label": f"images/{label.name}", "data": f"images/{data.name}", "utc": utc, "et": obs.et,
+    return {"name": obs.name, "label": f"images/{label.name}", "data": f"images/{data.name}", "start_utc": utc, "et": obs.et,
             "scaling": exposure.scaling, "true_gain": exposure.true_gain}
 
 

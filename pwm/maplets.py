@@ -1,0 +1,47 @@
+"""Maplets: square height grids in local surface frames, the unit of refinement.
+
+A maplet's nodes sit on a regular x-y grid of its local frame (pwm.frames.LocalFrame): node (i, j)
+at x = (j - c) * spacing, y = (i - c) * spacing with c = (n - 1) / 2, and its surface point at
+height h[i, j] along the frame's z. Heights and spacing in km; albedo is the normal albedo.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pwm.frames import LocalFrame
+
+
+@dataclass
+class Maplet:
+    """One maplet. heights, albedo: (n, n) arrays indexed [i (y), j (x)]; weight: region weight
+    w_PWM of the latest refinement (1 before any)."""
+
+    name: str
+    frame: LocalFrame
+    spacing_km: float
+    heights: np.ndarray
+    albedo: np.ndarray | None = None
+    weight: float = 1.0
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return self.heights.shape[0]
+
+    @property
+    def axis_km(self) -> np.ndarray:
+        """Node coordinates along the local x (and y) axis, km."""
+        return (np.arange(self.n) - (self.n - 1) / 2) * self.spacing_km
+
+    def nodes_local(self, heights: np.ndarray | None = None) -> np.ndarray:
+        """(n, n, 3) local coordinates of the nodes (km)."""
+        h = self.heights if heights is None else heights
+        x, y = np.meshgrid(self.axis_km, self.axis_km)
+        return np.stack([x, y, h], axis=-1)
+
+    def nodes_body(self, heights: np.ndarray | None = None) -> np.ndarray:
+        """(n, n, 3) body-fixed coordinates of the nodes (km)."""
+        return self.frame.to_body(self.nodes_local(heights).reshape(-1, 3)).reshape(self.n, self.n, 3)
