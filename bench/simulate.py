@@ -44,7 +44,7 @@ def ray_rate(faces: int = 100_000, rays: int = 2_000_000) -> tuple[float, float,
     from pwm.mesh import Mesh
     from pwm.raytrace import RayTracer
 
-    sphere = trimesh.creation.icosphere(subdivisions=int(np.ceil(np.log(faces / 20) / np.log(4))))
+    sphere = trimesh.creation.icosphere(subdivisions=int(round(np.log(faces / 20) / np.log(4))))
     tracer = RayTracer(Mesh(sphere.vertices * 0.25, sphere.faces))
     rng = np.random.default_rng(0)
     origins = rng.normal(size=(rays, 3))

@@ -84,7 +84,7 @@ def file_sha256(path: Path) -> str:
     return _digest(path, "sha256")
 
 
-def _utc(stamp: str) -> str:
+def utc_iso(stamp: str) -> str:
     """ISO-8601 UTC time as PDS4 writes it, with a trailing Z."""
     parsed = datetime.fromisoformat(stamp)
     if parsed.utcoffset():  # None (naive, taken as UTC) and zero are both falsy
@@ -102,7 +102,7 @@ def _build(parent: ET.Element, items: list[tuple]) -> None:
             element.text = str(content)
 
 
-def _label_text(body: list[tuple]) -> str:
+def label_text(body: list[tuple]) -> str:
     # Namespaces are written as plain attributes so the label keeps the usual prefixes
     # (default pds, img, xsi) without touching ElementTree's global prefix registry.
     root = ET.Element("Product_Observational", {
@@ -154,7 +154,7 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
         raise ValueError(f"extra_fits_header may not set structural cards {sorted(clash)}")
     if Path(basename).name != basename:
         raise ValueError(f"basename {basename!r} must be a bare file name")
-    start, stop = _utc(start_utc), _utc(stop_utc)
+    start, stop = utc_iso(start_utc), utc_iso(stop_utc)
     label_path, data_path = (Path(directory) / f"{basename}.{ext}" for ext in ("xml", "fits"))
     for path in (label_path, data_path):
         if path.exists():
@@ -175,7 +175,7 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
                                          ("img:lines", lines), ("img:samples", samples)]))
     discipline = [("Discipline_Area", imaging)] if imaging else []
     header_bytes = _write_fits(data_path, dn, scaling_factor, value_offset, cards | extra)
-    text = _label_text([
+    text = label_text([
         ("Identification_Area", [
             ("logical_identifier", lid), ("version_id", vid), ("title", title),
             ("information_model_version", INFORMATION_MODEL),

@@ -33,7 +33,7 @@ class Scenario(BaseModel):
 
     global_views: bool = Field(False, description="look at the whole body instead of a site")
     n_nadir: int = 6
-    emissions_deg: tuple[float, ...] = (20.0, 30.0, 40.0, 45.0)
+    emissions_deg: tuple[float, ...] = (20.0, 32.0, 45.0)
     n_azimuths: int = 8
     incidences_deg: tuple[float, ...] = (20.0, 30.0, 40.0, 50.0, 60.0, 70.0)
     n_validation: int = 3
@@ -52,12 +52,8 @@ class Scenario(BaseModel):
 
     def off_nadir_views(self) -> list[tuple[float, float]]:
         """(emission, azimuth) pairs in degrees for the off-nadir images; azimuth from north, east positive."""
-        views = []
-        for k in range(self.n_azimuths):
-            for j, e in enumerate(self.emissions_deg):
-                if (k + j) % 2 == 0 or len(self.emissions_deg) == 1:
-                    views.append((e, 360.0 * k / self.n_azimuths + 7.0 * j))
-        return views
+        return [(e, 360.0 * k / self.n_azimuths + 7.0 * j)
+                for k in range(self.n_azimuths) for j, e in enumerate(self.emissions_deg)]
 
 
 SCENARIOS: dict[str, Scenario] = {
