@@ -1,24 +1,26 @@
 """Photoclinometric refinement of one maplet: heights and albedo from the brightness of K images.
 
-Unknowns are the node heights themselves (with the slopes p = -dz/dx, q = -dz/dy taken by finite
-differences), the albedo per node and a brightness scale per image. Solving for heights rather
-than for free slopes makes the slope field integrable by construction: the PWM integrability term
-w_i (p_y - q_x)^2 is identically zero (its w_i -> infinity limit), and no separate slope
-integration step is needed between re-projections. The objective (METHOD.md section 5), in
-reflectance normalised by the mean data brightness I_ref:
+Unknowns: the node heights themselves (the slopes p = -dz/dx, q = -dz/dy follow by finite
+differences), the albedo per node, and per image a brightness scale and a pointing offset
+(sample, line), px. Solving for heights rather than for free slopes makes the slope field
+integrable by construction: the PWM integrability term w_i (p_y - q_x)^2 is identically zero (its
+w_i -> infinity limit), and no slope integration step is needed before re-projecting. The
+objective (METHOD.md section 5), with reflectance normalised by the mean data brightness I_ref:
 
-    sum_k sum_nodes (w_k (I_k - s_k A G_k(p, q)) / I_ref)^2
+    sum_k sum_nodes (w_k (I_k(x_k + o_k) - s_k A G_k(p, q)) / I_ref)^2
       + (slope_weight / w_PWM) sum_edges ((p - p0)^2 + (q - q0)^2)
       + (height_weight / w_PWM) sum_nodes ((z - z0) / spacing)^2
-      + albedo_weight sum_nodes ((A - A_ref) / A_ref)^2
+      + albedo_weight sum_nodes ((A - A_ref) / A_ref)^2 + offset_weight sum_k |o_k - o_k,start|^2
 
-G is the McEwen lunar-Lambert function of pwm.photometry evaluated with the node normal from
-central differences of the heights (one-sided on the maplet border). The slope tie uses forward
-differences, which also see the odd-even height patterns that central differences cannot. The
-height tie fixes what brightness cannot: the mean height and the long-wavelength shape. The
-brightness scales are gauged to a geometric mean of 1 (A * s is all the data can tell).
-Each Gauss-Newton iteration re-projects the nodes at their current heights, re-extracts the
-images and solves one linearised step, until the RMS height change is below the tolerance.
+x_k: the nodes projected into image k at their current heights; G: the McEwen lunar-Lambert
+function of pwm.photometry with the node normal from central differences of the heights
+(one-sided on the border). The slope tie uses forward differences, which also see the odd-even
+height patterns that central differences cannot. The height tie fixes what brightness cannot:
+the mean height and the longest wavelengths. Gauges: the scales keep a geometric mean of 1 (the
+data fix only s_k * A), and the offsets never move as a sideways shift of the whole maplet would
+move them (photometry cannot see that shift; the starting shape and poses fix it).
+Gauss-Newton with backtracking on the objective re-projected at the trial heights, until the RMS
+height change of a step is below the tolerance.
 """
 
 from __future__ import annotations
@@ -29,9 +31,10 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg import block_diag
 from scipy.sparse.linalg import splu
 
-from pwm.camera import Camera, Pose
+from pwm.camera import Camera, Pose, project
 from pwm.maplets import Maplet
 from pwm.photometry import lunar_lambert, mcewen_l
 
@@ -89,13 +92,15 @@ class MapletImages:
 @dataclass
 class Refinement:
     """Result of `refine`. heights (km) and albedo: (n, n); scales: (K,) brightness scale per
-    image (geometric mean 1); rms: (K,) RMS of I - s A G over the nodes each image weighs
-    (reflectance units; NaN if none); iterations: Gauss-Newton steps taken; converged: the RMS
-    height change of the last step fell below the tolerance."""
+    image (geometric mean 1); offsets: (K, 2) pointing corrections (sample, line), px; rms: (K,)
+    RMS of I - s A G over the nodes each image weighs (reflectance units; NaN if none);
+    iterations: Gauss-Newton steps taken; converged: the last step's RMS height change was below
+    the tolerance."""
 
     heights: np.ndarray
     albedo: np.ndarray
     scales: np.ndarray
+    offsets: np.ndarray
     rms: np.ndarray
     iterations: int
     converged: bool
@@ -130,11 +135,20 @@ def bilinear(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     fs, fl = s - s0, l - l0
     flat = image.ravel()
     i00 = l0 * width + s0
-    s1 = 1 if width > 1 else 0
-    l1 = width if height > 1 else 0
-    top = (1 - fs) * flat[i00] + fs * flat[i00 + s1]
-    bottom = (1 - fs) * flat[i00 + l1] + fs * flat[i00 + l1 + s1]
-    return np.where(inside, (1 - fl) * top + fl * bottom, np.nan)
+    right = 1 if width > 1 else 0
+    down = width if height > 1 else 0
+    top = flat[i00] + fs * (flat[i00 + right] - flat[i00])
+    bottom = flat[i00 + down] + fs * (flat[i00 + down + right] - flat[i00 + down])
+    return np.where(inside, top + fl * (bottom - top), np.nan)
+
+
+def bilinear_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples (...) as `bilinear` and derivatives (..., 2) along sample and line, per px,
+    as central differences over one pixel: unlike the interpolant's own derivative, which jumps at
+    cell edges, these keep sub-pixel registration free of a bias towards whole pixels."""
+    along = (np.array([0.5, 0.0]), np.array([0.0, 0.5]))
+    gradient = np.stack([bilinear(image, pixels + d) - bilinear(image, pixels - d) for d in along], axis=-1)
+    return bilinear(image, pixels), gradient
 
 
 def extract(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | None = None,
@@ -152,7 +166,8 @@ def _gradient_operators(n: int) -> tuple[sp.csr_matrix, sp.csr_matrix]:
     lo = np.clip(rows - 1, 0, n - 1)
     hi = np.clip(rows + 1, 0, n - 1)
     step = (hi - lo).astype(float)
-    d = sp.csr_matrix((np.concatenate([1 / step, -1 / step]), (np.tile(rows, 2), np.concatenate([hi, lo]))), shape=(n, n))
+    d = sp.csr_matrix((np.concatenate([1 / step, -1 / step]), (np.tile(rows, 2), np.concatenate([hi, lo]))),
+                      shape=(n, n))
     eye = sp.identity(n, format="csr")
     return sp.kron(eye, d, format="csr"), sp.kron(d, eye, format="csr")
 
@@ -224,3 +239,276 @@ def predict(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | None = 
     p, q = slopes(h, maplet.spacing_km)
     G, _, _ = _shading(p.ravel(), q.ravel(), _geometry(maplet, data, h))
     return (np.broadcast_to(a, h.shape).ravel() * G).reshape(data.count, maplet.n, maplet.n)
+
+
+def _initial_albedo_and_scales(maplet: Maplet, values: np.ndarray, rows: np.ndarray,
+                               G: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Albedo per node (N,), scales (K,) and albedo prior (N,), gauged to unit geometric-mean scale.
+
+    Without a maplet albedo, each node with data starts from its least-squares albedo at unit
+    scales (clipped to a factor 10 of the median), and the prior is that median; nodes without data
+    take it."""
+    c2 = rows**2
+    if maplet.albedo is not None:
+        albedo = np.asarray(maplet.albedo, float).ravel().copy()
+    else:
+        den = (c2 * G * G).sum(axis=0)
+        has = den > 0
+        est = (c2 * G * values).sum(axis=0) / np.where(has, den, 1.0)
+        typical = float(np.median(est[has])) if has.any() else 1.0
+        albedo = np.where(has, np.clip(est, 0.1 * typical, 10 * typical), typical)
+    P = albedo * G
+    den = (c2 * P * P).sum(axis=1)
+    scales = (c2 * P * values).sum(axis=1) / np.where(den > 0, den, 1.0)
+    scales = np.where((den > 0) & (scales > 0), scales, 1.0)
+    gauge = np.exp(np.mean(np.log(scales)))
+    scales /= gauge
+    albedo *= gauge
+    if maplet.albedo is not None:
+        return albedo, scales, np.asarray(maplet.albedo, float).ravel().copy()
+    return albedo, scales, np.full_like(albedo, float(np.median(albedo)))
+
+
+@dataclass
+class _State:
+    """Unknowns: heights in node spacings u (N,), albedo (N,), scales (K,), offsets (K, 2) px."""
+
+    u: np.ndarray
+    albedo: np.ndarray
+    scales: np.ndarray
+    offsets: np.ndarray
+
+
+@dataclass
+class _Evaluation:
+    """The problem at one state: row weights c = w / I_ref (K, N) (0 where unused), image
+    gradients (K, N, 2) at the samples (offsets solved only), shading and its slope derivatives
+    (K, N), residuals c (I - s A G) (K, N) and the objective."""
+
+    rows: np.ndarray
+    gradients: np.ndarray | None
+    G: np.ndarray
+    Gp: np.ndarray
+    Gq: np.ndarray
+    residuals: np.ndarray
+    cost: float
+
+
+class _Problem:
+    """One maplet's refinement: data, operators on the node grid (units of one spacing), priors."""
+
+    def __init__(self, maplet: Maplet, data: MapletImages, *, weights: np.ndarray, region: float,
+                 offsets: np.ndarray, solve_offsets: bool, slope_weight: float, height_weight: float,
+                 albedo_weight: float, offset_weight: float) -> None:
+        n = maplet.n
+        self.maplet, self.data = maplet, data
+        self.weights = weights.reshape(data.count, -1)
+        self.dx, self.dy = _gradient_operators(n)
+        fwd = _difference_operator(n)
+        self.prior = ((slope_weight / region) * (fwd.T @ fwd) + (height_weight / region) * sp.identity(n * n)).tocsr()
+        self.u0 = maplet.heights.ravel() / maplet.spacing_km
+        self.offsets0 = offsets
+        self.offset_weight = offset_weight
+        self.albedo_weight = albedo_weight
+        self.solve_offsets = solve_offsets
+        if solve_offsets:
+            self.image_basis = block_diag(np.eye(data.count), _datum_complement(maplet, data))
+        self.i_ref = 1.0
+        self.albedo_prior = np.ones(n * n)
+
+    def start(self) -> tuple[_State, _Evaluation]:
+        """Starting state (albedo and scales estimated at the starting shape) and its evaluation."""
+        state = _State(u=self.u0.copy(), albedo=np.ones_like(self.u0), scales=np.ones(self.data.count),
+                       offsets=self.offsets0.copy())
+        ev, values = self._evaluate(state)
+        used = ev.rows > 0
+        if used.any():
+            self.i_ref = float(values[used].mean())
+        albedo, scales, self.albedo_prior = _initial_albedo_and_scales(self.maplet, values, ev.rows, ev.G)
+        state = _State(u=state.u, albedo=albedo, scales=scales, offsets=state.offsets)
+        return state, self.evaluate(state)
+
+    def evaluate(self, state: _State) -> _Evaluation:
+        return self._evaluate(state)[0]
+
+    def _evaluate(self, state: _State) -> tuple[_Evaluation, np.ndarray]:
+        maplet, data = self.maplet, self.data
+        heights = (state.u * maplet.spacing_km).reshape(maplet.n, maplet.n)
+        pixels = node_pixels(maplet, data, heights=heights, offsets=state.offsets).reshape(data.count, -1, 2)
+        gradients = None
+        if self.solve_offsets:
+            sampled = [bilinear_gradient(image, pixels[k]) for k, image in enumerate(data.images)]
+            values = np.stack([v for v, _ in sampled])
+            gradients = np.stack([g for _, g in sampled])
+        else:
+            values = np.stack([bilinear(image, pixels[k]) for k, image in enumerate(data.images)])
+        used = np.isfinite(values) & (self.weights > 0)
+        if gradients is not None:
+            used &= np.isfinite(gradients).all(axis=-1)
+            gradients = np.where(used[..., None], gradients, 0.0)
+        values = np.where(used, values, 0.0)
+        rows = np.where(used, self.weights, 0.0) / self.i_ref
+        G, Gp, Gq = _shading(-(self.dx @ state.u), -(self.dy @ state.u), _geometry(maplet, data, heights))
+        residuals = rows * (values - state.scales[:, None] * state.albedo * G)
+        du = state.u - self.u0
+        da = (state.albedo - self.albedo_prior) / self.albedo_prior
+        do = state.offsets - self.offsets0
+        cost = float((residuals**2).sum() + du @ (self.prior @ du) + self.albedo_weight * (da @ da)
+                     + self.offset_weight * (do * do).sum())
+        return _Evaluation(rows=rows, gradients=gradients, G=G, Gp=Gp, Gq=Gq, residuals=residuals, cost=cost), values
+
+    def step(self, state: _State, ev: _Evaluation) -> _State:
+        """One Gauss-Newton step (as a _State of increments). The albedo (a diagonal block) is
+        eliminated per node; the per-image unknowns (scales, offsets) by a Schur complement."""
+        k_images = self.data.count
+        c, s, albedo, r = ev.rows, state.scales[:, None], state.albedo, ev.residuals
+        ja = -c * s * ev.G                 # dr / dA
+        jx = c * s * albedo * ev.Gp        # dr / d(Dx u), as p = -Dx u
+        jy = c * s * albedo * ev.Gq
+        # Per-image unknowns t: scales, then offsets (sample, line) image by image; image[t] is
+        # the image each belongs to and jt[t] its derivative on that image's residuals.
+        jt = [-c * albedo * ev.G]
+        image = [np.arange(k_images)]
+        if ev.gradients is not None:
+            jt.append((c[..., None] * ev.gradients).transpose(0, 2, 1).reshape(2 * k_images, -1))
+            image.append(np.repeat(np.arange(k_images), 2))
+        jt = np.vstack(jt)
+        image = np.concatenate(image)
+
+        a2 = self.albedo_weight / self.albedo_prior**2
+        haa = (ja * ja).sum(axis=0) + a2
+        ga = (ja * r).sum(axis=0) + a2 * (albedo - self.albedo_prior)
+        px, py = (ja * jx).sum(axis=0), (ja * jy).sum(axis=0)
+        inv = 1.0 / haa
+        mxx = (jx * jx).sum(axis=0) - px * px * inv
+        mxy = (jx * jy).sum(axis=0) - px * py * inv
+        myy = (jy * jy).sum(axis=0) - py * py * inv
+        gx = (jx * r).sum(axis=0) - px * ga * inv
+        gy = (jy * r).sum(axis=0) - py * ga * inv
+        xta = jt * ja[image]
+        xtx = jt * jx[image] - xta * (px * inv)
+        xty = jt * jy[image] - xta * (py * inv)
+        htt = (jt @ jt.T) * (image[:, None] == image[None, :]) - (xta * inv) @ xta.T
+        gt = (jt * r[image]).sum(axis=1) - xta @ (ga * inv)
+        # The data fix only s_k * A: a penalty on sum(log s) holds the scales' geometric mean at 1.
+        v = np.zeros(len(image))
+        v[:k_images] = 1.0 / state.scales
+        gamma = max(float(np.trace(htt[:k_images, :k_images])) / k_images, 1e-12)
+        htt += gamma * np.outer(v, v) + 1e-12 * gamma * np.eye(len(image))
+        gt += gamma * v * np.log(state.scales).sum()
+        if ev.gradients is not None:
+            htt[k_images:, k_images:] += self.offset_weight * np.eye(2 * k_images)
+            gt[k_images:] += self.offset_weight * (state.offsets - self.offsets0).ravel()
+            # Solve in a basis that leaves out the offsets a sideways shift of the maplet would
+            # cause: photometry cannot see that shift; the starting shape and poses fix it.
+            basis = self.image_basis
+            htt, gt = basis.T @ htt @ basis, basis.T @ gt
+            xta, xtx, xty = basis.T @ xta, basis.T @ xtx, basis.T @ xty
+
+        dx, dy = self.dx, self.dy
+        huu = (dx.T @ sp.diags(mxx) @ dx + dx.T @ sp.diags(mxy) @ dy + dy.T @ sp.diags(mxy) @ dx
+               + dy.T @ sp.diags(myy) @ dy + self.prior)
+        gu = dx.T @ gx + dy.T @ gy + self.prior @ (state.u - self.u0)
+        hut = np.asarray(dx.T @ xtx.T + dy.T @ xty.T)
+        solved = splu(huu.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(np.column_stack([gu, hut]))
+        yg, yt = solved[:, 0], solved[:, 1:]
+        dt = np.linalg.solve(htt - hut.T @ yt, -gt + hut.T @ yg)
+        du = -(yg + yt @ dt)
+        da = -(ga + px * (dx @ du) + py * (dy @ du) + xta.T @ dt) * inv
+        if ev.gradients is not None:
+            dt = self.image_basis @ dt
+            return _State(u=du, albedo=da, scales=dt[:k_images], offsets=dt[k_images:].reshape(k_images, 2))
+        return _State(u=du, albedo=da, scales=dt, offsets=np.zeros((k_images, 2)))
+
+
+def _datum_complement(maplet: Maplet, data: MapletImages) -> np.ndarray:
+    """(2K, m) orthonormal basis of the image offsets (sample, line per image) orthogonal to those
+    a shift of the maplet along its local x and y would cause (m = 2K - 2 in general). A shift
+    along z stays free: the height tie sets the mean height, and the offsets absorb its parallax."""
+    centre = maplet.frame.origin
+    step = maplet.spacing_km
+    shift = np.column_stack([
+        np.concatenate([project(centre + step * axis, camera, pose) - project(centre - step * axis, camera, pose)
+                        for camera, pose in zip(data.cameras, data.poses)]) / (2 * step)
+        for axis in maplet.frame.rotation[:2]
+    ])
+    u, sv, _ = np.linalg.svd(shift)
+    rank = int((sv > 1e-9 * sv.max()).sum()) if sv.size and sv.max() > 0 else 0
+    return u[:, rank:]
+
+
+def _advance(state: _State, step: _State, t: float) -> _State | None:
+    """state + t * step with the scales re-gauged to geometric mean 1; None if a scale turns <= 0."""
+    scales = state.scales + t * step.scales
+    if np.any(scales <= 0):
+        return None
+    gauge = np.exp(np.mean(np.log(scales)))
+    return _State(u=state.u + t * step.u, albedo=(state.albedo + t * step.albedo) * gauge,
+                  scales=scales / gauge, offsets=state.offsets + t * step.offsets)
+
+
+def _backtrack(problem: _Problem, state: _State, ev: _Evaluation, step: _State) -> tuple[_State, _Evaluation] | None:
+    """The longest of the step, its half, quarter ... 1/32 that lowers the objective (re-projected
+    at the trial heights), with its evaluation; None if none does."""
+    t = 1.0
+    while t >= 1 / 32:
+        trial = _advance(state, step, t)
+        if trial is not None:
+            trial_ev = problem.evaluate(trial)
+            if trial_ev.cost <= ev.cost:
+                return trial, trial_ev
+        t /= 2
+    return None
+
+
+def refine(
+    maplet: Maplet,
+    data: MapletImages,
+    *,
+    mode: Mode = "pwm",
+    offsets: np.ndarray | None = None,
+    solve_offsets: bool = True,
+    max_iterations: int = 30,
+    tolerance: float = 0.01,
+    slope_weight: float = 0.02,
+    height_weight: float = 1e-3,
+    albedo_weight: float = 1e-3,
+    offset_weight: float = 1e-3,
+) -> Refinement:
+    """Refine the maplet's heights and albedo and the images' brightness scales (module docstring).
+
+    mode: 'pwm' (pixel weights and region weight of `data`) or 'standard' (every visible node
+    weighs 1, shadows included, w_PWM = 1). offsets: (K, 2) pointing corrections (sample, line),
+    px, e.g. from `pwm.alignment.align`; solve_offsets: refine them too, jointly (image gradients
+    as their derivatives), tied to the given ones by offset_weight per px^2. tolerance: RMS height
+    change of one step that ends the iterations, in node spacings. slope_weight, height_weight:
+    strengths of the ties to the starting slopes and heights (divided by w_PWM); albedo_weight: of
+    the tie to the maplet's albedo (or to the median albedo if it has none). Nodes without data
+    keep the starting shape.
+    """
+    k_images = data.count
+    weights, region = data.data_weights(mode)
+    start = np.zeros((k_images, 2)) if offsets is None else np.asarray(offsets, float).reshape(k_images, 2)
+    problem = _Problem(maplet, data, weights=weights, region=region, offsets=start, solve_offsets=solve_offsets,
+                       slope_weight=slope_weight, height_weight=height_weight, albedo_weight=albedo_weight,
+                       offset_weight=offset_weight)
+    state, ev = problem.start()
+    converged = not ev.rows.any()
+    iterations = 0
+    while not converged and iterations < max_iterations:
+        iterations += 1
+        step = problem.step(state, ev)
+        converged = float(np.sqrt(np.mean(step.u**2))) < tolerance
+        accepted = _backtrack(problem, state, ev, step)
+        if accepted is None:
+            break
+        state, ev = accepted
+
+    n = maplet.n
+    used = ev.rows > 0
+    misfit = np.where(used, ev.residuals / np.where(used, ev.rows, 1.0), 0.0)
+    count = used.sum(axis=1)
+    rms = np.where(count > 0, np.sqrt((misfit**2).sum(axis=1) / np.maximum(count, 1)), np.nan)
+    return Refinement(heights=(state.u * maplet.spacing_km).reshape(n, n), albedo=state.albedo.reshape(n, n),
+                      scales=state.scales, offsets=state.offsets, rms=rms, iterations=iterations,
+                      converged=converged)
