@@ -1,15 +1,182 @@
-"""Fixtures shared across test folders: one simulated `tiny` downlink per session."""
+"""Fixtures shared across test folders: one simulated `tiny` downlink per session, and real
+database and broker servers: a throwaway PostgreSQL cluster and a Redis server, started once per
+session on free local ports.
+
+The servers come from Debian's `postgresql` and `redis-server` packages (scripts/test.sh
+installs them); when they are missing the fixtures fail, they never skip.
+"""
 
 from __future__ import annotations
 
+import os
+import pwd
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
+import psycopg
 import pytest
 
 from pwm.simulate.campaign import simulate
 from pwm.simulate.scenarios import get_scenario
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+START_TIMEOUT_S = 30.0
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _postgres_bindir() -> Path:
+    candidates = []
+    if pg_config := shutil.which("pg_config"):
+        result = subprocess.run([pg_config, "--bindir"], capture_output=True, text=True)
+        if result.returncode == 0:
+            candidates.append(Path(result.stdout.strip()))
+    versions = [p for p in Path("/usr/lib/postgresql").glob("*/bin") if p.parent.name.isdigit()]
+    candidates += sorted(versions, key=lambda p: int(p.parent.name), reverse=True)
+    for bindir in candidates:
+        if (bindir / "initdb").is_file() and (bindir / "pg_ctl").is_file():
+            return bindir
+    pytest.fail(
+        "PostgreSQL server binaries (initdb, pg_ctl) not found via pg_config or in "
+        "/usr/lib/postgresql/*/bin: install Debian's `postgresql` package (scripts/test.sh does)",
+        pytrace=False,
+    )
+
+
+def _run(command: list[str], what: str, log: Path | None = None) -> None:
+    result = subprocess.run(command, capture_output=True, text=True)
+    if result.returncode != 0:
+        server_log = log.read_text() if log is not None and log.exists() else ""
+        pytest.fail(
+            f"{what} failed ({result.returncode}):\n{result.stdout}\n{result.stderr}\n{server_log}"
+        )
+
+
+@dataclass(frozen=True)
+class PostgresServer:
+    host: str
+    port: int
+    user: str
+
+    def url(self, database: str) -> str:
+        return f"postgresql+psycopg://{self.user}@{self.host}:{self.port}/{database}"
+
+    def admin(self) -> psycopg.Connection:
+        return psycopg.connect(
+            host=self.host, port=self.port, user=self.user, dbname="postgres", autocommit=True
+        )
+
+
+@pytest.fixture(scope="session")
+def postgres_server() -> Iterator[PostgresServer]:
+    """A PostgreSQL cluster in a temporary directory, on 127.0.0.1 and its own socket dir."""
+    bindir = _postgres_bindir()
+    # PostgreSQL refuses to run as root: run it as the `postgres` user the package creates.
+    as_user: list[str] = []
+    owner = None
+    if os.geteuid() == 0:
+        try:
+            owner = pwd.getpwnam("postgres")
+        except KeyError:
+            pytest.fail("running as root, but there is no `postgres` user to run PostgreSQL as")
+        as_user = ["runuser", "-u", "postgres", "--"]
+    # Not under pytest's tmp_path: its root is private to the current user.
+    base = Path(tempfile.mkdtemp(prefix="pwm-pg-"))
+    data, sockets, log = base / "data", base / "sockets", base / "server.log"
+    sockets.mkdir()
+    if owner is not None:
+        for path in (base, sockets):
+            os.chown(path, owner.pw_uid, owner.pw_gid)
+    port = _free_port()
+    server = PostgresServer(host="127.0.0.1", port=port, user="postgres")
+    options = (
+        f"-p {port} -k {sockets} -c listen_addresses=127.0.0.1"
+        " -c fsync=off -c synchronous_commit=off -c full_page_writes=off"
+    )
+    try:
+        _run(
+            [*as_user, str(bindir / "initdb"), "-D", str(data), "-U", server.user,
+             "--auth=trust", "--encoding=UTF8", "--no-locale", "--no-sync"],
+            "initdb",
+        )
+        _run(
+            [*as_user, str(bindir / "pg_ctl"), "-D", str(data), "-l", str(log), "-o", options,
+             "-w", "-t", str(int(START_TIMEOUT_S)), "start"],
+            "pg_ctl start",
+            log,
+        )
+        yield server
+    finally:
+        if (data / "postmaster.pid").exists():
+            subprocess.run(
+                [*as_user, str(bindir / "pg_ctl"), "-D", str(data), "-m", "immediate", "-w",
+                 "stop"],
+                capture_output=True,
+            )
+        shutil.rmtree(base, ignore_errors=True)
+
+
+@pytest.fixture
+def postgres_url(postgres_server: PostgresServer) -> Iterator[str]:
+    """An empty PostgreSQL database of its own for one test, dropped afterwards."""
+    name = f"pwm_test_{uuid.uuid4().hex[:12]}"
+    with postgres_server.admin() as admin:
+        admin.execute(f'CREATE DATABASE "{name}"')
+    yield postgres_server.url(name)
+    with postgres_server.admin() as admin:
+        admin.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
+
+
+@pytest.fixture(scope="session")
+def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A Redis server without persistence on a free local port, for the session."""
+    executable = shutil.which("redis-server")
+    if executable is None:
+        pytest.fail(
+            "redis-server not found: install Debian's `redis-server` package "
+            "(scripts/test.sh does)",
+            pytrace=False,
+        )
+    port = _free_port()
+    workdir = tmp_path_factory.mktemp("redis")
+    log = workdir / "server.log"
+    process = subprocess.Popen(
+        [executable, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(workdir),
+         "--logfile", str(log), "--save", "", "--appendonly", "no", "--daemonize", "no"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+    )
+    try:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            if process.poll() is not None:
+                server_log = log.read_text() if log.exists() else ""
+                pytest.fail(f"redis-server exited ({process.returncode}):\n{server_log}")
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    pytest.fail(f"redis-server did not accept connections on port {port}")
+                time.sleep(0.05)
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
 
 
 @pytest.fixture(scope="session")
