@@ -42,6 +42,14 @@ class Maplet:
         x, y = np.meshgrid(self.axis_km, self.axis_km)
         return np.stack([x, y, h], axis=-1)
 
+    def normals_body(self, heights: np.ndarray | None = None) -> np.ndarray:
+        """(n, n, 3) unit surface normals at the nodes, body-fixed, from central differences."""
+        h = self.heights if heights is None else heights
+        dz_dy, dz_dx = np.gradient(h, self.spacing_km)
+        local = np.stack([-dz_dx, -dz_dy, np.ones_like(h)], axis=-1)
+        local /= np.linalg.norm(local, axis=-1, keepdims=True)
+        return local @ self.frame.rotation
+
     def nodes_body(self, heights: np.ndarray | None = None) -> np.ndarray:
         """(n, n, 3) body-fixed coordinates of the nodes (km)."""
         return self.frame.to_body(self.nodes_local(heights).reshape(-1, 3)).reshape(self.n, self.n, 3)

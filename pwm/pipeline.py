@@ -1,0 +1,168 @@
+"""The refinement chain on arrays: tile the start model, weigh and refine each maplet against
+the images that see it, fuse the maplets back into one model.
+
+No files and no catalog here: `pwm refine` (pwm/cli.py) reads a downlink into views, and the
+Celery workers build the same views from the catalog.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+
+import numpy as np
+
+from pwm.camera import project
+from pwm.fusion import VoxelGrid
+from pwm.io.downlink import View
+from pwm.maplets import Maplet
+from pwm.mesh import Mesh
+from pwm.photoclinometry import MapletImages, Mode, refine
+from pwm.raytrace import RayTracer
+from pwm.visibility import node_visibility
+from pwm.weights import MapletWeights, image_geometry, weigh_maplet
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class MapletResult:
+    """A refined maplet and how it was made: the images used (names), weights, solver outcome."""
+
+    maplet: Maplet
+    images: list[str]
+    region_weight: float
+    five_views: dict
+    dropped: dict
+    iterations: int
+    converged: bool
+    residual_rms: list[float]
+    seconds: float
+    report: dict = field(default_factory=dict)
+
+
+def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer) -> tuple[MapletImages, MapletWeights, list[int]]:
+    """The images of `views` that the weighting rules keep for `maplet`, with visibility against
+    the tracer's shape, per-node weights and the region weight; and their indices in `views`."""
+    points = maplet.nodes_body().reshape(-1, 3)
+    normals = maplet.normals_body().reshape(-1, 3)
+    cams = np.array([v.pose.position for v in views])
+    suns = np.array([v.sun for v in views])
+    vis = node_visibility(tracer, points, normals, camera_positions=cams, sun_directions=suns)
+    in_frame = np.array([_in_frame(points, v) for v in views])
+    ranges = np.linalg.norm(cams - maplet.frame.origin, axis=1)
+    scale = ranges / np.array([0.5 * (v.camera.fx + v.camera.fy) for v in views])
+    geom = image_geometry(maplet.frame, vis, camera_positions=cams, sun_directions=suns, pixel_scale_km=scale,
+                          spacing_km=maplet.spacing_km, in_frame=in_frame)
+    weights = weigh_maplet(maplet, vis, geom, in_frame=in_frame)
+    keep = np.flatnonzero(weights.keep)
+    n = maplet.n
+    data = MapletImages(
+        images=[views[k].image for k in keep], cameras=[views[k].camera for k in keep],
+        poses=[views[k].pose for k in keep], sun_directions=suns[keep],
+        visible=(vis.visible & in_frame)[keep].reshape(-1, n, n), lit=vis.lit[keep].reshape(-1, n, n),
+        weights=weights.pixel[keep], region_weight=weights.region,
+    )
+    return data, weights, keep.tolist()
+
+
+def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
+    """Points that project inside the image (half a pixel in from the edges, for interpolation)."""
+    px = project(points, view.camera, view.pose)
+    in_front = view.pose.to_camera(points)[:, 2] > 0
+    return in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1)
+
+
+def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode: Mode = "pwm", min_images: int = 3) -> MapletResult:
+    """Weigh and refine one maplet; with fewer than `min_images` usable images it keeps its start."""
+    clock = time.perf_counter()
+    data, weights, keep = maplet_images(maplet, views, tracer)
+    views_found = {role: views[i].name for role, i in vars(weights.views).items() if i is not None}
+    dropped = {views[k].name: reasons for k, reasons in enumerate(weights.reasons) if reasons}
+    refined = Maplet(name=maplet.name, frame=maplet.frame, spacing_km=maplet.spacing_km, heights=maplet.heights.copy(),
+                     albedo=None if maplet.albedo is None else maplet.albedo.copy(),
+                     weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
+    iterations, converged, rms = 0, False, []
+    if data.count >= min_images:
+        result = refine(maplet, data, mode=mode)
+        refined.heights, refined.albedo = result.heights, result.albedo
+        iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
+    return MapletResult(maplet=refined, images=[views[k].name for k in keep], region_weight=weights.region,
+                        five_views=views_found, dropped=dropped, iterations=iterations, converged=converged,
+                        residual_rms=rms, seconds=time.perf_counter() - clock)
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(start: Mesh, views: list[View], mode: Mode) -> None:
+    # An Embree scene cannot cross processes: each worker builds its own from the start model.
+    _WORKER.update(tracer=RayTracer(start), views=views, mode=mode)
+
+
+def _refine_in_worker(maplet: Maplet) -> MapletResult:
+    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], mode=_WORKER["mode"])
+
+
+def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, mode: Mode = "pwm", workers: int = 1) -> list[MapletResult]:
+    """Refine every maplet (in `workers` processes), logging progress; results in input order."""
+    results: list[MapletResult] = []
+    clock = time.perf_counter()
+    if workers <= 1:
+        _init_worker(start, views, mode)
+        iterator = map(_refine_in_worker, maplets)
+        pool = None
+    else:
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_worker, initargs=(start, views, mode))
+        iterator = pool.map(_refine_in_worker, maplets)
+    try:
+        for k, result in enumerate(iterator, 1):
+            results.append(result)
+            log.info("maplet %d/%d %s: %d images, w_PWM %.2f, %d iterations (%.1f s; %.0f s elapsed)", k, len(maplets),
+                     result.maplet.name, len(result.images), result.region_weight, result.iterations, result.seconds,
+                     time.perf_counter() - clock)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    return results
+
+
+@dataclass(frozen=True)
+class Region:
+    """Where to refine: a disc of radius_km about a planetocentric lat/lon (degrees), and the
+    maplet grid spacing (km) that the images there support."""
+
+    lat_deg: float
+    lon_deg: float
+    radius_km: float
+    spacing_km: float
+
+
+def imaged_region(views: list[View], start: Mesh, *, radius_fraction: float = 0.35) -> Region:
+    """The region the images look at: the mean of their boresight intercepts on the start model,
+    a radius of `radius_fraction` of the median footprint width, and the median pixel scale."""
+    from pwm.frames import unit_to_latlon
+
+    tracer = RayTracer(start)
+    origins = np.array([v.pose.position for v in views])
+    bores = np.array([v.pose.boresight for v in views])
+    hits = tracer.intersect(origins, bores)
+    if not hits.hit.any():
+        raise ValueError("no image's boresight meets the start model")
+    centre = tracer.hit_points(origins, bores, hits)[hits.hit].mean(axis=0)
+    lat, lon = unit_to_latlon(centre)
+    pixel = hits.t[hits.hit] / np.array([views[k].camera.fx for k in np.flatnonzero(hits.hit)])
+    width = np.array([views[k].camera.width for k in np.flatnonzero(hits.hit)]) * pixel
+    return Region(lat_deg=float(lat), lon_deg=float(lon), radius_km=float(radius_fraction * np.median(width)),
+                  spacing_km=float(np.median(pixel)))
+
+
+def fuse(maplets: list[Maplet], base: Mesh, *, overlap: float) -> tuple[Mesh, VoxelGrid]:
+    """Fuse refined maplets (voxels of one node spacing) and stitch them into `base`."""
+    grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=overlap)
+    for m in maplets:
+        grid.add(m)
+    return grid.mesh(base), grid
