@@ -22,6 +22,7 @@ from sqlalchemy import (
     Dialect,
     Double,
     ForeignKey,
+    Index,
     MetaData,
     String,
     Table,
@@ -378,7 +379,12 @@ class Maplet(Base):
         back_populates="maplet", cascade="all, delete-orphan"
     )
 
-    __table_args__ = (CheckConstraint("region_weight > 0", name="region_weight_positive"),)
+    __table_args__ = (
+        CheckConstraint("region_weight > 0", name="region_weight_positive"),
+        # The spatial prefilter of service.queries: a latitude range scan, longitude checked in
+        # the index.
+        Index(None, "center_lat_deg", "center_lon_deg"),
+    )
 
 
 class Coverage(Base):
