@@ -56,3 +56,11 @@ def unit_to_latlon(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     v = np.asarray(v, float)
     r = np.linalg.norm(v, axis=-1)
     return np.degrees(np.arcsin(v[..., 2] / r)), np.degrees(np.arctan2(v[..., 1], v[..., 0])) % 360.0
+
+
+def local_sun(sun_body: np.ndarray, frame: LocalFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Incidence and Sun azimuth (degrees; azimuth from local north, east positive) at the frame's origin."""
+    s = np.asarray(sun_body, float) @ frame.rotation.T
+    incidence = np.degrees(np.arccos(np.clip(s[..., 2], -1.0, 1.0)))
+    azimuth = np.degrees(np.arctan2(s[..., 0], s[..., 1])) % 360.0
+    return incidence, azimuth

@@ -85,6 +85,8 @@ class VoxelGrid:
 
     def add(self, maplet: Maplet, weight_sign: int = +1) -> None:
         """Add the maplet's nodes (weight_sign=-1: remove them, see `subtract`)."""
+        if weight_sign not in (1, -1):
+            raise ValueError("weight_sign must be +1 or -1")
         keys, sums, count = self._contribution(maplet)
         pos = np.searchsorted(self.keys, keys)
         found = pos < len(self.keys)
@@ -150,8 +152,9 @@ class VoxelGrid:
         faces = param.triangulate(q)
         edges = np.linalg.norm(q[faces] - q[np.roll(faces, 1, axis=1)], axis=2)
         faces = faces[(edges <= MAX_EDGE_VOXELS * self.voxel_km).all(axis=1)]
-        used = np.unique(faces)
-        faces = np.searchsorted(used, faces)
+        if not len(faces):
+            raise ValueError("the fused points are too sparse to mesh at this voxel size")
+        used, faces = _compact(len(q), faces)
         points, q, albedo = fused.points[used], q[used], fused.albedo[used]
         if np.isnan(albedo).any() and not np.isnan(albedo).all():
             albedo = _fill_nearest(albedo, q, q[~np.isnan(albedo)], albedo[~np.isnan(albedo)])
@@ -164,7 +167,8 @@ def _averages(sums: np.ndarray) -> FusedPoints:
     w = sums[:, _W]
     n = sums[:, _N]
     with np.errstate(invalid="ignore", divide="ignore"):
-        albedo = np.where(sums[:, _WA] > 0, sums[:, _A] / sums[:, _WA], np.nan)
+        # a relative threshold: subtracting a maplet's albedo may leave rounding residue
+        albedo = np.where(sums[:, _WA] > 1e-9 * w, sums[:, _A] / sums[:, _WA], np.nan)
     return FusedPoints(points=sums[:, _P] / w[:, None], normals=n / np.linalg.norm(n, axis=1, keepdims=True),
                        albedo=albedo, weight=w)
 
@@ -247,17 +251,24 @@ def _stitch(base: Mesh, points: np.ndarray, faces: np.ndarray, albedo: np.ndarra
     interior = inside.copy()
     if len(border) and inside.any():
         interior[inside] = cKDTree(q[border]).query(qb[inside])[0] >= margin
-    kept = base.faces[~interior[base.faces].all(axis=1)]
-    used = np.unique(kept)
+    used, kept = _compact(len(base.vertices), base.faces[~interior[base.faces].all(axis=1)])
+    n_base = int(used.sum())
     vertices = np.vstack([base.vertices[used], points])
-    faces = np.vstack([np.searchsorted(used, kept), faces + len(used)])
+    faces = np.vstack([kept, faces + n_base])
     fused_has = not np.isnan(albedo).all()
     if base.albedo is None and not fused_has:
         return Mesh(vertices, faces)
-    base_albedo = base.albedo[used] if base.albedo is not None else np.full(len(used), np.nanmean(albedo))
+    base_albedo = base.albedo[used] if base.albedo is not None else np.full(n_base, np.nanmean(albedo))
     if not fused_has:
         albedo = _fill_nearest(albedo, points, base.vertices, base.albedo)
     return Mesh(vertices, faces, np.concatenate([base_albedo, albedo]))
+
+
+def _compact(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mask of the vertices the faces use, faces renumbered over those vertices)."""
+    used = np.zeros(n_vertices, dtype=bool)
+    used[faces] = True
+    return used, (np.cumsum(used) - 1)[faces]
 
 
 def _border_vertices(faces: np.ndarray) -> np.ndarray:

@@ -51,17 +51,17 @@ def node_visibility(
     distance = np.linalg.norm(to_cam, axis=2)
     to_cam /= distance[..., None]
     mu0, mu, phase = angles(normals[None], sun[:, None, :], to_cam)
-    k_idx, n_idx = np.indices(mu.shape)
     view = mu > 0
     lamp = mu0 > 0
-    n_view = int(view.sum())
+    _, n_view = np.nonzero(view)
+    k_sun, n_sun = np.nonzero(lamp)
     blocked = tracer.occluded(
-        np.concatenate([origins[n_idx[view]], origins[n_idx[lamp]]]),
-        np.concatenate([to_cam[view], sun[k_idx[lamp]]]),
-        np.concatenate([distance[view], np.full(int(lamp.sum()), np.inf)]),
+        np.concatenate([origins[n_view], origins[n_sun]]),
+        np.concatenate([to_cam[view], sun[k_sun]]),
+        np.concatenate([distance[view], np.full(len(n_sun), np.inf)]),
     )
     visible = np.zeros(mu.shape, dtype=bool)
     lit = np.zeros(mu.shape, dtype=bool)
-    visible[view] = ~blocked[:n_view]
-    lit[lamp] = ~blocked[n_view:]
+    visible[view] = ~blocked[: len(n_view)]
+    lit[lamp] = ~blocked[len(n_view) :]
     return Visibility(visible=visible, lit=lit, mu0=mu0, mu=mu, phase=phase)

@@ -30,9 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from pwm.frames import LocalFrame
+from pwm.frames import LocalFrame, local_sun
 from pwm.maplets import Maplet
-from pwm.simulate.plan import local_sun
 from pwm.visibility import Visibility
 
 DIRECTIONS = {"east": 90.0, "west": 270.0, "north": 0.0, "south": 180.0}
@@ -116,7 +115,7 @@ class MapletWeights:
     """Weights of K images for one maplet. image: (K,) image weights (0 where dropped); keep: (K,)
     images kept by the SPC rules, reasons: why each was dropped; pixel: (K, n, n) per-node weights
     (image weight times node factor); views: the five-view selection; sun_spread_deg: Sun azimuth
-    spread of the kept images; region: w_PWM."""
+    spread of the kept images; region: w_PWM, and factors: its factors (see `region_weight`)."""
 
     image: np.ndarray
     keep: np.ndarray
@@ -166,7 +165,8 @@ def image_weights(geom: ImageGeometry, rules: Rules = RULES) -> np.ndarray:
     i = geom.incidence_deg
     w_inc = np.where(i < lo, rules.incidence_floor + (1 - rules.incidence_floor) * raised_cosine(i / lo),
                      raised_cosine((rules.incidence_zero_deg - i) / (rules.incidence_zero_deg - hi)))
-    w_em = raised_cosine((rules.emission_zero_deg - geom.emission_deg) / (rules.emission_zero_deg - rules.emission_full_deg))
+    e_full, e_zero = rules.emission_full_deg, rules.emission_zero_deg
+    w_em = raised_cosine((e_zero - geom.emission_deg) / (e_zero - e_full))
     w_res = np.minimum(1.0, 1.0 / geom.resolution_ratio)
     return w_inc * w_em * w_res * geom.visible_fraction * (1.0 - geom.shadow_fraction)
 

@@ -17,6 +17,7 @@ import numpy as np
 import spiceypy as sp
 
 from pwm.camera import Camera, Pose
+from pwm.frames import local_sun
 from pwm.io.meshio import read_obj, write_obj
 from pwm.io.pds4 import file_sha256, write_image_product
 from pwm.io.spice_geometry import camera_from_kernel, camera_pose, instrument_frame, spacecraft_of, sun_direction
@@ -24,7 +25,7 @@ from pwm.io.spice_kernels import CkSegment, SpkSegment, bundled_kernels, kernel_
 from pwm.raytrace import RayTracer
 from pwm.render import render
 from pwm.simulate.detector import choose_exposure, to_dn
-from pwm.simulate.plan import Observation, local_sun, plan_global, plan_site, sun_states
+from pwm.simulate.plan import Observation, plan_global, plan_site, sun_states
 from pwm.simulate.scenarios import Scenario
 from pwm.simulate.truth import Truth, build_truth, low_pass, save as save_truth
 

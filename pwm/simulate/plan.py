@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from pwm.camera import look_at
-from pwm.frames import LocalFrame
+from pwm.frames import LocalFrame, local_sun
 
 AU_KM = 149_597_870.7
 SunFunction = Callable[[np.ndarray], np.ndarray]
@@ -49,14 +49,6 @@ def sun_states(epochs: np.ndarray, *, pole: np.ndarray, subsolar_lat_deg: tuple[
     pos = distance_km * (np.cos(lat)[:, None] * e1 + np.sin(lat)[:, None] * pole)
     vel = distance_km * rate * (-np.sin(lat)[:, None] * e1 + np.cos(lat)[:, None] * pole)
     return np.hstack([pos, vel])
-
-
-def local_sun(sun_body: np.ndarray, frame: LocalFrame) -> tuple[np.ndarray, np.ndarray]:
-    """Incidence and Sun azimuth (degrees; azimuth from local north, east positive) at the frame's origin."""
-    s = np.asarray(sun_body, float) @ frame.rotation.T
-    incidence = np.degrees(np.arccos(np.clip(s[..., 2], -1.0, 1.0)))
-    azimuth = np.degrees(np.arctan2(s[..., 0], s[..., 1])) % 360.0
-    return incidence, azimuth
 
 
 def time_for_incidence(sun: SunFunction, frame: LocalFrame, *, day_start_et: float, incidence_deg: float, morning: bool, search_s: float = 6 * 3600.0, step_s: float = 20.0) -> float:
