@@ -1,6 +1,5 @@
 """SPICE kernels written by pwm read back through the geometry readers, and real kernels read."""
 
-import os
 import subprocess
 import sys
 from pathlib import Path

@@ -3,9 +3,13 @@ test on SQLite and on PostgreSQL (the server fixtures are in tests/conftest.py).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.db import make_engine, make_sessionmaker, upgrade
 
 
 @pytest.fixture
@@ -18,3 +22,12 @@ def sqlite_url(tmp_path: Path) -> str:
 def db_url(request: pytest.FixtureRequest) -> str:
     """Each test that takes it runs once on SQLite and once on PostgreSQL."""
     return request.getfixturevalue(f"{request.param}_url")
+
+
+@pytest.fixture
+def catalog(db_url: str) -> Iterator[sessionmaker[Session]]:
+    """Sessions on a freshly migrated catalog (SQLite and PostgreSQL)."""
+    upgrade(db_url)
+    engine = make_engine(db_url)
+    yield make_sessionmaker(engine)
+    engine.dispose()

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta, timezone
 from pathlib import Path
 
@@ -35,15 +34,6 @@ from service.models import (
 from service.settings import CATALOG_FILENAME, Settings, get_settings
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture
-def catalog(db_url: str) -> Iterator[sessionmaker[Session]]:
-    """Sessions on a freshly migrated catalog (SQLite and PostgreSQL)."""
-    upgrade(db_url)
-    engine = make_engine(db_url)
-    yield make_sessionmaker(engine)
-    engine.dispose()
 
 
 def _image(lidvid: str) -> Image:

@@ -4,7 +4,6 @@ catalog, the geometry of each image, bad inputs, idempotence, and real archive d
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -117,14 +116,6 @@ def downlink(tmp_path: Path, kernels: dict) -> Path:
         for k, offset in enumerate(GOOD_OFFSETS_S):
             _product(root / "images", f"good{k}", kernels["et0"] + offset)
     return root
-
-
-@pytest.fixture
-def catalog(db_url: str) -> Iterator[sessionmaker[Session]]:
-    upgrade(db_url)
-    engine = make_engine(db_url)
-    yield make_sessionmaker(engine)
-    engine.dispose()
 
 
 def _images(catalog: sessionmaker[Session]) -> dict[str, Image]:

@@ -7,14 +7,11 @@ import json
 import numpy as np
 from sqlalchemy import select
 
-from service.db import make_engine, make_sessionmaker, upgrade
 from service.ingest import ingest_directory
 from service.models import Image, ImageStatus
 
 
-def test_simulated_downlink_matches_the_truth_manifest(tiny_sim, db_url):
-    upgrade(db_url)
-    catalog = make_sessionmaker(make_engine(db_url))
+def test_simulated_downlink_matches_the_truth_manifest(tiny_sim, catalog):
     report = ingest_directory(catalog, tiny_sim / "downlink")
     manifest = json.loads((tiny_sim / "truth" / "manifest.json").read_text())
     assert report.failed == 0 and report.images.accepted == manifest["image_count"]
