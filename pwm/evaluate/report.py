@@ -17,7 +17,7 @@ import numpy as np
 from pwm.camera import Camera, Pose
 from pwm.evaluate import plots
 from pwm.evaluate.distance import ClosestPoint
-from pwm.evaluate.icp import RigidTransform, register
+from pwm.evaluate.icp import register
 from pwm.evaluate.images import ncc, ssim
 from pwm.evaluate.profiles import boulder_height_ratio
 from pwm.io.meshio import read_mesh
