@@ -127,8 +127,9 @@ def refine(
 @app.command()
 def ingest(
     directory: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 labels, SPICE kernels)"),
-    shape: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="current shape model for boresight intercepts (.obj/.ply, km); default: the PCK ellipsoid"),
+    shape: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="current shape model for boresight intercepts and maplet coverage (.obj/.ply, km); default: the PCK ellipsoid, no coverage"),
     name: Optional[str] = typer.Option(None, help="downlink name (default: the directory name)"),
+    maplet_nodes: int = typer.Option(100, min=8, help="nodes per side of maplets tiled where the images look and no maplet is catalogued yet (with --shape)"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Catalogue a downlink: kernels first, then every PDS4 product, accepted or rejected with a reason.
@@ -140,7 +141,8 @@ def ingest(
     from service.ingest import ingest_directory
 
     _logging(verbose)
-    report = ingest_directory(open_catalog(), directory, downlink_name=name, shape=read_mesh(shape) if shape else None)
+    report = ingest_directory(open_catalog(), directory, downlink_name=name, shape=read_mesh(shape) if shape else None,
+                              maplet_nodes=maplet_nodes)
     typer.echo(report.summary())
     raise typer.Exit(min(report.failed, 100))
 

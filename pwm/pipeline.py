@@ -22,8 +22,8 @@ from pwm.maplets import Maplet
 from pwm.mesh import Mesh
 from pwm.photoclinometry import MapletImages, Mode, refine
 from pwm.raytrace import RayTracer
-from pwm.visibility import node_visibility
-from pwm.weights import MapletWeights, image_geometry, weigh_maplet
+from pwm.visibility import Visibility, node_visibility
+from pwm.weights import ImageGeometry, MapletWeights, image_geometry, weigh_maplet
 
 log = logging.getLogger(__name__)
 
@@ -47,17 +47,9 @@ class MapletResult:
 def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer) -> tuple[MapletImages, MapletWeights, list[int]]:
     """The images of `views` that the weighting rules keep for `maplet`, with visibility against
     the tracer's shape, per-node weights and the region weight; and their indices in `views`."""
-    points = maplet.nodes_body().reshape(-1, 3)
-    normals = maplet.normals_body().reshape(-1, 3)
-    cams = np.array([v.pose.position for v in views])
-    suns = np.array([v.sun for v in views])
-    vis = node_visibility(tracer, points, normals, camera_positions=cams, sun_directions=suns)
-    in_frame = np.array([_in_frame(points, v) for v in views])
-    ranges = np.linalg.norm(cams - maplet.frame.origin, axis=1)
-    scale = ranges / np.array([0.5 * (v.camera.fx + v.camera.fy) for v in views])
-    geom = image_geometry(maplet.frame, vis, camera_positions=cams, sun_directions=suns, pixel_scale_km=scale,
-                          spacing_km=maplet.spacing_km, in_frame=in_frame)
+    vis, in_frame, geom = view_geometry(maplet, views, tracer)
     weights = weigh_maplet(maplet, vis, geom, in_frame=in_frame)
+    suns = np.array([v.sun for v in views])
     keep = np.flatnonzero(weights.keep)
     n = maplet.n
     data = MapletImages(
@@ -67,6 +59,25 @@ def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer) -> tuple
         weights=weights.pixel[keep], region_weight=weights.region,
     )
     return data, weights, keep.tolist()
+
+
+def view_geometry(maplet: Maplet, views: list[View], tracer: RayTracer, *,
+                  spacing_km: float | None = None) -> tuple[Visibility, np.ndarray, ImageGeometry]:
+    """Visibility of the maplet's nodes in `views` against the tracer's shape, which nodes fall
+    in each image's frame (K, n*n), and the images' geometry over the maplet. Only the views'
+    camera, pose and Sun are used. spacing_km: the spacing the resolution is judged against
+    (default the maplet's; a subsampled copy of a maplet gives its parent's)."""
+    points = maplet.nodes_body().reshape(-1, 3)
+    normals = maplet.normals_body().reshape(-1, 3)
+    cams = np.array([v.pose.position for v in views])
+    suns = np.array([v.sun for v in views])
+    vis = node_visibility(tracer, points, normals, camera_positions=cams, sun_directions=suns)
+    in_frame = np.array([_in_frame(points, v) for v in views])
+    ranges = np.linalg.norm(cams - maplet.frame.origin, axis=1)
+    scale = ranges / np.array([0.5 * (v.camera.fx + v.camera.fy) for v in views])
+    geom = image_geometry(maplet.frame, vis, camera_positions=cams, sun_directions=suns, pixel_scale_km=scale,
+                          spacing_km=maplet.spacing_km if spacing_km is None else spacing_km, in_frame=in_frame)
+    return vis, in_frame, geom
 
 
 def _in_frame(points: np.ndarray, view: View) -> np.ndarray:

@@ -39,6 +39,7 @@ from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
 from pwm.io.spice_geometry import camera_from_kernel, instrument_frame, spacecraft_of
 from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
+from service.coverage import CoverageReport, update_coverage
 from service.db import make_sessionmaker, session_scope
 from service.geometry import (ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry,
                               ellipsoid_of, observe)
@@ -86,6 +87,7 @@ class IngestReport:
     geometry_unavailable: int = 0
     failures: list[Failure] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    coverage: CoverageReport | None = None
     elapsed_s: float = 0.0
 
     @property
@@ -156,13 +158,16 @@ class _Rejected(Exception):
 
 
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
-                     downlink_name: str | None = None, shape: Mesh | None = None) -> IngestReport:
+                     downlink_name: str | None = None, shape: Mesh | None = None,
+                     maplet_nodes: int = 100) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
     holds that name). shape: the current shape model of the target (body-fixed, km); boresight
-    and corner intercepts use it instead of the PCK ellipsoid. SPICE's process-wide kernel pool
-    is cleared on the way in and out (pwm.io.spice_kernels.kernel_pool).
+    and corner intercepts use it instead of the PCK ellipsoid, and the images' coverage rows
+    are computed against it (service.coverage; maplets tiled there have maplet_nodes nodes per
+    side). SPICE's process-wide kernel pool is cleared on the way in and out
+    (pwm.io.spice_kernels.kernel_pool).
     """
     sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
     directory = Path(directory).resolve()
@@ -180,6 +185,10 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
         _count_kernels(report, outcomes)
         _ingest_images(sessions, directory, downlink_id, report,
                        None if shape is None else MeshSurface(shape))
+        if shape is not None:
+            with session_scope(sessions) as session:
+                report.coverage = update_coverage(session, shape, downlink_id=downlink_id,
+                                                  nodes_per_side=maplet_nodes)
     except BaseException:
         with session_scope(sessions) as session:
             session.get(Downlink, downlink_id).status = DownlinkStatus.FAILED

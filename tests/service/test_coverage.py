@@ -11,7 +11,6 @@ from sqlalchemy import delete, select
 
 from pwm.io.meshio import read_mesh
 from service.coverage import update_coverage
-from service.db import make_engine, make_sessionmaker, upgrade
 from service.ingest import ingest_directory
 from service.models import Coverage, CoverageRole, Image, Maplet
 from service.queries import list_maplets, maplet_coverage
@@ -19,9 +18,10 @@ from service.queries import list_maplets, maplet_coverage
 
 def _rows(session) -> list[tuple]:
     """Every coverage row's values, by image and maplet."""
-    return sorted((c.image_id, c.maplet_id, c.visible_fraction, c.shadowed_fraction, c.incidence_deg,
-             c.emission_deg, c.phase_deg, c.sun_azimuth_deg, c.resolution_m_per_px, c.weight,
-             c.role) for c in session.scalars(select(Coverage)))
+    return sorted((c.image_id, c.maplet_id, c.visible_fraction, c.shadowed_fraction,
+                   c.incidence_deg, c.emission_deg, c.phase_deg, c.sun_azimuth_deg,
+                   c.resolution_m_per_px, c.weight, c.role)
+                  for c in session.scalars(select(Coverage)))
 
 
 def _maplets(session) -> list[tuple]:
@@ -29,14 +29,12 @@ def _maplets(session) -> list[tuple]:
                                 .order_by(Maplet.id)))
 
 
-def test_ingest_with_a_shape_fills_the_coverage_of_the_site(tiny_sim, db_url):
-    upgrade(db_url)
-    catalog = make_sessionmaker(make_engine(db_url))
+def test_ingest_with_a_shape_fills_the_coverage_of_the_site(tiny_sim, catalog):
     shape = read_mesh(tiny_sim / "downlink" / "start_model.obj")
     report = ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
     manifest = json.loads((tiny_sim / "truth" / "manifest.json").read_text())
     site = manifest["scenario"]
-    truth = {im["label"].split("/")[-1]: im for im in manifest["images"]}
+    plans = {im["label"].split("/")[-1]: im for im in manifest["images"]}
     assert report.coverage.maplets_added > 1
     with catalog() as session:
         near = list_maplets(session, lat_deg=site["site_lat_deg"], lon_deg=site["site_lon_deg"],
@@ -50,27 +48,28 @@ def test_ingest_with_a_shape_fills_the_coverage_of_the_site(tiny_sim, db_url):
         assert 0 < summary.region_weight <= 1 and summary.used_count >= 3
         rows = session.execute(select(Coverage, Image.label_path).join(Image)
                                .where(Coverage.maplet_id == centre.id)).all()
-        planned = {truth[path.split("/")[-1]]["name"]: row for row, path in rows}
+        planned = [(row, plans[path.split("/")[-1]]) for row, path in rows]
         # The maplet's normal (regional, of the start model) is off the site's by the emission
         # of a nadir image, which bounds how far any incidence may differ from the plan's.
-        tilt = min(row.emission_deg for name, row in planned.items()
-                   if truth[f"pwm_tiny_{name}.xml"]["site_emission_deg"] == 0.0)
+        tilt = min(row.emission_deg for row, plan in planned if plan["site_emission_deg"] == 0)
         assert tilt < 10.0
         normal = np.asarray(session.get(Maplet, centre.id).rotation)[2]
-        for name, row in planned.items():
-            plan = truth[f"pwm_tiny_{name}.xml"]
+        for row, plan in planned:
             assert abs(row.incidence_deg - plan["site_incidence_deg"]) <= tilt + 0.1
             assert abs(row.phase_deg - plan["site_phase_deg"]) < 0.1  # no normal in it
             g = row.image.geometry
             sun = np.array([g.sun_x, g.sun_y, g.sun_z])
             assert np.degrees(np.arccos(normal @ sun / np.linalg.norm(sun))) == pytest.approx(
                 row.incidence_deg, abs=1e-6)
+            # Azimuths from local north towards east: a tilted normal turns them by a few tilts.
+            turn = (row.sun_azimuth_deg - plan["site_sun_azimuth_deg"] + 180.0) % 360.0 - 180.0
+            assert abs(turn) < 3 * tilt
             assert row.resolution_m_per_px == pytest.approx(plan["site_gsd_m"], rel=0.01)
             assert row.visible_fraction > 0.9
-        nadir = summary.views[CoverageRole.NADIR]
-        assert truth[f"{nadir.split(':')[-3]}.xml"]["site_emission_deg"] == 0.0
-        incidences = [truth[f"pwm_tiny_{name}.xml"]["site_incidence_deg"]
-                      for name, row in planned.items() if row.weight > 0]
+        [(nadir, plan)] = [(row, plan) for row, plan in planned if row.role is CoverageRole.NADIR]
+        assert plan["site_emission_deg"] == 0 and summary.views[CoverageRole.NADIR] == (
+            nadir.image.lidvid)
+        incidences = [plan["site_incidence_deg"] for row, plan in planned if row.weight > 0]
         assert np.allclose(summary.incidence_deg, (min(incidences), max(incidences)),
                            atol=tilt + 0.1)
         before, maplets = _rows(session), _maplets(session)

@@ -1,0 +1,205 @@
+"""The image-maplet coverage rows of the catalog: which maplets the accepted images see, and how.
+
+After a downlink's images are in, and given the current shape model (body-fixed, km):
+1. when the catalog has no maplets over the region the downlink's images look at
+   (pwm.pipeline.imaged_region), that region of the shape is tiled (pwm.tiling.tile) and stored;
+2. every maplet that one of the downlink's images may see is weighed against every catalogued
+   image that may see it, with the refinement's own rules (pwm.pipeline.view_geometry,
+   pwm.weights.weigh_maplet): visibility by Embree against the shape (in frame, not occluded,
+   lit) on a subsample of the maplet's nodes, angles at the maplet origin in its frame, image
+   weights (0 where the SPC rules drop the image), the five-view roles and the region weight
+   w_PWM, which is stored on the maplet.
+
+Rows are upserted (one per image and maplet) and written only where a value changed, so a
+repeated ingest changes nothing; rows of images that no longer see a maplet are deleted.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session, selectinload
+
+from pwm.camera import Camera, Pose, project
+from pwm.frames import LocalFrame, unit_to_latlon
+from pwm.io.downlink import View
+from pwm.io.pds4 import read_image_product
+from pwm.maplets import Maplet as MapletGrid
+from pwm.mesh import Mesh
+from pwm.pipeline import imaged_region, view_geometry
+from pwm.raytrace import RayTracer
+from pwm.tiling import sample_heights, tile
+from pwm.weights import weigh_maplet
+from service.models import (Coverage, CoverageRole, GeometryStatus, Image, ImageStatus,
+                            Maplet)
+from service.queries import list_maplets
+
+log = logging.getLogger(__name__)
+
+SAMPLE_NODES = 25
+"""Nodes per side on which visibility is traced: enough for the fractions, fast for the catalog."""
+OVERLAP = 0.25
+"""Fraction of a maplet's side shared with each neighbour, as `pwm refine` tiles."""
+
+_COLUMNS = ("visible_fraction", "shadowed_fraction", "incidence_deg", "emission_deg",
+            "phase_deg", "sun_azimuth_deg", "resolution_m_per_px", "weight", "role")
+
+
+@dataclass
+class CoverageReport:
+    """What one coverage update did: maplets tiled and weighed, coverage rows written."""
+
+    maplets_added: int = 0
+    maplets_weighed: int = 0
+    rows_added: int = 0
+    rows_updated: int = 0
+    rows_deleted: int = 0
+
+
+def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = None,
+                    nodes_per_side: int = 100, sample_nodes: int = SAMPLE_NODES) -> CoverageReport:
+    """Tile the region the new images look at if no maplet covers it, then weigh every maplet
+    that a new image may see against all catalogued images that may see it.
+
+    New images: the accepted images with geometry of downlink `downlink_id` (all such images
+    when None). nodes_per_side: of the maplets tiled here, spaced at the images' median pixel
+    scale; sample_nodes: nodes per side on which visibility is traced.
+    """
+    report = CoverageReport()
+    views, downlinks = _catalog_views(session)
+    new = {i for i, d in downlinks.items() if downlink_id is None or d == downlink_id}
+    if not new:
+        return report
+    tracer = RayTracer(shape)
+    report.maplets_added = _tile_if_bare(session, shape, [views[i] for i in sorted(new)],
+                                         nodes_per_side=nodes_per_side)
+    ids = sorted(views)
+    for maplet in session.scalars(select(Maplet).order_by(Maplet.id)).all():
+        grid = _subsample(maplet, tracer, sample_nodes)
+        points = grid.nodes_body().reshape(-1, 3)
+        seen = [i for i in ids if _may_see(points, views[i])]
+        if not new.intersection(seen):
+            continue
+        report.maplets_weighed += 1
+        _store(session, maplet, grid, seen, [views[i] for i in seen], tracer, report)
+    session.flush()
+    log.info("coverage: %d maplets tiled, %d weighed; rows %d added, %d updated, %d deleted",
+             report.maplets_added, report.maplets_weighed, report.rows_added, report.rows_updated,
+             report.rows_deleted)
+    return report
+
+
+def _catalog_views(session: Session) -> tuple[dict[int, View], dict[int, int | None]]:
+    """Every accepted image with geometry as a View without pixels (camera of its array, pose,
+    Sun), by image id, and each one's downlink."""
+    images = session.scalars(select(Image).where(
+        Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED,
+        Image.instrument_id.is_not(None)).options(
+        selectinload(Image.geometry), selectinload(Image.instrument)))
+    views, downlinks = {}, {}
+    for image in images:
+        g, inst = image.geometry, image.instrument
+        # The catalog keeps the detector, not the array's window: the label gives it.
+        product = read_image_product(Path(image.label_path))
+        camera = Camera(width=inst.width_px, height=inst.height_px, fx=inst.fx_px, fy=inst.fy_px,
+                        cx=inst.cx_px, cy=inst.cy_px).subframe(
+            first_sample=product.first_sample, first_line=product.first_line,
+            samples=product.samples, lines=product.lines)
+        pose = Pose(position=np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
+                    rotation=np.asarray(g.camera_rotation, float).reshape(3, 3))
+        sun = np.array([g.sun_x, g.sun_y, g.sun_z])
+        et = 0.5 * (image.start_et + image.stop_et)
+        views[image.id] = View(name=image.lidvid, image=np.empty((0, 0)), camera=camera,
+                               pose=pose, sun=sun / np.linalg.norm(sun), et=et)
+        downlinks[image.id] = image.downlink_id
+    return views, downlinks
+
+
+def _tile_if_bare(session: Session, shape: Mesh, views: list[View], *, nodes_per_side: int) -> int:
+    """Tile and store the region the views look at when no catalogued maplet lies in it; the
+    number of maplets added."""
+    try:
+        region = imaged_region(views, shape)
+    except ValueError:  # no boresight meets the shape: nothing to tile
+        return 0
+    if list_maplets(session, lat_deg=region.lat_deg, lon_deg=region.lon_deg,
+                    radius_km=region.radius_km, limit=1):
+        return 0
+    maplets = tile(shape, spacing_km=region.spacing_km, nodes=nodes_per_side, overlap=OVERLAP,
+                   centre_lat_deg=region.lat_deg, centre_lon_deg=region.lon_deg,
+                   radius_km=region.radius_km)
+    taken = set(session.scalars(select(Maplet.name).where(
+        Maplet.name.in_([m.name for m in maplets]))))
+    added = [m for m in maplets if m.name not in taken]
+    for m in added:
+        lat, lon = unit_to_latlon(m.frame.origin)
+        x, y, z = (float(v) for v in m.frame.origin)
+        session.add(Maplet(name=m.name, center_lat_deg=float(lat), center_lon_deg=float(lon),
+                           origin_x_km=x, origin_y_km=y, origin_z_km=z,
+                           rotation=m.frame.rotation.tolist(),
+                           size_km=(m.n - 1) * m.spacing_km, gsd_m=m.spacing_km * 1e3,
+                           nodes_per_side=m.n))
+    session.flush()
+    log.info("tiled %d maplets of %d nodes at %.3f m about (%.4f, %.4f) within %.1f m",
+             len(added), nodes_per_side, region.spacing_km * 1e3, region.lat_deg, region.lon_deg,
+             region.radius_km * 1e3)
+    return len(added)
+
+
+def _subsample(maplet: Maplet, tracer: RayTracer, sample_nodes: int) -> MapletGrid:
+    """The maplet's square on at most sample_nodes x sample_nodes nodes, heights from the shape."""
+    n = min(sample_nodes, maplet.nodes_per_side)
+    frame = LocalFrame(origin=np.array([maplet.origin_x_km, maplet.origin_y_km,
+                                        maplet.origin_z_km]),
+                       rotation=np.asarray(maplet.rotation, float).reshape(3, 3))
+    grid = MapletGrid(name=maplet.name, frame=frame, spacing_km=maplet.size_km / (n - 1),
+                      heights=np.zeros((n, n)))
+    grid.heights = sample_heights(tracer, grid)
+    return grid
+
+
+def _may_see(points: np.ndarray, view: View) -> bool:
+    """Whether the image's frame meets the box of the points (body-fixed, km) in front of it,
+    projected: a cheap test before any ray is traced."""
+    ahead = view.pose.to_camera(points)[:, 2] > 0
+    if not ahead.any():
+        return False
+    px = project(points[ahead], view.camera, view.pose)
+    return bool(px[:, 0].max() >= 0 and px[:, 0].min() <= view.camera.width - 1
+                and px[:, 1].max() >= 0 and px[:, 1].min() <= view.camera.height - 1)
+
+
+def _store(session: Session, maplet: Maplet, grid: MapletGrid, image_ids: list[int],
+           views: list[View], tracer: RayTracer, report: CoverageReport) -> None:
+    """Weigh the maplet in the views and upsert its coverage rows and region weight."""
+    spacing_km = maplet.gsd_m * 1e-3
+    vis, in_frame, geom = view_geometry(grid, views, tracer, spacing_km=spacing_km)
+    weights = weigh_maplet(grid, vis, geom, in_frame=in_frame)
+    roles = {k: CoverageRole(name) for name, k in vars(weights.views).items() if k is not None}
+    existing = {row.image_id: row for row in session.scalars(
+        select(Coverage).where(Coverage.maplet_id == maplet.id))}
+    for k, image_id in enumerate(image_ids):
+        if geom.visible_fraction[k] <= 0:
+            continue
+        values = dict(zip(_COLUMNS, (
+            float(geom.visible_fraction[k]), float(geom.shadow_fraction[k]),
+            float(geom.incidence_deg[k]), float(geom.emission_deg[k]), float(geom.phase_deg[k]),
+            float(geom.sun_azimuth_deg[k]), float(geom.resolution_ratio[k] * spacing_km * 1e3),
+            float(weights.image[k]), roles.get(k))))
+        row = existing.pop(image_id, None)
+        if row is None:
+            session.add(Coverage(image_id=image_id, maplet_id=maplet.id, **values))
+            report.rows_added += 1
+        elif any(getattr(row, c) != v for c, v in values.items()):
+            for column, value in values.items():
+                setattr(row, column, value)
+            report.rows_updated += 1
+    for row in existing.values():
+        session.delete(row)
+        report.rows_deleted += 1
+    if maplet.region_weight != weights.region:
+        maplet.region_weight = float(weights.region)
