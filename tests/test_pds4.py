@@ -185,3 +185,29 @@ def test_real_non_images_are_rejected(pds4_data, label, names):
         read_image_product(pds4_data / label)
     assert err.value.code == "not_image"
     assert all(name in str(err.value) for name in names)
+
+
+def test_raw_array_without_fits_header_reads_with_scaling_and_special_constants(product, truth, tmp_path):
+    """The same image as a headerless raw array file (as many archives ship them)."""
+    label, data_file = product
+    phys, dn = truth
+    with fits.open(data_file) as hdul:
+        fits_len = hdul[0].fileinfo()["datLoc"]
+    raw_file = tmp_path / "raw_copy.img"
+    raw_file.write_bytes(data_file.read_bytes()[fits_len:])
+    ns = {"pds": PDS_NS}
+    ET.register_namespace("", PDS_NS)
+    tree = ET.parse(label)
+    area = tree.getroot().find("pds:File_Area_Observational", ns)
+    area.remove(area.find("pds:Header", ns))
+    area.find("pds:File/pds:file_name", ns).text = raw_file.name
+    area.find("pds:File/pds:file_size", ns).text = str(raw_file.stat().st_size)
+    area.find("pds:File/pds:md5_checksum", ns).text = hashlib.md5(raw_file.read_bytes()).hexdigest()
+    area.find("pds:Array_2D_Image/pds:offset", ns).text = "0"
+    raw_label = tmp_path / "raw_copy.xml"
+    tree.write(raw_label, xml_declaration=True, encoding="utf-8")
+    image = read_image_product(raw_label)
+    assert image.fits_header is None and image.data.shape == dn.shape
+    missing = dn == MISSING_DN
+    np.testing.assert_array_equal(np.isnan(image.data), missing)
+    assert np.max(np.abs(image.data[~missing] - phys[~missing])) <= SCALE / 2 * (1 + 1e-9)
