@@ -78,7 +78,7 @@ def refine(
     mode: str = typer.Option("pwm", help="pwm (pixel and region weights) | standard (weights off)"),
     lat: Optional[float] = typer.Option(None, help="region centre latitude, deg (default: where the images look)"),
     lon: Optional[float] = typer.Option(None, help="region centre east longitude, deg"),
-    radius: Optional[float] = typer.Option(None, help="region radius, m"),
+    radius: Optional[float] = typer.Option(None, min=0.0, help="region radius, km"),
     nodes: int = typer.Option(100, min=8, help="maplet nodes per side"),
     overlap: float = typer.Option(0.25, min=0.0, max=0.75, help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
@@ -106,7 +106,7 @@ def refine(
     if lat is not None and lon is not None:
         region = dataclasses.replace(region, lat_deg=lat, lon_deg=lon)
     if radius is not None:
-        region = dataclasses.replace(region, radius_km=radius * 1e-3)
+        region = dataclasses.replace(region, radius_km=radius)
     maplets = tile(start_model, spacing_km=region.spacing_km, nodes=nodes, overlap=overlap, centre_lat_deg=region.lat_deg,
                    centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
     logging.getLogger("pwm").info("%d images, %d maplets of %d nodes at %.3f m around (%.3f, %.3f) within %.1f m",
