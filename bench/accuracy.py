@@ -1,0 +1,88 @@
+"""Accuracy of the refinement against the proving ground's truth: one table per scenario with
+the start model, standard photoclinometry and PWM (RMS in m and GSD, median, NCC, SSIM, boulder
+height ratio, runtime, peak memory).
+
+    .venv/bin/python bench/accuracy.py [--scenarios tiny site site-polar] [--knowledge-error 1,1e-4]
+                                       [--out DIR] [--workers 2]
+
+Simulations are reused when OUT/<scenario>/truth/manifest.json exists. Each step runs in its own
+process so that its peak memory is its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CHILD = """
+import resource, runpy, sys
+sys.argv = ["pwm"] + sys.argv[1:]
+try:
+    runpy.run_module("pwm.cli", run_name="__main__")
+finally:
+    # the largest process: the command itself or one of its worker processes
+    peak = max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    print("PEAK_KIB", peak, file=sys.stderr)
+"""
+
+
+def pwm(*args: str) -> tuple[float, float]:
+    """Run a pwm command; its wall time (s) and peak memory (GiB)."""
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", CHILD, *args], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"pwm {' '.join(args)} failed:\n{done.stderr[-4000:]}")
+    peak = next(int(line.split()[1]) for line in done.stderr.splitlines() if line.startswith("PEAK_KIB"))
+    return time.perf_counter() - start, peak / 2**20
+
+
+def row(label: str, figures: dict, seconds: float | None, peak: float | None) -> str:
+    def f(key: str, fmt: str) -> str:
+        value = figures.get(key)
+        return format(value, fmt) if value is not None else "-"
+
+    time_s = f"{seconds:.0f}" if seconds is not None else "-"
+    peak_g = f"{peak:.2f}" if peak is not None else "-"
+    return (f"{label:<10}{f('rms_m', '.3f'):>8}{f('rms_gsd', '.2f'):>8}{f('median_m', '.3f'):>9}{f('ncc', '.3f'):>7}"
+            f"{f('ssim', '.3f'):>7}{f('boulder_height_ratio_median', '.2f'):>9}{f('steep_boulder_height_ratio_median', '.2f'):>7}"
+            f"{time_s:>8}{peak_g:>8}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenarios", nargs="+", default=["tiny", "site", "site-polar"])
+    parser.add_argument("--knowledge-error", default=None, help="POS_M,POINT_RAD for the simulated kernels")
+    parser.add_argument("--out", type=Path, default=Path("out/bench-accuracy"))
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    for name in args.scenarios:
+        sim = args.out / (name + (f"-ke{args.knowledge_error}" if args.knowledge_error else ""))
+        if not (sim / "truth" / "manifest.json").exists():
+            extra = ["--knowledge-error", args.knowledge_error] if args.knowledge_error else []
+            pwm("simulate", str(sim), "--scenario", name, "--seed", "1", *extra)
+        downlink, truth = sim / "downlink", sim / "truth"
+        site_radius_km = json.loads((truth / "manifest.json").read_text())["scenario"]["site_size_km"] / 2
+        lines = []
+        steps = [("start", downlink / "start_model.obj", None)]
+        for mode in ("standard", "pwm"):
+            out = sim / f"refined-{mode}"
+            seconds, peak = pwm("refine", str(downlink), "--start", str(downlink / "start_model.obj"), "--out", str(out),
+                                "--mode", mode, "--workers", str(args.workers), "--radius", str(1.3 * site_radius_km))
+            steps.append((mode, out / "refined.ply", (seconds, peak)))
+        for label, model, cost in steps:
+            report = sim / f"evaluation-{label}.json"
+            pwm("evaluate", str(model), "--truth", str(truth), "--json", str(report), "--plots", str(sim / f"plots-{label}"))
+            figures = json.loads(report.read_text())
+            lines.append(row(label, figures, *(cost or (None, None))))
+        gsd = json.loads((truth / "manifest.json").read_text())["gsd_m"]
+        print(f"\n{sim.name}: GSD {gsd:.3f} m")
+        print(f"{'model':<10}{'RMS m':>8}{'RMS GSD':>8}{'median m':>9}{'NCC':>7}{'SSIM':>7}{'boulders':>9}{'steep':>7}{'time s':>8}{'GiB':>8}")
+        print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
