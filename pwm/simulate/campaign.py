@@ -215,12 +215,12 @@ def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, observations: l
     for p in (spk, ck_sc, ck_mount):
         p.parent.mkdir(parents=True, exist_ok=True)
     write_spk(spk, segments=spk_segments)
-    sclk = sc
-    write_ck(ck_sc, segments=[CkSegment(frame_id=SPACECRAFT_FRAME, sclk_id=sclk, epochs=epochs_a, rotations=rot_a,
+    # the spacecraft clock carries the spacecraft's own NAIF id
+    write_ck(ck_sc, segments=[CkSegment(frame_id=SPACECRAFT_FRAME, sclk_id=sc, epochs=epochs_a, rotations=rot_a,
                                         angular_velocities=np.zeros((len(epochs_a), 3)), interval_starts=[e[0] for e in epochs])])
     span = np.array([epochs_a[0], epochs_a[-1]])
     frame_id = sp.namfrm(instrument_frame(scenario.instrument_id))
-    write_ck(ck_mount, segments=[CkSegment(frame_id=frame_id, sclk_id=sclk, epochs=span, rotations=np.repeat(np.eye(3)[None], 2, axis=0),
+    write_ck(ck_mount, segments=[CkSegment(frame_id=frame_id, sclk_id=sc, epochs=span, rotations=np.repeat(np.eye(3)[None], 2, axis=0),
                                            angular_velocities=np.zeros((2, 3)), interval_starts=[span[0]], reference="ORX_SPACECRAFT")])
     return [spk, ck_sc, ck_mount]
 
