@@ -16,15 +16,17 @@ import subprocess
 import tempfile
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import psycopg
 import pytest
+from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.simulate.campaign import simulate
 from pwm.simulate.scenarios import get_scenario
+from service.db import make_engine, make_sessionmaker, upgrade
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 START_TIMEOUT_S = 30.0
@@ -185,3 +187,18 @@ def tiny_sim(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny") / "sim"
     simulate(out, scenario=get_scenario("tiny"), seed=3)
     return out
+
+
+@pytest.fixture
+def open_catalog_at() -> Iterator[Callable[[str], sessionmaker[Session]]]:
+    """Sessions on the database at a URL, migrated to head; the engines are disposed afterwards."""
+    engines = []
+
+    def open_at(url: str) -> sessionmaker[Session]:
+        upgrade(url)
+        engines.append(make_engine(url))
+        return make_sessionmaker(engines[-1])
+
+    yield open_at
+    for engine in engines:
+        engine.dispose()

@@ -3,13 +3,10 @@ test on SQLite and on PostgreSQL (the server fixtures are in tests/conftest.py).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from sqlalchemy.orm import Session, sessionmaker
-
-from service.db import make_engine, make_sessionmaker, upgrade
 
 
 @pytest.fixture
@@ -25,9 +22,6 @@ def db_url(request: pytest.FixtureRequest) -> str:
 
 
 @pytest.fixture
-def catalog(db_url: str) -> Iterator[sessionmaker[Session]]:
+def catalog(db_url: str, open_catalog_at) -> sessionmaker[Session]:
     """Sessions on a freshly migrated catalog (SQLite and PostgreSQL)."""
-    upgrade(db_url)
-    engine = make_engine(db_url)
-    yield make_sessionmaker(engine)
-    engine.dispose()
+    return open_catalog_at(db_url)

@@ -81,11 +81,8 @@ def broker_url(redis_url: str) -> Iterator[str]:
 
 
 @pytest.fixture
-def catalog(postgres_url: str) -> Iterator[sessionmaker[Session]]:
-    upgrade(postgres_url)
-    engine = make_engine(postgres_url)
-    yield make_sessionmaker(engine)
-    engine.dispose()
+def catalog(postgres_url: str, open_catalog_at) -> sessionmaker[Session]:
+    return open_catalog_at(postgres_url)
 
 
 @pytest.fixture
