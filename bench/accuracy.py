@@ -22,7 +22,7 @@ CHILD = """
 import resource, runpy, sys
 sys.argv = ["pwm"] + sys.argv[1:]
 try:
-    runpy.run_module("pwm.cli", run_name="__main__")
+    runpy.run_module("service.cli", run_name="__main__")
 finally:
     # the largest process: the command itself or one of its worker processes
     peak = max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))

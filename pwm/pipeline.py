@@ -1,7 +1,7 @@
 """The refinement chain on arrays: tile the start model, weigh and refine each maplet against
 the images that see it, fuse the maplets back into one model.
 
-No files and no catalog here: `pwm refine` (pwm/cli.py) reads a downlink into views, and the
+No files and no catalog here: `pwm refine` (service/cli/science.py) reads a downlink into views, and the
 Celery workers build the same views from the catalog.
 """
 

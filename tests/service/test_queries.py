@@ -16,7 +16,7 @@ from sqlalchemy import event, select
 from sqlalchemy.orm import Session, sessionmaker
 from typer.testing import CliRunner
 
-from pwm.cli import app
+from service.cli import app
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame, unit_to_latlon
 from service.db import make_engine, make_sessionmaker, session_scope, upgrade
 from service.models import (Coverage, CoverageRole, Image, ImageGeometry, ImageStatus, Maplet,

@@ -1,127 +1,13 @@
-"""The `pwm` command line."""
+"""Catalog commands: ingest a downlink and query images, maplets and coverage."""
 
 from __future__ import annotations
 
-import json
-import logging
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-app = typer.Typer(help="Shape modeling of an asteroid with pixel-weighted maplets.", no_args_is_help=True,
-                  add_completion=False, pretty_exceptions_enable=False)
-
-
-def _logging(verbose: bool) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
-
-
-def _knowledge_error(value: Optional[str]) -> tuple[float, float]:
-    if value is None:
-        return 0.0, 0.0
-    try:
-        pos_m, point_rad = (float(x) for x in value.split(","))
-    except ValueError:
-        raise typer.BadParameter("expected POS_M,POINT_RAD, e.g. 1.0,1e-4") from None
-    if pos_m < 0 or point_rad < 0:
-        raise typer.BadParameter("knowledge errors must be non-negative")
-    return pos_m, point_rad
-
-
-@app.command()
-def simulate(
-    out: Path = typer.Argument(..., help="output directory (downlink/ and truth/ are written in it)"),
-    scenario: str = typer.Option("tiny", help="tiny | site | site-polar | global-coarse"),
-    seed: int = typer.Option(0, help="random seed: the same seed gives the same products"),
-    knowledge_error: Optional[str] = typer.Option(None, help="POS_M,POINT_RAD: 1-sigma position (m) and pointing (rad) errors in the kernels"),
-    verbose: bool = typer.Option(False, "--verbose", "-v"),
-) -> None:
-    """Simulate a mission downlink (PDS4 images, SPICE kernels, start model) from a truth asteroid."""
-    from pwm.simulate.campaign import simulate as run_simulation
-    from pwm.simulate.scenarios import get_scenario
-
-    _logging(verbose)
-    try:
-        sc = get_scenario(scenario)
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
-    pos_m, point_rad = _knowledge_error(knowledge_error)
-    manifest = run_simulation(out, scenario=sc, seed=seed, position_error_m=pos_m, pointing_error_rad=point_rad)
-    typer.echo(f"{manifest['image_count']} images, GSD {manifest['gsd_m']:.3f} m -> {out}")
-
-
-@app.command()
-def evaluate(
-    model: Path = typer.Argument(..., exists=True, dir_okay=False, help="model mesh (.obj or .ply, km, body-fixed)"),
-    truth: Path = typer.Option(..., exists=True, file_okay=False, help="the simulation's truth/ directory"),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="write the figures as JSON here"),
-    plots: Optional[Path] = typer.Option(None, help="write PNG plots (height error, profiles, views) here"),
-    verbose: bool = typer.Option(False, "--verbose", "-v"),
-) -> None:
-    """Measure a model against the truth: ICP, RMS and median error, NCC/SSIM, boulder heights."""
-    from pwm.evaluate.report import evaluate as run_evaluation, format_table
-
-    _logging(verbose)
-    result = run_evaluation(model, truth_dir=truth, plots_dir=plots)
-    typer.echo(format_table(result))
-    if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(result, indent=2))
-
-
-@app.command()
-def refine(
-    downlink: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 images, kernels with one meta-kernel)"),
-    start: Path = typer.Option(..., exists=True, dir_okay=False, help="starting shape model (.obj/.ply, km, body-fixed)"),
-    out: Path = typer.Option(..., help="output directory: refined.ply (with albedo), refined.obj, maplets.json"),
-    mode: str = typer.Option("pwm", help="pwm (pixel and region weights) | standard (weights off)"),
-    lat: Optional[float] = typer.Option(None, help="region centre latitude, deg (default: where the images look)"),
-    lon: Optional[float] = typer.Option(None, help="region centre east longitude, deg"),
-    radius: Optional[float] = typer.Option(None, min=0.0, help="region radius, km"),
-    nodes: int = typer.Option(100, min=8, help="maplet nodes per side"),
-    overlap: float = typer.Option(0.25, min=0.0, max=0.75, help="fraction of a maplet shared with each neighbour"),
-    workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
-    instrument: int = typer.Option(-64361, help="NAIF id of the camera"),
-    target: str = typer.Option("BENNU"),
-    body_frame: str = typer.Option("IAU_BENNU"),
-    verbose: bool = typer.Option(False, "--verbose", "-v"),
-) -> None:
-    """Refine a start model with a downlink's images: tile, weigh, photoclinometry, fuse."""
-    import dataclasses
-    import time
-
-    from pwm.io.downlink import read_views
-    from pwm.io.meshio import read_mesh, write_obj, write_ply
-    from pwm.pipeline import fuse, imaged_region, refine_maplets
-    from pwm.tiling import tile
-
-    _logging(verbose)
-    if mode not in ("pwm", "standard"):
-        raise typer.BadParameter("mode is pwm or standard")
-    clock = time.perf_counter()
-    views = read_views(downlink, instrument_id=instrument, target=target, body_frame=body_frame)
-    start_model = read_mesh(start)
-    region = imaged_region(views, start_model)
-    if lat is not None and lon is not None:
-        region = dataclasses.replace(region, lat_deg=lat, lon_deg=lon)
-    if radius is not None:
-        region = dataclasses.replace(region, radius_km=radius)
-    maplets = tile(start_model, spacing_km=region.spacing_km, nodes=nodes, overlap=overlap, centre_lat_deg=region.lat_deg,
-                   centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
-    logging.getLogger("pwm").info("%d images, %d maplets of %d nodes at %.3f m around (%.3f, %.3f) within %.1f m",
-                                  len(views), len(maplets), nodes, region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
-    results = refine_maplets(maplets, views, start_model, mode=mode, workers=workers)
-    model, _ = fuse([r.maplet for r in results], start_model, overlap=overlap)
-    out.mkdir(parents=True, exist_ok=True)
-    write_ply(out / "refined.ply", model)
-    write_obj(out / "refined.obj", model)
-    report = {"mode": mode, "region": dataclasses.asdict(region), "images": len(views), "seconds": time.perf_counter() - clock,
-              "maplets": [{"name": r.maplet.name, "images": r.images, "region_weight": r.region_weight, "five_views": r.five_views,
-                           "dropped": r.dropped, "iterations": r.iterations, "converged": r.converged,
-                           "residual_rms": r.residual_rms, "seconds": r.seconds} for r in results]}
-    (out / "maplets.json").write_text(json.dumps(report, indent=1))
-    typer.echo(f"{len(results)} maplets refined from {len(views)} images in {report['seconds']:.1f} s -> {out}")
+from service.cli.app import app, echo_json, setup_logging
 
 
 @app.command()
@@ -140,7 +26,7 @@ def ingest(
     from service.catalog import open_catalog
     from service.ingest import ingest_directory
 
-    _logging(verbose)
+    setup_logging(verbose)
     report = ingest_directory(open_catalog(), directory, downlink_name=name, shape=read_mesh(shape) if shape else None,
                               maplet_nodes=maplet_nodes)
     typer.echo(report.summary())
@@ -169,10 +55,6 @@ def images(
             typer.echo(f"{image.lidvid}  {image.status}  {image.start_utc}  {where}")
 
 
-def _json(value: object) -> None:
-    typer.echo(json.dumps(value, indent=2))
-
-
 @app.command()
 def images_near(
     lat: float = typer.Option(..., min=-90.0, max=90.0, help="planetocentric latitude of the surface point, deg"),
@@ -191,7 +73,7 @@ def images_near(
     with open_catalog()() as session:
         hits = images_covering(session, lat_deg=lat, lon_deg=lon, radius_km=radius, order=order, limit=limit)
     if json_out:
-        _json([h.model_dump(mode="json") for h in hits])
+        echo_json([h.model_dump(mode="json") for h in hits])
         return
     typer.echo(f"{'LIDVID':<60} {'start (UTC)':<23} {'maplet':<20} {'weight':>6} {'inc':>5} {'emi':>5} {'pha':>5} {'vis':>5} {'m/px':>6}  role")
     for h in hits:
@@ -219,7 +101,7 @@ def maplets(
     with open_catalog()() as session:
         rows = list_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius, limit=limit, offset=offset)
     if json_out:
-        _json([m.model_dump(mode="json") for m in rows])
+        echo_json([m.model_dump(mode="json") for m in rows])
         return
     typer.echo(f"{'maplet':<20} {'lat':>8} {'lon':>8} {'size m':>7} {'gsd m':>6} {'nodes':>5} {'w_PWM':>6} {'rev':>4} {'images':>6} {'dist m':>7}")
     for m in rows:
@@ -245,7 +127,7 @@ def coverage(
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
     if json_out:
-        _json(summary.model_dump(mode="json"))
+        echo_json(summary.model_dump(mode="json"))
         return
 
     def extent(values: Optional[tuple[float, float]]) -> str:
@@ -261,7 +143,3 @@ def coverage(
             *((f"  {role}", lidvid or "missing") for role, lidvid in summary.views.items())]
     for name, value in rows:
         typer.echo(f"{name:<20}{value}")
-
-
-if __name__ == "__main__":
-    app()

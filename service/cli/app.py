@@ -1,0 +1,21 @@
+"""The `pwm` Typer app and what its command modules share."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import typer
+
+app = typer.Typer(help="Shape modeling of an asteroid with pixel-weighted maplets.", no_args_is_help=True,
+                  add_completion=False, pretty_exceptions_enable=False)
+
+
+def setup_logging(verbose: bool) -> None:
+    """Log to stderr: INFO, or DEBUG with --verbose."""
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+
+
+def echo_json(value: object) -> None:
+    """Print `value` as indented JSON."""
+    typer.echo(json.dumps(value, indent=2))
