@@ -1,0 +1,174 @@
+"""Model versions: immutable shape models in the catalog, their files content-addressed on disk.
+
+A version's files (artifacts) live under `<data_dir>/artifacts/<sha256[:2]>/<sha256><suffix>`:
+a file's name is its checksum, so writing it again (a retried job) is harmless and a file once
+published never changes. `ModelVersion.artifacts` maps a role to
+`{"path": <relative to data_dir>, "sha256": ..., "bytes": ...}`; every version has "ply" (mesh
+with per-vertex albedo when known) and "obj"; refined versions add "grid" (the fusion sums that
+let the next version be fused incrementally).
+
+Version numbers are taken under a lock (`_numbering_lock`), so concurrent publications get
+consecutive numbers instead of failing on the unique constraint.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select, text
+from sqlalchemy.orm import Session
+
+from pwm.io.dsk import read_dsk
+from pwm.io.meshio import read_mesh, write_obj, write_ply
+from pwm.mesh import Mesh
+from service.models import Downlink, MapletRevision, ModelKind, ModelVersion
+
+ARTIFACTS_DIRNAME = "artifacts"
+# Arbitrary constant naming the PostgreSQL advisory lock that serialises version numbering.
+_NUMBERING_LOCK_ID = 0x70776D5F76657273
+_CHUNK = 1 << 20
+
+
+class ArtifactError(Exception):
+    """A version's file is missing, outside the data directory, or not what was published."""
+
+
+def store_artifact(data_dir: Path, path: Path) -> dict[str, Any]:
+    """Move the file `path` into the data directory's content-addressed store; its record."""
+    digest = _sha256(path)
+    relative = Path(ARTIFACTS_DIRNAME) / digest[:2] / f"{digest}{path.suffix}"
+    target = data_dir / relative
+    target.parent.mkdir(parents=True, exist_ok=True)
+    size = path.stat().st_size
+    if target.is_file() and target.stat().st_size == size:
+        path.unlink()
+    else:
+        # Same filesystem (a temp file inside data_dir), so the rename is atomic.
+        os.replace(path, target)
+    return {"path": relative.as_posix(), "sha256": digest, "bytes": size}
+
+
+def artifact_path(data_dir: Path, artifact: dict[str, Any], *, verify: bool = False) -> Path:
+    """The file of an artifact record, checked to lie inside `data_dir` (and, with `verify`,
+    to have its published checksum)."""
+    root = data_dir.resolve()
+    path = (root / artifact["path"]).resolve()
+    if not path.is_relative_to(root):
+        raise ArtifactError(f"artifact path {artifact['path']!r} leaves the data directory")
+    if not path.is_file():
+        raise ArtifactError(f"artifact {artifact['path']} is missing")
+    if verify and _sha256(path) != artifact["sha256"]:
+        raise ArtifactError(f"artifact {artifact['path']} does not match its checksum")
+    return path
+
+
+def store_mesh(data_dir: Path, mesh: Mesh) -> dict[str, dict[str, Any]]:
+    """Write `mesh` (km, body-fixed) as PLY (with albedo) and OBJ into the store."""
+    records = {}
+    for role, writer in (("ply", write_ply), ("obj", write_obj)):
+        scratch = _scratch(data_dir, f".{role}")
+        writer(scratch, mesh)
+        records[role] = store_artifact(data_dir, scratch)
+    return records
+
+
+def mesh_statistics(mesh: Mesh) -> dict[str, float | int]:
+    """Size of a closed mesh: vertex and face counts, area (km^2), volume (km^3), mean and
+    extreme radius (km), mean edge (m)."""
+    v = mesh.vertices[mesh.faces]
+    volume = float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    return {"vertices": len(mesh.vertices), "faces": len(mesh.faces),
+            "area_km2": float(mesh.face_areas().sum()), "volume_km3": volume,
+            "mean_radius_km": float(radius.mean()), "min_radius_km": float(radius.min()),
+            "max_radius_km": float(radius.max()), "mean_edge_m": mesh.mean_edge_length() * 1e3}
+
+
+def publish_version(session: Session, *, data_dir: Path, mesh: Mesh, kind: ModelKind,
+                    parent: ModelVersion | None = None, statistics: dict[str, Any] | None = None,
+                    extra_artifacts: dict[str, Path] | None = None,
+                    maplet_revisions: Iterable[MapletRevision] = (),
+                    downlinks: Iterable[Downlink] = ()) -> ModelVersion:
+    """Store `mesh` and publish it as the next model version, in the caller's transaction.
+
+    extra_artifacts: role -> a file to move into the store with the mesh (e.g. "grid").
+    statistics: figures to keep beside the mesh's own (mesh_statistics)."""
+    artifacts = store_mesh(data_dir, mesh)
+    for role, path in (extra_artifacts or {}).items():
+        artifacts[role] = store_artifact(data_dir, path)
+    _numbering_lock(session)
+    number = (session.scalar(select(func.max(ModelVersion.version))) or 0) + 1
+    version = ModelVersion(version=number, kind=kind, parent=parent, artifacts=artifacts,
+                           statistics={**mesh_statistics(mesh), **(statistics or {})},
+                           maplet_revisions=list(maplet_revisions), downlinks=list(downlinks))
+    session.add(version)
+    session.flush()
+    return version
+
+
+def import_model(session: Session, *, data_dir: Path, path: Path,
+                 kind: ModelKind = ModelKind.IMPORTED) -> ModelVersion:
+    """Publish a shape model file (OBJ or PLY in km, or a SPICE DSK type 2) as a new version."""
+    mesh = read_dsk(path) if path.suffix.lower() == ".bds" else read_mesh(path)
+    return publish_version(session, data_dir=data_dir, mesh=mesh, kind=kind,
+                           statistics={"source": str(path.resolve()),
+                                       "source_sha256": _sha256(path)})
+
+
+def latest_version(session: Session, *, released_only: bool = False) -> ModelVersion | None:
+    """The newest version (of those released, with `released_only`), or None."""
+    query = select(ModelVersion).order_by(ModelVersion.version.desc()).limit(1)
+    if released_only:
+        query = query.where(ModelVersion.released.is_(True))
+    return session.scalar(query)
+
+
+def get_version(session: Session, ref: str | int) -> ModelVersion:
+    """A version by number, by release tag, or `latest` (newest) / `released` (newest released).
+    Raises LookupError when there is none."""
+    if ref in ("latest", "released"):
+        version = latest_version(session, released_only=ref == "released")
+    elif isinstance(ref, int) or str(ref).isdigit():
+        version = session.scalar(select(ModelVersion).filter_by(version=int(ref)))
+    else:
+        version = session.scalar(select(ModelVersion).filter_by(release_tag=str(ref)))
+    if version is None:
+        raise LookupError(f"no model version {ref!r}")
+    return version
+
+
+def version_mesh(data_dir: Path, version: ModelVersion) -> Mesh:
+    """The mesh of `version` (km, body-fixed, albedo when published with it), checksum verified."""
+    return read_mesh(artifact_path(data_dir, version.artifacts["ply"], verify=True))
+
+
+def _numbering_lock(session: Session) -> None:
+    if session.get_bind().dialect.name == "postgresql":
+        session.execute(text("SELECT pg_advisory_xact_lock(:id)"), {"id": _NUMBERING_LOCK_ID})
+    else:
+        # A write takes SQLite's database lock now rather than at the insert, so that two
+        # publishers cannot both read the same maximum.
+        session.execute(text("UPDATE model_versions SET id = id WHERE 0"))
+
+
+def _scratch(data_dir: Path, suffix: str) -> Path:
+    directory = data_dir / ARTIFACTS_DIRNAME / "tmp"
+    directory.mkdir(parents=True, exist_ok=True)
+    handle, name = tempfile.mkstemp(suffix=suffix, dir=directory)
+    os.close(handle)
+    return Path(name)
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as stream:
+        while chunk := stream.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
