@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,26 @@ class Pose:
     def boresight(self) -> np.ndarray:
         """Boresight (+Z camera) as a body-fixed unit vector."""
         return self.rotation[2].copy()
+
+
+@dataclass(frozen=True)
+class PoseCorrection:
+    """A correction to a camera pose, as a bundle adjustment estimates it: position_km (dx, dy, dz)
+    added to the camera centre and rotation_rad, a rotation vector turning the camera axes, both
+    body-fixed (see `corrected_pose`)."""
+
+    position_km: tuple[float, float, float]
+    rotation_rad: tuple[float, float, float]
+
+    def apply(self, pose: Pose) -> Pose:
+        """`pose` corrected."""
+        return corrected_pose(pose, np.asarray(self.position_km), np.asarray(self.rotation_rad))
+
+
+def corrected_pose(pose: Pose, dp_km: np.ndarray, omega_rad: np.ndarray) -> Pose:
+    """`pose` with a position correction (km, body-fixed) and a rotation vector (rad, body-fixed)
+    applied to its axes: rotation @ R(omega)^T."""
+    return Pose(position=pose.position + dp_km, rotation=pose.rotation @ Rotation.from_rotvec(omega_rad).as_matrix().T)
 
 
 def project(points_body: np.ndarray, camera: Camera, pose: Pose) -> np.ndarray:

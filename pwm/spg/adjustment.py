@@ -1,0 +1,155 @@
+"""Bundle adjustment with pose priors from the navigation uncertainty.
+
+Unknowns: every point (body-fixed, km) and per image a position correction and a rotation
+vector applied to the camera axes in the body-fixed frame. Residuals: reprojection errors
+(px, Huber-weighted) and the priors dp / sigma_position, omega / sigma_pointing. Solved by
+Levenberg-Marquardt with the points eliminated (Schur complement), so the reduced system has
+six unknowns per image. Jacobian blocks are central differences per observation: each
+observation depends on one point and one image only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial.transform import Rotation
+
+from pwm.camera import Camera, Pose
+from pwm.spg.triangulation import Tracks
+
+
+@dataclass
+class Adjustment:
+    """Adjusted points (km, body-fixed); per image a position correction (km, body-fixed) and a
+    rotation vector (rad, body-fixed; corrected rotation = rotation @ R(omega)^T); the
+    observations' final reprojection errors (px) and the iterations run."""
+
+    points: np.ndarray
+    position_corrections: np.ndarray
+    rotation_corrections: np.ndarray
+    residuals_px: np.ndarray
+    iterations: int
+
+
+def _project(points: np.ndarray, position: np.ndarray, rotation: np.ndarray, cam: np.ndarray) -> np.ndarray:
+    """Per observation: points (n, 3) km through poses (n, 3), (n, 3, 3) and intrinsics rows
+    (fx, fy, cx, cy) to (sample, line)."""
+    c = np.einsum("nij,nj->ni", rotation, points - position)
+    return np.column_stack([cam[:, 0] * c[:, 0] / c[:, 2] + cam[:, 2], cam[:, 1] * c[:, 1] / c[:, 2] + cam[:, 3]])
+
+
+def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], poses: list[Pose], *, sigma_position_km: float,
+                  sigma_pointing_rad: float, huber_px: float = 2.0, max_iterations: int = 20, tolerance: float = 1e-6) -> Adjustment:
+    """Adjust `points` and the poses' corrections to the observations in `tracks`.
+
+    Parameters are scaled so that the point unknowns are in metres and the pose unknowns in
+    units of their prior sigma, which keeps the normal equations well conditioned.
+    """
+    n_img, n_pt, obs_img, obs_pt = len(poses), len(points), tracks.image, tracks.point
+    cam = np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras])[obs_img]
+    pos0 = np.array([p.position for p in poses])
+    rot0 = np.array([p.rotation for p in poses])
+    sigma = np.array([sigma_position_km] * 3 + [sigma_pointing_rad] * 3)
+    x_pts = points.copy()
+    x_pose = np.zeros((n_img, 6))  # in sigma units
+
+    def pose_arrays(xp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d = xp * sigma
+        return pos0 + d[:, :3], rot0 @ Rotation.from_rotvec(d[:, 3:]).as_matrix().transpose(0, 2, 1)
+
+    def residuals(xpt: np.ndarray, xp: np.ndarray) -> np.ndarray:
+        pos, rot = pose_arrays(xp)
+        return (_project(xpt[obs_pt], pos[obs_img], rot[obs_img], cam) - tracks.xy).ravel()
+
+    def cost(r: np.ndarray, xp: np.ndarray) -> float:
+        a = np.abs(r)
+        return float(np.sum(np.where(a <= huber_px, 0.5 * a**2, huber_px * (a - 0.5 * huber_px))) + 0.5 * np.sum(xp**2))
+
+    r = residuals(x_pts, x_pose)
+    current = cost(r, x_pose)
+    damping = 1e-3
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        jp, jc = _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays)
+        w = np.minimum(1.0, huber_px / np.maximum(np.abs(r), 1e-12)).reshape(-1, 2)  # IRLS Huber weights
+        step_pts, step_pose = _solve(jp, jc, w, r.reshape(-1, 2), x_pose, obs_pt, obs_img, n_pt, n_img, damping)
+        while True:
+            trial_pts, trial_pose = x_pts + step_pts * 1e-3, x_pose + step_pose
+            r_trial = residuals(trial_pts, trial_pose)
+            new = cost(r_trial, trial_pose)
+            if new < current or damping > 1e6:
+                break
+            damping *= 10.0
+            step_pts, step_pose = _solve(jp, jc, w, r.reshape(-1, 2), x_pose, obs_pt, obs_img, n_pt, n_img, damping)
+        if new >= current:
+            break
+        improvement = (current - new) / max(current, 1e-300)
+        x_pts, x_pose, r, current = trial_pts, trial_pose, r_trial, new
+        damping = max(damping / 10.0, 1e-7)
+        if improvement < tolerance:
+            break
+    d = x_pose * sigma
+    return Adjustment(points=x_pts, position_corrections=d[:, :3], rotation_corrections=d[:, 3:],
+                      residuals_px=np.linalg.norm(r.reshape(-1, 2), axis=1), iterations=iterations)
+
+
+def _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays) -> tuple[np.ndarray, np.ndarray]:
+    """Per observation, d(sample, line) / d(point, m): (n, 2, 3) and / d(pose, sigma units): (n, 2, 6)."""
+    n = len(obs_pt)
+    pos, rot = pose_arrays(x_pose)
+    p = x_pts[obs_pt]
+    jp = np.empty((n, 2, 3))
+    h = 1e-3  # m
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h * 1e-3
+        jp[:, :, k] = (_project(p + e, pos[obs_img], rot[obs_img], cam) - _project(p - e, pos[obs_img], rot[obs_img], cam)) / (2 * h)
+    jc = np.empty((n, 2, 6))
+    h = 1e-3  # sigma units
+    for k in range(6):
+        e = np.zeros_like(x_pose)
+        e[:, k] = h
+        plus, minus = pose_arrays(x_pose + e), pose_arrays(x_pose - e)
+        jc[:, :, k] = (_project(p, plus[0][obs_img], plus[1][obs_img], cam) - _project(p, minus[0][obs_img], minus[1][obs_img], cam)) / (2 * h)
+    return jp, jc
+
+
+def _solve(jp, jc, w, r, x_pose, obs_pt, obs_img, n_pt, n_img, damping) -> tuple[np.ndarray, np.ndarray]:
+    """One damped Gauss-Newton step with the points eliminated: (point steps in m, pose steps)."""
+    wjp, wjc = jp * w[:, :, None], jc * w[:, :, None]
+    hpp = np.zeros((n_pt, 3, 3))
+    np.add.at(hpp, obs_pt, np.einsum("nki,nkj->nij", wjp, jp))
+    gp = np.zeros((n_pt, 3))
+    np.add.at(gp, obs_pt, np.einsum("nki,nk->ni", wjp, r))
+    hcc = np.zeros((n_img, 6, 6))
+    np.add.at(hcc, obs_img, np.einsum("nki,nkj->nij", wjc, jc))
+    gc = np.zeros((n_img, 6))
+    np.add.at(gc, obs_img, np.einsum("nki,nk->ni", wjc, r))
+    hcc += np.eye(6)  # prior: x_pose ~ N(0, 1) in sigma units
+    gc += x_pose
+    hpp += damping * (hpp * np.eye(3) + 1e-9 * np.eye(3))
+    hcc_dense = _block_diag(hcc).toarray()
+    hcc_dense += damping * np.diag(np.diag(hcc_dense))
+    hpp_inv = np.linalg.inv(hpp)
+    # coupling blocks H_pc (3 per point x 6 per image), one 3x6 block per observation
+    hpc_blocks = np.einsum("nki,nkj->nij", wjp, jc)
+    rows = (3 * obs_pt[:, None, None] + np.arange(3)[None, :, None]).repeat(6, axis=2)
+    cols = (6 * obs_img[:, None, None] + np.arange(6)[None, None, :]).repeat(3, axis=1)
+    hpc = sparse.csr_matrix((hpc_blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n_pt, 6 * n_img))
+    pinv = _block_diag(hpp_inv)
+    schur = hcc_dense - (hpc.T @ pinv @ hpc).toarray()
+    rhs = -gc.ravel() + hpc.T @ (pinv @ gp.ravel())
+    step_pose = np.linalg.solve(schur, rhs)
+    step_pts = -np.einsum("nij,nj->ni", hpp_inv, gp + (hpc @ step_pose).reshape(n_pt, 3))
+    return step_pts, step_pose.reshape(n_img, 6)
+
+
+def _block_diag(blocks: np.ndarray) -> sparse.csr_matrix:
+    """A sparse block-diagonal matrix from (n, b, b) blocks."""
+    n, b, _ = blocks.shape
+    base = b * np.arange(n)[:, None, None]
+    rows = np.broadcast_to(base + np.arange(b)[None, :, None], blocks.shape)
+    cols = np.broadcast_to(base + np.arange(b)[None, None, :], blocks.shape)
+    return sparse.csr_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(n * b, n * b))

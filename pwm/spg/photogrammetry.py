@@ -1,0 +1,127 @@
+"""Stereo photogrammetry (SPG) on arrays: pairs by geometry, SIFT features matched under the
+navigation poses, tracks triangulated with those poses, a bundle adjustment with pose priors,
+and a surface through the points filled from the previous model.
+
+No files here: `pwm spg` (service/cli/spg.py) reads a downlink into views.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pwm.camera import PoseCorrection, corrected_pose
+from pwm.io.downlink import View
+from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
+from pwm.spg.adjustment import bundle_adjust
+from pwm.spg.features import extract, match_guided
+from pwm.spg.pairs import Pair, choose_pairs
+from pwm.spg.surface import at_resolution, fit_surface, point_spacing
+from pwm.spg.triangulation import Tracks, build_tracks, rays, reprojection_errors, triangulate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SpgResult:
+    """The photogrammetric model (km, body-fixed), per-image-name pose corrections, the adjusted
+    points (km) and figures of the run (counts, residuals, seconds)."""
+
+    mesh: Mesh
+    corrections: dict[str, PoseCorrection]
+    points: np.ndarray
+    pairs: list[Pair]
+    stats: dict = field(default_factory=dict)
+
+
+def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
+                          max_features: int = 8192, first_octave: int = 0, per_image: int = 6, max_sun_deg: float = 25.0,
+                          model_tolerance_px: float = 30.0, min_angle_deg: float = 2.0, max_residual_px: float = 3.0,
+                          threads: int = 2) -> SpgResult:
+    """The photogrammetric model and pose corrections from `views`, starting from `previous`.
+
+    sigma_position_km, sigma_pointing_rad: 1-sigma navigation knowledge (per axis), the priors
+    of the adjustment and the width of the matching band. model_tolerance_px: how far (in
+    pixels of the image) a triangulated point may lie from `previous` along its line of sight
+    before it counts as a mismatch.
+    """
+    clock = time.perf_counter()
+    stats: dict = {}
+    tracer = RayTracer(previous)
+    pairs = choose_pairs(views, tracer, per_image=per_image, max_sun_deg=max_sun_deg)
+    if not pairs:
+        raise ValueError("no image pair overlaps with a usable stereo angle and illumination")
+    ranges = _ranges(views, tracer)
+    features = extract([v.image for v in views], max_features=max_features, first_octave=first_octave, threads=threads)
+    stats["extract_s"] = time.perf_counter() - clock
+    matches = {}
+    for p in pairs:
+        a, b = views[p.first], views[p.second]
+        band = _band_px(a, ranges[p.first], sigma_position_km, sigma_pointing_rad) + _band_px(b, ranges[p.second], sigma_position_km, sigma_pointing_rad)
+        matches[(p.first, p.second)] = match_guided(features[p.first], features[p.second], camera_a=a.camera, pose_a=a.pose,
+                                                    camera_b=b.camera, pose_b=b.pose, max_error_px=band, threads=threads)
+    stats["match_s"] = time.perf_counter() - clock - stats["extract_s"]
+    stats["features"] = int(sum(len(f.xy) for f in features))
+    stats["matches"] = int(sum(len(m) for m in matches.values()))
+    log.info("%d pairs, %d features, %d matches (%.1f s)", len(pairs), stats["features"], stats["matches"], time.perf_counter() - clock)
+
+    cameras, poses = [v.camera for v in views], [v.pose for v in views]
+    tracks = build_tracks(matches, [f.xy for f in features])
+    tracks = _consistent(tracks, cameras, poses, tracer, views, ranges, sigma_position_km, sigma_pointing_rad, model_tolerance_px)
+    points, _ = triangulate(tracks, cameras, poses)
+    adjusted = bundle_adjust(points, tracks, cameras, poses, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
+    keep = adjusted.residuals_px <= max_residual_px
+    if not keep.all():
+        # once more without the mismatches, which the Huber weights only damped
+        tracks = tracks.subset(keep)
+        points, _ = triangulate(tracks, cameras, poses)
+        adjusted = bundle_adjust(points, tracks, cameras, poses, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
+    final = [corrected_pose(p, adjusted.position_corrections[i], adjusted.rotation_corrections[i]) for i, p in enumerate(poses)]
+    points, angle = triangulate(tracks, cameras, final)
+    residual = reprojection_errors(points, tracks, cameras, final)
+    good_point = angle >= np.radians(min_angle_deg) / 2
+    stats.update(pairs=len(pairs), tracks=tracks.n_points, observations=len(tracks.image), points=int(good_point.sum()),
+                 residual_rms_px=float(np.sqrt(np.mean(residual**2))), iterations=adjusted.iterations)
+    points = points[good_point]
+    spacing = point_spacing(points)
+    surface = fit_surface(at_resolution(previous, 2.0 * spacing, points), points, radius_km=2.0 * spacing)
+    stats.update(point_spacing_km=spacing, surface_vertices=len(surface.vertices), seconds=time.perf_counter() - clock)
+    corrections = {v.name: PoseCorrection(tuple(map(float, adjusted.position_corrections[i])), tuple(map(float, adjusted.rotation_corrections[i])))
+                   for i, v in enumerate(views)}
+    log.info("SPG: %d points at %.2f m spacing, residual %.2f px RMS, %d vertices (%.1f s)", len(points), spacing * 1e3,
+             stats["residual_rms_px"], len(surface.vertices), stats["seconds"])
+    return SpgResult(mesh=surface, corrections=corrections, points=points, pairs=pairs, stats=stats)
+
+
+def _ranges(views: list[View], tracer: RayTracer) -> np.ndarray:
+    """Distance (km) along each boresight to the model, or to the body centre where it misses."""
+    origins = np.array([v.pose.position for v in views])
+    bores = np.array([v.pose.boresight for v in views])
+    hits = tracer.intersect(origins, bores)
+    return np.where(hits.hit, hits.t, np.linalg.norm(origins, axis=1))
+
+
+def _band_px(view: View, range_km: float, sigma_position_km: float, sigma_pointing_rad: float) -> float:
+    """Three sigma of the image displacement the navigation uncertainty allows (px), plus one."""
+    return 1.0 + 3.0 * view.camera.fx * float(np.hypot(sigma_position_km / range_km, sigma_pointing_rad))
+
+
+def _consistent(tracks: Tracks, cameras, poses, tracer: RayTracer, views: list[View], ranges: np.ndarray, sigma_position_km: float,
+                sigma_pointing_rad: float, model_tolerance_px: float) -> Tracks:
+    """Tracks whose rays meet within the navigation band and whose points lie near the previous
+    model along the first observation's line of sight."""
+    points, _ = triangulate(tracks, cameras, poses)
+    band = np.array([_band_px(v, r, sigma_position_km, sigma_pointing_rad) for v, r in zip(views, ranges)])
+    tracks = tracks.subset(reprojection_errors(points, tracks, cameras, poses) <= band[tracks.image])
+    points, _ = triangulate(tracks, cameras, poses)
+    origins, dirs = rays(tracks, cameras, poses)
+    first = np.unique(tracks.point, return_index=True)[1]
+    hits = tracer.intersect(origins[first], dirs[first])
+    along = np.einsum("ij,ij->i", points - origins[first], dirs[first])
+    pixel_km = ranges[tracks.image[first]] / np.array([cameras[i].fx for i in tracks.image[first]])
+    near = hits.hit & (np.abs(along - hits.t) <= model_tolerance_px * pixel_km)
+    return tracks.subset(near[tracks.point])
