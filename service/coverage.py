@@ -18,25 +18,25 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from pathlib import Path
+import dataclasses
+from collections.abc import Collection
 
 import numpy as np
-from sqlalchemy import select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
 
-from pwm.camera import Camera, Pose, project
+from pwm.camera import project
 from pwm.frames import LocalFrame, unit_to_latlon
 from pwm.io.downlink import View
-from pwm.io.pds4 import read_image_product
 from pwm.maplets import Maplet as MapletGrid
 from pwm.mesh import Mesh
 from pwm.pipeline import imaged_region, view_geometry
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_heights, tile
 from pwm.weights import weigh_maplet
-from service.models import (Coverage, CoverageRole, GeometryStatus, Image, ImageStatus,
-                            Maplet)
+from service.models import Coverage, CoverageRole, Image, Maplet, utcnow
 from service.queries import list_maplets
+from service.views import catalog_views
 
 log = logging.getLogger(__name__)
 
@@ -61,22 +61,28 @@ class CoverageReport:
 
 
 def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = None,
-                    nodes_per_side: int = 100, sample_nodes: int = SAMPLE_NODES) -> CoverageReport:
+                    image_ids: Collection[int] | None = None, nodes_per_side: int = 100,
+                    sample_nodes: int = SAMPLE_NODES,
+                    tile_radius_km: float | None = None) -> CoverageReport:
     """Tile the region the new images look at if no maplet covers it, then weigh every maplet
     that a new image may see against all catalogued images that may see it.
 
-    New images: the accepted images with geometry of downlink `downlink_id` (all such images
-    when None). nodes_per_side: of the maplets tiled here, spaced at the images' median pixel
-    scale; sample_nodes: nodes per side on which visibility is traced.
+    New images: the accepted images with geometry of image_ids if given, else of downlink
+    `downlink_id` (all such images when None); their coverage_computed_at is set. nodes_per_side: of the maplets tiled here, spaced at the images' median pixel
+    scale; sample_nodes: nodes per side on which visibility is traced; tile_radius_km: radius
+    of the disc tiled about the centre of the region the images look at (default that
+    region's, pwm.pipeline.imaged_region).
     """
     report = CoverageReport()
-    views, downlinks = _catalog_views(session)
-    new = {i for i, d in downlinks.items() if downlink_id is None or d == downlink_id}
+    views = catalog_views(session)
+    new = {i for i, d in session.execute(select(Image.id, Image.downlink_id))
+           if i in views and (downlink_id is None or d == downlink_id)
+           and (image_ids is None or i in image_ids)}
     if not new:
         return report
     tracer = RayTracer(shape)
     report.maplets_added = _tile_if_bare(session, shape, [views[i] for i in sorted(new)],
-                                         nodes_per_side=nodes_per_side)
+                                         nodes_per_side=nodes_per_side, radius_km=tile_radius_km)
     ids = sorted(views)
     for maplet in session.scalars(select(Maplet).order_by(Maplet.id)).all():
         grid = _subsample(maplet, tracer, sample_nodes)
@@ -86,6 +92,8 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
             continue
         report.maplets_weighed += 1
         _store(session, maplet, grid, seen, [views[i] for i in seen], tracer, report)
+    session.execute(update(Image).where(Image.id.in_(sorted(new))).values(
+        coverage_computed_at=utcnow()))
     session.flush()
     log.info("coverage: %d maplets tiled, %d weighed; rows %d added, %d updated, %d deleted",
              report.maplets_added, report.maplets_weighed, report.rows_added, report.rows_updated,
@@ -93,39 +101,16 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     return report
 
 
-def _catalog_views(session: Session) -> tuple[dict[int, View], dict[int, int | None]]:
-    """Every accepted image with geometry as a View without pixels (camera of its array, pose,
-    Sun), by image id, and each one's downlink."""
-    images = session.scalars(select(Image).where(
-        Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED,
-        Image.instrument_id.is_not(None)).options(
-        selectinload(Image.geometry), selectinload(Image.instrument)))
-    views, downlinks = {}, {}
-    for image in images:
-        g, inst = image.geometry, image.instrument
-        # The catalog keeps the detector, not the array's window: the label gives it.
-        product = read_image_product(Path(image.label_path))
-        camera = Camera(width=inst.width_px, height=inst.height_px, fx=inst.fx_px, fy=inst.fy_px,
-                        cx=inst.cx_px, cy=inst.cy_px).subframe(
-            first_sample=product.first_sample, first_line=product.first_line,
-            samples=product.samples, lines=product.lines)
-        pose = Pose(position=np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
-                    rotation=np.asarray(g.camera_rotation, float).reshape(3, 3))
-        sun = np.array([g.sun_x, g.sun_y, g.sun_z])
-        et = 0.5 * (image.start_et + image.stop_et)
-        views[image.id] = View(name=image.lidvid, image=np.empty((0, 0)), camera=camera,
-                               pose=pose, sun=sun / np.linalg.norm(sun), et=et)
-        downlinks[image.id] = image.downlink_id
-    return views, downlinks
-
-
-def _tile_if_bare(session: Session, shape: Mesh, views: list[View], *, nodes_per_side: int) -> int:
-    """Tile and store the region the views look at when no catalogued maplet lies in it; the
-    number of maplets added."""
+def _tile_if_bare(session: Session, shape: Mesh, views: list[View], *, nodes_per_side: int,
+                  radius_km: float | None) -> int:
+    """Tile and store the region the views look at (within radius_km of its centre, if given)
+    when no catalogued maplet lies in it; the number of maplets added."""
     try:
         region = imaged_region(views, shape)
     except ValueError:  # no boresight meets the shape: nothing to tile
         return 0
+    if radius_km is not None:
+        region = dataclasses.replace(region, radius_km=radius_km)
     if list_maplets(session, lat_deg=region.lat_deg, lon_deg=region.lon_deg,
                     radius_km=region.radius_km, limit=1):
         return 0

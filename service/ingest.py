@@ -159,15 +159,16 @@ class _Rejected(Exception):
 
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
                      downlink_name: str | None = None, shape: Mesh | None = None,
-                     maplet_nodes: int = 100) -> IngestReport:
+                     maplet_nodes: int = 100, tile_radius_km: float | None = None) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
     holds that name). shape: the current shape model of the target (body-fixed, km); boresight
-    and corner intercepts use it instead of the PCK ellipsoid, and the images' coverage rows
-    are computed against it (service.coverage; maplets tiled there have maplet_nodes nodes per
-    side). SPICE's process-wide kernel pool is cleared on the way in and out
-    (pwm.io.spice_kernels.kernel_pool).
+    and corner intercepts use it instead of the PCK ellipsoid, and the catalog's images not
+    weighed yet (Image.coverage_computed_at) get their coverage rows against it
+    (service.coverage; maplets tiled there have maplet_nodes nodes per side, within
+    tile_radius_km of the imaged region's centre when given). SPICE's
+    process-wide kernel pool is cleared on the way in and out (pwm.io.spice_kernels.kernel_pool).
     """
     sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
     directory = Path(directory).resolve()
@@ -187,8 +188,13 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                        None if shape is None else MeshSurface(shape))
         if shape is not None:
             with session_scope(sessions) as session:
-                report.coverage = update_coverage(session, shape, downlink_id=downlink_id,
-                                                  nodes_per_side=maplet_nodes)
+                # The images not weighed yet (this downlink's, or earlier ones ingested without
+                # a shape): a repeated ingest leaves the maplets' inputs as they are.
+                unweighed = set(session.scalars(select(Image.id).where(
+                    Image.coverage_computed_at.is_(None))))
+                report.coverage = update_coverage(session, shape, image_ids=unweighed,
+                                                  nodes_per_side=maplet_nodes,
+                                                  tile_radius_km=tile_radius_km)
     except BaseException:
         with session_scope(sessions) as session:
             session.get(Downlink, downlink_id).status = DownlinkStatus.FAILED

@@ -292,6 +292,9 @@ class Image(Base):
     pose_ry_rad: Mapped[float | None]
     pose_rz_rad: Mapped[float | None]
     pose_corrected_at: Mapped[datetime | None]
+    # When the image was weighed into the coverage rows of the maplets it sees (null: not yet).
+    # An ingest with a shape weighs the images not yet weighed; clear it to have one weighed again.
+    coverage_computed_at: Mapped[datetime | None]
 
     instrument: Mapped[Instrument | None] = relationship(back_populates="images")
     downlink: Mapped[Downlink | None] = relationship(back_populates="images")

@@ -7,8 +7,10 @@ published never changes. `ModelVersion.artifacts` maps a role to
 with per-vertex albedo when known) and "obj"; refined versions add "grid" (the fusion sums that
 let the next version be fused incrementally).
 
-Version numbers are taken under a lock (`_numbering_lock`), so concurrent publications get
-consecutive numbers instead of failing on the unique constraint.
+Publications are serialised by `publication_lock`, held to the end of the publishing
+transaction: concurrent publications get consecutive numbers instead of failing on the unique
+constraint, and a fusion that takes it before reading the latest version (service.publish) never
+builds on a parent that another fusion is replacing.
 """
 
 from __future__ import annotations
@@ -30,8 +32,8 @@ from pwm.mesh import Mesh
 from service.models import Downlink, MapletRevision, ModelKind, ModelVersion
 
 ARTIFACTS_DIRNAME = "artifacts"
-# Arbitrary constant naming the PostgreSQL advisory lock that serialises version numbering.
-_NUMBERING_LOCK_ID = 0x70776D5F76657273
+# Arbitrary constant naming the PostgreSQL advisory lock that serialises publications.
+_PUBLICATION_LOCK_ID = 0x70776D5F76657273
 _CHUNK = 1 << 20
 
 
@@ -72,7 +74,7 @@ def store_mesh(data_dir: Path, mesh: Mesh) -> dict[str, dict[str, Any]]:
     """Write `mesh` (km, body-fixed) as PLY (with albedo) and OBJ into the store."""
     records = {}
     for role, writer in (("ply", write_ply), ("obj", write_obj)):
-        scratch = _scratch(data_dir, f".{role}")
+        scratch = scratch_path(data_dir, f".{role}")
         writer(scratch, mesh)
         records[role] = store_artifact(data_dir, scratch)
     return records
@@ -102,7 +104,7 @@ def publish_version(session: Session, *, data_dir: Path, mesh: Mesh, kind: Model
     artifacts = store_mesh(data_dir, mesh)
     for role, path in (extra_artifacts or {}).items():
         artifacts[role] = store_artifact(data_dir, path)
-    _numbering_lock(session)
+    publication_lock(session)
     number = (session.scalar(select(func.max(ModelVersion.version))) or 0) + 1
     version = ModelVersion(version=number, kind=kind, parent=parent, artifacts=artifacts,
                            statistics={**mesh_statistics(mesh), **(statistics or {})},
@@ -145,19 +147,31 @@ def get_version(session: Session, ref: str | int) -> ModelVersion:
 
 def version_mesh(data_dir: Path, version: ModelVersion) -> Mesh:
     """The mesh of `version` (km, body-fixed, albedo when published with it), checksum verified."""
-    return read_mesh(artifact_path(data_dir, version.artifacts["ply"], verify=True))
+    return artifact_mesh(data_dir, version.artifacts["ply"])
 
 
-def _numbering_lock(session: Session) -> None:
+def artifact_mesh(data_dir: Path, artifact: dict[str, Any]) -> Mesh:
+    """The mesh of a mesh artifact record (PLY or OBJ), checksum verified."""
+    return read_mesh(artifact_path(data_dir, artifact, verify=True))
+
+
+def publication_lock(session: Session) -> None:
+    """Take the catalog's publication lock until the session's transaction ends (taking it again
+    in the same transaction is harmless). Take it before reading what the publication builds on.
+
+    PostgreSQL: a transaction-level advisory lock. SQLite: the database's write lock, which also
+    holds back every other writer meanwhile."""
     if session.get_bind().dialect.name == "postgresql":
-        session.execute(text("SELECT pg_advisory_xact_lock(:id)"), {"id": _NUMBERING_LOCK_ID})
+        session.execute(text("SELECT pg_advisory_xact_lock(:id)"), {"id": _PUBLICATION_LOCK_ID})
     else:
         # A write takes SQLite's database lock now rather than at the insert, so that two
         # publishers cannot both read the same maximum.
         session.execute(text("UPDATE model_versions SET id = id WHERE 0"))
 
 
-def _scratch(data_dir: Path, suffix: str) -> Path:
+def scratch_path(data_dir: Path, suffix: str) -> Path:
+    """A new empty file in the data directory's scratch folder, on the store's filesystem (so
+    that `store_artifact` can move it in atomically)."""
     directory = data_dir / ARTIFACTS_DIRNAME / "tmp"
     directory.mkdir(parents=True, exist_ok=True)
     handle, name = tempfile.mkstemp(suffix=suffix, dir=directory)

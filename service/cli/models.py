@@ -1,0 +1,145 @@
+"""Model commands: run a downlink through to a new version, import a model, list, show and
+compare versions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from service.cli.app import app, echo_json, setup_logging
+
+version_app = typer.Typer(help="One model version.", no_args_is_help=True)
+app.add_typer(version_app, name="version")
+
+
+@app.command()
+def run(
+    directory: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 labels, SPICE kernels)"),
+    start: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="start model (.obj/.ply/.bds, km) when the catalog has no version yet; default DIR/start_model.obj"),
+    mode: str = typer.Option("pwm", help="pwm (pixel and region weights) | standard (weights off)"),
+    workers: int = typer.Option(1, min=1, help="processes refining maplets in parallel"),
+    maplet_nodes: int = typer.Option(100, min=8, help="nodes per side of maplets tiled where the images look and none is catalogued"),
+    tile_radius: Optional[float] = typer.Option(None, min=0.0, help="radius (km) of the region tiled about where the images look (default: from their footprints)"),
+    verbose: bool = typer.Option(False, "--verbose", "-v"),
+) -> None:
+    """Ingest a downlink, refine the maplets whose images changed, and publish a new model version, in this process."""
+    from service.catalog import open_catalog
+    from service.run import run_directory
+    from service.settings import get_settings
+
+    setup_logging(verbose)
+    if mode not in ("pwm", "standard"):
+        raise typer.BadParameter("mode is pwm or standard", param_hint="--mode")
+    settings = get_settings()
+    try:
+        report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,
+                               mode=mode, workers=workers, maplet_nodes=maplet_nodes, tile_radius_km=tile_radius)
+    except FileNotFoundError as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from None
+    typer.echo(report.summary())
+
+
+@app.command(name="import")
+def import_(
+    model: Path = typer.Argument(..., exists=True, dir_okay=False, help="shape model: .obj or .ply (km, body-fixed) or a SPICE DSK type 2 (.bds)"),
+    kind: str = typer.Option("imported", help="imported | start | photogrammetric"),
+) -> None:
+    """Publish a shape model file as a new model version."""
+    from service.catalog import open_catalog
+    from service.db import session_scope
+    from service.models import ModelKind
+    from service.settings import get_settings
+    from service.versions import import_model
+
+    if kind not in ("imported", "start", "photogrammetric"):
+        raise typer.BadParameter("kind is imported, start or photogrammetric", param_hint="--kind")
+    settings = get_settings()
+    with session_scope(open_catalog(settings)) as session:
+        version = import_model(session, data_dir=settings.data_dir, path=model, kind=ModelKind(kind))
+        typer.echo(f"version {version.version} ({kind}): {version.statistics['vertices']} vertices, "
+                   f"{version.statistics['faces']} faces")
+
+
+@app.command()
+def versions(
+    limit: int = typer.Option(50, min=1, help="at most this many, newest first"),
+    json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
+) -> None:
+    """List model versions, newest first: kind, parent, time, size, maplets and downlinks."""
+    from sqlalchemy import select
+
+    from service.catalog import open_catalog
+    from service.models import ModelVersion
+
+    with open_catalog()() as session:
+        rows = [_summary(v) for v in session.scalars(select(ModelVersion).order_by(ModelVersion.version.desc()).limit(limit))]
+    if json_out:
+        echo_json(rows)
+        return
+    typer.echo(f"{'version':>7} {'kind':<15} {'parent':>6} {'created (UTC)':<19} {'faces':>8} {'maplets':>7} {'changed':>7}  downlinks  release")
+    for r in rows:
+        s = r["statistics"]
+        typer.echo(f"{r['version']:>7} {r['kind']:<15} {r['parent'] or '-':>6} {r['created_at'][:19]:<19} {s.get('faces', 0):>8} "
+                   f"{len(r['maplet_revisions']):>7} {s.get('maplets_changed', '-'):>7}  {','.join(r['downlinks']) or '-'}  {r['release_tag'] or '-'}")
+
+
+@version_app.command("show")
+def version_show(
+    version: str = typer.Argument(..., help="version number, release tag, latest or released"),
+) -> None:
+    """A version in full (JSON): kind, parent, lineage, statistics and artifacts with checksums."""
+    from service.catalog import open_catalog
+    from service.versions import get_version
+
+    with open_catalog()() as session:
+        try:
+            echo_json(_summary(get_version(session, version)))
+        except LookupError as exc:
+            typer.echo(str(exc), err=True)
+            raise typer.Exit(1) from None
+
+
+@app.command()
+def diff(
+    old: str = typer.Argument(..., help="the earlier version (number, tag, latest or released)"),
+    new: str = typer.Argument(..., help="the later version"),
+    png: Optional[Path] = typer.Option(None, dir_okay=False, help="write a latitude/longitude map of the change here"),
+    threshold: float = typer.Option(0.01, min=0.0, help="height change (m) above which the surface counts as changed"),
+    json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
+) -> None:
+    """Height change from one version to another along the new model's outward normal (m): mean, RMS, max, area changed."""
+    from service.catalog import open_catalog
+    from service.diff import diff_versions
+    from service.settings import get_settings
+
+    settings = get_settings()
+    with open_catalog(settings)() as session:
+        try:
+            result = diff_versions(session, data_dir=settings.data_dir, old=old, new=new, png=png, threshold_m=threshold)
+        except LookupError as exc:
+            typer.echo(str(exc), err=True)
+            raise typer.Exit(1) from None
+    if json_out:
+        echo_json(result.model_dump(mode="json"))
+        return
+    rows = [("versions", f"{result.old} -> {result.new}"),
+            ("vertices compared", f"{result.vertices_compared} of {result.vertices_total}"),
+            ("mean", f"{result.mean_m:+.4f} m"), ("RMS", f"{result.rms_m:.4f} m"), ("max |change|", f"{result.max_abs_m:.4f} m"),
+            (f"changed > {result.threshold_m:g} m", f"{result.area_changed_m2:.2f} m^2 ({result.vertices_changed} vertices)"),
+            *((("map", result.png),) if result.png else ())]
+    for name, value in rows:
+        typer.echo(f"{name:<20}{value}")
+
+
+def _summary(version) -> dict:
+    """A version as plain data: number, kind, parent, times, lineage, statistics, artifacts."""
+    return {"version": version.version, "kind": str(version.kind),
+            "parent": version.parent.version if version.parent is not None else None,
+            "created_at": version.created_at.isoformat(), "released": version.released,
+            "release_tag": version.release_tag,
+            "maplet_revisions": sorted(r.id for r in version.maplet_revisions),
+            "downlinks": sorted(d.name for d in version.downlinks),
+            "statistics": version.statistics, "artifacts": version.artifacts}

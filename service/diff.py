@@ -1,0 +1,86 @@
+"""`pwm diff V1 V2`: how the surface moved from one model version to another (pwm.compare), as
+figures and a latitude/longitude map."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from pydantic import BaseModel
+from sqlalchemy.orm import Session
+
+from pwm.compare import HeightChange, height_change
+from pwm.frames import unit_to_latlon
+from pwm.mesh import Mesh
+from service.versions import get_version, version_mesh
+
+THRESHOLD_M = 0.01
+"""Height change above which a vertex counts as changed, m."""
+
+
+class VersionDiff(BaseModel):
+    """Signed height change of version `new` against `old`, along the new model's outward
+    normal (m; positive: the new surface is higher), area-weighted over the vertices compared."""
+
+    old: int
+    new: int
+    vertices_compared: int
+    vertices_total: int
+    mean_m: float
+    rms_m: float
+    max_abs_m: float
+    threshold_m: float
+    vertices_changed: int
+    area_changed_m2: float
+    png: str | None = None
+
+
+def diff_versions(session: Session, *, data_dir: Path, old: int | str, new: int | str,
+                  png: Path | None = None, threshold_m: float = THRESHOLD_M,
+                  max_distance_km: float = 0.01) -> VersionDiff:
+    """Compare two versions (numbers, tags, latest or released); with `png`, also write a map
+    of the change over latitude and longitude there. max_distance_km: farthest a surface may
+    have moved and still be compared."""
+    old_version, new_version = get_version(session, old), get_version(session, new)
+    new_mesh = version_mesh(data_dir, new_version)
+    change = height_change(version_mesh(data_dir, old_version), new_mesh,
+                           max_distance_km=max_distance_km)
+    changed = change.changed(threshold_m)
+    if png is not None:
+        _plot(png, new_mesh, change, changed, title=(
+            f"height change, version {new_version.version} - version {old_version.version}"))
+    return VersionDiff(old=old_version.version, new=new_version.version,
+                       vertices_compared=int(change.compared.sum()),
+                       vertices_total=len(change.change_m), mean_m=change.mean_m(),
+                       rms_m=change.rms_m(), max_abs_m=change.max_abs_m(),
+                       threshold_m=threshold_m, vertices_changed=int(changed.sum()),
+                       area_changed_m2=float(change.area_m2[changed].sum()),
+                       png=None if png is None else str(png))
+
+
+def _plot(path: Path, mesh: Mesh, change: HeightChange, changed: np.ndarray, *,
+          title: str) -> None:
+    """Change (m) at the vertices over east longitude and latitude, framed on the changed
+    region (the whole body when nothing changed)."""
+    lat, lon = unit_to_latlon(mesh.vertices)
+    shown = changed if changed.any() else change.compared
+    pad_lat = max(np.ptp(lat[shown]) * 0.25, 1e-3) if shown.any() else 0.0
+    pad_lon = max(np.ptp(lon[shown]) * 0.25, 1e-3) if shown.any() else 0.0
+    frame = change.compared.copy()
+    if changed.any():
+        frame &= ((lat >= lat[shown].min() - pad_lat) & (lat <= lat[shown].max() + pad_lat)
+                  & (lon >= lon[shown].min() - pad_lon) & (lon <= lon[shown].max() + pad_lon))
+    limit = max(float(np.abs(change.change_m[frame]).max(initial=0.0)), 1e-6)
+    fig = Figure(figsize=(7, 5.5))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    points = ax.scatter(lon[frame], lat[frame], c=change.change_m[frame], s=2, cmap="RdBu_r",
+                        vmin=-limit, vmax=limit, linewidths=0)
+    fig.colorbar(points, ax=ax, label="height change (m)")
+    ax.set(xlabel="east longitude (deg)", ylabel="latitude (deg)", title=title)
+    ax.set_aspect(1.0 / max(np.cos(np.radians(np.median(lat[frame]) if frame.any() else 0.0)),
+                            0.1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, bbox_inches="tight")

@@ -1,0 +1,111 @@
+"""Incremental fusion of the maplets' current revisions into a new model version.
+
+The parent is the latest version. Its "grid" artifact holds the voxel sums (pwm.fusion.VoxelGrid)
+of the revisions in its lineage; the maplets whose current revision differs from the parent's
+have their old revision subtracted and their new one added, and the rest of the sums are left as
+they are. A parent without a grid (a start, imported or photogrammetric model) starts an empty
+one. The fused surface is stitched into the base: the nearest version up the lineage without a
+grid, the model that the refinements started from.
+
+All of it runs under the publication lock (service.versions.publication_lock), taken before the
+parent is read, so two fusions never build on the same parent.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, selectinload, sessionmaker
+
+from pwm.fusion import VoxelGrid
+from pwm.io.fusion_state import read_grid, write_grid
+from service.coverage import OVERLAP
+from service.db import session_scope
+from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion
+from service.refinement import load_revision_maplet
+from service.versions import (artifact_path, latest_version, publication_lock, publish_version,
+                              scratch_path, version_mesh)
+
+log = logging.getLogger(__name__)
+
+
+def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
+                     downlink_ids: Sequence[int] = ()) -> int | None:
+    """Fuse the maplets' current revisions into the latest version and publish the result as a
+    new version (kind refined); its number, or None when no maplet's current revision differs
+    from the latest version's (nothing is published then).
+
+    Lineage: the parent, the maplet revisions fused, the parent's downlinks plus downlink_ids.
+    Statistics: maplets changed, added, replaced and fused in all, images used, whether the
+    parent's sums were reused, the base version, voxels and seconds (with the mesh's own).
+    """
+    clock = time.perf_counter()
+    with session_scope(sessions) as session:
+        publication_lock(session)
+        parent = latest_version(session)
+        if parent is None:
+            raise LookupError("the catalog has no model version to fuse into")
+        used = {r.maplet_id: r for r in parent.maplet_revisions}
+        current = _current_revisions(session)
+        changed = [r for m, r in current.items() if m not in used or used[m].id != r.id]
+        gone = [r for m, r in used.items() if m not in current]
+        if not changed and not gone:
+            log.info("fusion: no maplet changed since version %d; nothing published",
+                     parent.version)
+            return None
+        if "grid" in parent.artifacts:
+            grid = read_grid(artifact_path(data_dir, parent.artifacts["grid"], verify=True))
+            for old in [used[r.maplet_id] for r in changed if r.maplet_id in used] + gone:
+                grid.subtract(load_revision_maplet(data_dir, old))
+            added = changed
+        else:
+            added = list(current.values())
+            grid = None
+        maplets = [load_revision_maplet(data_dir, r) for r in added]
+        if grid is None:
+            grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=OVERLAP)
+        for maplet in maplets:
+            grid.add(maplet)
+        base = _base(parent)
+        mesh = grid.mesh(version_mesh(data_dir, base))
+        scratch = scratch_path(data_dir, ".npz")
+        write_grid(scratch, grid)
+        downlinks = {d.id: d for d in parent.downlinks}
+        for downlink_id in downlink_ids:
+            if downlink_id not in downlinks:
+                downlinks[downlink_id] = session.get_one(Downlink, downlink_id)
+        images = {name for r in current.values() for name in r.statistics.get("images", [])}
+        statistics = {
+            "maplets_changed": len(changed), "maplets_added": sum(r.maplet_id not in used
+                                                                  for r in changed),
+            "maplets_replaced": sum(r.maplet_id in used for r in changed),
+            "maplets_removed": len(gone), "maplets_fused": len(current), "images": len(images),
+            "incremental": "grid" in parent.artifacts, "base_version": base.version,
+            "voxels": len(grid.keys), "fusion_seconds": time.perf_counter() - clock}
+        version = publish_version(session, data_dir=data_dir, mesh=mesh, kind=ModelKind.REFINED,
+                                  parent=parent, statistics=statistics,
+                                  extra_artifacts={"grid": scratch},
+                                  maplet_revisions=current.values(),
+                                  downlinks=downlinks.values())
+        log.info("fusion: version %d from version %d, %d of %d maplets changed (%.1f s)",
+                 version.version, parent.version, len(changed), len(current),
+                 time.perf_counter() - clock)
+        return version.version
+
+
+def _current_revisions(session: Session) -> dict[int, MapletRevision]:
+    """Each maplet's current revision, by maplet id."""
+    rows = session.scalars(select(Maplet).where(Maplet.current_revision_id.is_not(None))
+                           .options(selectinload(Maplet.current_revision)).order_by(Maplet.id))
+    return {m.id: m.current_revision for m in rows}
+
+
+def _base(version: ModelVersion) -> ModelVersion:
+    """The nearest version up the lineage (this one included) that has no fusion sums."""
+    while "grid" in version.artifacts and version.parent is not None:
+        version = version.parent
+    return version

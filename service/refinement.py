@@ -1,0 +1,242 @@
+"""Refinement driven by the catalog: which maplets need refining, and the refinement of one.
+
+A maplet's input is the set of images its coverage rows weigh above zero (the refinement's own
+rules, service.coverage), each with its pose correction, plus the refinement mode and the
+maplet's grid. Its input hash names that input: a maplet whose current revision was made from
+another input is stale. Refining a maplet stores a new revision, keyed by the input hash, so the
+same input is never solved twice; the maplet's current revision moves to it while the hash is
+still the maplet's input.
+
+The refinement itself is pwm.pipeline.refine_maplet, on the maplet's nodes at the heights of
+the current model (the latest version), with visibility against that model.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from pwm.frames import LocalFrame
+from pwm.io.fusion_state import read_maplet, write_maplet
+from pwm.maplets import Maplet as MapletGrid
+from pwm.pipeline import refine_maplet
+from pwm.raytrace import RayTracer
+from pwm.tiling import sample_surface
+from service.db import session_scope
+from service.models import (Coverage, GeometryStatus, Image, ImageStatus, Maplet,
+                            MapletRevision)
+from service.versions import (artifact_mesh, artifact_path, latest_version, scratch_path,
+                              store_artifact)
+from service.views import catalog_views
+
+log = logging.getLogger(__name__)
+
+MIN_IMAGES = 3
+"""Fewest images a maplet needs to be refined (with fewer it keeps its start: nothing to do)."""
+MODES = ("pwm", "standard")
+_INSERT_ATTEMPTS = 5
+
+
+@dataclass(frozen=True)
+class MapletWork:
+    """A maplet whose input changed since its current revision: its id and name, the hash of its
+    input now, and how many images that input holds."""
+
+    maplet_id: int
+    name: str
+    input_hash: str
+    images: int
+
+
+@dataclass(frozen=True)
+class _Input:
+    image_ids: tuple[int, ...]
+    input_hash: str
+
+
+def input_hash(image_keys: Collection[str], *, mode: str, nodes_per_side: int,
+               size_km: float) -> str:
+    """sha256 naming a refinement's input: the images' keys (sha256 of the product, with its
+    pose correction), the mode and the maplet's grid (nodes per side, side in km)."""
+    payload = {"images": sorted(image_keys), "mode": mode, "min_images": MIN_IMAGES,
+               "nodes_per_side": nodes_per_side, "size_km": repr(float(size_km))}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
+def _inputs(session: Session, mode: str, maplet_ids: Collection[int] | None
+            ) -> dict[int, _Input]:
+    """The input of each maplet (of maplet_ids, or all) that some image weighs into."""
+    query = (select(Coverage.maplet_id, Image.id, Image.sha256, Image.pose_dx_km,
+                    Image.pose_dy_km, Image.pose_dz_km, Image.pose_rx_rad, Image.pose_ry_rad,
+                    Image.pose_rz_rad)
+             .join(Image, Image.id == Coverage.image_id)
+             .where(Coverage.weight > 0, Image.status == ImageStatus.ACCEPTED,
+                    Image.geometry_status == GeometryStatus.COMPUTED)
+             .order_by(Coverage.maplet_id, Image.id))
+    if maplet_ids is not None:
+        query = query.where(Coverage.maplet_id.in_(list(maplet_ids)))
+    images: dict[int, list[tuple[int, str]]] = {}
+    for maplet_id, image_id, sha256, *pose in session.execute(query):
+        # A pose correction changes what the image says about the maplet.
+        key = sha256 + (f"@{','.join(repr(v) for v in pose)}"
+                        if any(v is not None for v in pose) else "")
+        images.setdefault(maplet_id, []).append((image_id, key))
+    grids = dict((i, (n, s)) for i, n, s in session.execute(
+        select(Maplet.id, Maplet.nodes_per_side, Maplet.size_km).where(
+            Maplet.id.in_(list(images)))))
+    return {m: _Input(tuple(i for i, _ in rows),
+                      input_hash([k for _, k in rows], mode=mode, nodes_per_side=grids[m][0],
+                                 size_km=grids[m][1]))
+            for m, rows in images.items()}
+
+
+def stale_maplets(session: Session, *, mode: str = "pwm",
+                  maplet_ids: Collection[int] | None = None) -> list[MapletWork]:
+    """The maplets (of maplet_ids, or all) with at least MIN_IMAGES images whose input hash is
+    not their current revision's, by id."""
+    _check_mode(mode)
+    inputs = _inputs(session, mode, maplet_ids)
+    rows = session.execute(
+        select(Maplet.id, Maplet.name, MapletRevision.input_hash)
+        .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
+        .where(Maplet.id.in_(list(inputs))).order_by(Maplet.id))
+    return [MapletWork(maplet_id=m, name=name, input_hash=inputs[m].input_hash,
+                       images=len(inputs[m].image_ids))
+            for m, name, current in rows
+            if len(inputs[m].image_ids) >= MIN_IMAGES and current != inputs[m].input_hash]
+
+
+def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, maplet_id: int,
+                          input_hash: str, mode: str = "pwm",
+                          progress: Callable[[float, str], None] | None = None) -> int:
+    """Refine one maplet from the catalog; the id of its revision for `input_hash`.
+
+    Idempotent: a revision already stored for (maplet, input_hash) is returned as it is. The
+    maplet's current input is what gets refined; when it no longer hashes to input_hash (the
+    catalog changed since the work was planned, and newer work is on its way), the revision is
+    stored under the hash of what was refined, for that newer work to find. The current revision
+    moves to the new one only if its hash is still the maplet's input when it is stored.
+    The refined maplet is a content-addressed artifact (pwm.io.fusion_state.write_maplet).
+    progress(fraction, message) is told how far it got.
+    """
+    _check_mode(mode)
+    say = progress or (lambda fraction, message: None)
+    with sessions() as session:
+        found = _revision_id(session, maplet_id, input_hash)
+        if found is not None:
+            return found
+        row = session.get(Maplet, maplet_id)
+        if row is None:
+            raise LookupError(f"no maplet {maplet_id}")
+        current = _inputs(session, mode, [maplet_id]).get(maplet_id)
+        if current is None or len(current.image_ids) < MIN_IMAGES:
+            raise ValueError(f"maplet {row.name} has fewer than {MIN_IMAGES} usable images")
+        if current.input_hash != input_hash:
+            log.info("maplet %s: input changed since planned; refining its current input",
+                     row.name)
+            found = _revision_id(session, maplet_id, current.input_hash)
+            if found is not None:
+                return found
+        model = latest_version(session)
+        if model is None:
+            raise LookupError("the catalog has no model version to refine against")
+        say(0.05, f"reading {len(current.image_ids)} images")
+        views = catalog_views(session, image_ids=current.image_ids, pixels=True)
+        ordered = [views[i] for i in current.image_ids if i in views]
+        grid = _grid(row)
+        model_version, model_ply = model.version, model.artifacts["ply"]
+    say(0.2, f"refining against version {model_version}")
+    tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
+    grid.heights, grid.albedo = sample_surface(tracer, grid)
+    result = refine_maplet(grid, ordered, tracer, mode=mode, min_images=MIN_IMAGES)
+    say(0.9, "storing the revision")
+    scratch = scratch_path(data_dir, ".npz")
+    write_maplet(scratch, result.maplet)
+    artifact = store_artifact(data_dir, scratch)
+    statistics = {"images": result.images, "region_weight": result.region_weight,
+                  "five_views": result.five_views, "dropped": result.dropped,
+                  "iterations": result.iterations, "converged": result.converged,
+                  "residual_rms": result.residual_rms, "seconds": result.seconds,
+                  "model_version": model_version,
+                  "height_change_rms_m": float(np.sqrt(np.mean(
+                      (result.maplet.heights - grid.heights) ** 2)) * 1e3)}
+    revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=current.input_hash,
+                                  mode=mode, artifact=artifact, statistics=statistics)
+    say(1.0, "done")
+    log.info("maplet %s: revision %d from %d images, %d iterations (%.1f s)", grid.name,
+             revision_id, len(result.images), result.iterations, result.seconds)
+    return revision_id
+
+
+def load_revision_maplet(data_dir: Path, revision: MapletRevision) -> MapletGrid:
+    """The refined maplet a revision stored (checksum verified)."""
+    return read_maplet(artifact_path(data_dir, {"path": revision.artifact_path,
+                                                "sha256": revision.sha256}, verify=True))
+
+
+@lru_cache(maxsize=1)
+def _tracer(data_dir: Path, path: str, sha256: str) -> RayTracer:
+    """The model's ray tracer, kept for the next maplet refined against the same model (a
+    process refines many in a row, and a global model takes seconds to read and build)."""
+    return RayTracer(artifact_mesh(data_dir, {"path": path, "sha256": sha256}))
+
+
+def _check_mode(mode: str) -> None:
+    if mode not in MODES:
+        raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
+
+
+def _revision_id(session: Session, maplet_id: int, input_hash: str) -> int | None:
+    return session.scalar(select(MapletRevision.id).filter_by(maplet_id=maplet_id,
+                                                             input_hash=input_hash))
+
+
+def _grid(row: Maplet) -> MapletGrid:
+    """The catalogued maplet's grid, flat (heights still to sample)."""
+    n = row.nodes_per_side
+    frame = LocalFrame(origin=np.array([row.origin_x_km, row.origin_y_km, row.origin_z_km]),
+                       rotation=np.asarray(row.rotation, float).reshape(3, 3))
+    return MapletGrid(name=row.name, frame=frame, spacing_km=row.size_km / (n - 1),
+                      heights=np.zeros((n, n)))
+
+
+def _store_revision(sessions: sessionmaker[Session], *, maplet_id: int, input_hash: str,
+                    mode: str, artifact: dict, statistics: dict) -> int:
+    """Insert the revision (next number for its maplet) unless a concurrent job stored the same
+    input first, and make it current if its hash is the maplet's input now; its id."""
+    for _ in range(_INSERT_ATTEMPTS):
+        try:
+            with session_scope(sessions) as session:
+                found = _revision_id(session, maplet_id, input_hash)
+                if found is not None:
+                    return found
+                # Row lock (PostgreSQL): revisions of one maplet are numbered one at a time.
+                maplet = session.scalars(select(Maplet).where(Maplet.id == maplet_id)
+                                         .with_for_update()).one()
+                number = (session.scalar(select(func.max(MapletRevision.revision))
+                                         .where(MapletRevision.maplet_id == maplet_id)) or 0) + 1
+                revision = MapletRevision(maplet_id=maplet_id, revision=number,
+                                          input_hash=input_hash, mode=mode,
+                                          statistics=statistics, artifact_path=artifact["path"],
+                                          sha256=artifact["sha256"])
+                session.add(revision)
+                session.flush()
+                now = _inputs(session, mode, [maplet_id]).get(maplet_id)
+                if now is not None and now.input_hash == input_hash:
+                    maplet.current_revision_id = revision.id
+                return revision.id
+        except IntegrityError:
+            # A concurrent job stored this input (or took the number) first: look again.
+            continue
+    raise RuntimeError(f"could not store a revision of maplet {maplet_id} after "
+                       f"{_INSERT_ATTEMPTS} attempts")

@@ -1,0 +1,61 @@
+"""Catalogued images as views (pwm.io.downlink.View): camera of the array read out, pose and Sun
+from the stored geometry, with the image's pose correction applied, and optionally the pixels.
+
+The one place that turns catalog rows into what the refinement chain takes, for the coverage
+rows at ingest (no pixels) and for the refinement of a maplet (pixels read from the PDS4 product).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session, selectinload
+
+from pwm.camera import Camera, Pose, corrected_pose
+from pwm.io.downlink import View
+from pwm.io.pds4 import read_image_product
+from service.models import GeometryStatus, Image, ImageStatus
+
+
+def image_pose(image: Image) -> Pose:
+    """The image's camera pose (body-fixed, km; body -> image frame), with its bundle-adjustment
+    correction (Image.pose_d*_km, pose_r*_rad) applied when set (pwm.camera.corrected_pose)."""
+    g = image.geometry
+    pose = Pose(position=np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
+                rotation=np.asarray(g.camera_rotation, float).reshape(3, 3))
+    offset = [image.pose_dx_km, image.pose_dy_km, image.pose_dz_km]
+    turn = [image.pose_rx_rad, image.pose_ry_rad, image.pose_rz_rad]
+    if all(v is None for v in offset + turn):
+        return pose
+    return corrected_pose(pose, np.array([v or 0.0 for v in offset]), np.array([v or 0.0 for v in turn]))
+
+
+def catalog_views(session: Session, *, image_ids: Collection[int] | None = None,
+                  pixels: bool = False) -> dict[int, View]:
+    """The accepted images with geometry (those of image_ids, or all) as views, by image id.
+    Without pixels the views' image is an empty array (geometry only)."""
+    query = select(Image).where(
+        Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED,
+        Image.instrument_id.is_not(None)).options(
+        selectinload(Image.geometry), selectinload(Image.instrument)).order_by(Image.id)
+    if image_ids is not None:
+        query = query.where(Image.id.in_(list(image_ids)))
+    return {image.id: image_view(image, pixels=pixels) for image in session.scalars(query)}
+
+
+def image_view(image: Image, *, pixels: bool = False) -> View:
+    """One catalogued image (accepted, with geometry) as a view; see `catalog_views`."""
+    g, inst = image.geometry, image.instrument
+    # The catalog keeps the detector, not the array's window: the label gives it.
+    product = read_image_product(Path(image.label_path))
+    camera = Camera(width=inst.width_px, height=inst.height_px, fx=inst.fx_px, fy=inst.fy_px,
+                    cx=inst.cx_px, cy=inst.cy_px).subframe(
+        first_sample=product.first_sample, first_line=product.first_line,
+        samples=product.samples, lines=product.lines)
+    sun = np.array([g.sun_x, g.sun_y, g.sun_z])
+    return View(name=image.lidvid, image=product.data if pixels else np.empty((0, 0)),
+                camera=camera, pose=image_pose(image), sun=sun / np.linalg.norm(sun),
+                et=0.5 * (image.start_et + image.stop_et))

@@ -1,0 +1,52 @@
+"""Fusion into versions: nothing changed publishes nothing; concurrent fusions build one on the
+other under the publication lock; a parent without sums (an imported model) starts a new grid
+from every current revision."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+from sqlalchemy import func, select
+
+from pwm.io.meshio import write_ply
+from service.db import session_scope
+from service.models import ModelKind, ModelVersion
+from service.publish import fuse_and_publish
+from service.refinement import refine_catalog_maplet
+from service.run import ingest_and_plan
+from service.versions import get_version, import_model, version_mesh
+
+
+def test_fusions_publish_changes_once(tiny_sim, catalog, tmp_path):
+    data = tmp_path / "data"
+    plan = ingest_and_plan(catalog, tiny_sim / "downlink", data_dir=data, maplet_nodes=40,
+                           tile_radius_km=0.0003)
+    assert fuse_and_publish(catalog, data_dir=data) is None  # no revision yet
+    [work] = plan.work
+    revision = refine_catalog_maplet(catalog, data_dir=data, maplet_id=work.maplet_id,
+                                     input_hash=work.input_hash)
+    with ThreadPoolExecutor(2) as pool:
+        published = list(pool.map(lambda _: fuse_and_publish(
+            catalog, data_dir=data, downlink_ids=[plan.downlink_id]), range(2)))
+    assert sorted(published, key=str) == [2, None]
+    with catalog() as session:
+        assert session.scalar(select(func.count()).select_from(ModelVersion)) == 2
+        v2 = get_version(session, 2)
+        assert [r.id for r in v2.maplet_revisions] == [revision]
+        assert [d.id for d in v2.downlinks] == [plan.downlink_id]
+        assert v2.statistics["maplets_changed"] == v2.statistics["maplets_added"] == 1
+        assert not v2.statistics["incremental"] and "grid" in v2.artifacts
+        start, fused = version_mesh(data, get_version(session, 1)), version_mesh(data, v2)
+    assert fused.albedo is not None and len(fused.faces) > len(start.faces)
+
+    # An imported model becomes the parent: the next fusion starts over on it.
+    write_ply(tmp_path / "other.ply", start)
+    with session_scope(catalog) as session:
+        assert import_model(session, data_dir=data, path=tmp_path / "other.ply").version == 3
+    assert fuse_and_publish(catalog, data_dir=data) == 4
+    with catalog() as session:
+        v4 = get_version(session, 4)
+        assert v4.kind is ModelKind.REFINED and v4.parent.version == 3
+        assert v4.statistics["base_version"] == 3 and not v4.statistics["incremental"]
+        assert v4.statistics["maplets_fused"] == 1 and v4.statistics["maplets_changed"] == 1
+        assert v4.downlinks == []

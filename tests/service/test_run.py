@@ -1,0 +1,118 @@
+"""`pwm run` in-process on a simulated downlink: a first downlink publishes a refined version on
+top of the start model; the same downlink again changes nothing; a second downlink that sees
+part of the site refines only the maplets whose image set changed, and the new version's sums
+are those of a fusion from scratch."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import func, select
+
+from pwm.fusion import VoxelGrid
+from pwm.io.fusion_state import read_grid
+from pwm.io.pds4 import MISSING_DN, read_image_product, write_image_product
+from service.coverage import OVERLAP
+from service.models import Coverage, Maplet, MapletRevision, ModelKind
+from service.refinement import MIN_IMAGES, load_revision_maplet
+from service.run import run_directory
+from service.versions import artifact_path, get_version, version_mesh
+
+NODES = 40
+RADIUS_KM = 0.0008  # a few maplets about the site's centre: seconds, not minutes
+
+
+def _second_downlink(sim: Path, out: Path) -> Path:
+    """The last image again, cut down to the first half of its samples, under a LID of its own:
+    a new image that sees only part of the site."""
+    label = sim / "downlink" / "images" / "pwm_tiny_img005.xml"
+    product = read_image_product(label)
+    text = label.read_text()
+    scale = float(re.search(r"<scaling_factor>(.*?)<", text)[1])
+    offset = float(re.search(r"<value_offset>(.*?)<", text)[1])
+    half = product.data[:, : product.samples // 2]
+    dn = np.where(np.isnan(half), MISSING_DN, np.round((half - offset) / scale)).astype(np.int16)
+    (out / "images").mkdir(parents=True)
+    write_image_product(directory=out / "images", basename="pwm_tiny_img005_half", dn=dn,
+                        scaling_factor=scale, value_offset=offset, lid=product.lid + "_half",
+                        start_utc=product.start_utc, stop_utc=product.stop_utc,
+                        mission=product.mission, host_name=product.host_name,
+                        instrument_name=product.instrument_name,
+                        target_name=product.target_name, title=product.title + " (half)",
+                        exposure_s=product.exposure_s,
+                        subframe=(product.first_line, product.first_sample))
+    return out
+
+
+def _inputs(session) -> dict[int, set[int]]:
+    """The images each maplet weighs in, by maplet id."""
+    inputs: dict[int, set[int]] = {}
+    for maplet_id, image_id in session.execute(
+            select(Coverage.maplet_id, Coverage.image_id).where(Coverage.weight > 0)):
+        inputs.setdefault(maplet_id, set()).add(image_id)
+    return inputs
+
+
+def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
+    data = tmp_path / "data"
+    first = shutil.copytree(tiny_sim / "downlink", tmp_path / "first")
+    run = run_directory(catalog, first, data_dir=data, maplet_nodes=NODES,
+                        tile_radius_km=RADIUS_KM)
+    assert (run.plan.base_version, run.version) == (1, 2)
+    assert len(run.plan.work) >= 2 and len(run.revisions) == len(run.plan.work)
+    with catalog() as session:
+        start, v2 = get_version(session, 1), get_version(session, 2)
+        start_artifacts = dict(start.artifacts)
+        assert start.kind is ModelKind.START and v2.kind is ModelKind.REFINED
+        assert v2.parent.version == 1 and [d.name for d in v2.downlinks] == ["first"]
+        assert sorted(r.id for r in v2.maplet_revisions) == sorted(run.revisions)
+        assert v2.statistics["maplets_changed"] == len(run.revisions)
+        assert v2.statistics["images"] == 6 and v2.statistics["base_version"] == 1
+        inputs = _inputs(session)
+        maplets = session.scalar(select(func.count()).select_from(Maplet))
+        assert len(run.plan.work) == sum(len(images) >= MIN_IMAGES for images in inputs.values())
+    start_mesh, refined = version_mesh(data, start), version_mesh(data, v2)
+    assert refined.albedo is not None and len(refined.faces) > len(start_mesh.faces)
+
+    again = run_directory(catalog, first, data_dir=data, maplet_nodes=NODES,
+                          tile_radius_km=RADIUS_KM)
+    assert again.plan.work == [] and again.version is None
+    with catalog() as session:
+        assert session.scalar(select(func.count()).select_from(MapletRevision)) == len(
+            run.revisions)
+        assert _inputs(session) == inputs
+
+    second = _second_downlink(tiny_sim, tmp_path / "second")
+    later = run_directory(catalog, second, data_dir=data, maplet_nodes=NODES,
+                          tile_radius_km=RADIUS_KM)
+    with catalog() as session:
+        after = _inputs(session)
+        changed = {m for m in after if after[m] != inputs.get(m) and len(after[m]) >= MIN_IMAGES}
+        assert 0 < len(changed) < maplets
+        assert {w.maplet_id for w in later.plan.work} == changed
+        assert later.version == 3
+        v3 = get_version(session, 3)
+        assert v3.parent.version == 2 and v3.statistics["incremental"]
+        assert sorted(d.name for d in v3.downlinks) == ["first", "second"]
+        assert v3.statistics["maplets_changed"] == len(changed)
+        assert v3.statistics["maplets_fused"] == len(run.revisions) + len(changed - set(
+            w.maplet_id for w in run.plan.work))
+        current = {m.id: m.current_revision for m in session.scalars(select(Maplet))
+                   if m.current_revision is not None}
+        assert {r.id for r in v3.maplet_revisions} == {r.id for r in current.values()}
+        # Unchanged maplets keep the revision version 2 used.
+        kept = {r.maplet_id: r.id for r in v2.maplet_revisions if r.maplet_id not in changed}
+        assert kept and all(current[m].id == r for m, r in kept.items())
+        incremental = read_grid(artifact_path(data, v3.artifacts["grid"], verify=True))
+        scratch = VoxelGrid(voxel_km=incremental.voxel_km, taper_fraction=OVERLAP)
+        for revision in sorted(current.values(), key=lambda r: r.maplet_id):
+            scratch.add(load_revision_maplet(data, revision))
+        # Version 1 is as it was published, and still readable.
+        assert get_version(session, 1).artifacts == start_artifacts
+    np.testing.assert_array_equal(incremental.keys, scratch.keys)
+    np.testing.assert_array_equal(incremental.count, scratch.count)
+    np.testing.assert_allclose(incremental.sums, scratch.sums, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(version_mesh(data, start).vertices, start_mesh.vertices)
