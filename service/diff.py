@@ -22,15 +22,16 @@ THRESHOLD_M = 0.01
 
 class VersionDiff(BaseModel):
     """Signed height change of version `new` against `old`, along the new model's outward
-    normal (m; positive: the new surface is higher), area-weighted over the vertices compared."""
+    normal (m; positive: the new surface is higher), area-weighted over the vertices compared
+    (None when no vertex of the new model lies near the old one)."""
 
     old: int
     new: int
     vertices_compared: int
     vertices_total: int
-    mean_m: float
-    rms_m: float
-    max_abs_m: float
+    mean_m: float | None
+    rms_m: float | None
+    max_abs_m: float | None
     threshold_m: float
     vertices_changed: int
     area_changed_m2: float
@@ -48,13 +49,16 @@ def diff_versions(session: Session, *, data_dir: Path, old: int | str, new: int 
     change = height_change(version_mesh(data_dir, old_version), new_mesh,
                            max_distance_km=max_distance_km)
     changed = change.changed(threshold_m)
+    compared = bool(change.compared.any())
     if png is not None:
         _plot(png, new_mesh, change, changed, title=(
             f"height change, version {new_version.version} - version {old_version.version}"))
     return VersionDiff(old=old_version.version, new=new_version.version,
                        vertices_compared=int(change.compared.sum()),
-                       vertices_total=len(change.change_m), mean_m=change.mean_m(),
-                       rms_m=change.rms_m(), max_abs_m=change.max_abs_m(),
+                       vertices_total=len(change.change_m),
+                       mean_m=change.mean_m() if compared else None,
+                       rms_m=change.rms_m() if compared else None,
+                       max_abs_m=change.max_abs_m() if compared else None,
                        threshold_m=threshold_m, vertices_changed=int(changed.sum()),
                        area_changed_m2=float(change.area_m2[changed].sum()),
                        png=None if png is None else str(png))

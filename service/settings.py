@@ -17,7 +17,7 @@ class Settings(BaseSettings):
     data_dir: PWM_DATA_DIR, made absolute at load time.
     database_url: PWM_DATABASE_URL; empty means the SQLite file `catalog.sqlite` in data_dir.
     broker_url: PWM_BROKER_URL; None runs jobs in-process instead of through a broker.
-    api_token: PWM_API_TOKEN; None leaves the API open.
+    api_token: PWM_API_TOKEN, the bearer token of the API's changing calls; None refuses them all.
     """
 
     model_config = SettingsConfigDict(env_prefix="PWM_")

@@ -127,7 +127,8 @@ def diff(
         return
     rows = [("versions", f"{result.old} -> {result.new}"),
             ("vertices compared", f"{result.vertices_compared} of {result.vertices_total}"),
-            ("mean", f"{result.mean_m:+.4f} m"), ("RMS", f"{result.rms_m:.4f} m"), ("max |change|", f"{result.max_abs_m:.4f} m"),
+            *(((name, "-" if value is None else f"{value:{spec}} m") for name, value, spec in
+               (("mean", result.mean_m, "+.4f"), ("RMS", result.rms_m, ".4f"), ("max |change|", result.max_abs_m, ".4f")))),
             (f"changed > {result.threshold_m:g} m", f"{result.area_changed_m2:.2f} m^2 ({result.vertices_changed} vertices)"),
             *((("map", result.png),) if result.png else ())]
     for name, value in rows:
