@@ -509,7 +509,11 @@ MUTABLE_MODEL_VERSION_FIELDS = frozenset({"released", "release_tag", "children"}
 
 @event.listens_for(Session, "before_flush")
 def _refuse_model_version_edits(session: Session, _context: Any, _instances: Any) -> None:
-    """Refuse changes to a stored model version's content or lineage (flag and tag excepted)."""
+    """Refuse changes to a stored model version's content or lineage (the release flag and tag
+    may be set once), and the deletion of a released version."""
+    for obj in session.deleted:
+        if isinstance(obj, ModelVersion) and obj.released:
+            raise ValueError(f"model version {obj.version} is released; it cannot be deleted")
     for obj in session.dirty:
         if not isinstance(obj, ModelVersion):
             continue
@@ -520,6 +524,11 @@ def _refuse_model_version_edits(session: Session, _context: Any, _instances: Any
             raise ValueError(
                 f"model version {obj.version} is immutable; refused changes to {sorted(frozen)}"
             )
+        # The values this flush replaces: a release (True, or a tag) may not be replaced.
+        if any(state.attrs.released.history.deleted) or any(
+                tag is not None for tag in state.attrs.release_tag.history.deleted):
+            raise ValueError(f"model version {obj.version} is released; its release cannot "
+                             "be changed")
 
 
 class Job(Base):

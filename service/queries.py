@@ -322,3 +322,64 @@ def _prefilter(
     return and_(in_latitude, or_(*(
         Maplet.center_lon_deg.between(lon - half_deg + turn, lon + half_deg + turn)
         for turn in (-360.0, 0.0, 360.0))))
+
+
+class MapletImage(_Result):
+    """An image in a maplet's image set: how it sees the maplet (its coverage row) and its
+    weight there."""
+
+    image_id: int
+    lidvid: str
+    start_utc: datetime | None
+    weight: float
+    role: CoverageRole | None
+    visible_fraction: float
+    shadowed_fraction: float
+    incidence_deg: float
+    emission_deg: float
+    phase_deg: float
+    resolution_m_per_px: float
+
+
+class RevisionInfo(_Result):
+    """One solved state of a maplet; statistics hold its residuals and solver figures."""
+
+    revision: int
+    mode: str
+    created_at: datetime
+    input_hash: str
+    sha256: str
+    statistics: dict[str, Any]
+    current: bool
+
+
+def maplet_images(session: Session, *, maplet_id: int) -> list[MapletImage]:
+    """The images that see a maplet, by weight (highest first), then by id."""
+    rows = _records(session.execute(
+        select(Coverage.image_id, Image.lidvid, Image.start_utc, Coverage.weight, Coverage.role,
+               Coverage.visible_fraction, Coverage.shadowed_fraction, Coverage.incidence_deg,
+               Coverage.emission_deg, Coverage.phase_deg, Coverage.resolution_m_per_px)
+        .join(Image, Image.id == Coverage.image_id)
+        .where(Coverage.maplet_id == maplet_id, Coverage.visible_fraction > 0)
+        .order_by(Coverage.weight.desc(), Coverage.image_id)))
+    return [MapletImage(**row) for row in rows]
+
+
+def maplet_revisions(session: Session, *, maplet_id: int) -> list[RevisionInfo]:
+    """A maplet's revisions, oldest first, the current one marked."""
+    current = session.scalar(select(Maplet.current_revision_id).where(Maplet.id == maplet_id))
+    revisions = session.scalars(select(MapletRevision).where(MapletRevision.maplet_id == maplet_id)
+                                .order_by(MapletRevision.revision))
+    return [RevisionInfo(revision=r.revision, mode=r.mode, created_at=r.created_at,
+                         input_hash=r.input_hash, sha256=r.sha256, statistics=r.statistics,
+                         current=r.id == current) for r in revisions]
+
+
+def count_maplets(session: Session, *, lat_deg: float | None = None,
+                  lon_deg: float | None = None, radius_km: float = 0.0) -> int:
+    """How many maplets list_maplets pages through with the same arguments."""
+    if (lat_deg is None) != (lon_deg is None):
+        raise ValueError("give lat_deg and lon_deg together, or neither")
+    if lat_deg is None:
+        return session.scalar(select(func.count(Maplet.id))) or 0
+    return len(_maplets_near(session, lat_deg=lat_deg, lon_deg=lon_deg, radius_km=radius_km))

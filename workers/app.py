@@ -1,11 +1,12 @@
 """The Celery app: Redis broker and result backend, one queue per job kind, at-least-once delivery.
 
-Run a worker with `celery -A workers.app worker --pool=prefork -Q ingest,refine,fuse`. A task is
-acknowledged after it ran (acks_late) and given back when its worker process dies
-(task_reject_on_worker_lost); a worker that vanishes altogether leaves its task unacknowledged,
-and Redis hands it out again once visibility_timeout_s has passed. visibility_timeout_s must
-therefore exceed job_time_limit_s, the hard limit on one attempt, which is also the lease of a
-running job (service.jobs): a redelivered task finds its job's lease over and takes it over.
+Run a worker with `pwm worker` (or `celery -A workers.app worker --pool=prefork -Q
+ingest,refine,fuse`). A task is acknowledged after it ran (acks_late) and given back when its
+worker process dies (task_reject_on_worker_lost); a worker that vanishes altogether leaves its
+task unacknowledged, and Redis hands it out again once visibility_timeout_s has passed.
+visibility_timeout_s must therefore exceed job_time_limit_s, the hard limit on one attempt,
+which is also the lease of a running job (service.jobs): a redelivered task finds its job's
+lease over and takes it over.
 Tasks make deliveries idempotent through the jobs table (workers.tasks).
 
 spiceypy keeps one kernel pool per process and is not thread-safe: workers run the prefork pool
@@ -32,6 +33,7 @@ from pydantic import Field, model_validator
 from sqlalchemy.orm import Session
 
 from pwm.io.spice_kernels import KernelError
+from pwm.photoclinometry import Mode
 from service.db import make_engine, make_sessionmaker
 from service.kernels import accepted_kernels
 from service.models import JobKind
@@ -52,10 +54,21 @@ class WorkerSettings(Settings):
         lease of a running job.
     visibility_timeout_s: PWM_VISIBILITY_TIMEOUT_S, how long Redis waits for a delivered task to
         be acknowledged before it delivers it again; above job_time_limit_s.
+    task_retries: PWM_TASK_RETRIES, how many times a failed job is tried again.
+    retry_backoff_s: PWM_RETRY_BACKOFF_S, the wait before the first retry, doubled for each
+        further one.
+    refine_mode: PWM_REFINE_MODE, pwm or standard (service.refinement).
+    maplet_nodes, tile_radius_km: PWM_MAPLET_NODES and PWM_TILE_RADIUS_KM, of the maplets an
+        ingest tiles where the images look and none is catalogued (service.run.ingest_and_plan).
     """
 
     job_time_limit_s: float = Field(6600.0, gt=0)
     visibility_timeout_s: float = Field(7200.0, gt=0)
+    task_retries: int = Field(3, ge=0)
+    retry_backoff_s: float = Field(30.0, ge=0)
+    refine_mode: Mode = "pwm"
+    maplet_nodes: int = Field(100, ge=8)
+    tile_radius_km: float | None = Field(None, gt=0)
 
     @model_validator(mode="after")
     def _check_limits(self) -> WorkerSettings:
@@ -74,7 +87,8 @@ def get_worker_settings() -> WorkerSettings:
 
 
 def make_app(settings: WorkerSettings) -> Celery:
-    """A Celery app for `settings`; with no broker URL, tasks run in the calling process."""
+    """A Celery app for `settings`; with no (or an empty) broker URL, tasks run in the calling
+    process."""
     app = Celery("pwm", include=["workers.tasks"])
     hard = settings.job_time_limit_s
     # The sweep for abandoned tasks bounds how late after visibility_timeout_s they come back.
@@ -90,7 +104,7 @@ def make_app(settings: WorkerSettings) -> Celery:
         worker_pool="prefork",
         broker_connection_retry_on_startup=True,
     )
-    if settings.broker_url is None:
+    if not settings.broker_url:
         app.conf.update(task_always_eager=True, task_eager_propagates=True)
         return app
     app.conf.update(

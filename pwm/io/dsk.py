@@ -107,7 +107,9 @@ def _index_parameters(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, i
     voxpsz = corscl ** 3 * min(coarse_voxels, cells)
     voxlsz = 2 * cells
     spxisz = INDEX_FIXED_INTS + voxpsz + voxlsz + n_vertices + vertex_plate_list
-    return finscl, corscl, (max(cells, vertex_plate_list), voxpsz, voxlsz, True, spxisz)
+    # dskmi2 also keeps a pointer per voxel (voxpsz of them) in the work array
+    worksz = max(cells, vertex_plate_list, voxpsz)
+    return finscl, corscl, (worksz, voxpsz, voxlsz, True, spxisz)
 
 
 def _coverage(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, float, float]:

@@ -107,3 +107,18 @@ def test_concurrent_publications_get_consecutive_numbers(postgres_url: str, open
     with ThreadPoolExecutor(3) as pool:
         numbers = sorted(pool.map(publish, meshes))
     assert numbers == list(range(1, 7))
+
+
+def test_a_release_cannot_be_undone_changed_or_deleted(catalog: sessionmaker[Session],
+                                                      tmp_path: Path) -> None:
+    with session_scope(catalog) as session:
+        version = publish_version(session, data_dir=tmp_path, mesh=_sphere(), kind=ModelKind.START)
+        version.released, version.release_tag = True, "nav-1"
+    for change in ({"released": False}, {"release_tag": "nav-2"}, {"release_tag": None}):
+        with pytest.raises(ValueError, match="released"), session_scope(catalog) as session:
+            for name, value in change.items():
+                setattr(get_version(session, 1), name, value)
+    with pytest.raises(ValueError, match="cannot be deleted"), session_scope(catalog) as session:
+        session.delete(get_version(session, 1))
+    with catalog() as session:
+        assert get_version(session, "released").release_tag == "nav-1"

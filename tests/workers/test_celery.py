@@ -4,158 +4,56 @@ databases. Nothing is mocked: workers are killed with SIGKILL and Redis redelive
 
 from __future__ import annotations
 
-import itertools
-import os
-import shutil
-import signal
 import subprocess
-import sys
 import threading
 import time
-import uuid
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
-import numpy as np
 import pytest
 import redis
 import spiceypy as sp
 from celery import Celery
 from celery.result import AsyncResult
+from harness import REPO, RESULT_TIMEOUT_S, Worker, celery_worker_command, result_of, wait_for
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from pwm.io.pds4 import read_image_product, write_image_product
 from pwm.io.spice_kernels import kernel_pool
+from pwm.simulate.windows import window_downlink
 from service.db import make_engine, make_sessionmaker, session_scope, upgrade
 from service.ingest import COMMIT_EVERY, ingest_directory
 from service.jobs import (JobBusy, JobLost, claim_job, fail_job, finish_job, report_progress,
                           submit_job)
 from service.kernels import accepted_kernels
 from service.models import (Base, Downlink, DownlinkStatus, GeometryStatus, Image, ImageStatus,
-                            Job, JobKind, JobStatus, Kernel)
+                            Job, JobKind, JobStatus, Kernel, ModelKind)
+from service.run import START_MODEL_NAME
+from service.versions import import_model
 from workers.app import QUEUES, ProcessState, WorkerSettings, make_app
 from workers.tasks import ingest_downlink, ingest_key
 
-REPO = Path(__file__).resolve().parents[2]
 # Short limits so that a lost task comes back within seconds: the lease (hard time limit) must
 # outlast the slowest attempt here (COMMIT_EVERY products on a loaded machine), and Redis
 # redelivers after the visibility timeout.
 TIME_LIMIT_S, VISIBILITY_TIMEOUT_S = 10.0, 12.0
-WORKER_START_TIMEOUT_S = 60.0
-RESULT_TIMEOUT_S = 60.0
+# A failed attempt is tried again this many times, after this backoff (s).
+TASK_RETRIES, RETRY_BACKOFF_S = 2, 0.2
+# An ingest plans the refinement of what its images see: one small maplet here, so that the
+# refinement and fusion that follow take a moment.
+MAPLET_NODES, TILE_RADIUS_KM = 8, 1e-4
 REPEATS = 50  # repeat observations of each tiny image: 300 products, over COMMIT_EVERY
 WINDOW_PX = 16
-_redis_databases = itertools.count()
-
-
-@dataclass
-class Worker:
-    """A `celery worker` process group, its log, and how long it took to be ready (s)."""
-
-    process: subprocess.Popen
-    log: Path
-    startup_s: float = 0.0
-
-    def output(self) -> str:
-        return self.log.read_text(errors="replace") if self.log.exists() else ""
-
-    def kill(self) -> None:
-        """SIGKILL the main process and its pool children, as a lost machine would."""
-        if self.process.poll() is None:
-            os.killpg(self.process.pid, signal.SIGKILL)
-            self.process.wait()
-
-
-@pytest.fixture
-def broker_url(redis_url: str) -> Iterator[str]:
-    """A Redis database of its own for one test (empty queues), flushed afterwards."""
-    url = redis_url.rsplit("/", 1)[0] + f"/{next(_redis_databases) % 15 + 1}"
-    client = redis.Redis.from_url(url)
-    client.flushdb()
-    yield url
-    client.flushdb()
-    client.close()
-
-
-@pytest.fixture
-def catalog(postgres_url: str, open_catalog_at) -> sessionmaker[Session]:
-    return open_catalog_at(postgres_url)
 
 
 @pytest.fixture
 def settings(broker_url: str, postgres_url: str, tmp_path: Path) -> WorkerSettings:
     return WorkerSettings(broker_url=broker_url, database_url=postgres_url,
                           data_dir=tmp_path / "data", job_time_limit_s=TIME_LIMIT_S,
-                          visibility_timeout_s=VISIBILITY_TIMEOUT_S)
-
-
-@pytest.fixture
-def client(settings: WorkerSettings, catalog: sessionmaker[Session]) -> Iterator[Celery]:
-    """The submitting side: an app on the test broker (tasks are sent by name)."""
-    app = make_app(settings)
-    yield app
-    app.close()
-
-
-@pytest.fixture
-def worker_env(settings: WorkerSettings) -> dict[str, str]:
-    """The environment of a worker process on the test broker and catalog."""
-    return os.environ | {
-        "PWM_BROKER_URL": settings.broker_url, "PWM_DATABASE_URL": settings.database_url,
-        "PWM_DATA_DIR": str(settings.data_dir),
-        "PWM_JOB_TIME_LIMIT_S": str(settings.job_time_limit_s),
-        "PWM_VISIBILITY_TIMEOUT_S": str(settings.visibility_timeout_s),
-        "PYTHONUNBUFFERED": "1",
-    }
-
-
-def _worker_command(name: str, pool: str) -> list[str]:
-    return [sys.executable, "-m", "celery", "-A", "workers.app", "worker", f"--pool={pool}",
-            "--concurrency=1", "-Q", ",".join(QUEUES), "--loglevel=INFO", "-n", f"{name}@%h",
-            "--without-gossip", "--without-mingle", "--without-heartbeat"]
-
-
-@pytest.fixture
-def start_worker(worker_env: dict[str, str], catalog: sessionmaker[Session], tmp_path: Path
-                 ) -> Iterator[Callable[[], Worker]]:
-    """Start `celery -A workers.app worker` processes (prefork, one child) on the test broker
-    and catalog; all are killed at teardown."""
-    workers: list[Worker] = []
-
-    def start() -> Worker:
-        name = f"pwm-test-{uuid.uuid4().hex[:8]}"
-        log = tmp_path / f"{name}.log"
-        clock = time.monotonic()
-        with open(log, "wb") as out:
-            process = subprocess.Popen(
-                _worker_command(name, "prefork"), cwd=REPO, env=worker_env, stdout=out,
-                stderr=subprocess.STDOUT, start_new_session=True)
-        worker = Worker(process, log)
-        workers.append(worker)
-        while " ready." not in worker.output():
-            if process.poll() is not None:
-                pytest.fail(f"worker exited ({process.returncode}):\n{worker.output()}")
-            if time.monotonic() - clock > WORKER_START_TIMEOUT_S:
-                pytest.fail(f"worker not ready in {WORKER_START_TIMEOUT_S} s:\n{worker.output()}")
-            time.sleep(0.05)
-        worker.startup_s = time.monotonic() - clock
-        return worker
-
-    yield start
-    for worker in workers:
-        worker.kill()  # a shutdown takes seconds, and the test's broker and catalog go anyway
-
-
-def _result(async_result: AsyncResult, workers: list[Worker],
-            timeout: float = RESULT_TIMEOUT_S) -> dict:
-    try:
-        return async_result.get(timeout=timeout)
-    except Exception as exc:
-        logs = "\n".join(f"--- {w.log.name}\n{w.output()}" for w in workers)
-        pytest.fail(f"task {async_result.id} gave no result ({exc!r}):\n{logs}")
+                          visibility_timeout_s=VISIBILITY_TIMEOUT_S, task_retries=TASK_RETRIES,
+                          retry_backoff_s=RETRY_BACKOFF_S, maplet_nodes=MAPLET_NODES,
+                          tile_radius_km=TILE_RADIUS_KM)
 
 
 def _send_ingest(client: Celery, directory: Path, key: str) -> AsyncResult:
@@ -167,18 +65,9 @@ def _job(sessions: sessionmaker[Session], key: str) -> Job:
         return session.scalars(select(Job).filter_by(key=key)).one()
 
 
-def _count(sessions: sessionmaker[Session], what: type[Base]) -> int:
+def _count(sessions: sessionmaker[Session], what: type[Base], *where) -> int:
     with sessions() as session:
-        return session.scalar(select(func.count()).select_from(what))
-
-
-def _wait_for(condition: Callable[[], bool], what: str, worker: Worker,
-              timeout: float = RESULT_TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"{what} not seen in {timeout} s:\n{worker.output()}")
-        time.sleep(0.02)
+        return session.scalar(select(func.count()).select_from(what).where(*where))
 
 
 @pytest.fixture(scope="module")
@@ -187,22 +76,8 @@ def big_downlink(tiny_sim: Path, tmp_path_factory: pytest.TempPathFactory) -> Pa
     distinct products (LIDs of their own, a WINDOW_PX window of the same exposure each)."""
     source = tiny_sim / "downlink"
     root = tmp_path_factory.mktemp("big") / "downlink"
-    (root / "images").mkdir(parents=True)
-    shutil.copytree(source / "kernels", root / "kernels")
-    for label in sorted((source / "images").glob("*.xml")):
-        product = read_image_product(label)
-        scale = product.fits_header["BSCALE"]
-        dn = np.round(np.nan_to_num(product.data[:WINDOW_PX, :WINDOW_PX]) / scale)
-        for k in range(REPEATS):
-            name = f"{label.stem}_r{k:03d}"
-            write_image_product(
-                directory=root / "images", basename=name, dn=dn.astype(np.int16),
-                scaling_factor=scale, value_offset=0.0, lid=f"{product.lid}_r{k:03d}",
-                start_utc=product.start_utc, stop_utc=product.stop_utc,
-                mission=product.mission, host_name=product.host_name,
-                instrument_name=product.instrument_name, target_name=product.target_name,
-                title=name, exposure_s=product.exposure_s,
-                subframe=(product.first_line, product.first_sample))
+    window_downlink(source, root, size_px=WINDOW_PX, first_px=(0, 0),
+                    count=REPEATS * len(list((source / "images").glob("*.xml"))), tag="r")
     return root
 
 
@@ -218,7 +93,7 @@ def test_tasks_are_routed_to_the_queue_of_their_kind(tmp_path: Path) -> None:
 
 
 def test_a_worker_refuses_the_thread_pool(worker_env: dict[str, str]) -> None:
-    result = subprocess.run(_worker_command("pwm-test-threads", "threads"), cwd=REPO,
+    result = subprocess.run(celery_worker_command("pwm-test-threads", "threads"), cwd=REPO,
                             env=worker_env, capture_output=True, text=True, timeout=60)
     assert result.returncode != 0
     assert "not thread-safe" in result.stderr and " ready." not in result.stderr
@@ -234,7 +109,7 @@ def test_ingest_through_the_broker_records_progress_and_errors(
         queued = submit_job(session, kind=JobKind.INGEST, key=key)
     assert (queued.status, queued.attempts, queued.started_at) == (JobStatus.QUEUED, 0, None)
 
-    result = _result(_send_ingest(client, downlink, key), [worker])
+    result = result_of(_send_ingest(client, downlink, key), [worker])
 
     job = _job(catalog, key)
     labels = sorted((downlink / "images").glob("*.xml"))
@@ -254,7 +129,8 @@ def test_ingest_through_the_broker_records_progress_and_errors(
     with pytest.raises(NotADirectoryError):
         _send_ingest(client, missing, ingest_key(missing)).get(timeout=RESULT_TIMEOUT_S)
     failed = _job(catalog, ingest_key(missing))
-    assert (failed.status, failed.attempts) == (JobStatus.FAILED, 1)
+    # Tried again a bounded number of times, each failure recorded.
+    assert (failed.status, failed.attempts) == (JobStatus.FAILED, TASK_RETRIES + 1)
     assert "NotADirectoryError" in failed.error and failed.finished_at >= failed.started_at
     assert worker.process.poll() is None
     print(f"\nworker ready in {worker.startup_s:.2f} s")
@@ -267,33 +143,37 @@ def test_a_repeated_delivery_does_no_new_work(tiny_sim: Path, catalog: sessionma
     downlink = tiny_sim / "downlink"
     key = ingest_key(downlink)
     first, second = (_send_ingest(client, downlink, key) for _ in range(2))
-    first_result = _result(first, [worker])
+    first_result = result_of(first, [worker])
     job = _job(catalog, key)
-    counts = [_count(catalog, table) for table in (Image, Kernel, Downlink, Job)]
+    counted = [(Image,), (Kernel,), (Downlink,), (Job, Job.kind == JobKind.INGEST)]
+    counts = [_count(catalog, *what) for what in counted]
 
-    second_result = _result(second, [worker])
-    third_result = _result(_send_ingest(client, downlink, key), [worker])
+    second_result = result_of(second, [worker])
+    third_result = result_of(_send_ingest(client, downlink, key), [worker])
 
     assert first_result["ran"] and first_result["attempt"] == 1
     assert not second_result["ran"] and not third_result["ran"]
     again = _job(catalog, key)
     assert (again.id, again.attempts, again.status) == (job.id, 1, JobStatus.DONE)
     assert (again.started_at, again.finished_at) == (job.started_at, job.finished_at)
-    assert [_count(catalog, table) for table in (Image, Kernel, Downlink, Job)] == counts
+    assert [_count(catalog, *what) for what in counted] == counts
     assert counts[0] == len(list((downlink / "images").glob("*.xml"))) and counts[3] == 1
 
 
 def test_a_task_lost_with_its_worker_is_redelivered_and_done_once(
         big_downlink: Path, catalog: sessionmaker[Session], client: Celery, broker_url: str,
-        start_worker: Callable[[], Worker]) -> None:
+        start_worker: Callable[[], Worker], tiny_sim: Path, settings: WorkerSettings) -> None:
+    with session_scope(catalog) as session:
+        import_model(session, data_dir=settings.data_dir, kind=ModelKind.START,
+                     path=tiny_sim / "downlink" / START_MODEL_NAME)
     first_worker = start_worker()
     key = ingest_key(big_downlink)
     labels = list((big_downlink / "images").glob("*.xml"))
     pending = _send_ingest(client, big_downlink, key)
 
     assert len(labels) > COMMIT_EVERY
-    _wait_for(lambda: _count(catalog, Image) >= COMMIT_EVERY, "the image pass's first commit",
-              first_worker)
+    wait_for(lambda: _count(catalog, Image) >= COMMIT_EVERY, "the image pass's first commit",
+             [first_worker])
     first_worker.kill()
     killed_at = datetime.now(UTC)
     job = _job(catalog, key)
@@ -305,7 +185,7 @@ def test_a_task_lost_with_its_worker_is_redelivered_and_done_once(
     assert COMMIT_EVERY <= _count(catalog, Image) < len(labels)
 
     second_worker = start_worker()
-    result = _result(pending, [first_worker, second_worker],
+    result = result_of(pending, [first_worker, second_worker],
                      timeout=VISIBILITY_TIMEOUT_S + RESULT_TIMEOUT_S)
 
     done = _job(catalog, key)
@@ -318,9 +198,9 @@ def test_a_task_lost_with_its_worker_is_redelivered_and_done_once(
         downlink = session.scalars(select(Downlink)).one()
     assert len(lidvids) == len(set(lidvids)) == len(labels)
     assert downlink.status is DownlinkStatus.INGESTED and downlink.id == interrupted.id
-    assert _count(catalog, Job) == 1
+    assert _count(catalog, Job, Job.kind == JobKind.INGEST) == 1
     broker = redis.Redis.from_url(broker_url)
-    _wait_for(lambda: broker.hlen("unacked") == 0, "the acknowledgement", second_worker)
+    wait_for(lambda: broker.hlen("unacked") == 0, "the acknowledgement", [second_worker])
     assert broker.llen(JobKind.INGEST.value) == 0
     broker.close()
     print(f"\nworkers ready in {first_worker.startup_s:.2f} s and {second_worker.startup_s:.2f} s;"

@@ -1,0 +1,94 @@
+"""Downlinks, and starting the ingest of one from the data directory's incoming area."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Query, Request, status
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from service.api.deps import Authorized, Id, PagingDep, SessionDep, SettingsDep
+from service.api.schemas import DownlinkOut, IngestRequest, JobSubmitted, Page, Problem
+from service.models import Downlink, DownlinkStatus, Image, ImageStatus, Kernel
+from workers.tasks import submit_ingest
+
+router = APIRouter(tags=["downlinks"])
+
+INCOMING_DIRNAME = "incoming"
+
+
+def incoming_directory(data_dir: Path, requested: str) -> Path:
+    """The directory `requested` names, relative to `<data_dir>/incoming`, resolved (symbolic
+    links followed). Raises ValueError if it is absolute, climbs with `..`, or resolves outside
+    the incoming area; FileNotFoundError if it is no directory."""
+    root = (data_dir / INCOMING_DIRNAME).resolve()
+    relative = Path(requested)
+    if relative.is_absolute() or relative.drive:
+        raise ValueError("give the path relative to the incoming area, not absolute")
+    if ".." in relative.parts:
+        raise ValueError("the path may not climb with '..'")
+    resolved = (root / relative).resolve()
+    if not resolved.is_relative_to(root):
+        raise ValueError("the path resolves outside the incoming area")
+    if not resolved.is_dir():
+        raise FileNotFoundError(f"no directory {requested!r} in the incoming area")
+    return resolved
+
+
+def _downlinks(session: Session, ids: list[int]) -> list[DownlinkOut]:
+    if not ids:
+        return []
+    rows = session.scalars(select(Downlink).where(Downlink.id.in_(ids))
+                           .order_by(Downlink.received_at.desc(), Downlink.id.desc()))
+    kernels = dict(session.execute(select(Kernel.downlink_id, func.count())
+                                   .where(Kernel.downlink_id.in_(ids))
+                                   .group_by(Kernel.downlink_id)).all())
+    images: dict[int, dict[ImageStatus, int]] = {}
+    for downlink_id, image_status, n in session.execute(
+            select(Image.downlink_id, Image.status, func.count())
+            .where(Image.downlink_id.in_(ids)).group_by(Image.downlink_id, Image.status)):
+        images.setdefault(downlink_id, {})[image_status] = n
+    return [DownlinkOut(id=d.id, name=d.name, received_at=d.received_at, status=d.status,
+                        kernels=kernels.get(d.id, 0), images=images.get(d.id, {}))
+            for d in rows]
+
+
+@router.get("/downlinks", response_model=Page[DownlinkOut])
+def list_downlinks(session: SessionDep, paging: PagingDep,
+                   status_: Annotated[DownlinkStatus | None, Query(alias="status")] = None
+                   ) -> Page[DownlinkOut]:
+    """Downlinks, newest first, with their kernel and image counts."""
+    query = select(Downlink.id)
+    if status_ is not None:
+        query = query.where(Downlink.status == status_)
+    total = session.scalar(select(func.count()).select_from(query.subquery()))
+    ids = list(session.scalars(query.order_by(Downlink.received_at.desc(), Downlink.id.desc())
+                               .limit(paging.limit).offset(paging.offset)))
+    return Page(items=_downlinks(session, ids), total=total, **paging.model_dump())
+
+
+@router.get("/downlinks/{downlink_id}", response_model=DownlinkOut,
+            responses={404: {"model": Problem}})
+def get_downlink(session: SessionDep, downlink_id: Id) -> DownlinkOut:
+    found = _downlinks(session, [downlink_id])
+    if not found:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no downlink {downlink_id}")
+    return found[0]
+
+
+@router.post("/ingests", response_model=JobSubmitted, dependencies=[Authorized],
+             status_code=status.HTTP_202_ACCEPTED,
+             responses={400: {"model": Problem}, 401: {"model": Problem},
+                        403: {"model": Problem}, 404: {"model": Problem}})
+def start_ingest(request: Request, settings: SettingsDep, body: IngestRequest) -> JobSubmitted:
+    """Queue the ingest of a downlink directory in the data directory's incoming area (its job
+    key comes back; submitting the same directory again gives the same job)."""
+    try:
+        directory = incoming_directory(settings.data_dir, body.path)
+    except ValueError as exc:
+        raise HTTPException(status.HTTP_400_BAD_REQUEST, str(exc)) from None
+    except FileNotFoundError as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+    return JobSubmitted(key=submit_ingest(directory, sessions=request.app.state.sessions))

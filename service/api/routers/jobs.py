@@ -1,0 +1,44 @@
+"""Background jobs: listing by status and kind, and one job."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Query, status
+from sqlalchemy import func, select
+
+from service.api.deps import Id, PagingDep, SessionDep
+from service.api.schemas import JobOut, Page, Problem
+from service.models import Job, JobKind, JobStatus
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+
+
+@router.get("", response_model=Page[JobOut])
+def list_jobs(session: SessionDep, paging: PagingDep,
+              status_: Annotated[JobStatus | None, Query(alias="status")] = None,
+              kind: JobKind | None = None,
+              key: Annotated[str | None, Query(max_length=255, pattern=r"^[^\x00-\x1f\x7f]*$",
+                                               description="the job with this key")] = None,
+              ) -> Page[JobOut]:
+    """Jobs, newest first; filtered by status, kind or key."""
+    query = select(Job)
+    if status_ is not None:
+        query = query.where(Job.status == status_)
+    if kind is not None:
+        query = query.where(Job.kind == kind)
+    if key is not None:
+        query = query.where(Job.key == key)
+    total = session.scalar(select(func.count()).select_from(query.subquery()))
+    rows = session.scalars(query.order_by(Job.created_at.desc(), Job.id.desc())
+                           .limit(paging.limit).offset(paging.offset))
+    return Page(items=[JobOut.model_validate(j) for j in rows], total=total,
+                **paging.model_dump())
+
+
+@router.get("/{job_id}", response_model=JobOut, responses={404: {"model": Problem}})
+def get_job(session: SessionDep, job_id: Id) -> JobOut:
+    job = session.get(Job, job_id)
+    if job is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no job {job_id}")
+    return JobOut.model_validate(job)

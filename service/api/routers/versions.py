@@ -1,0 +1,151 @@
+"""Model versions: listing, detail with lineage and statistics, downloads and exports, release."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Path, Query, status
+from fastapi.responses import FileResponse
+from sqlalchemy import func, select
+
+from service.api.deps import (Authorized, PagingDep, SessionDep, SettingsDep, VersionRef,
+                              resolve_version)
+from service.releases import ReleaseConflict, release_version
+from service.api.schemas import (ArtifactOut, DownlinkRef, Lineage, Page, Problem,
+                                 ReleaseRequest, VersionDetail, VersionSummary)
+from service.exports import ExportError, ExportFormat, Site, export_version
+from service.models import ModelKind, ModelVersion
+from service.versions import ArtifactError, artifact_path
+
+router = APIRouter(prefix="/versions", tags=["versions"])
+
+# SPICE names: letters, digits, underscores, spaces, signs.
+SPICE_NAME = r"^[A-Za-z0-9_ +-]{1,32}$"
+ARTIFACT_ROLE = r"^[a-z]{1,16}$"
+IMMUTABLE = "public, max-age=31536000, immutable"  # a version's files never change
+
+
+def summary(version: ModelVersion) -> VersionSummary:
+    stats = version.statistics
+    return VersionSummary(version=version.version, kind=version.kind,
+                          parent=version.parent.version if version.parent else None,
+                          created_at=version.created_at, released=version.released,
+                          release_tag=version.release_tag, vertices=stats.get("vertices"),
+                          faces=stats.get("faces"))
+
+
+def detail(version: ModelVersion) -> VersionDetail:
+    ancestors, parent = [], version.parent
+    while parent is not None:
+        ancestors.append(parent.version)
+        parent = parent.parent
+    lineage = Lineage(ancestors=ancestors,
+                      children=sorted(child.version for child in version.children),
+                      downlinks=[DownlinkRef.model_validate(d) for d in version.downlinks],
+                      maplet_revisions=len(version.maplet_revisions))
+    return VersionDetail(**summary(version).model_dump(), statistics=version.statistics,
+                         artifacts={role: ArtifactOut(sha256=a["sha256"], bytes=a["bytes"])
+                                    for role, a in version.artifacts.items()},
+                         lineage=lineage)
+
+
+@router.get("", response_model=Page[VersionSummary])
+def list_versions(session: SessionDep, paging: PagingDep,
+                  kind: ModelKind | None = None, released: bool | None = None
+                  ) -> Page[VersionSummary]:
+    """Model versions, newest first; optionally of one kind, or only (un)released ones."""
+    query = select(ModelVersion)
+    if kind is not None:
+        query = query.where(ModelVersion.kind == kind)
+    if released is not None:
+        query = query.where(ModelVersion.released.is_(released))
+    total = session.scalar(select(func.count()).select_from(query.subquery()))
+    rows = session.scalars(query.order_by(ModelVersion.version.desc())
+                           .limit(paging.limit).offset(paging.offset))
+    return Page(items=[summary(v) for v in rows], total=total, **paging.model_dump())
+
+
+@router.get("/{ref}", response_model=VersionDetail, responses={404: {"model": Problem}})
+def get_version_detail(session: SessionDep, ref: VersionRef) -> VersionDetail:
+    """One version with its statistics, artifacts and lineage."""
+    return detail(resolve_version(session, ref))
+
+
+@router.get("/{ref}/artifacts/{role}", response_class=FileResponse,
+            responses={200: {"content": {"application/octet-stream": {}}},
+                       404: {"model": Problem}})
+def download_artifact(session: SessionDep, settings: SettingsDep, ref: VersionRef,
+                      role: Annotated[str, Path(pattern=ARTIFACT_ROLE)]) -> FileResponse:
+    """A file the version was published with (`ply`, `obj`, `grid`, ...), as stored."""
+    version = resolve_version(session, ref)
+    record = version.artifacts.get(role)
+    if record is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND,
+                            f"version {version.version} has no artifact {role!r}; it has "
+                            f"{sorted(version.artifacts)}")
+    try:
+        path = artifact_path(settings.data_dir, record)
+    except ArtifactError as exc:
+        raise HTTPException(status.HTTP_410_GONE, str(exc)) from None
+    return FileResponse(path, media_type="application/octet-stream",
+                        filename=f"pwm-v{version.version:04d}-{role}{path.suffix}",
+                        headers={"Cache-Control": IMMUTABLE})
+
+
+@router.get("/{ref}/export", response_class=FileResponse,
+            responses={200: {"content": {"application/octet-stream": {}}},
+                       404: {"model": Problem}})
+def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
+           format: ExportFormat,
+           faces: Annotated[int | None, Query(ge=4, le=100_000_000,
+                                              description="decimate to about this many faces")]
+           = None,
+           lat: Annotated[float | None, Query(ge=-90, le=90, description="site latitude, deg")]
+           = None,
+           lon: Annotated[float | None, Query(ge=-360, le=360,
+                                              description="site east longitude, deg")] = None,
+           radius_km: Annotated[float | None, Query(gt=0, le=100,
+                                                    description="site half-width, km")] = None,
+           body: Annotated[str | None, Query(pattern=SPICE_NAME,
+                                             description="NAIF body name or ID")] = None,
+           frame: Annotated[str | None, Query(pattern=SPICE_NAME,
+                                              description="body-fixed frame name")] = None,
+           ) -> FileResponse:
+    """The version as OBJ, PLY (albedo per vertex), ICQ, SPICE DSK type 2 (km, body-fixed), or
+    the terrain product of a site (format `site` with lat, lon and radius_km: a zip of the PDS4
+    label, its data file and a PNG preview). Body and frame default to the catalog's."""
+    version = resolve_version(session, ref)
+    site_args = (lat, lon, radius_km)
+    if format is ExportFormat.SITE and None in site_args:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            "a site product needs lat, lon and radius_km")
+    if format is not ExportFormat.SITE and any(a is not None for a in site_args):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            "lat, lon and radius_km go with format=site only")
+    site = (Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
+            if format is ExportFormat.SITE else None)
+    try:
+        made = export_version(session, data_dir=settings.data_dir, version=version, fmt=format,
+                              faces=faces, site=site, body=body, frame=frame)
+    except ExportError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
+    except ArtifactError as exc:
+        raise HTTPException(status.HTTP_410_GONE, str(exc)) from None
+    return FileResponse(made.path, media_type=made.media_type, filename=made.filename,
+                        headers={"Cache-Control": IMMUTABLE, "ETag": f'"{made.sha256}"'})
+
+
+@router.post("/{ref}/release", response_model=VersionDetail, dependencies=[Authorized],
+             responses={401: {"model": Problem}, 403: {"model": Problem},
+                        404: {"model": Problem}, 409: {"model": Problem}})
+def release(session: SessionDep, ref: VersionRef, body: ReleaseRequest) -> VersionDetail:
+    """Mark a version released under a tag. The tag is set once: a released version cannot be
+    changed or unreleased (409), and a tag names one version."""
+    try:
+        with session.begin():
+            version = release_version(session, ref, tag=body.tag)
+    except LookupError as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+    except ReleaseConflict as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    return detail(version)

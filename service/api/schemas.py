@@ -1,0 +1,183 @@
+"""Request and response bodies of the HTTP API (pydantic). Units are in field names (km, m, deg);
+positions are body-fixed; times are UTC (ISO 8601 with an offset)."""
+
+from __future__ import annotations
+
+import re
+from datetime import datetime
+from typing import Any, Generic, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from service.models import (DownlinkStatus, GeometryStatus, ImageStatus, JobKind, JobStatus,
+                            ModelKind)
+from service.queries import (CoverageSummary, MapletCoverage, MapletImage, MapletInfo,
+                             RevisionInfo)
+
+Item = TypeVar("Item")
+
+# A release tag: a letter first, so that it never reads as a version number; no `latest` or
+# `released`, which name versions by their place.
+TAG_PATTERN = r"^[A-Za-z][A-Za-z0-9._-]{0,63}$"
+RESERVED_TAGS = frozenset({"latest", "released"})
+# A version reference: a number, a tag, `latest` or `released`.
+VERSION_REF_PATTERN = r"^([0-9]{1,9}|[A-Za-z][A-Za-z0-9._-]{0,63})$"
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+
+class Page(_Out, Generic[Item]):
+    """One page of a listing: `total` rows match, `items` are those from `offset` on."""
+
+    items: list[Item]
+    total: int
+    limit: int
+    offset: int
+
+
+class ArtifactOut(_Out):
+    sha256: str
+    bytes: int
+
+
+class DownlinkRef(_Out):
+    id: int
+    name: str
+
+
+class VersionSummary(_Out):
+    version: int
+    kind: ModelKind
+    parent: int | None = Field(description="version number of the parent")
+    created_at: datetime
+    released: bool
+    release_tag: str | None
+    vertices: int | None
+    faces: int | None
+
+
+class Lineage(_Out):
+    """Where a version comes from: its ancestors (parent first), children, the downlinks whose
+    data it holds and the maplet revisions it was fused from."""
+
+    ancestors: list[int]
+    children: list[int]
+    downlinks: list[DownlinkRef]
+    maplet_revisions: int
+
+
+class VersionDetail(VersionSummary):
+    statistics: dict[str, Any]
+    artifacts: dict[str, ArtifactOut]
+    lineage: Lineage
+
+
+class ReleaseRequest(_Body):
+    tag: str = Field(pattern=TAG_PATTERN, description="set once; `latest` and `released` are "
+                     "reserved")
+
+    @field_validator("tag")
+    @classmethod
+    def _not_reserved(cls, tag: str) -> str:
+        if tag.lower() in RESERVED_TAGS:
+            raise ValueError(f"{tag!r} is reserved")
+        return tag
+
+
+class IngestRequest(_Body):
+    path: str = Field(min_length=1, max_length=1024,
+                      description="a directory, relative to the data directory's incoming area")
+
+    @field_validator("path")
+    @classmethod
+    def _printable(cls, path: str) -> str:
+        if _CONTROL.search(path):
+            raise ValueError("the path holds control characters")
+        return path
+
+
+class JobSubmitted(_Out):
+    key: str = Field(description="the job's idempotency key; GET /jobs?key= finds it")
+
+
+class GeometryOut(_Out):
+    camera_km: list[float]
+    sun_direction: list[float]
+    range_km: float
+    intercept_range_km: float | None
+    pixel_scale_m: float | None
+    phase_deg: float | None
+    incidence_deg: float | None
+    emission_deg: float | None
+    intercept_lat_deg: float | None
+    intercept_lon_deg: float | None
+    footprint: list[Any] | None
+    body_frame: str
+    computed_at: datetime
+
+
+class ImageOut(_Out):
+    id: int
+    lidvid: str
+    status: ImageStatus
+    rejection_code: str | None
+    rejection_reason: str | None
+    downlink_id: int | None
+    instrument: str | None
+    target: str | None
+    start_utc: datetime | None
+    stop_utc: datetime | None
+    geometry_status: GeometryStatus
+    geometry: GeometryOut | None
+    pose_corrected: bool
+
+
+class ImageDetail(ImageOut):
+    maplets: list[MapletCoverage]
+
+
+class DownlinkOut(_Out):
+    id: int
+    name: str
+    received_at: datetime
+    status: DownlinkStatus
+    kernels: int
+    images: dict[ImageStatus, int]
+
+
+class JobOut(_Out):
+    id: int
+    kind: JobKind
+    key: str
+    status: JobStatus
+    attempts: int
+    progress: float
+    message: str | None
+    error: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    downlink_id: int | None
+    maplet_id: int | None
+
+
+class MapletDetail(_Out):
+    maplet: MapletInfo
+    origin_km: list[float]
+    rotation: list[Any]
+    coverage: CoverageSummary
+    images: list[MapletImage]
+    revisions: list[RevisionInfo]
+
+
+class Problem(_Out):
+    """An error: what went wrong, in words."""
+
+    detail: str

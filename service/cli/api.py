@@ -1,0 +1,89 @@
+"""Service commands: serve the HTTP API, export a model version, release a version."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from service.cli.app import app
+
+
+@app.command()
+def serve(
+    host: str = typer.Option("127.0.0.1", help="address to listen on"),
+    port: int = typer.Option(8000, min=1, max=65535, help="port to listen on"),
+) -> None:
+    """Serve the HTTP API (OpenAPI at /openapi.json) over the configured catalog."""
+    import uvicorn
+
+    from service.api import create_app
+
+    uvicorn.run(create_app(), host=host, port=port)
+
+
+@app.command()
+def export(
+    version: str = typer.Argument(..., help="version number, release tag, latest or released"),
+    format: str = typer.Option(..., "--format", help="obj | ply | icq | dsk | site"),
+    out: Path = typer.Option(..., "--out", dir_okay=False, help="file to write"),
+    faces: Optional[int] = typer.Option(None, min=4, help="decimate to about this many faces first"),
+    lat: Optional[float] = typer.Option(None, min=-90.0, max=90.0, help="site latitude, deg (site)"),
+    lon: Optional[float] = typer.Option(None, help="site east longitude, deg (site)"),
+    radius: Optional[float] = typer.Option(None, min=0.0, help="site half-width, km (site)"),
+    body: Optional[str] = typer.Option(None, help="NAIF body name or ID (dsk, site; default: the catalog's)"),
+    frame: Optional[str] = typer.Option(None, help="body-fixed frame (dsk, site; default: the catalog's)"),
+) -> None:
+    """Export a model version; a site product is a zip of its PDS4 label, data file and PNG preview."""
+    from service.catalog import open_catalog
+    from service.exports import ExportError, ExportFormat, Site, export_version
+    from service.settings import get_settings
+    from service.versions import get_version
+
+    try:
+        fmt = ExportFormat(format)
+    except ValueError:
+        raise typer.BadParameter(f"expected one of {', '.join(ExportFormat)}", param_hint="--format") from None
+    site_args = (lat, lon, radius)
+    if (fmt is ExportFormat.SITE) != all(a is not None for a in site_args) or (
+            fmt is not ExportFormat.SITE and any(a is not None for a in site_args)):
+        raise typer.BadParameter("--lat, --lon and --radius go together, with --format site only")
+    settings = get_settings()
+    with open_catalog(settings)() as session:
+        try:
+            made = export_version(session, data_dir=settings.data_dir, version=get_version(session, version),
+                                  fmt=fmt, faces=faces, body=body, frame=frame,
+                                  site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius) if fmt is ExportFormat.SITE else None)
+        except (LookupError, ExportError) as exc:
+            typer.echo(str(exc), err=True)
+            raise typer.Exit(1) from None
+    shutil.copyfile(made.path, out)
+    typer.echo(f"{out} ({made.path.stat().st_size} bytes, sha256 {made.sha256})")
+
+
+@app.command()
+def release(
+    version: str = typer.Argument(..., help="version number, or latest"),
+    tag: str = typer.Option(..., "--tag", help="release tag, set once (a letter first)"),
+) -> None:
+    """Mark a model version released under a tag; a release is never changed or undone."""
+    from pydantic import ValidationError
+
+    from service.releases import ReleaseConflict, release_version
+    from service.api.schemas import ReleaseRequest
+    from service.catalog import open_catalog
+    from service.db import session_scope
+
+    try:
+        ReleaseRequest(tag=tag)
+    except ValidationError as exc:
+        raise typer.BadParameter(exc.errors()[0]["msg"], param_hint="--tag") from None
+    try:
+        with session_scope(open_catalog()) as session:
+            number = release_version(session, version, tag=tag).version
+    except (LookupError, ReleaseConflict) as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"version {number} released as {tag}")

@@ -1,0 +1,154 @@
+"""Exports through the API and the CLI: a DSK that SPICE intercepts like the mesh, the real
+Deimos DSK imported and exported unchanged, ICQ and decimated meshes, the PDS4 site product."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pds4_tools
+import spiceypy as sp
+from typer.testing import CliRunner
+
+from pwm.io.dsk import read_dsk
+from pwm.io.icq import read_icq
+from pwm.io.meshio import read_obj
+from pwm.io.spice_kernels import kernel_pool
+from pwm.raytrace import RayTracer
+from service.cli import app as cli
+from service.db import session_scope
+from service.exports import icq_size
+from service.versions import import_model
+
+DEIMOS_DSK = (Path(__file__).resolve().parents[3] / "shared" / "data" / "spice" / "dsk"
+              / "DEIMOS_K005_THO_V01.BDS")
+MM_KM = 1e-6
+
+
+def _download(client, version, tmp_path: Path, name: str, **params) -> Path:
+    response = client.get(f"/versions/{version}/export", params=params)
+    assert response.status_code == 200, response.text
+    assert response.headers["etag"] == f'"{hashlib.sha256(response.content).hexdigest()}"'
+    path = tmp_path / name
+    path.write_bytes(response.content)
+    return path
+
+
+def test_dsk_intercepts_agree_with_the_mesh(client, populated, tmp_path):
+    # body and frame come from the catalog's images: Bennu, IAU_BENNU
+    dsk = _download(client, 2, tmp_path, "v2.bds", format="dsk")
+    mesh = populated.refined
+    back = read_dsk(dsk)
+    np.testing.assert_array_equal(back.vertices, mesh.vertices)
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    rng = np.random.default_rng(5)
+    origins = rng.normal(size=(500, 3))
+    origins *= 1.5 / np.linalg.norm(origins, axis=1, keepdims=True)
+    directions = rng.uniform(-0.1, 0.1, size=(500, 3)) - origins
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    tracer = RayTracer(mesh)
+    hits = tracer.intersect(origins, directions)
+    assert hits.hit.all()
+    expected = tracer.hit_points(origins, directions, hits)
+    with kernel_pool([dsk]):
+        points, found = sp.dskxv(False, "BENNU", [], 0.0, "IAU_BENNU", origins, directions)
+    assert np.all(found)
+    assert np.abs(np.asarray(points) - expected).max() < MM_KM
+
+
+def test_the_real_deimos_dsk_imports_and_round_trips(client, populated, tmp_path):
+    with session_scope(populated.app.state.sessions) as session:
+        number = import_model(session, data_dir=populated.data_dir, path=DEIMOS_DSK).version
+    detail = client.get(f"/versions/{number}").json()
+    assert detail["kind"] == "imported"
+    assert detail["statistics"]["source_sha256"] == hashlib.sha256(
+        DEIMOS_DSK.read_bytes()).hexdigest()
+    # the catalog's frame is Bennu's: the body and frame are given
+    exported = _download(client, number, tmp_path, "deimos.bds", format="dsk", body="DEIMOS",
+                         frame="IAU_DEIMOS")
+    original, again = read_dsk(DEIMOS_DSK), read_dsk(exported)
+    np.testing.assert_array_equal(again.vertices, original.vertices)
+    np.testing.assert_array_equal(again.faces, original.faces)
+    handle = sp.dasopr(str(exported))
+    try:
+        descriptor = sp.dskgd(handle, sp.dlabfs(handle))
+    finally:
+        sp.dascls(handle)
+    assert descriptor.center == 402
+    assert client.get(f"/versions/{number}/export",
+                      params={"format": "dsk", "body": "NO_SUCH_BODY"}).status_code == 422
+
+
+def test_icq_and_decimated_exports(client, populated, tmp_path):
+    faces = len(populated.refined.faces)
+    icq = _download(client, 2, tmp_path, "v2.icq", format="icq")
+    grid = read_icq(icq)
+    q = icq_size(faces)
+    assert grid.shape == (6, q + 1, q + 1, 3)
+    # on the model's surface: each vertex is where its cube direction meets the mesh
+    tracer = RayTracer(populated.refined)
+    directions = grid.reshape(-1, 3) / np.linalg.norm(grid.reshape(-1, 3), axis=1, keepdims=True)
+    origins = np.zeros_like(directions)
+    hits = tracer.intersect(origins, directions)
+    surface = tracer.hit_points(origins, directions, hits)
+    assert np.abs(surface - grid.reshape(-1, 3)).max() < 1e-5  # the file's 5 decimals, km
+    small = _download(client, 2, tmp_path, "v2-small.icq", format="icq", faces=1200)
+    assert read_icq(small).shape == (6, 11, 11, 3)
+
+    obj = _download(client, 2, tmp_path, "v2-2000.obj", format="obj", faces=2000)
+    decimated = read_obj(obj)
+    assert abs(len(decimated.faces) - 2000) <= 100 and decimated.albedo is not None
+    full = _download(client, 2, tmp_path, "v2.ply", format="ply", faces=10 * faces)
+    assert hashlib.sha256(full.read_bytes()).hexdigest() == \
+        client.get("/versions/2").json()["artifacts"]["ply"]["sha256"]
+
+
+def test_site_product_reads_with_pds4_tools(client, populated, tmp_path):
+    params = {"format": "site", "lat": 10.0, "lon": 40.0, "radius_km": 0.02}
+    response = client.get("/versions/2/export", params=params)
+    assert response.status_code == 200 and response.headers["content-type"] == "application/zip"
+    with zipfile.ZipFile(io.BytesIO(response.content)) as archive:
+        names = archive.namelist()
+        archive.extractall(tmp_path)
+    label = tmp_path / next(n for n in names if n.endswith(".xml"))
+    assert {Path(n).suffix for n in names} == {".xml", ".dat", ".png"}
+    structures = pds4_tools.read(str(label), quiet=True)
+    height = np.ma.filled(structures["height"].as_masked().data.astype(float), np.nan)
+    albedo = np.ma.filled(structures["albedo"].as_masked().data.astype(float), np.nan)
+    assert height.shape == albedo.shape and height.shape[0] >= 3
+    assert np.isfinite(height).all()
+    # the site frame sits on the surface: the centre node's height is 0 to rounding (m)
+    centre = height.shape[0] // 2
+    assert abs(height[centre, centre]) < 1e-6
+    assert 0.034 - 1e-3 < np.nanmin(albedo) and np.nanmax(albedo) < 0.054 + 1e-3
+    text = label.read_text()
+    assert "IAU_BENNU" in text and "BENNU" in text
+    # the same request is served from the cache: the same bytes
+    assert client.get("/versions/2/export", params=params).content == response.content
+
+
+def test_cli_export_and_release(populated, tmp_path, monkeypatch):
+    from service.settings import get_settings
+
+    settings = populated.app.state.settings
+    monkeypatch.setenv("PWM_DATA_DIR", str(settings.data_dir))
+    monkeypatch.setenv("PWM_DATABASE_URL", settings.database_url)
+    get_settings.cache_clear()
+    runner = CliRunner()
+    try:
+        out = tmp_path / "v2.icq"
+        result = runner.invoke(cli, ["export", "2", "--format", "icq", "--faces", "1200",
+                                     "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        assert read_icq(out).shape == (6, 11, 11, 3)
+        result = runner.invoke(cli, ["export", "2", "--format", "site", "--out", str(out)])
+        assert result.exit_code != 0
+        result = runner.invoke(cli, ["release", "2", "--tag", "cli-1"])
+        assert result.exit_code == 0, result.output
+        result = runner.invoke(cli, ["release", "2", "--tag", "cli-2"])
+        assert result.exit_code == 1 and "cannot be changed" in result.output
+    finally:
+        get_settings.cache_clear()

@@ -1,0 +1,139 @@
+"""Security: every changing call needs the bearer token, request paths stay inside the incoming
+area, oversized and malformed requests get a 4xx with a message, releases never change."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from fastapi.routing import iter_route_contexts
+from fastapi.testclient import TestClient
+
+from service.api import create_app
+from service.settings import Settings
+from workers.tasks import ingest_key
+
+READS = {"GET", "HEAD", "OPTIONS"}
+
+
+def changing_calls(app) -> list[tuple[str, str]]:
+    """(method, path) of every route of the app, its routers' included, that is not a read;
+    path parameters filled with 1."""
+    calls = [(method, re.sub(r"\{[^}]+\}", "1", route.path))
+             for route in iter_route_contexts(app.routes) for method in route.methods - READS]
+    assert len(calls) >= 3  # ingest, re-queue, release at least
+    return calls
+
+
+@pytest.mark.parametrize("header, code", [
+    (None, 401), ("Bearer wrong", 403), ("Bearer {token}x", 403), ("Bearer {token[0]}", 403),
+    ("{token}", 401), ("Basic {token}", 401), ("Bearer", 401)])
+def test_every_changing_call_needs_the_token(client, populated, token, header, code):
+    headers = {} if header is None else {"Authorization": header.format(token=token)}
+    for method, path in changing_calls(populated.app):
+        for body in ({}, {"path": "x", "tag": "v1"}):
+            response = client.request(method, path, json=body, headers=headers)
+            assert response.status_code == code, (method, path, response.text)
+            assert response.json()["detail"]
+
+
+def test_without_a_configured_token_changing_calls_are_refused(populated, auth, tmp_path):
+    settings = populated.app.state.settings
+    app = create_app(Settings(data_dir=tmp_path, database_url=settings.database_url))
+    with TestClient(app) as client:
+        for method, path in changing_calls(app):
+            assert client.request(method, path, json={}, headers=auth).status_code == 403
+            assert client.request(method, path, json={}).status_code == 401
+
+
+def test_the_token_is_declared_in_the_openapi_schema(client, populated):
+    operations = client.get("/openapi.json").json()["paths"]
+    changing = {(method.lower(), path) for method, path in changing_calls(populated.app)}
+    for template, methods in operations.items():
+        for method, operation in methods.items():
+            if (method, re.sub(r"\{[^}]+\}", "1", template)) in changing:
+                assert operation["security"] == [{"HTTPBearer": []}], (method, template)
+            else:
+                assert "security" not in operation, (method, template)
+
+
+def test_ingest_paths_stay_inside_the_incoming_area(client, populated, broker, tmp_path, auth):
+    incoming = populated.data_dir / "incoming"
+    (incoming / "dl-1").mkdir(parents=True)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (incoming / "escape").symlink_to(outside)
+    (incoming / "up").symlink_to("..")
+    refused = {"../dl-1": 400, "dl-1/../../incoming/dl-1": 400, str(outside): 400,
+               str(incoming / "dl-1"): 400, "escape": 400, "up": 400, "up/artifacts": 400,
+               "escape/.": 400, "missing": 404, "dl-1/\x00": 422, "": 422,
+               "x" * 2000: 422}
+    for path, code in refused.items():
+        response = client.post("/ingests", json={"path": path}, headers=auth)
+        assert response.status_code == code, (path, response.text)
+        assert response.json()["detail"]
+    assert broker.llen("ingest") == 0
+
+    response = client.post("/ingests", json={"path": "dl-1"}, headers=auth)
+    assert response.status_code == 202
+    assert response.json()["key"] == ingest_key(incoming / "dl-1")
+    assert broker.llen("ingest") == 1
+    job = client.get("/jobs", params={"key": ingest_key(incoming / "dl-1")}).json()
+    assert job["items"][0]["status"] == "queued"
+
+
+def test_artifact_and_export_paths_cannot_leave_the_data_directory(client):
+    for path in ("/versions/1/artifacts/..%2F..%2Fetc%2Fpasswd", "/versions/1/artifacts/%2Fetc",
+                 "/versions/..%2F1", "/versions/1/export?format=../../x"):
+        assert client.get(path).status_code in (404, 422), path
+
+
+def test_oversized_and_malformed_requests(client, auth):
+    big = client.post("/ingests", content=b"{" + b" " * 70_000 + b"}", headers={
+        **auth, "Content-Type": "application/json"})
+    assert big.status_code == 413 and "limit" in big.json()["detail"]
+    streamed = client.post("/ingests", content=(b" " * 1000 for _ in range(100)),
+                           headers={**auth, "Content-Type": "application/json"})
+    assert streamed.status_code == 413 and "limit" in streamed.json()["detail"]
+    malformed = client.post("/versions/1/release", content=b"{tag:", headers={
+        **auth, "Content-Type": "application/json"})
+    assert malformed.status_code == 422
+    assert malformed.json()["detail"][0]["msg"] == "JSON decode error"
+    extra = client.post("/versions/1/release", json={"tag": "a", "released": False}, headers=auth)
+    assert extra.status_code == 422 and extra.json()["detail"][0]["loc"] == ["body", "released"]
+    for tag in ("1", "latest", "Released", "-x", "a" * 65, "a b"):
+        response = client.post("/versions/1/release", json={"tag": tag}, headers=auth)
+        assert response.status_code == 422, tag
+    for path in ("/versions/1/export?format=tar", "/versions/1/export?format=obj&faces=2",
+                 "/versions/1/export?format=site&lat=0&lon=0",
+                 "/versions/1/export?format=obj&lat=0&lon=0&radius_km=0.01",
+                 "/images?start_after=yesterday", "/jobs/99999999999", "/maplets?lat=91&lon=0"):
+        response = client.get(path)
+        assert response.status_code == 422, path
+        assert response.json()["detail"]
+
+
+def test_released_versions_cannot_be_changed(client, populated, auth):
+    first = client.post("/versions/1/release", json={"tag": "nav-2026a"}, headers=auth)
+    assert first.status_code == 200
+    assert first.json()["released"] and first.json()["release_tag"] == "nav-2026a"
+    again = client.post("/versions/1/release", json={"tag": "nav-2026a"}, headers=auth)
+    assert again.status_code == 200  # the same release again changes nothing
+    retag = client.post("/versions/1/release", json={"tag": "nav-2026b"}, headers=auth)
+    assert retag.status_code == 409 and "cannot be changed" in retag.json()["detail"]
+    taken = client.post("/versions/2/release", json={"tag": "nav-2026a"}, headers=auth)
+    assert taken.status_code == 409 and "names version 1" in taken.json()["detail"]
+    for method in ("DELETE", "PUT", "PATCH"):
+        assert client.request(method, "/versions/1", headers=auth).status_code == 405
+    assert client.get("/versions/released").json()["version"] == 1
+    assert client.get("/versions/nav-2026a").json()["version"] == 1
+    assert client.get("/versions/2").json()["released"] is False
+
+
+def test_requeue_a_maplet(client, populated, broker, auth):
+    response = client.post(f"/maplets/{populated.maplet_id}/requeue", headers=auth)
+    assert response.status_code == 202, response.text
+    job = client.get("/jobs", params={"key": response.json()["key"]}).json()["items"][0]
+    assert (job["kind"], job["maplet_id"]) == ("refine", populated.maplet_id)
+    assert broker.llen("refine") == 1
+    assert client.post("/maplets/999999/requeue", headers=auth).status_code == 404

@@ -1,0 +1,81 @@
+"""What the workers' tests share besides fixtures: worker processes and their commands, and
+waiting on them with their logs at hand."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from celery.result import AsyncResult
+
+from workers.app import QUEUES
+
+REPO = Path(__file__).resolve().parents[2]
+PWM = Path(sys.executable).parent / "pwm"
+WORKER_START_TIMEOUT_S = 60.0
+RESULT_TIMEOUT_S = 60.0
+
+
+@dataclass
+class Worker:
+    """A worker process group, its log, and how long it took to be ready (s)."""
+
+    process: subprocess.Popen
+    log: Path
+    startup_s: float = 0.0
+
+    def output(self) -> str:
+        return self.log.read_text(errors="replace") if self.log.exists() else ""
+
+    def children(self) -> list[int]:
+        """The pids of the main process's children: its pool processes."""
+        pid = self.process.pid
+        return [int(p) for p in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+    def kill(self) -> None:
+        """SIGKILL the main process and its pool children, as a lost machine would."""
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, signal.SIGKILL)
+            self.process.wait()
+
+
+def celery_worker_command(name: str, pool: str) -> list[str]:
+    """`celery -A workers.app worker` with one pool process on all queues."""
+    return [sys.executable, "-m", "celery", "-A", "workers.app", "worker", f"--pool={pool}",
+            "--concurrency=1", "-Q", ",".join(QUEUES), "--loglevel=INFO", "-n", f"{name}@%h",
+            "--without-gossip", "--without-mingle", "--without-heartbeat"]
+
+
+def pwm_worker_command(name: str, concurrency: int) -> list[str]:
+    """`pwm worker` with `concurrency` pool processes on all queues."""
+    return [str(PWM), "worker", f"--concurrency={concurrency}", "--name", f"{name}@%h"]
+
+
+def logs(workers: list[Worker]) -> str:
+    return "\n".join(f"--- {w.log.name}\n{w.output()}" for w in workers)
+
+
+def result_of(async_result: AsyncResult, workers: list[Worker],
+              timeout: float = RESULT_TIMEOUT_S) -> dict:
+    """The task's result, or the test fails with the workers' logs."""
+    try:
+        return async_result.get(timeout=timeout)
+    except Exception as exc:
+        pytest.fail(f"task {async_result.id} gave no result ({exc!r}):\n{logs(workers)}")
+
+
+def wait_for(condition: Callable[[], bool], what: str, workers: list[Worker],
+             timeout: float = RESULT_TIMEOUT_S) -> None:
+    """Poll until `condition` holds, or fail with the workers' logs."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what} not seen in {timeout} s:\n{logs(workers)}")
+        time.sleep(0.05)

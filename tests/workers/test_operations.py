@@ -1,0 +1,286 @@
+"""Operations end to end with real servers: `pwm watch` and `pwm worker` processes (prefork) on a
+Redis broker and a PostgreSQL catalog take simulated downlinks dropped into a folder to published
+model versions, refining only the maplets whose input changed; a pool process killed during a
+refinement loses nothing and duplicates nothing."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+from celery import Celery
+from harness import PWM, REPO, Worker, pwm_worker_command, result_of, wait_for
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, selectinload, sessionmaker
+
+from pwm.simulate.windows import window_downlink
+from service.models import (Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision,
+                            ModelKind, ModelVersion)
+from service.db import session_scope
+from service.refinement import MIN_IMAGES
+from service.versions import artifact_path, version_mesh
+from workers.app import WorkerSettings
+from workers.tasks import fuse_key, ingest_downlink, ingest_key
+
+# The lease (hard limit on one attempt) outlasts the slowest attempt on a loaded machine: an
+# ingest that imports the start model, or a refinement; a killed refinement comes back after it.
+TIME_LIMIT_S, VISIBILITY_TIMEOUT_S = 25.0, 30.0
+# Small maplets over the middle of the tiny site: 9 of them, a second or two each to refine.
+MAPLET_NODES, TILE_RADIUS_KM = 40, 0.002
+# The revisit: 64 px windows (3 m at 5 cm) of the tiny images, beside one corner of the tiling.
+CORNER_WINDOW_PX, CORNER_FIRST_PX = 64, (180, 180)
+DOWNLINK_TIMEOUT_S = 150.0
+
+
+@pytest.fixture
+def settings(broker_url: str, postgres_url: str, tmp_path: Path) -> WorkerSettings:
+    return WorkerSettings(broker_url=broker_url, database_url=postgres_url,
+                          data_dir=tmp_path / "data", job_time_limit_s=TIME_LIMIT_S,
+                          visibility_timeout_s=VISIBILITY_TIMEOUT_S, task_retries=1,
+                          retry_backoff_s=1.0, maplet_nodes=MAPLET_NODES,
+                          tile_radius_km=TILE_RADIUS_KM)
+
+
+@pytest.fixture
+def incoming(tmp_path: Path) -> Path:
+    path = tmp_path / "incoming"
+    path.mkdir()
+    return path
+
+
+@pytest.fixture
+def watcher(incoming: Path, worker_env: dict[str, str], catalog: sessionmaker[Session],
+            tmp_path: Path) -> Iterator[Worker]:
+    """`pwm watch INCOMING` in a process of its own (polling every 0.2 s); killed at teardown."""
+    log = tmp_path / "watch.log"
+    with open(log, "wb") as out:
+        process = subprocess.Popen(
+            [str(PWM), "watch", str(incoming), "--quiet-seconds", "5", "--poll-seconds", "0.2"],
+            cwd=REPO, env=worker_env, stdout=out, stderr=subprocess.STDOUT,
+            start_new_session=True)
+    watch = Worker(process, log)
+    yield watch
+    watch.kill()
+
+
+def _drop(source: Path, incoming: Path, name: str) -> Path:
+    """Deliver a downlink as a transfer would: copied beside, then renamed into the folder."""
+    staging = incoming / f".{name}.partial"
+    shutil.copytree(source, staging)
+    return staging.rename(incoming / name)
+
+
+@pytest.fixture(scope="module")
+def corner_downlink(tiny_sim: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A revisit of one corner of the tiny site: a window of each tiny exposure as a new product."""
+    out = tmp_path_factory.mktemp("corner") / "downlink"
+    window_downlink(tiny_sim / "downlink", out, size_px=CORNER_WINDOW_PX,
+                    first_px=CORNER_FIRST_PX, count=6, tag="corner")
+    return out
+
+
+def _versions(sessions: sessionmaker[Session]) -> list[ModelVersion]:
+    with sessions() as session:
+        return list(session.scalars(select(ModelVersion).order_by(ModelVersion.version).options(
+            selectinload(ModelVersion.maplet_revisions), selectinload(ModelVersion.downlinks),
+            selectinload(ModelVersion.parent))))
+
+
+def _jobs(sessions: sessionmaker[Session], kind: JobKind, *where) -> list[Job]:
+    with sessions() as session:
+        return list(session.scalars(select(Job).where(Job.kind == kind, *where)
+                                    .order_by(Job.id)))
+
+
+def _count(sessions: sessionmaker[Session], what: type) -> int:
+    with sessions() as session:
+        return session.scalar(select(func.count()).select_from(what))
+
+
+def _submit_refinement(env: dict[str, str], maplet_id: int) -> subprocess.CompletedProcess:
+    """workers.tasks.submit_refinement in a process on the test broker and catalog (the key on
+    stdout)."""
+    code = ("from service.catalog import open_catalog; from service.db import session_scope; "
+            "from workers.tasks import submit_refinement\n"
+            "with session_scope(open_catalog()) as session:\n"
+            f"    print(submit_refinement(session, maplet_id={maplet_id}))")
+    return subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=60)
+
+
+def _image_sets(sessions: sessionmaker[Session]) -> dict[int, frozenset[int]]:
+    """The images each maplet's coverage weighs above zero, for the maplets with MIN_IMAGES or
+    more (those that can be refined)."""
+    sets: dict[int, set[int]] = {}
+    with sessions() as session:
+        for maplet_id, image_id in session.execute(
+                select(Coverage.maplet_id, Coverage.image_id).where(Coverage.weight > 0)):
+            sets.setdefault(maplet_id, set()).add(image_id)
+    return {m: frozenset(images) for m, images in sets.items() if len(images) >= MIN_IMAGES}
+
+
+def _downlink_id(sessions: sessionmaker[Session], name: str) -> int:
+    with sessions() as session:
+        return session.scalars(select(Downlink.id).filter_by(name=name)).one()
+
+
+def _wait_for_version(sessions: sessionmaker[Session], number: int, processes: list[Worker]
+                      ) -> None:
+    wait_for(lambda: len(_versions(sessions)) >= number, f"model version {number}", processes,
+             timeout=DOWNLINK_TIMEOUT_S)
+
+
+def _files(data_dir: Path, version: ModelVersion) -> dict[str, str]:
+    """Each artifact's recorded checksum, once its file is verified against it."""
+    for record in version.artifacts.values():
+        artifact_path(data_dir, record, verify=True)
+    return {role: record["sha256"] for role, record in version.artifacts.items()}
+
+
+def test_downlinks_dropped_into_the_watched_folder_become_versions(
+        tiny_sim: Path, corner_downlink: Path, incoming: Path, catalog: sessionmaker[Session],
+        settings: WorkerSettings, client: Celery, watcher: Worker, worker_env: dict[str, str],
+        start_worker: Callable[..., Worker]) -> None:
+    worker = start_worker(lambda name: pwm_worker_command(name, 2))
+    processes = [worker, watcher]
+
+    # A downlink dropped into the folder: a refined version, with no further command.
+    first = _drop(tiny_sim / "downlink", incoming, "dl-001")
+    _wait_for_version(catalog, 2, processes)
+    start, refined = _versions(catalog)
+    first_id = _downlink_id(catalog, "dl-001")
+    refines = _jobs(catalog, JobKind.REFINE)
+    maplets = _image_sets(catalog)
+    assert (start.kind, refined.kind, refined.parent.version) == (
+        ModelKind.START, ModelKind.REFINED, start.version)
+    assert [d.name for d in refined.downlinks] == ["dl-001"]
+    assert {j.maplet_id for j in refines} == maplets.keys()
+    assert len(refines) == len(refined.maplet_revisions) == len(maplets) > 1
+    assert all((j.status, j.attempts, j.downlink_id) == (JobStatus.DONE, 1, first_id)
+               for j in refines)
+    [fuse] = _jobs(catalog, JobKind.FUSE)
+    assert (fuse.key, fuse.status, fuse.attempts) == (fuse_key(first_id), JobStatus.DONE, 1)
+    assert fuse.message == f"published version {refined.version}"
+    published = {v.version: _files(settings.data_dir, v) for v in (start, refined)}
+
+    # The same downlink delivered twice: again by its path, and as a copy under another name.
+    again = client.send_task(ingest_downlink.name, args=[str(first)],
+                             kwargs={"key": ingest_key(first)})
+    assert not result_of(again, processes)["ran"]
+    copy = _drop(tiny_sim / "downlink", incoming, "dl-001-again")
+    wait_for(lambda: [j.status for j in _jobs(catalog, JobKind.INGEST,
+                                              Job.key == ingest_key(copy))] == [JobStatus.DONE],
+             "the ingest of the copy", processes)
+    assert len(_jobs(catalog, JobKind.REFINE)) == len(refines)
+    assert len(_jobs(catalog, JobKind.FUSE)) == 1
+    assert _count(catalog, MapletRevision) == len(refines)
+    assert _count(catalog, Image) == len(list((first / "images").glob("*.xml")))
+    assert [v.version for v in _versions(catalog)] == [start.version, refined.version]
+
+    # A revisit of one corner: only the maplets whose image set changed are refined.
+    _drop(corner_downlink, incoming, "dl-002")
+    _wait_for_version(catalog, 3, processes)
+    corner_id = _downlink_id(catalog, "dl-002")
+    with catalog() as session:
+        seen = set(session.scalars(select(Coverage.maplet_id).join(Image).where(
+            Image.downlink_id == corner_id)))
+    now = _image_sets(catalog)
+    changed = {m for m in now if now[m] != maplets.get(m)}
+    corner = _jobs(catalog, JobKind.REFINE, Job.downlink_id == corner_id)
+    # The maplets whose image set the corner's images changed, and those alone.
+    assert 0 < len(corner) == len(changed) < len(maplets)
+    assert {j.maplet_id for j in corner} == changed <= seen
+    assert all((j.status, j.attempts) == (JobStatus.DONE, 1) for j in corner)
+    versions = _versions(catalog)
+    assert [v.version for v in versions] == [start.version, refined.version, refined.version + 1]
+    revisit = versions[-1]
+    assert (revisit.kind, revisit.parent.version) == (ModelKind.REFINED, refined.version)
+    assert sorted(d.name for d in revisit.downlinks) == ["dl-001", "dl-002"]
+    before = {r.maplet_id: r.id for r in refined.maplet_revisions}
+    after = {r.maplet_id: r.id for r in revisit.maplet_revisions}
+    assert after.keys() == before.keys()
+    assert {m for m in after if after[m] != before[m]} == changed
+    assert revisit.statistics["maplets_changed"] == len(changed)
+    assert _count(catalog, MapletRevision) == len(refines) + len(changed)
+    # The earlier versions are as they were published, and still readable.
+    assert {v.version: _files(settings.data_dir, v) for v in versions[:2]} == published
+    assert len(version_mesh(settings.data_dir, versions[0]).faces) == start.statistics["faces"]
+    assert [j.attempts for j in _jobs(catalog, JobKind.FUSE)] == [1, 1]
+    assert "ingest submitted" in watcher.output() and watcher.process.poll() is None
+
+    # A refinement asked for (as the API does) after a pose correction changed a maplet's input:
+    # that maplet alone is refined, and fused into a version of its own.
+    maplet = min(changed)
+    with session_scope(catalog) as session:
+        image = session.scalars(select(Image).join(Coverage).where(
+            Coverage.maplet_id == maplet, Coverage.weight > 0).order_by(Image.id)).first()
+        image.pose_dx_km = 1e-4
+    run = _submit_refinement(worker_env, maplet)
+    assert run.returncode == 0, run.stderr
+    key = run.stdout.split()[-1]
+    _wait_for_version(catalog, 4, processes)
+    requested = _versions(catalog)[-1]
+    assert (requested.parent.version, requested.statistics["maplets_changed"]) == (
+        revisit.version, 1)
+    assert {r.maplet_id: r.id for r in requested.maplet_revisions} != after
+    assert {m for m, r in after.items()
+            if r not in {x.id for x in requested.maplet_revisions}} == {maplet}
+    assert [d.name for d in requested.downlinks] == sorted(d.name for d in revisit.downlinks)
+    [job] = _jobs(catalog, JobKind.REFINE, Job.key == key)
+    assert (job.maplet_id, job.downlink_id, job.status) == (maplet, None, JobStatus.DONE)
+    assert key.startswith(f"refine:requested:{maplet}:")
+    again = _submit_refinement(worker_env, maplet)
+    assert again.returncode != 0 and "nothing new to refine" in again.stderr
+
+
+def test_a_refinement_lost_with_its_pool_process_is_redelivered_and_done_once(
+        tiny_sim: Path, catalog: sessionmaker[Session], client: Celery,
+        start_worker: Callable[..., Worker]) -> None:
+    worker = start_worker(lambda name: pwm_worker_command(name, 1))
+    downlink = tiny_sim / "downlink"
+    client.send_task(ingest_downlink.name, args=[str(downlink)],
+                     kwargs={"key": ingest_key(downlink)})
+
+    def refining() -> list[Job]:
+        return _jobs(catalog, JobKind.REFINE, Job.status == JobStatus.RUNNING,
+                     Job.progress >= 0.2)
+
+    wait_for(lambda: bool(refining()), "a refinement under way", [worker])
+    [lost] = refining()
+    [pool_process] = worker.children()
+    os.kill(pool_process, signal.SIGKILL)
+    # Killed in the middle of its first attempt.
+    assert [(j.status, j.attempts) for j in _jobs(catalog, JobKind.REFINE, Job.key == lost.key)
+            ] == [(JobStatus.RUNNING, 1)]
+
+    _wait_for_version(catalog, 2, [worker])
+    refines = _jobs(catalog, JobKind.REFINE)
+    retaken = next(j for j in refines if j.key == lost.key)
+    assert (retaken.status, retaken.attempts, retaken.progress) == (JobStatus.DONE, 2, 1.0)
+    # Taken over once the lost attempt's lease was over.
+    assert retaken.started_at - lost.started_at >= timedelta(seconds=TIME_LIMIT_S)
+    assert all((j.status, j.attempts) == (JobStatus.DONE, 1) for j in refines if j is not retaken)
+    with catalog() as session:
+        revisions = session.execute(select(MapletRevision.maplet_id, MapletRevision.revision)
+                                    ).all()
+        lidvids = session.scalars(select(Image.lidvid)).all()
+    assert sorted(m for m, _ in revisions) == sorted(j.maplet_id for j in refines)
+    assert {j.maplet_id for j in refines} == _image_sets(catalog).keys()
+    assert {r for _, r in revisions} == {1}
+    assert len(lidvids) == len(set(lidvids)) == len(list((downlink / "images").glob("*.xml")))
+    versions = _versions(catalog)
+    assert [v.version for v in versions] == [1, 2]
+    assert len(versions[-1].maplet_revisions) == len(refines) > 1
+    assert [(j.status, j.attempts) for j in _jobs(catalog, JobKind.FUSE)] == [(JobStatus.DONE, 1)]
+    assert [(j.status, j.attempts) for j in _jobs(catalog, JobKind.INGEST)] == [
+        (JobStatus.DONE, 1)]
+    assert worker.process.poll() is None and pool_process not in worker.children()
+    print(f"\nrefinement taken over {(retaken.started_at - lost.started_at).total_seconds():.1f} s"
+          f" after the lost attempt began (lease {TIME_LIMIT_S:g} s)")

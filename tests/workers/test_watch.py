@@ -1,0 +1,93 @@
+"""The watcher: when a delivered directory counts as complete, submitting each once, and
+`pwm watch --once` without a broker, where the submitted work runs in the watcher's process."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+from harness import PWM, REPO
+from sqlalchemy import select
+
+from service.db import make_engine, make_sessionmaker
+from service.models import Job, JobKind, JobStatus, ModelVersion
+from service.watch import MANIFEST_NAME, Watcher, completeness
+from workers.tasks import ingest_key
+
+QUIET_S = 60.0
+
+
+def _deliver(directory: Path, *names: str) -> Path:
+    directory.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        (directory / name).write_text(name)
+    return directory
+
+
+def test_a_directory_is_complete_with_its_manifest_or_once_quiet(tmp_path: Path) -> None:
+    empty = _deliver(tmp_path / "empty")
+    partial = _deliver(tmp_path / "partial", "a.xml", "a.fits")
+    later = time.time() + QUIET_S + 1
+    assert completeness(empty, quiet_s=QUIET_S, now=later) is None
+    assert completeness(partial, quiet_s=QUIET_S) is None
+    assert completeness(partial, quiet_s=QUIET_S, now=later) == "quiet"
+    # A copy that keeps its source's old modification times is still a fresh change.
+    old = time.time() - 10 * QUIET_S
+    os.utime(partial / "a.xml", (old, old))
+    copied = tmp_path / "copied"
+    shutil.copytree(partial, copied)
+    assert (copied / "a.xml").stat().st_mtime == old
+    assert completeness(copied, quiet_s=QUIET_S) is None
+    _deliver(partial, MANIFEST_NAME)
+    assert completeness(partial, quiet_s=QUIET_S) == "manifest"
+
+
+def test_the_watcher_submits_each_complete_directory_once(tmp_path: Path) -> None:
+    root = tmp_path / "incoming"
+    _deliver(root / "dl-1", "a.xml", MANIFEST_NAME)
+    _deliver(root / ".dl-2.partial", "b.xml", MANIFEST_NAME)
+    _deliver(root / "dl-3", "c.xml")
+    submitted: list[Path] = []
+    refusals = iter([RuntimeError("broker down")])
+
+    def submit(directory: Path) -> str:
+        if directory.name == "dl-3" and (refusal := next(refusals, None)):
+            raise refusal
+        submitted.append(directory)
+        return ingest_key(directory)
+
+    watcher = Watcher(root, submit=submit, quiet_s=0.0)
+    assert watcher.poll() == [root / "dl-1"]  # dl-3 refused: tried again next time
+    (root / ".dl-2.partial").rename(root / "dl-2")
+    assert watcher.poll() == [root / "dl-2", root / "dl-3"]
+    assert watcher.poll() == []
+    assert submitted == [root / "dl-1", root / "dl-2", root / "dl-3"]
+    assert watcher.submitted[root / "dl-2"] == ingest_key(root / "dl-2")
+
+
+def test_watch_once_without_a_broker_runs_the_downlink_in_process(tiny_sim: Path,
+                                                                  tmp_path: Path) -> None:
+    incoming = tmp_path / "incoming"
+    shutil.copytree(tiny_sim / "downlink", incoming / "dl-001")
+    data = tmp_path / "data"
+    env = os.environ | {"PWM_DATA_DIR": str(data), "PWM_BROKER_URL": "",
+                        "PWM_DATABASE_URL": "", "PWM_MAPLET_NODES": "24",
+                        "PWM_TILE_RADIUS_KM": "0.0008"}
+    for _ in range(2):  # a restarted watcher submits again, and nothing new is done
+        run = subprocess.run([str(PWM), "watch", str(incoming), "--once"], cwd=REPO, env=env,
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        assert "complete (manifest): ingest submitted" in run.stderr
+    engine = make_engine(f"sqlite:///{data / 'catalog.sqlite'}")
+    with make_sessionmaker(engine)() as session:
+        versions = session.scalars(select(ModelVersion.version)).all()
+        jobs = session.scalars(select(Job)).all()
+    engine.dispose()
+    kinds = [j.kind for j in jobs]
+    assert versions == [1, 2]
+    assert kinds.count(JobKind.INGEST) == kinds.count(JobKind.FUSE) == 1
+    assert kinds.count(JobKind.REFINE) >= 1
+    assert all((j.status, j.attempts) == (JobStatus.DONE, 1) for j in jobs)
