@@ -17,6 +17,7 @@ from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.features import fundamental
 from pwm.spg.surface import fit_surface, subdivide
 from pwm.spg.triangulation import Tracks, build_tracks, triangulate
+from pwm.spg.uncertainty import pose_uncertainty
 from service.cli import app
 
 CAMERA = Camera(width=1024, height=1024, fx=14729.4, fy=14729.4, cx=511.5, cy=511.5)
@@ -77,13 +78,18 @@ def test_tracks_join_matches_and_drop_conflicts():
     assert all(len(np.unique(tracks.image[tracks.point == p])) == n for p, n in zip(range(2), np.bincount(tracks.point)))
 
 
-def test_bundle_adjustment_removes_line_of_sight_errors():
-    rng = np.random.default_rng(2)
+def _observed(rng: np.random.Generator) -> tuple[Tracks, list]:
+    """Every point of `_scene` seen by every camera with 0.2 px of noise, and the true poses."""
     points, truth = _scene(rng)
     image = np.repeat(np.arange(len(truth)), len(points))
     point = np.tile(np.arange(len(points)), len(truth))
     xy = np.concatenate([project(points, CAMERA, p) for p in truth]) + 0.2 * rng.standard_normal((len(image), 2))
-    tracks = Tracks(point=point, image=image, xy=xy)
+    return Tracks(point=point, image=image, xy=xy), truth
+
+
+def test_bundle_adjustment_removes_line_of_sight_errors():
+    rng = np.random.default_rng(2)
+    tracks, truth = _observed(rng)
     noisy = [corrected_pose(p, rng.normal(0, 1e-3, 3), rng.normal(0, 1e-4, 3)) for p in truth]
     cameras = [CAMERA] * len(truth)
     start, _ = triangulate(tracks, cameras, noisy)
@@ -102,6 +108,22 @@ def test_bundle_adjustment_removes_line_of_sight_errors():
     assert los_px(noisy) > 3.0
     assert los_px(fixed) < 0.5 * los_px(noisy)
     assert position_m(fixed) < 0.6 * position_m(noisy)
+
+
+def test_narrow_field_fixes_the_line_of_sight_not_the_pointing():
+    tracks, truth = _observed(np.random.default_rng(3))
+    cameras = [CAMERA] * len(truth)
+    result = bundle_adjust(triangulate(tracks, cameras, truth)[0], tracks, cameras, truth, sigma_position_km=1e-3, sigma_pointing_rad=1e-4)
+    u = pose_uncertainty(result, cameras, truth, np.full(len(truth), 1.47), noise_px=0.2)
+    assert np.isclose(u["pointing_urad_prior"], np.sqrt(2) * 100) and np.isclose(u["lateral_m_prior"], np.sqrt(2))
+    # the images pin an image's line of sight to a fraction of a pixel ...
+    assert u["los_one_image_px"] < 0.05 * u["los_px_prior"]
+    # ... but even with every other camera known, a 1 m prior on position leaves an image's
+    # pointing near its prior: lateral position and pointing are all but perfectly correlated
+    assert u["pointing_one_image_urad"] > 0.8 * u["pointing_urad_prior"]
+    assert u["lateral_pointing_correlation"] > 0.99
+    # with its position known too, the same image would fix its pointing
+    assert u["pointing_alone_urad"] < 0.1 * u["pointing_urad_prior"]
 
 
 def test_surface_follows_points_and_keeps_the_model_elsewhere():

@@ -24,13 +24,27 @@ from pwm.spg.triangulation import Tracks
 class Adjustment:
     """Adjusted points (km, body-fixed); per image a position correction (km, body-fixed) and a
     rotation vector (rad, body-fixed; corrected rotation = rotation @ R(omega)^T); the
-    observations' final reprojection errors (px) and the iterations run."""
+    observations' final reprojection errors (px) and the iterations run.
+
+    information: what the images alone say about the pose corrections, the normal matrix
+    (6 n_img square; per image dx, dy, dz, wx, wy, wz) with the points eliminated and no
+    priors, in units of the prior sigmas `sigma` (km, km, km, rad, rad, rad) and of 1 px errors.
+    """
 
     points: np.ndarray
     position_corrections: np.ndarray
     rotation_corrections: np.ndarray
     residuals_px: np.ndarray
     iterations: int
+    information: np.ndarray
+    sigma: np.ndarray
+
+    def covariance(self, noise_px: float) -> np.ndarray:
+        """Posterior covariance of the pose corrections (km, rad; 6 n_img square), priors
+        included, for image measurements with `noise_px` (px, 1 sigma per axis)."""
+        n = len(self.information)
+        scale = np.tile(self.sigma, n // 6)
+        return np.linalg.inv(self.information / noise_px**2 + np.eye(n)) * np.outer(scale, scale)
 
 
 def _project(points: np.ndarray, position: np.ndarray, rotation: np.ndarray, cam: np.ndarray) -> np.ndarray:
@@ -74,7 +88,8 @@ def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], pos
     for iterations in range(1, max_iterations + 1):
         jp, jc = _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays)
         w = np.minimum(1.0, huber_px / np.maximum(np.abs(r), 1e-12)).reshape(-1, 2)  # IRLS Huber weights
-        step_pts, step_pose = _solve(jp, jc, w, r.reshape(-1, 2), x_pose, obs_pt, obs_img, n_pt, n_img, damping)
+        eq = _normal(jp, jc, w, r.reshape(-1, 2), obs_pt, obs_img, n_pt, n_img)
+        step_pts, step_pose = _solve(eq, x_pose, damping)
         while True:
             trial_pts, trial_pose = x_pts + step_pts * 1e-3, x_pose + step_pose
             r_trial = residuals(trial_pts, trial_pose)
@@ -82,7 +97,7 @@ def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], pos
             if new < current or damping > 1e6:
                 break
             damping *= 10.0
-            step_pts, step_pose = _solve(jp, jc, w, r.reshape(-1, 2), x_pose, obs_pt, obs_img, n_pt, n_img, damping)
+            step_pts, step_pose = _solve(eq, x_pose, damping)
         if new >= current:
             break
         improvement = (current - new) / max(current, 1e-300)
@@ -91,8 +106,13 @@ def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], pos
         if improvement < tolerance:
             break
     d = x_pose * sigma
+    jp, jc = _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays)
+    w = np.minimum(1.0, huber_px / np.maximum(np.abs(r), 1e-12)).reshape(-1, 2)
+    eq = _normal(jp, jc, w, r.reshape(-1, 2), obs_pt, obs_img, n_pt, n_img)
+    information, _ = _schur(_block_diag(eq.hcc).toarray(), eq.hpp + 1e-9 * np.eye(3), eq.hpc)
     return Adjustment(points=x_pts, position_corrections=d[:, :3], rotation_corrections=d[:, 3:],
-                      residuals_px=np.linalg.norm(r.reshape(-1, 2), axis=1), iterations=iterations)
+                      residuals_px=np.linalg.norm(r.reshape(-1, 2), axis=1), iterations=iterations,
+                      information=information, sigma=sigma)
 
 
 def _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays) -> tuple[np.ndarray, np.ndarray]:
@@ -116,8 +136,19 @@ def _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays) -> tuple[np.nda
     return jp, jc
 
 
-def _solve(jp, jc, w, r, x_pose, obs_pt, obs_img, n_pt, n_img, damping) -> tuple[np.ndarray, np.ndarray]:
-    """One damped Gauss-Newton step with the points eliminated: (point steps in m, pose steps)."""
+@dataclass
+class _Normal:
+    """The data part of the normal equations: point blocks (n_pt, 3, 3) and gradient (n_pt, 3),
+    pose blocks (n_img, 6, 6) and gradient (n_img, 6), the point-pose coupling (3 n_pt, 6 n_img)."""
+
+    hpp: np.ndarray
+    gp: np.ndarray
+    hcc: np.ndarray
+    gc: np.ndarray
+    hpc: sparse.csr_matrix
+
+
+def _normal(jp, jc, w, r, obs_pt, obs_img, n_pt, n_img) -> _Normal:
     wjp, wjc = jp * w[:, :, None], jc * w[:, :, None]
     hpp = np.zeros((n_pt, 3, 3))
     np.add.at(hpp, obs_pt, np.einsum("nki,nkj->nij", wjp, jp))
@@ -127,22 +158,31 @@ def _solve(jp, jc, w, r, x_pose, obs_pt, obs_img, n_pt, n_img, damping) -> tuple
     np.add.at(hcc, obs_img, np.einsum("nki,nkj->nij", wjc, jc))
     gc = np.zeros((n_img, 6))
     np.add.at(gc, obs_img, np.einsum("nki,nk->ni", wjc, r))
-    hcc += np.eye(6)  # prior: x_pose ~ N(0, 1) in sigma units
-    gc += x_pose
-    hpp += damping * (hpp * np.eye(3) + 1e-9 * np.eye(3))
-    hcc_dense = _block_diag(hcc).toarray()
-    hcc_dense += damping * np.diag(np.diag(hcc_dense))
-    hpp_inv = np.linalg.inv(hpp)
     # coupling blocks H_pc (3 per point x 6 per image), one 3x6 block per observation
     hpc_blocks = np.einsum("nki,nkj->nij", wjp, jc)
     rows = (3 * obs_pt[:, None, None] + np.arange(3)[None, :, None]).repeat(6, axis=2)
     cols = (6 * obs_img[:, None, None] + np.arange(6)[None, None, :]).repeat(3, axis=1)
     hpc = sparse.csr_matrix((hpc_blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n_pt, 6 * n_img))
-    pinv = _block_diag(hpp_inv)
-    schur = hcc_dense - (hpc.T @ pinv @ hpc).toarray()
-    rhs = -gc.ravel() + hpc.T @ (pinv @ gp.ravel())
+    return _Normal(hpp=hpp, gp=gp, hcc=hcc, gc=gc, hpc=hpc)
+
+
+def _schur(hcc_dense: np.ndarray, hpp: np.ndarray, hpc: sparse.csr_matrix) -> tuple[np.ndarray, np.ndarray]:
+    """The pose system with the points eliminated, and the inverse point blocks."""
+    hpp_inv = np.linalg.inv(hpp)
+    return hcc_dense - (hpc.T @ _block_diag(hpp_inv) @ hpc).toarray(), hpp_inv
+
+
+def _solve(eq: _Normal, x_pose: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """One damped Gauss-Newton step with the points eliminated: (point steps in m, pose steps)."""
+    n_pt, n_img = len(eq.hpp), len(eq.hcc)
+    hpp = eq.hpp + damping * (eq.hpp * np.eye(3) + 1e-9 * np.eye(3))
+    hcc_dense = _block_diag(eq.hcc + np.eye(6)).toarray()  # prior: x_pose ~ N(0, 1) in sigma units
+    hcc_dense += damping * np.diag(np.diag(hcc_dense))
+    gc = eq.gc + x_pose
+    schur, hpp_inv = _schur(hcc_dense, hpp, eq.hpc)
+    rhs = -gc.ravel() + eq.hpc.T @ (_block_diag(hpp_inv) @ eq.gp.ravel())
     step_pose = np.linalg.solve(schur, rhs)
-    step_pts = -np.einsum("nij,nj->ni", hpp_inv, gp + (hpc @ step_pose).reshape(n_pt, 3))
+    step_pts = -np.einsum("nij,nj->ni", hpp_inv, eq.gp + (eq.hpc @ step_pose).reshape(n_pt, 3))
     return step_pts, step_pose.reshape(n_img, 6)
 
 

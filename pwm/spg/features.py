@@ -8,6 +8,7 @@ integer coordinates); COLMAP puts them at +0.5, which is converted at this bound
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -39,24 +40,32 @@ def normalise(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(out, dtype=np.float32)
 
 
-def extract(images: list[np.ndarray], *, max_features: int = 8192, first_octave: int = 0, peak_threshold: float = 0.002,
-            threads: int = 2) -> list[Features]:
-    """SIFT features of each image (reflectance-like values, NaN where missing). first_octave -1
-    doubles the image first: more, finer features at about three times the cost."""
-    options = pycolmap.FeatureExtractionOptions()
-    options.num_threads = 1
-    options.sift.max_num_features = max_features
-    options.sift.first_octave = first_octave
-    options.sift.peak_threshold = peak_threshold
+def extract(images: list[np.ndarray], *, max_features: int = 8192, first_octave: int | Sequence[int] = 0, peak_threshold: float = 0.002,
+            windows: Sequence[tuple[slice, slice]] | None = None, threads: int = 2) -> list[Features]:
+    """SIFT features of each image (reflectance-like values, NaN where missing), in full-frame
+    pixels. first_octave (one, or one per image) -1 doubles the image first: more, finer
+    features at about three times the cost per pixel. windows: per image the (lines, samples)
+    slices to search, e.g. where the target is, so that a small target can be doubled cheaply."""
+    octaves = [first_octave] * len(images) if isinstance(first_octave, int) else list(first_octave)
+    boxes = windows or [(slice(None), slice(None))] * len(images)
 
-    def one(image: np.ndarray) -> Features:
+    def one(k: int) -> Features:
+        options = pycolmap.FeatureExtractionOptions()
+        options.num_threads = 1
+        options.sift.max_num_features = max_features
+        options.sift.first_octave = octaves[k]
+        options.sift.peak_threshold = peak_threshold
+        lines, samples = boxes[k]
         extractor = pycolmap.FeatureExtractor.create(options, device=pycolmap.Device.cpu)
-        keypoints, descriptors = extractor.extract_from_float32_array(normalise(image))
-        xy = pycolmap.keypoints_to_matrix(keypoints)[:, :2].astype(float) - COLMAP_OFFSET
-        return Features(xy=xy, keypoints=keypoints, descriptors=descriptors)
+        keypoints, descriptors = extractor.extract_from_float32_array(normalise(images[k][lines, samples]))
+        rows = pycolmap.keypoints_to_matrix(keypoints)
+        if lines.start or samples.start:
+            rows[:, :2] += [samples.start or 0, lines.start or 0]
+            keypoints = pycolmap.keypoints_from_matrix(rows)
+        return Features(xy=rows[:, :2].astype(float) - COLMAP_OFFSET, keypoints=keypoints, descriptors=descriptors)
 
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        return list(pool.map(one, images))
+        return list(pool.map(one, range(len(images))))
 
 
 def fundamental(camera_a: Camera, pose_a: Pose, camera_b: Camera, pose_b: Pose) -> np.ndarray:

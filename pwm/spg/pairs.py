@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pwm.camera import project
+from pwm.camera import Camera, project
 from pwm.io.downlink import View
 from pwm.raytrace import RayTracer
 
@@ -29,10 +29,20 @@ class Pair:
 @dataclass(frozen=True)
 class Footprint:
     """Surface points (body-fixed, km) seen through a grid of pixels of one view, with the
-    model's normals there."""
+    model's normals there and those pixels (sample, line)."""
 
     points: np.ndarray
     normals: np.ndarray
+    pixels: np.ndarray
+
+    def window(self, camera: Camera, *, margin_px: float) -> tuple[slice, slice]:
+        """(lines, samples) slices of the frame around the pixels that see the model, `margin_px`
+        wider on each side (the whole frame when none does)."""
+        if len(self.pixels) == 0:
+            return slice(0, camera.height), slice(0, camera.width)
+        lo = np.floor(self.pixels.min(axis=0) - margin_px).astype(int)
+        hi = np.ceil(self.pixels.max(axis=0) + margin_px).astype(int) + 1
+        return (slice(max(lo[1], 0), min(hi[1], camera.height)), slice(max(lo[0], 0), min(hi[0], camera.width)))
 
 
 def footprints(views: list[View], tracer: RayTracer, *, grid: int = 32) -> list[Footprint]:
@@ -44,7 +54,8 @@ def footprints(views: list[View], tracer: RayTracer, *, grid: int = 32) -> list[
         origins = np.broadcast_to(v.pose.position, dirs.shape)
         hits = tracer.intersect(origins, dirs)
         points = tracer.hit_points(origins, dirs, hits)[hits.hit]
-        out.append(Footprint(points=points, normals=tracer.face_normals[hits.face[hits.hit]]))
+        out.append(Footprint(points=points, normals=tracer.face_normals[hits.face[hits.hit]],
+                             pixels=np.column_stack([s.ravel(), l.ravel()])[hits.hit]))
     return out
 
 
@@ -63,13 +74,12 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def choose_pairs(views: list[View], tracer: RayTracer, *, min_overlap: float = 0.2, stereo_deg: tuple[float, float] = (2.0, 50.0),
+def choose_pairs(views: list[View], prints: list[Footprint], *, min_overlap: float = 0.2, stereo_deg: tuple[float, float] = (2.0, 50.0),
                  max_sun_deg: float = 25.0, per_image: int = 6) -> list[Pair]:
     """Pairs (first < second) that overlap by at least `min_overlap` (of either footprint), see
     the common ground at a stereo angle within `stereo_deg` (deg) and under Suns at most
     `max_sun_deg` apart. Each image keeps its `per_image` best partners (by overlap over the
-    Sun angle); a pair stays when either image keeps it."""
-    prints = footprints(views, tracer)
+    Sun angle); a pair stays when either image keeps it. prints: the views' `footprints`."""
     candidates: dict[tuple[int, int], Pair] = {}
     for i, fi in enumerate(prints):
         for j in range(i + 1, len(views)):

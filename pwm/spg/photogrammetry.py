@@ -18,12 +18,16 @@ from pwm.io.downlink import View
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.spg.adjustment import bundle_adjust
-from pwm.spg.features import extract, match_guided
-from pwm.spg.pairs import Pair, choose_pairs
+from pwm.spg.features import Features, extract, match_guided
+from pwm.spg.pairs import Pair, choose_pairs, footprints
 from pwm.spg.surface import at_resolution, fit_surface, point_spacing
 from pwm.spg.triangulation import Tracks, build_tracks, rays, reprojection_errors, triangulate
+from pwm.spg.uncertainty import pose_uncertainty
 
 log = logging.getLogger(__name__)
+
+FOOTPRINT_GRID = 32
+"""Pixels per side of the lattice on which each view's footprint is traced."""
 
 
 @dataclass
@@ -38,8 +42,56 @@ class SpgResult:
     stats: dict = field(default_factory=dict)
 
 
+@dataclass
+class Matching:
+    """Pairs chosen, features per view, matches per pair {(first, second): (k, 2) keypoint
+    indices}, each view's range to the model along its boresight (km), and seconds spent."""
+
+    pairs: list[Pair]
+    features: list[Features]
+    matches: dict[tuple[int, int], np.ndarray]
+    ranges: np.ndarray
+    extract_s: float
+    match_s: float
+
+
+def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
+                max_features: int = 8192, first_octave: int | None = None, peak_threshold: float = 0.002, per_image: int = 6,
+                max_sun_deg: float = 25.0, double_below: float = 0.25, threads: int = 2) -> Matching:
+    """Choose pairs on the model (`tracer`), extract SIFT features where each view sees the model
+    and match them along the epipolar band the pose knowledge allows.
+
+    first_octave None: -1 (images doubled) for views where the model fills less than
+    `double_below` of the frame, so that a small target yields features at its finest scale for
+    little cost, else 0.
+    """
+    clock = time.perf_counter()
+    prints = footprints(views, tracer, grid=FOOTPRINT_GRID)
+    pairs = choose_pairs(views, prints, per_image=per_image, max_sun_deg=max_sun_deg)
+    if not pairs:
+        raise ValueError("no image pair overlaps with a usable stereo angle and illumination")
+    ranges = _ranges(views, tracer)
+    windows = [p.window(v.camera, margin_px=max(v.camera.width, v.camera.height) / (FOOTPRINT_GRID - 1)) for p, v in zip(prints, views)]
+    if first_octave is None:
+        octaves = [-1 if (w[0].stop - w[0].start) * (w[1].stop - w[1].start) < double_below * v.camera.width * v.camera.height else 0
+                   for w, v in zip(windows, views)]
+    else:
+        octaves = [first_octave] * len(views)
+    features = extract([v.image for v in views], max_features=max_features, first_octave=octaves, peak_threshold=peak_threshold,
+                       windows=windows, threads=threads)
+    extract_s = time.perf_counter() - clock
+    matches = {}
+    for p in pairs:
+        a, b = views[p.first], views[p.second]
+        band = _band_px(a, ranges[p.first], sigma_position_km, sigma_pointing_rad) + _band_px(b, ranges[p.second], sigma_position_km, sigma_pointing_rad)
+        matches[(p.first, p.second)] = match_guided(features[p.first], features[p.second], camera_a=a.camera, pose_a=a.pose,
+                                                    camera_b=b.camera, pose_b=b.pose, max_error_px=band, threads=threads)
+    return Matching(pairs=pairs, features=features, matches=matches, ranges=ranges, extract_s=extract_s,
+                    match_s=time.perf_counter() - clock - extract_s)
+
+
 def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
-                          max_features: int = 8192, first_octave: int = 0, per_image: int = 6, max_sun_deg: float = 25.0,
+                          max_features: int = 8192, first_octave: int | None = None, per_image: int = 6, max_sun_deg: float = 25.0,
                           model_tolerance_px: float = 30.0, min_angle_deg: float = 2.0, max_residual_px: float = 3.0,
                           threads: int = 2) -> SpgResult:
     """The photogrammetric model and pose corrections from `views`, starting from `previous`.
@@ -47,26 +99,15 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_k
     sigma_position_km, sigma_pointing_rad: 1-sigma navigation knowledge (per axis), the priors
     of the adjustment and the width of the matching band. model_tolerance_px: how far (in
     pixels of the image) a triangulated point may lie from `previous` along its line of sight
-    before it counts as a mismatch.
+    before it counts as a mismatch. first_octave: see `match_views`.
     """
     clock = time.perf_counter()
-    stats: dict = {}
     tracer = RayTracer(previous)
-    pairs = choose_pairs(views, tracer, per_image=per_image, max_sun_deg=max_sun_deg)
-    if not pairs:
-        raise ValueError("no image pair overlaps with a usable stereo angle and illumination")
-    ranges = _ranges(views, tracer)
-    features = extract([v.image for v in views], max_features=max_features, first_octave=first_octave, threads=threads)
-    stats["extract_s"] = time.perf_counter() - clock
-    matches = {}
-    for p in pairs:
-        a, b = views[p.first], views[p.second]
-        band = _band_px(a, ranges[p.first], sigma_position_km, sigma_pointing_rad) + _band_px(b, ranges[p.second], sigma_position_km, sigma_pointing_rad)
-        matches[(p.first, p.second)] = match_guided(features[p.first], features[p.second], camera_a=a.camera, pose_a=a.pose,
-                                                    camera_b=b.camera, pose_b=b.pose, max_error_px=band, threads=threads)
-    stats["match_s"] = time.perf_counter() - clock - stats["extract_s"]
-    stats["features"] = int(sum(len(f.xy) for f in features))
-    stats["matches"] = int(sum(len(m) for m in matches.values()))
+    m = match_views(views, tracer, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad, max_features=max_features,
+                    first_octave=first_octave, per_image=per_image, max_sun_deg=max_sun_deg, threads=threads)
+    pairs, features, matches, ranges = m.pairs, m.features, m.matches, m.ranges
+    stats: dict = {"extract_s": m.extract_s, "match_s": m.match_s, "features": int(sum(len(f.xy) for f in features)),
+                   "matches": int(sum(len(x) for x in matches.values()))}
     log.info("%d pairs, %d features, %d matches (%.1f s)", len(pairs), stats["features"], stats["matches"], time.perf_counter() - clock)
 
     cameras, poses = [v.camera for v in views], [v.pose for v in views]
@@ -86,6 +127,7 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_k
     good_point = angle >= np.radians(min_angle_deg) / 2
     stats.update(pairs=len(pairs), tracks=tracks.n_points, observations=len(tracks.image), points=int(good_point.sum()),
                  residual_rms_px=float(np.sqrt(np.mean(residual**2))), iterations=adjusted.iterations)
+    stats["uncertainty"] = pose_uncertainty(adjusted, cameras, poses, ranges, noise_px=max(stats["residual_rms_px"], 0.1) / np.sqrt(2))
     points = points[good_point]
     spacing = point_spacing(points)
     surface = fit_surface(at_resolution(previous, 2.0 * spacing, points), points, radius_km=2.0 * spacing)

@@ -77,6 +77,8 @@ def refine(
     nodes: int = typer.Option(100, min=8, help="maplet nodes per side"),
     overlap: float = typer.Option(0.25, min=0.0, max=0.75, help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
+    search_px: float = typer.Option(1.0, min=0.0, help="how far images may be off the maplets (px), from the pose knowledge"),
+    corrections: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="pose corrections to apply (corrections.json of pwm spg)"),
     instrument: int = typer.Option(-64361, help="NAIF id of the camera"),
     target: str = typer.Option("BENNU"),
     body_frame: str = typer.Option("IAU_BENNU"),
@@ -90,12 +92,14 @@ def refine(
     from pwm.io.meshio import read_mesh, write_obj, write_ply
     from pwm.pipeline import fuse, imaged_region, refine_maplets
     from pwm.tiling import tile
+    from service.cli.spg import read_corrections
 
     setup_logging(verbose)
     if mode not in ("pwm", "standard"):
         raise typer.BadParameter("mode is pwm or standard")
     clock = time.perf_counter()
-    views = read_views(downlink, instrument_id=instrument, target=target, body_frame=body_frame)
+    views = read_views(downlink, instrument_id=instrument, target=target, body_frame=body_frame,
+                       corrections=None if corrections is None else read_corrections(corrections))
     start_model = read_mesh(start)
     region = imaged_region(views, start_model)
     if lat is not None and lon is not None:
@@ -106,7 +110,7 @@ def refine(
                    centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
     logging.getLogger("pwm").info("%d images, %d maplets of %d nodes at %.3f m around (%.3f, %.3f) within %.1f m",
                                   len(views), len(maplets), nodes, region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
-    results = refine_maplets(maplets, views, start_model, mode=mode, workers=workers)
+    results = refine_maplets(maplets, views, start_model, mode=mode, workers=workers, search_px=search_px)
     model, _ = fuse([r.maplet for r in results], start_model, overlap=overlap)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "refined.ply", model)

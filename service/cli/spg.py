@@ -1,14 +1,37 @@
-"""`pwm spg`: stereo photogrammetry on a downlink directory, without the catalog."""
+"""`pwm spg`: stereo photogrammetry on a downlink directory, without the catalog; `pwm spg-catalog`:
+on the catalogued images, publishing a photogrammetric version and storing pose corrections."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
 from pathlib import Path
+from typing import Optional
 
 import typer
 
+from pwm.camera import PoseCorrection
 from service.cli.app import app, setup_logging
+
+
+# options both commands take
+SIGMA_POINTING = typer.Option(1e-4, min=0.0, help="pointing knowledge, 1 sigma per axis, rad")
+MAX_FEATURES = typer.Option(8192, min=64, help="SIFT features per image at most")
+FIRST_OCTAVE = typer.Option(None, min=-1, max=1, help="SIFT first octave: -1 doubles the images (more features, ~3x slower); default -1 where the target fills under a quarter of the frame, else 0")
+PER_IMAGE = typer.Option(6, min=1, help="stereo partners matched per image")
+THREADS = typer.Option(2, min=1, help="threads for extraction and matching")
+
+
+def write_corrections(path: Path, corrections: dict[str, PoseCorrection], *, body_frame: str) -> None:
+    """Per-image pose corrections (by view name; km and rad, body-fixed) as JSON."""
+    images = {name: dataclasses.asdict(c) for name, c in corrections.items()}
+    path.write_text(json.dumps({"frame": body_frame, "units": {"position": "km", "rotation": "rad"}, "images": images}, indent=1))
+
+
+def read_corrections(path: Path) -> dict[str, PoseCorrection]:
+    """The pose corrections that `write_corrections` wrote, by view name."""
+    images = json.loads(Path(path).read_text())["images"]
+    return {name: PoseCorrection(tuple(c["position_km"]), tuple(c["rotation_rad"])) for name, c in images.items()}
 
 
 @app.command()
@@ -17,11 +40,11 @@ def spg(
     start: Path = typer.Option(..., exists=True, dir_okay=False, help="previous shape model (.obj/.ply, km, body-fixed): fills where points are missing"),
     out: Path = typer.Option(..., help="output directory: spg.ply, spg.obj, corrections.json, spg.json"),
     sigma_position: float = typer.Option(1.0, min=0.0, help="navigation position knowledge, 1 sigma per axis, m"),
-    sigma_pointing: float = typer.Option(1e-4, min=0.0, help="navigation pointing knowledge, 1 sigma per axis, rad"),
-    max_features: int = typer.Option(8192, min=64, help="SIFT features per image at most"),
-    first_octave: int = typer.Option(0, min=-1, max=1, help="SIFT first octave: -1 doubles the images (more features, ~3x slower)"),
-    per_image: int = typer.Option(6, min=1, help="stereo partners matched per image"),
-    threads: int = typer.Option(2, min=1, help="threads for extraction and matching"),
+    sigma_pointing: float = SIGMA_POINTING,
+    max_features: int = MAX_FEATURES,
+    first_octave: Optional[int] = FIRST_OCTAVE,
+    per_image: int = PER_IMAGE,
+    threads: int = THREADS,
     instrument: int = typer.Option(-64361, help="NAIF id of the camera"),
     target: str = typer.Option("BENNU"),
     body_frame: str = typer.Option("IAU_BENNU"),
@@ -39,9 +62,35 @@ def spg(
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "spg.ply", result.mesh)
     write_obj(out / "spg.obj", result.mesh)
-    corrections = {name: dataclasses.asdict(c) for name, c in result.corrections.items()}
-    (out / "corrections.json").write_text(json.dumps({"frame": body_frame, "units": {"position": "km", "rotation": "rad"},
-                                                      "images": corrections}, indent=1))
+    write_corrections(out / "corrections.json", result.corrections, body_frame=body_frame)
     (out / "spg.json").write_text(json.dumps({**result.stats, "pairs": [dataclasses.asdict(p) for p in result.pairs]}, indent=1))
     typer.echo(f"{result.stats['points']} points from {len(views)} images, residual {result.stats['residual_rms_px']:.2f} px RMS, "
                f"{result.stats['seconds']:.1f} s -> {out}")
+
+
+@app.command(name="spg-catalog")
+def spg_catalog(
+    sigma_position: float = typer.Option(1.0, min=0.0, help="pose knowledge about the images' current poses, 1 sigma per axis, m"),
+    sigma_pointing: float = SIGMA_POINTING,
+    max_features: int = MAX_FEATURES,
+    first_octave: Optional[int] = FIRST_OCTAVE,
+    per_image: int = PER_IMAGE,
+    threads: int = THREADS,
+    verbose: bool = typer.Option(False, "--verbose", "-v"),
+) -> None:
+    """Stereo photogrammetry on the catalogued images from the latest version: publish a photogrammetric version and store each
+    image's pose correction (its maplets then become stale; the next ingest re-weighs its coverage)."""
+    from service.catalog import open_catalog
+    from service.settings import get_settings
+    from service.spg import photogrammetry_version
+
+    setup_logging(verbose)
+    settings = get_settings()
+    try:
+        number = photogrammetry_version(open_catalog(settings), data_dir=settings.data_dir, sigma_position_km=sigma_position * 1e-3,
+                                        sigma_pointing_rad=sigma_pointing, max_features=max_features, first_octave=first_octave,
+                                        per_image=per_image, threads=threads)
+    except (LookupError, ValueError) as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"published version {number} (photogrammetric)")

@@ -1,0 +1,77 @@
+"""What a bundle adjustment determined about each camera pose: posterior sigmas of the lateral and
+along-boresight position, of the pointing, and of the line of sight, next to their priors.
+
+With a narrow field at long range, moving a camera sideways by d and turning it by d / range
+move the image alike, so the images fix their combination (the line of sight) and leave the split
+to the priors. `pose_uncertainty` shows it from the adjustment's normal matrix: the correlation
+between lateral position and pointing, and the pointing sigma the images would give if the
+positions were known.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pwm.camera import Camera, Pose, corrected_pose, project
+from pwm.spg.adjustment import Adjustment
+
+
+def pose_uncertainty(adjusted: Adjustment, cameras: list[Camera], poses: list[Pose], ranges_km: np.ndarray, *,
+                     noise_px: float) -> dict[str, float]:
+    """Medians over the images of prior and posterior 1-sigma figures, for image measurements
+    with `noise_px` (px per axis): lateral and along-boresight position (m; RSS over the two
+    lateral axes), pointing (urad, RSS over the two axes across the boresight), line of sight
+    (px, RSS of the image motion of the boresight's ground point at `ranges_km`). A shift, turn
+    or scaling of the whole block of cameras and points leaves the images unchanged: only the
+    priors see it, which bounds the posteriors from below whatever the images.
+
+    Then one image against the others held known (the most favourable case): its line of sight
+    ("los_one_image_px"), its pointing with its position free ("pointing_one_image_urad") and
+    with its position known too ("pointing_alone_urad"), and the |correlation| of lateral
+    position with the pointing that mimics it ("lateral_pointing_correlation")."""
+    n = len(poses)
+    posterior = adjusted.covariance(noise_px)
+    prior = np.diag(np.tile(adjusted.sigma**2, n))
+    out: dict[str, list[float]] = {f"{k}_{which}": [] for k in ("lateral_m", "along_m", "pointing_urad", "los_px")
+                                   for which in ("prior", "posterior")}
+    for k in ("los_one_image_px", "pointing_one_image_urad", "pointing_alone_urad", "lateral_pointing_correlation"):
+        out[k] = []
+    jac = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km)]
+    for which, cov in (("prior", prior), ("posterior", posterior)):
+        for i, pose in enumerate(poses):
+            c = _to_camera(cov[6 * i:6 * i + 6, 6 * i:6 * i + 6], pose)
+            out[f"lateral_m_{which}"].append(float(np.sqrt(c[0, 0] + c[1, 1])) * 1e3)
+            out[f"along_m_{which}"].append(float(np.sqrt(c[2, 2])) * 1e3)
+            out[f"pointing_urad_{which}"].append(float(np.sqrt(c[3, 3] + c[4, 4])) * 1e6)
+            out[f"los_px_{which}"].append(float(np.sqrt(np.trace(jac[i] @ cov[6 * i:6 * i + 6, 6 * i:6 * i + 6] @ jac[i].T))))
+    for i, pose in enumerate(poses):
+        block = adjusted.information[6 * i:6 * i + 6, 6 * i:6 * i + 6] / noise_px**2 + np.eye(6)  # sigma units
+        one_body = np.linalg.inv(block) * np.outer(adjusted.sigma, adjusted.sigma)
+        one = _to_camera(one_body, pose)
+        out["los_one_image_px"].append(float(np.sqrt(np.trace(jac[i] @ one_body @ jac[i].T))))
+        alone = _to_camera(np.pad(np.linalg.inv(block[3:, 3:]), ((3, 0), (3, 0))) * np.outer(adjusted.sigma, adjusted.sigma), pose)
+        corr = one / np.sqrt(np.outer(np.diag(one), np.diag(one)))
+        out["pointing_one_image_urad"].append(float(np.sqrt(one[3, 3] + one[4, 4])) * 1e6)
+        out["pointing_alone_urad"].append(float(np.sqrt(alone[3, 3] + alone[4, 4])) * 1e6)
+        out["lateral_pointing_correlation"].append(float(max(abs(corr[0, 4]), abs(corr[1, 3]))))
+    return {k: float(np.median(v)) for k, v in out.items()}
+
+
+def _to_camera(cov: np.ndarray, pose: Pose) -> np.ndarray:
+    """A (position, rotation vector) covariance from body-fixed to camera axes."""
+    rot = np.zeros((6, 6))
+    rot[:3, :3] = rot[3:, 3:] = pose.rotation
+    return rot @ cov @ rot.T
+
+
+def _los_jacobian(camera: Camera, pose: Pose, range_km: float) -> np.ndarray:
+    """d(pixel of the boresight ground point) / d(dx, dy, dz km, wx, wy, wz rad), (2, 6)."""
+    ground = pose.position + pose.boresight * range_km
+    jac = np.empty((2, 6))
+    for k, h in enumerate([1e-6] * 3 + [1e-7] * 3):
+        e = np.zeros(6)
+        e[k] = h
+        plus = project(ground, camera, corrected_pose(pose, e[:3], e[3:]))
+        minus = project(ground, camera, corrected_pose(pose, -e[:3], -e[3:]))
+        jac[:, k] = (plus - minus) / (2 * h)
+    return jac

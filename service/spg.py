@@ -1,0 +1,93 @@
+"""Stereo photogrammetry on the catalog: a photogrammetric model version and stored pose
+corrections from the catalogued images (pwm.spg on the catalog's views).
+
+The run starts from the latest version and from each image's current pose (its stored
+correction applied, service.views.image_pose), so a second run refines the first: the new
+correction is composed onto the stored one. Corrected images lose their coverage weighing
+(Image.coverage_computed_at), so the next ingest with a shape weighs them again with their new
+poses; and since a maplet's input hash includes its images' pose corrections, the maplets they
+weigh into become stale (service.refinement.stale_maplets) and are refined with the corrected
+poses.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Collection
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from pwm.camera import PoseCorrection
+from pwm.spg import stereo_photogrammetry
+from service.db import session_scope
+from service.models import Image, ModelKind, ModelVersion, utcnow
+from service.versions import latest_version, publish_version, version_mesh
+from service.views import catalog_views
+
+log = logging.getLogger(__name__)
+
+
+def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
+                           image_ids: Collection[int] | None = None,
+                           sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
+                           max_features: int = 8192, first_octave: int | None = None, per_image: int = 6,
+                           threads: int = 2) -> int:
+    """Run stereo photogrammetry on the accepted images with geometry (those of image_ids, or
+    all) from the latest version; publish the model as a version of kind photogrammetric (parent:
+    that version) and store each image's pose correction. Its version number.
+
+    sigma_position_km, sigma_pointing_rad: 1-sigma pose knowledge per axis (km, rad) about the
+    images' current poses; the other options are pwm.spg.stereo_photogrammetry's.
+    Raises LookupError when the catalog has no version, ValueError with fewer than two images.
+    """
+    with sessions() as session:
+        base = latest_version(session)
+        if base is None:
+            raise LookupError("the catalog has no model version to start from: ingest with a "
+                              "start model (pwm run) or pwm import one")
+        base_id, previous = base.id, version_mesh(data_dir, base)
+        views = catalog_views(session, image_ids=image_ids, pixels=True)
+    if len(views) < 2:
+        raise ValueError(f"stereo photogrammetry needs two images or more, the catalog has "
+                         f"{len(views)}")
+    ids = list(views)
+    result = stereo_photogrammetry([views[i] for i in ids], previous,
+                                   sigma_position_km=sigma_position_km,
+                                   sigma_pointing_rad=sigma_pointing_rad,
+                                   max_features=max_features, first_octave=first_octave,
+                                   per_image=per_image, threads=threads)
+    with session_scope(sessions) as session:
+        images = session.scalars(select(Image).where(Image.id.in_(ids)).order_by(Image.id)).all()
+        now = utcnow()
+        for image in images:
+            _store_correction(image, result.corrections[views[image.id].name])
+            image.pose_corrected_at = now
+            # weighed again, with the corrected pose, at the next ingest with a shape
+            image.coverage_computed_at = None
+        parent = session.get_one(ModelVersion, base_id)
+        downlinks = {image.downlink.id: image.downlink for image in images if image.downlink}
+        version = publish_version(session, data_dir=data_dir, mesh=result.mesh,
+                                  kind=ModelKind.PHOTOGRAMMETRIC, parent=parent,
+                                  statistics={**result.stats, "images": len(ids),
+                                              "base_version": parent.version},
+                                  downlinks=downlinks.values())
+        log.info("photogrammetric version %d from version %d: %d images corrected",
+                 version.version, parent.version, len(images))
+        return version.version
+
+
+def _store_correction(image: Image, new: PoseCorrection) -> None:
+    """Compose `new` (estimated about the image's corrected pose) onto its stored correction:
+    positions add; rotations compose as R(total) = R(new) R(stored), so that
+    rotation @ R(total)^T = (rotation @ R(stored)^T) @ R(new)^T (pwm.camera.corrected_pose)."""
+    stored_dp = np.array([image.pose_dx_km, image.pose_dy_km, image.pose_dz_km], dtype=float)
+    stored_w = np.array([image.pose_rx_rad, image.pose_ry_rad, image.pose_rz_rad], dtype=float)
+    dp = np.nan_to_num(stored_dp) + np.asarray(new.position_km)
+    w = (Rotation.from_rotvec(np.asarray(new.rotation_rad))
+         * Rotation.from_rotvec(np.nan_to_num(stored_w))).as_rotvec()
+    image.pose_dx_km, image.pose_dy_km, image.pose_dz_km = map(float, dp)
+    image.pose_rx_rad, image.pose_ry_rad, image.pose_rz_rad = map(float, w)
