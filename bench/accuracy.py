@@ -3,10 +3,12 @@ the start model, standard photoclinometry and PWM (RMS in m and GSD, median, NCC
 height ratio, runtime, peak memory).
 
     .venv/bin/python bench/accuracy.py [--scenarios tiny site site-polar] [--knowledge-error 1,1e-4]
-                                       [--out DIR] [--workers 2]
+                                       [--sims DIR ...] [--modes standard pwm] [--out DIR] [--workers 2]
 
-Simulations are reused when OUT/<scenario>/truth/manifest.json exists. Each step runs in its own
-process so that its peak memory is its own.
+Simulations are reused when OUT/<scenario>/truth/manifest.json exists; --sims names existing
+simulation directories (each with downlink/ and truth/), which are only read: their refined
+models and evaluations go to OUT/<directory name>/. Each step runs in its own process so that its
+peak memory is its own.
 """
 
 from __future__ import annotations
@@ -19,10 +21,10 @@ import time
 from pathlib import Path
 
 CHILD = """
-import resource, runpy, sys
-sys.argv = ["pwm"] + sys.argv[1:]
+import resource, sys
+from service.cli import app
 try:
-    runpy.run_module("service.cli", run_name="__main__")
+    app(sys.argv[1:], prog_name="pwm", standalone_mode=False)
 finally:
     # the largest process: the command itself or one of its worker processes
     peak = max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
@@ -54,34 +56,44 @@ def row(label: str, figures: dict, seconds: float | None, peak: float | None) ->
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scenarios", nargs="+", default=["tiny", "site", "site-polar"])
+    parser.add_argument("--scenarios", nargs="*", default=None, help="simulate (or reuse) these scenarios under OUT")
+    parser.add_argument("--sims", nargs="*", type=Path, default=[], help="existing simulation directories")
+    parser.add_argument("--modes", nargs="+", default=["standard", "pwm"], choices=["standard", "pwm"])
     parser.add_argument("--knowledge-error", default=None, help="POS_M,POINT_RAD for the simulated kernels")
     parser.add_argument("--out", type=Path, default=Path("out/bench-accuracy"))
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--search-px", type=float, default=None,
+                        help="pwm refine --search-px (default: 32 with --knowledge-error or a directory named *-ke, else 1)")
     args = parser.parse_args()
-    for name in args.scenarios:
+    scenarios = args.scenarios if args.scenarios is not None else ([] if args.sims else ["tiny", "site", "site-polar"])
+    runs = []
+    for name in scenarios:
         sim = args.out / (name + (f"-ke{args.knowledge_error}" if args.knowledge_error else ""))
         if not (sim / "truth" / "manifest.json").exists():
             extra = ["--knowledge-error", args.knowledge_error] if args.knowledge_error else []
             pwm("simulate", str(sim), "--scenario", name, "--seed", "1", *extra)
+        runs.append((sim, sim))
+    runs += [(sim, args.out / sim.name) for sim in args.sims]
+    for sim, work in runs:
         downlink, truth = sim / "downlink", sim / "truth"
         site_radius_km = json.loads((truth / "manifest.json").read_text())["scenario"]["site_size_km"] / 2
+        search = args.search_px or (32.0 if args.knowledge_error or sim.name.endswith("-ke") else 1.0)
         lines = []
         steps = [("start", downlink / "start_model.obj", None)]
-        for mode in ("standard", "pwm"):
-            out = sim / f"refined-{mode}"
+        for mode in args.modes:
+            out = work / f"refined-{mode}"
             seconds, peak = pwm("refine", str(downlink), "--start", str(downlink / "start_model.obj"), "--out", str(out),
-                                "--mode", mode, "--workers", str(args.workers), "--radius", str(1.3 * site_radius_km))
+                                "--mode", mode, "--workers", str(args.workers), "--radius", str(1.3 * site_radius_km), "--search-px", str(search))
             steps.append((mode, out / "refined.ply", (seconds, peak)))
         for label, model, cost in steps:
-            report = sim / f"evaluation-{label}.json"
-            pwm("evaluate", str(model), "--truth", str(truth), "--json", str(report), "--plots", str(sim / f"plots-{label}"))
+            report = work / f"evaluation-{label}.json"
+            pwm("evaluate", str(model), "--truth", str(truth), "--json", str(report), "--plots", str(work / f"plots-{label}"))
             figures = json.loads(report.read_text())
             lines.append(row(label, figures, *(cost or (None, None))))
         gsd = json.loads((truth / "manifest.json").read_text())["gsd_m"]
         print(f"\n{sim.name}: GSD {gsd:.3f} m")
         print(f"{'model':<10}{'RMS m':>8}{'RMS GSD':>8}{'median m':>9}{'NCC':>7}{'SSIM':>7}{'boulders':>9}{'steep':>7}{'time s':>8}{'GiB':>8}")
-        print("\n".join(lines))
+        print("\n".join(lines), flush=True)
 
 
 if __name__ == "__main__":

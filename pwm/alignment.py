@@ -2,19 +2,29 @@
 
 Each image is compared with the brightness the maplet predicts at its nodes (albedo times the
 lunar-Lambert G of the node normals, `pwm.photoclinometry.predict`). The offset (sample, line), px,
-is added to the projected node positions. Coarse to fine: normalised cross-correlation over whole
-pixel shifts, a quadratic fit of its peak, then Gauss-Newton on the least-squares misfit
-I(x + offset) - (gain * predicted + bias) to a fraction of a pixel.
+is added to the projected node positions.
+
+- `align`, for a maplet whose albedo is known: normalised cross-correlation over whole pixel
+  shifts, a quadratic fit of its peak, then Gauss-Newton on the least-squares misfit
+  I(x + offset) - (gain * predicted + bias) to a fraction of a pixel.
+- `register`, for a maplet still without albedo and images off by many pixels (navigation
+  knowledge errors of metres): the albedo each image is compared with comes from the other images
+  (leave-one-out least squares at the current offsets); the search runs on a coarse copy of the
+  maplet and Gaussian-smoothed images first, then at full resolution, re-estimating the albedo
+  after every pass. Its result seeds the joint solution of `pwm.photoclinometry.refine`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
+from pwm.camera import project
 from pwm.maplets import Maplet
-from pwm.photoclinometry import MapletImages, bilinear, bilinear_gradient, node_pixels, predict
+from pwm.photoclinometry import MapletImages, bilinear, bilinear_gradient, datum_complement, node_pixels, predict
 
 
 @dataclass
@@ -124,3 +134,170 @@ def _peak(score: np.ndarray, i: int, j: int) -> np.ndarray:
     ds = _vertex(*score[i, j - 1 : j + 2]) if 0 < j < cols - 1 else 0.0
     dl = _vertex(*score[i - 1 : i + 2, j]) if 0 < i < rows - 1 else 0.0
     return np.array([ds, dl])
+
+
+def register(
+    maplet: Maplet,
+    data: MapletImages,
+    *,
+    offsets: np.ndarray | None = None,
+    levels: tuple[tuple[int, float], ...] = ((8, 32.0), (4, 24.0), (1, 1.0)),
+    passes: int = 2,
+    min_nodes: int = 30,
+    keep_datum: bool = False,
+) -> Alignment:
+    """Offsets (K, 2, px) that register every image to the maplet's shape and to the other images.
+
+    Heights are the maplet's; its albedo is not used. levels: (f, search px) from coarse to fine:
+    the maplet is resampled every f spacings and the images smoothed to f pixels, and each of
+    `passes` passes compares every image, over whole shifts of f px within +-search px of its
+    current offset (+-f px after the first pass), with a template, keeping the correlation peak
+    (with a quadratic sub-step). On the first level the template is the shading of the maplet
+    alone: it ties the images to the shape's relief (the datum that photometry cannot fix).
+    Afterwards it is the leave-one-out albedo times the shading, which registers the images to
+    each other. Images with fewer than min_nodes usable nodes at a level keep their offsets.
+    keep_datum=False (default) then removes from the change of the offsets the part that a
+    sideways shift of the whole maplet would cause: the shading anchor is only good to about a
+    pixel, maplet by maplet, whereas the poses' own datum error is common to the maplets that
+    share images (a rigid shift of the fused model); `pwm.photoclinometry.refine` keeps that part.
+    """
+    out = np.zeros((data.count, 2)) if offsets is None else np.asarray(offsets, float).copy()
+    correlation = np.full(data.count, np.nan)
+    # a search wider than a quarter of the maplet finds chance peaks in what little overlaps
+    limit = 0.25 * maplet.n * float(np.median([_pixels_per_spacing(maplet, c, p) for c, p in zip(data.cameras, data.poses)]))
+    for level, (factor, reach) in enumerate(levels):
+        reach = min(reach, max(limit, factor))
+        if (maplet.n - 1) // factor + 1 < 8:
+            continue
+        coarse, weights = _resample(maplet, data.weights, factor)
+        shading = predict(coarse, data, albedo=1.0).reshape(data.count, -1)
+        margin = reach + factor * (passes + 3)
+        first = node_pixels(coarse, data, offsets=out)
+        windows = [_window(image, first[k], margin=margin, sigma=0.5 * factor if factor > 1 else 0.0)
+                   for k, image in enumerate(data.images)]
+        steps = np.arange(-np.ceil(reach / factor), np.ceil(reach / factor) + 1) * factor
+        for _ in range(passes):
+            pixels = node_pixels(coarse, data, offsets=out).reshape(data.count, -1, 2)
+            values = np.stack([bilinear(w, pixels[k] - origin) for k, (w, origin) in enumerate(windows)])
+            use = (weights > 0) & np.isfinite(values) & (shading > 0)
+            if level == 0:
+                albedo = np.ones_like(shading)
+            else:
+                albedo = _leave_one_out_albedo(np.where(use, values, 0.0), np.where(use, shading, 0.0), weights * use)
+            for k, (window, origin) in enumerate(windows):
+                template = albedo[k] * shading[k]
+                ok = use[k] & (template > 0)
+                if ok.sum() < min_nodes:
+                    continue
+                found = _search(window, pixels[k][ok] - origin, template[ok], steps, min_nodes=min_nodes)
+                if found is not None:
+                    out[k] += found[0]
+                    correlation[k] = found[1]
+            steps = np.arange(-1, 2) * factor
+    # a coarse level can lock onto a chance peak: keep the starting offsets of an image that
+    # matches the others better there, at full resolution
+    start = np.zeros((data.count, 2)) if offsets is None else np.asarray(offsets, float)
+    worse = _full_scores(maplet, data, out) < _full_scores(maplet, data, start)
+    out[worse] = start[worse]
+    if not keep_datum:
+        basis = datum_complement(maplet, data)
+        out = start + (basis @ (basis.T @ (out - start).ravel())).reshape(-1, 2)
+    return Alignment(offsets=out, correlation=correlation)
+
+
+def _full_scores(maplet: Maplet, data: MapletImages, offsets: np.ndarray) -> np.ndarray:
+    """(K,) NCC of each image at the offsets with its leave-one-out albedo times the shading, over
+    the maplet's nodes (-inf where too few)."""
+    shading = predict(maplet, data, albedo=1.0).reshape(data.count, -1)
+    pixels = node_pixels(maplet, data, offsets=offsets).reshape(data.count, -1, 2)
+    values = np.stack([bilinear(image, pixels[k]) for k, image in enumerate(data.images)])
+    weights = data.weights.reshape(data.count, -1)
+    use = (weights > 0) & np.isfinite(values) & (shading > 0)
+    albedo = _leave_one_out_albedo(np.where(use, values, 0.0), np.where(use, shading, 0.0), weights * use)
+    scores = np.full(data.count, -np.inf)
+    for k in range(data.count):
+        ok = use[k] & (albedo[k] > 0)
+        if ok.sum() >= 2:
+            scores[k] = np.nan_to_num(_ncc(values[k][ok], albedo[k][ok] * shading[k][ok]), nan=-np.inf)
+    return scores
+
+
+def _pixels_per_spacing(maplet: Maplet, camera, pose) -> float:
+    """Pixels between neighbouring nodes at the maplet's centre in one image."""
+    ends = maplet.frame.to_body(np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]) * maplet.spacing_km)
+    return float(np.linalg.norm(np.diff(project(ends, camera, pose), axis=0)))
+
+
+def _resample(maplet: Maplet, weights: np.ndarray, factor: int) -> tuple[Maplet, np.ndarray]:
+    """The maplet with every `factor`-th spacing over the same square (heights smoothed to that
+    spacing and interpolated) and per-node weights (K, m*m) that are positive where the fine
+    weights are positive all around."""
+    if factor == 1:
+        return maplet, weights.reshape(len(weights), -1)
+    n = maplet.n
+    m = (n - 1) // factor + 1
+    at = np.linspace(0, n - 1, m)
+    grid = np.meshgrid(at, at, indexing="ij")
+    heights = ndimage.map_coordinates(ndimage.gaussian_filter(maplet.heights, 0.5 * factor, mode="nearest"), grid,
+                                      order=1, mode="nearest")
+    good = np.stack([ndimage.map_coordinates(ndimage.minimum_filter((w > 0).astype(float), size=factor), grid,
+                                             order=0, mode="nearest") for w in weights])
+    coarse = dataclasses.replace(maplet, heights=heights, albedo=None, spacing_km=maplet.spacing_km * (n - 1) / (m - 1))
+    return coarse, good.reshape(len(weights), -1)
+
+
+def _window(image: np.ndarray, pixels: np.ndarray, *, margin: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The part of `image` around `pixels` (..., 2) with `margin` px to spare, smoothed by a
+    Gaussian of `sigma` px (none if 0), and its first (sample, line)."""
+    ok = np.isfinite(pixels).all(axis=-1)
+    if not ok.any():
+        return image[:2, :2], np.zeros(2)
+    lo = np.maximum(np.floor(pixels[ok].min(axis=0) - margin), 0).astype(int)
+    hi = np.minimum(np.ceil(pixels[ok].max(axis=0) + margin) + 1, image.shape[::-1]).astype(int)
+    hi = np.maximum(hi, lo + 2)
+    window = image[lo[1] : hi[1], lo[0] : hi[0]]
+    if sigma > 0:
+        # NaN pixels (no data) would spread through the filter: smooth with them at the mean and
+        # put them back afterwards
+        missing = ~np.isfinite(window)
+        filled = np.where(missing, np.nanmean(window) if (~missing).any() else 0.0, window)
+        window = np.where(ndimage.binary_dilation(missing, iterations=int(np.ceil(2 * sigma))), np.nan,
+                          ndimage.gaussian_filter(filled, sigma))
+    return window, lo.astype(float)
+
+
+def _leave_one_out_albedo(values: np.ndarray, shading: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(K, N) least-squares albedo of each node from all images but the k-th (0 where none):
+    sum w^2 I G / sum w^2 G^2 over the other images."""
+    w2 = weights**2
+    num = w2 * values * shading
+    den = w2 * shading**2
+    num_others = num.sum(axis=0) - num
+    den_others = den.sum(axis=0) - den
+    return np.where(den_others > 1e-12 * den.sum(axis=0).max(initial=1.0), num_others / np.where(den_others > 0, den_others, 1.0), 0.0)
+
+
+def _search(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, steps: np.ndarray, *,
+            min_nodes: int) -> tuple[np.ndarray, float] | None:
+    """Shift (sample, line) among steps x steps with the best NCC of image at pixels + shift and
+    model, refined by a parabola through its neighbours; with that NCC."""
+    ds, dl = np.meshgrid(steps, steps)
+    shifts = np.column_stack([ds.ravel(), dl.ravel()])
+    values = bilinear(image, pixels[None] + shifts[:, None, :])
+    ok = np.isfinite(values)
+    counts = ok.sum(axis=1)
+    v = np.where(ok, values, 0.0)
+    t = np.where(ok, model[None], 0.0)
+    safe = np.maximum(counts, 1)
+    vm, tm = v.sum(axis=1) / safe, t.sum(axis=1) / safe
+    va = np.where(ok, v - vm[:, None], 0.0)
+    ta = np.where(ok, t - tm[:, None], 0.0)
+    den = np.sqrt((va * va).sum(axis=1) * (ta * ta).sum(axis=1))
+    score = np.where((counts >= min_nodes) & (den > 0), (va * ta).sum(axis=1) / np.where(den > 0, den, 1.0), -np.inf)
+    if not np.isfinite(score).any():
+        return None
+    score = score.reshape(ds.shape)
+    i, j = np.unravel_index(np.argmax(score), score.shape)
+    step = float(steps[1] - steps[0]) if len(steps) > 1 else 1.0
+    best = np.array([steps[j], steps[i]], float) + step * _peak(score, i, j)
+    return best, float(score[i, j])

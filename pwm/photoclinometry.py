@@ -312,7 +312,7 @@ class _Problem:
         self.albedo_weight = albedo_weight
         self.solve_offsets = solve_offsets
         if solve_offsets:
-            self.image_basis = block_diag(np.eye(data.count), _datum_complement(maplet, data))
+            self.image_basis = block_diag(np.eye(data.count), datum_complement(maplet, data))
         self.i_ref = 1.0
         self.albedo_prior = np.ones(n * n)
 
@@ -421,7 +421,7 @@ class _Problem:
         return _State(u=du, albedo=da, scales=dt, offsets=np.zeros((k_images, 2)))
 
 
-def _datum_complement(maplet: Maplet, data: MapletImages) -> np.ndarray:
+def datum_complement(maplet: Maplet, data: MapletImages) -> np.ndarray:
     """(2K, m) orthonormal basis of the image offsets (sample, line per image) orthogonal to those
     a shift of the maplet along its local x and y would cause (m = 2K - 2 in general). A shift
     along z stays free: the height tie sets the mean height, and the offsets absorb its parallax."""

@@ -15,6 +15,7 @@ from multiprocessing import get_context
 
 import numpy as np
 
+from pwm.alignment import register
 from pwm.camera import project
 from pwm.fusion import VoxelGrid
 from pwm.io.downlink import View
@@ -86,8 +87,13 @@ def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
     return in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1)
 
 
-def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode: Mode = "pwm", min_images: int = 3) -> MapletResult:
-    """Weigh and refine one maplet; with fewer than `min_images` usable images it keeps its start."""
+def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode: Mode = "pwm", min_images: int = 3,
+                  search_px: float = 1.0) -> MapletResult:
+    """Weigh and refine one maplet; with fewer than `min_images` usable images it keeps its start.
+
+    search_px: how far (px) the images may be off the maplet, from the pose knowledge (about
+    3 sigma of position error / range plus pointing error, times the focal length): the images are
+    registered (`pwm.alignment.register`) within it before the joint solution."""
     clock = time.perf_counter()
     data, weights, keep = maplet_images(maplet, views, tracer)
     views_found = {role: views[i].name for role, i in vars(weights.views).items() if i is not None}
@@ -97,7 +103,9 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode:
                      weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
     iterations, converged, rms = 0, False, []
     if data.count >= min_images:
-        result = refine(maplet, data, mode=mode)
+        # navigation knowledge errors move images by many pixels: register them before the joint
+        # solution, which only corrects offsets within its linear reach (about a pixel)
+        result = refine(maplet, data, mode=mode, offsets=register(maplet, data, levels=search_levels(search_px)).offsets)
         refined.heights, refined.albedo = result.heights, result.albedo
         iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
     return MapletResult(maplet=refined, images=[views[k].name for k in keep], region_weight=weights.region,
@@ -105,28 +113,39 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode:
                         residual_rms=rms, seconds=time.perf_counter() - clock)
 
 
+def search_levels(search_px: float) -> tuple[tuple[int, float], ...]:
+    """Registration levels (factor, search px) for images up to search_px off: full resolution
+    only for a pixel or two (coarse levels could lock onto chance peaks that a close start never
+    needs), coarse to fine beyond."""
+    if search_px <= 2.0:
+        return ((1, max(search_px, 1.0)),)
+    return ((8, search_px), (4, min(search_px, 24.0)), (1, 1.0))
+
+
 _WORKER: dict = {}
 
 
-def _init_worker(start: Mesh, views: list[View], mode: Mode) -> None:
+def _init_worker(start: Mesh, views: list[View], mode: Mode, search_px: float = 1.0) -> None:
     # An Embree scene cannot cross processes: each worker builds its own from the start model.
-    _WORKER.update(tracer=RayTracer(start), views=views, mode=mode)
+    _WORKER.update(tracer=RayTracer(start), views=views, mode=mode, search_px=search_px)
 
 
 def _refine_in_worker(maplet: Maplet) -> MapletResult:
-    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], mode=_WORKER["mode"])
+    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], mode=_WORKER["mode"], search_px=_WORKER["search_px"])
 
 
-def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, mode: Mode = "pwm", workers: int = 1) -> list[MapletResult]:
-    """Refine every maplet (in `workers` processes), logging progress; results in input order."""
+def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, mode: Mode = "pwm", workers: int = 1,
+                   search_px: float = 1.0) -> list[MapletResult]:
+    """Refine every maplet (in `workers` processes), logging progress; results in input order.
+    search_px: see `refine_maplet`."""
     results: list[MapletResult] = []
     clock = time.perf_counter()
     if workers <= 1:
-        _init_worker(start, views, mode)
+        _init_worker(start, views, mode, search_px)
         iterator = map(_refine_in_worker, maplets)
         pool = None
     else:
-        pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_worker, initargs=(start, views, mode))
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_worker, initargs=(start, views, mode, search_px))
         iterator = pool.map(_refine_in_worker, maplets)
     try:
         for k, result in enumerate(iterator, 1):

@@ -28,7 +28,12 @@ from pwm.simulate.truth import Truth, load as load_truth
 
 log = logging.getLogger(__name__)
 
-ICP_POINTS = 50_000  # vertices used for registration; distances use all of them
+ICP_POINTS = 20_000
+"""Vertices used for registration (a random sample); distances use all of them."""
+ICP_TOLERANCE_GSD = 1e-3
+"""ICP stops once a step moves no point by more than this fraction of the GSD."""
+ICP_REACH_GSD = 20.0
+"""Point pairs farther apart than this many GSD are left out of the ICP steps."""
 
 
 def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | Path | None = None) -> dict:
@@ -43,10 +48,11 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     region = np.ones(len(model.vertices), bool) if whole_body else in_site(model.vertices, truth)
     if region.sum() < 10:
         raise ValueError(f"{model_path}: only {region.sum()} vertices inside the evaluation region")
-    surface = ClosestPoint(truth.mesh)
+    reach_km = ICP_REACH_GSD * gsd_km
+    surface = ClosestPoint(truth.mesh if whole_body else near_site(truth, margin_km=2 * reach_km))
     points = model.vertices[region]
     sample = points[np.random.default_rng(0).permutation(len(points))[:ICP_POINTS]]
-    transform = register(sample, surface, max_distance_km=20 * gsd_km)
+    transform = register(sample, surface, max_distance_km=reach_km, tolerance_km=ICP_TOLERANCE_GSD * gsd_km)
     registered = Mesh(transform.apply(model.vertices), model.faces, model.albedo)
     distance, _, _ = surface.query(registered.vertices[region])
     moved = np.linalg.norm(registered.vertices[region] - points, axis=1)
@@ -75,9 +81,20 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
 
 
 def in_site(points_body: np.ndarray, truth: Truth) -> np.ndarray:
-    """True for points inside the evaluation disc of the site (measured in the site frame's x-y)."""
+    """True for points inside the evaluation disc of the site (measured in the site frame's x-y) on
+    the site's side of the body: within the disc's radius of its plane, not on the far side."""
     local = truth.site_frame.to_local(points_body)
-    return np.hypot(local[:, 0], local[:, 1]) <= truth.eval_radius_km
+    return (np.hypot(local[:, 0], local[:, 1]) <= truth.eval_radius_km) & (np.abs(local[:, 2]) <= truth.eval_radius_km)
+
+
+def near_site(truth: Truth, *, margin_km: float) -> Mesh:
+    """The truth faces with a vertex within margin_km (km) of the evaluation disc's cylinder,
+    height included: the only ones that can be closest to a model vertex in the disc that lies
+    within margin_km of the truth (the full site truth has tens of millions of faces)."""
+    local = truth.site_frame.to_local(truth.mesh.vertices)
+    reach = truth.eval_radius_km + margin_km
+    near = (np.hypot(local[:, 0], local[:, 1]) <= reach) & (np.abs(local[:, 2]) <= reach)
+    return Mesh(truth.mesh.vertices, truth.mesh.faces[near[truth.mesh.faces].any(axis=1)])
 
 
 def sample_heights(tracer: RayTracer, truth: Truth, x_km: np.ndarray, y_km: np.ndarray) -> np.ndarray:
