@@ -10,6 +10,11 @@ import typer
 app = typer.Typer(help="Shape modeling of an asteroid with pixel-weighted maplets.", no_args_is_help=True,
                   add_completion=False, pretty_exceptions_enable=False)
 
+# Options of the commands that read a downlink directory through its SPICE kernels.
+INSTRUMENT = typer.Option(-64361, help="NAIF id of the camera (default: OSIRIS-REx MapCam)")
+TARGET = typer.Option("BENNU", help="SPICE name of the target body")
+BODY_FRAME = typer.Option("IAU_BENNU", help="body-fixed frame of the target")
+
 
 def setup_logging(verbose: bool) -> None:
     """Log to stderr: INFO, or DEBUG with --verbose."""

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from service.cli.app import app, setup_logging
+from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, setup_logging
 
 
 def _knowledge_error(value: Optional[str]) -> tuple[float, float]:
@@ -79,9 +79,9 @@ def refine(
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
     search_px: float = typer.Option(1.0, min=0.0, help="how far images may be off the maplets (px), from the pose knowledge"),
     corrections: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="pose corrections to apply (corrections.json of pwm spg)"),
-    instrument: int = typer.Option(-64361, help="NAIF id of the camera"),
-    target: str = typer.Option("BENNU"),
-    body_frame: str = typer.Option("IAU_BENNU"),
+    instrument: int = INSTRUMENT,
+    target: str = TARGET,
+    body_frame: str = BODY_FRAME,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Refine a start model with a downlink's images: tile, weigh, photoclinometry, fuse."""

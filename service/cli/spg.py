@@ -11,7 +11,7 @@ from typing import Optional
 import typer
 
 from pwm.camera import PoseCorrection
-from service.cli.app import app, setup_logging
+from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, setup_logging
 
 
 # options both commands take
@@ -45,9 +45,9 @@ def spg(
     first_octave: Optional[int] = FIRST_OCTAVE,
     per_image: int = PER_IMAGE,
     threads: int = THREADS,
-    instrument: int = typer.Option(-64361, help="NAIF id of the camera"),
-    target: str = typer.Option("BENNU"),
-    body_frame: str = typer.Option("IAU_BENNU"),
+    instrument: int = INSTRUMENT,
+    target: str = TARGET,
+    body_frame: str = BODY_FRAME,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Photogrammetric model and per-image pose corrections from a downlink's images."""
