@@ -21,6 +21,7 @@ from pwm.fusion import VoxelGrid
 from pwm.io.downlink import View
 from pwm.maplets import Maplet
 from pwm.mesh import Mesh
+from pwm.parallel import share_cores
 from pwm.photoclinometry import MapletImages, Mode, refine
 from pwm.raytrace import RayTracer
 from pwm.visibility import Visibility, node_visibility
@@ -125,7 +126,8 @@ def search_levels(search_px: float) -> tuple[tuple[int, float], ...]:
 _WORKER: dict = {}
 
 
-def _init_worker(start: Mesh, views: list[View], mode: Mode, search_px: float = 1.0) -> None:
+def _init_worker(start: Mesh, views: list[View], mode: Mode, search_px: float = 1.0, processes: int = 1) -> None:
+    share_cores(processes)
     # An Embree scene cannot cross processes: each worker builds its own from the start model.
     _WORKER.update(tracer=RayTracer(start), views=views, mode=mode, search_px=search_px)
 
@@ -145,7 +147,7 @@ def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, mod
         iterator = map(_refine_in_worker, maplets)
         pool = None
     else:
-        pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_worker, initargs=(start, views, mode, search_px))
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_worker, initargs=(start, views, mode, search_px, workers))
         iterator = pool.map(_refine_in_worker, maplets)
     try:
         for k, result in enumerate(iterator, 1):

@@ -33,6 +33,7 @@ from pydantic import Field, model_validator
 from sqlalchemy.orm import Session
 
 from pwm.io.spice_kernels import KernelError
+from pwm.parallel import share_cores
 from pwm.photoclinometry import Mode
 from service.db import make_engine, make_sessionmaker
 from service.kernels import accepted_kernels
@@ -167,17 +168,25 @@ def process_state() -> ProcessState:
     return _state
 
 
+_controller: Any = None
+"""This worker's WorkController: its pool processes, forked from it, read its concurrency."""
+
+
 @signals.worker_init.connect
-def _refuse_threads(sender: Any, **_: Any) -> None:
+def _check_pool(sender: Any, **_: Any) -> None:
+    global _controller
     pool = get_implementation(sender.pool_cls)
     if not issubclass(pool, (PreforkPool, SoloPool)):
         # Handlers' exceptions are only logged by Celery; SystemExit stops the worker.
         raise SystemExit(f"pwm workers run the prefork or solo pool, not {pool.__module__}: "
                          "SPICE's kernel pool is per process and not thread-safe")
+    _controller = sender  # "auto" concurrency is resolved only after this signal
 
 
 @signals.worker_process_init.connect
 def _prepare_process(**_: Any) -> None:
+    # worker_process_init comes in prefork's pool processes alone
+    share_cores(int(_controller.concurrency) if _controller is not None else 1)
     process_state()
 
 

@@ -75,6 +75,7 @@ def refine(
     lon: Optional[float] = typer.Option(None, help="region centre east longitude, deg"),
     radius: Optional[float] = typer.Option(None, min=0.0, help="region radius, km"),
     nodes: int = typer.Option(100, min=8, help="maplet nodes per side"),
+    spacing_gsd: float = typer.Option(1.0, min=0.25, max=2.0, help="node spacing in image GSDs (median pixel scale)"),
     overlap: float = typer.Option(0.25, min=0.0, max=0.75, help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
     search_px: float = typer.Option(1.0, min=0.0, help="how far images may be off the maplets (px), from the pose knowledge"),
@@ -106,6 +107,7 @@ def refine(
         region = dataclasses.replace(region, lat_deg=lat, lon_deg=lon)
     if radius is not None:
         region = dataclasses.replace(region, radius_km=radius)
+    region = dataclasses.replace(region, spacing_km=spacing_gsd * region.spacing_km)
     maplets = tile(start_model, spacing_km=region.spacing_km, nodes=nodes, overlap=overlap, centre_lat_deg=region.lat_deg,
                    centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
     logging.getLogger("pwm").info("%d images, %d maplets of %d nodes at %.3f m around (%.3f, %.3f) within %.1f m",
