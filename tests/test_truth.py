@@ -12,7 +12,7 @@ import pwm
 from pwm.frames import latlon_to_unit, unit_to_latlon
 from pwm.io.meshio import read_obj
 from pwm.raytrace import RayTracer
-from pwm.simulate.truth import Truth, build_base, build_truth, load, low_pass, low_pass_heights, save
+from pwm.simulate.truth import Truth, build_base, build_truth, load, low_pass, low_pass_heights, sampled, save
 
 BENNU = Path(pwm.__file__).parent / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
 SITE = dict(site_lat_deg=20.0, site_lon_deg=75.0, site_size_km=0.008, resolution_km=5e-5, base_edge_km=0.008,
@@ -190,6 +190,26 @@ def test_low_pass_is_a_smooth_valid_model_away_from_the_truth(truth):
     # and the low-passed heights are the truth's in the border band, where they meet the base
     band = truth.blend_weight() == 0
     assert np.array_equal(smooth[band], truth.height_km[band])
+
+
+def test_sampled_truth_holds_the_cell_averages_at_its_nodes(truth):
+    same = sampled(truth, spacing_km=truth.resolution_km, average_km=truth.resolution_km)
+    assert np.array_equal(same.vertices, truth.mesh.vertices) and np.array_equal(same.faces, truth.mesh.faces)
+    assert np.array_equal(same.albedo, truth.mesh.albedo)
+
+    step = 3
+    coarse = sampled(truth, spacing_km=step * truth.resolution_km, average_km=step * truth.resolution_km)
+    xx, yy = np.meshgrid(truth.x_km[::step], truth.y_km[::step])
+    assert len(coarse.vertices) == truth.n_base_vertices + xx.size
+    average = ndimage.uniform_filter(truth.height_km, step, mode="nearest")[::step, ::step]
+    site = np.hypot(xx, yy) <= truth.eval_radius_km  # the border band lies on the base faces
+    # rays just beside the nodes: exactly on a vertex, single precision lets some slip through
+    nudge = 1e-4 * truth.resolution_km
+    h = drop_rays(RayTracer(coarse), truth, xx[site] + 1.3 * nudge, yy[site] + 0.7 * nudge)
+    assert np.abs(h - average[site]).max() < 0.1 * MM
+    patch = coarse.albedo[truth.n_base_vertices:].reshape(xx.shape)
+    assert patch[1, 1] == pytest.approx(truth.albedo_grid[2:5, 2:5].mean(), rel=1e-12)
+    assert np.array_equal(coarse.albedo[:truth.n_base_vertices], truth.mesh.albedo[:truth.n_base_vertices])
 
 
 def test_save_and_load_round_trip(truth, tmp_path):

@@ -386,9 +386,28 @@ def low_pass(truth: Truth, *, wavelength_km: float, spacing_km: float | None = N
     axis = np.linspace(-half, half, m)
     index = (axis - truth.x_km[0]) / truth.resolution_km
     coarse = ndimage.map_coordinates(smooth, np.meshgrid(index, index, indexing="ij"), order=1, mode="nearest")
+    return _with_patch(truth, axis, axis, coarse)
+
+
+def sampled(truth: Truth, *, spacing_km: float, average_km: float) -> Mesh:
+    """The truth as a model on a coarser grid could hold it at best: the patch heights and albedo
+    averaged over squares of side average_km and sampled every spacing_km (both rounded to whole
+    truth nodes), on the truth's base (km, with albedo)."""
+    stride = max(1, int(round(spacing_km / truth.resolution_km)))
+    box = max(1, int(round(average_km / truth.resolution_km)))
+    heights = ndimage.uniform_filter(truth.height_km, box, mode="nearest")[::stride, ::stride]
+    albedo = ndimage.uniform_filter(truth.albedo_grid, box, mode="nearest")[::stride, ::stride]
+    return _with_patch(truth, truth.x_km[::stride], truth.y_km[::stride], heights, albedo)
+
+
+def _with_patch(truth: Truth, x_km: np.ndarray, y_km: np.ndarray, height_km: np.ndarray,
+                albedo: np.ndarray | None = None) -> Mesh:
+    """The truth's base with a patch grid of heights (len(y), len(x)) in the site frame; with
+    albedo per node, the base keeps its own."""
     base = truth.base_mesh()
-    return Mesh(np.vstack([base.vertices, _grid_vertices(truth.site_frame, axis, axis, coarse)]),
-                np.vstack([base.faces, _grid_faces(m, m) + len(base.vertices)]))
+    return Mesh(np.vstack([base.vertices, _grid_vertices(truth.site_frame, x_km, y_km, height_km)]),
+                np.vstack([base.faces, _grid_faces(len(y_km), len(x_km)) + len(base.vertices)]),
+                None if albedo is None else np.concatenate([base.albedo, albedo.ravel()]))
 
 
 def save(truth: Truth, directory: str | Path) -> None:
