@@ -22,10 +22,10 @@ from pwm.io.downlink import View
 from pwm.maplets import Maplet
 from pwm.mesh import Mesh
 from pwm.parallel import share_cores
-from pwm.photoclinometry import MapletImages, Mode, refine
+from pwm.photoclinometry import MapletImages, Mode, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.visibility import Visibility, node_visibility
-from pwm.weights import ImageGeometry, MapletWeights, image_geometry, weigh_maplet
+from pwm.weights import ImageGeometry, MapletWeights, dark_nodes, image_geometry, weigh_maplet, without_dark
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +106,11 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode:
     if data.count >= min_images:
         # navigation knowledge errors move images by many pixels: register them before the joint
         # solution, which only corrects offsets within its linear reach (about a pixel)
-        result = refine(maplet, data, mode=mode, offsets=register(maplet, data, levels=search_levels(search_px)).offsets)
+        offsets = register(maplet, data, levels=search_levels(search_px)).offsets
+        if mode == "pwm":
+            # the start lacks the relief that casts most shadows: the images show them
+            data.weights = without_dark(data.weights, dark_nodes(extract(maplet, data, offsets=offsets), data.weights))
+        result = refine(maplet, data, mode=mode, offsets=offsets)
         refined.heights, refined.albedo = result.heights, result.albedo
         iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
     return MapletResult(maplet=refined, images=[views[k].name for k in keep], region_weight=weights.region,

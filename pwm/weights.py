@@ -62,6 +62,9 @@ class Rules:
     """Spread (standard deviation) of a maplet's slope angles above which its terrain is steep."""
     shadow_edge_factor: float = 0.5
     """Factor on lit nodes next to a shadowed node."""
+    dark_fraction: float = 0.15
+    """A node darker in an image than this fraction of the image's median over the maplet lies in
+    a shadow, cast by relief the current shape may not have yet (boulders missing from the start)."""
     nadir_tolerance_deg: float = 10.0
     """Nadir candidates: within this of the lowest emission; the lowest phase angle among them wins."""
     side_min_emission_deg: float = 10.0
@@ -78,6 +81,10 @@ class Rules:
 
 
 RULES = Rules()
+
+_SAME_IMAGE = np.zeros((3, 3, 3), dtype=bool)
+_SAME_IMAGE[1] = True
+"""Dilation structure on (K, n, n) node arrays: the 8 neighbours within one image, none across images."""
 
 
 @dataclass
@@ -201,14 +208,28 @@ def node_factors(vis: Visibility, heights: np.ndarray, spacing_km: float, *, in_
     n = heights.shape[0]
     seen = (vis.visible if in_frame is None else vis.visible & in_frame).reshape(-1, n, n)
     lit = vis.lit.reshape(-1, n, n)
-    # neighbours within one image only: no growth along the image axis
-    ring = np.zeros((3, 3, 3), dtype=bool)
-    ring[1] = True
-    near_dark = ndimage.binary_dilation(~lit, structure=ring)
-    near_lit = ndimage.binary_dilation(lit, structure=ring)
+    near_dark = ndimage.binary_dilation(~lit, structure=_SAME_IMAGE)
+    near_lit = ndimage.binary_dilation(lit, structure=_SAME_IMAGE)
     keep_dark = rules.shadow_keep_weight if slope_spread_deg(heights, spacing_km) > rules.steep_slope_std_deg else 0.0
     factor = np.where(lit, np.where(near_dark, rules.shadow_edge_factor, 1.0), np.where(near_lit, keep_dark, 0.0))
     return np.where(seen, factor, 0.0)
+
+
+def dark_nodes(values: np.ndarray, weights: np.ndarray, rules: Rules = RULES) -> np.ndarray:
+    """(K, n, n) nodes in shadow by the images themselves: darker than rules.dark_fraction of their
+    image's median over the nodes it weighs. values: image values at the nodes (K, n, n), NaN where
+    missing; weights: the pixel weights (K, n, n)."""
+    used = np.isfinite(values) & (weights > 0)
+    typical = np.array([np.median(v[u]) if u.any() else np.nan for v, u in zip(values, used)])
+    with np.errstate(invalid="ignore"):
+        return used & (values < rules.dark_fraction * typical[:, None, None])
+
+
+def without_dark(weights: np.ndarray, dark: np.ndarray, rules: Rules = RULES) -> np.ndarray:
+    """Pixel weights (K, n, n) with dark nodes excluded and their neighbours in the same image
+    taken down by shadow_edge_factor, as for the shadows the shape casts (`node_factors`)."""
+    near = ndimage.binary_dilation(dark, structure=_SAME_IMAGE) & ~dark
+    return np.where(dark, 0.0, np.where(near, rules.shadow_edge_factor * weights, weights))
 
 
 def five_views(geom: ImageGeometry, image_weight: np.ndarray, keep: np.ndarray, rules: Rules = RULES) -> FiveViews:

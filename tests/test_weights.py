@@ -11,8 +11,8 @@ from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.visibility import Visibility, node_visibility
 from pwm.weights import (
-    RULES, ImageGeometry, Rules, azimuth_spread_deg, five_views, image_geometry, image_weights, node_factors,
-    region_weight, select_images, slope_spread_deg, weigh_maplet,
+    RULES, ImageGeometry, Rules, azimuth_spread_deg, dark_nodes, five_views, image_geometry, image_weights,
+    node_factors, region_weight, select_images, slope_spread_deg, weigh_maplet, without_dark,
 )
 
 
@@ -151,6 +151,27 @@ def grid_mesh(maplet: Maplet) -> Mesh:
     c = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
     faces = np.vstack([np.column_stack([c, c + 1, c + n + 1]), np.column_stack([c, c + n + 1, c + n])])
     return Mesh(maplet.nodes_body().reshape(-1, 3), faces)
+
+
+def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():
+    rng = np.random.default_rng(3)
+    values = rng.uniform(0.8, 1.2, (2, 8, 8)) * np.array([1.0, 0.03])[:, None, None]  # bright and dim images
+    values[0, 2:4, 5] = 0.1   # a cast shadow in the bright image: 10% of its median
+    values[1, 6, 6] = 0.003   # and in the dim one, by its own median
+    values[0, 7, 0] = np.nan  # no data
+    weights = np.ones_like(values)
+    weights[1, 0, 0] = 0.0    # not weighed: never dark, and not counted in the median
+    values[1, 0, 0] = 0.0
+    dark = dark_nodes(values, weights)
+    assert sorted(zip(*np.nonzero(dark))) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
+
+    out = without_dark(weights, dark)
+    assert (out[dark] == 0).all()
+    around = np.zeros_like(dark)
+    around[0, 1:5, 4:7] = around[1, 5:8, 5:8] = True
+    around &= ~dark
+    assert np.allclose(out[around], RULES.shadow_edge_factor)  # neighbours in the same image only
+    assert (out[~dark & ~around] == weights[~dark & ~around]).all()
 
 
 def test_weigh_maplet_on_real_shadows_and_occlusion():
