@@ -156,8 +156,9 @@ def grid_mesh(maplet: Maplet) -> Mesh:
 def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():
     rng = np.random.default_rng(3)
     values = rng.uniform(0.8, 1.2, (2, 8, 8)) * np.array([1.0, 0.03])[:, None, None]  # bright and dim images
-    values[0, 2:4, 5] = 0.1   # a cast shadow in the bright image: 10% of its median
-    values[1, 6, 6] = 0.003   # and in the dim one, by its own median
+    values[0, 2:4, 5] = 0.02  # a cast shadow in the bright image: 2% of its median
+    values[0, 0, 3] = 0.1     # a dim face turned from the Sun, lit all the same
+    values[1, 6, 6] = 0.0006  # a shadow in the dim image, by its own median
     values[0, 7, 0] = np.nan  # no data
     weights = np.ones_like(values)
     weights[1, 0, 0] = 0.0    # not weighed: never dark, and not counted in the median
@@ -165,13 +166,24 @@ def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():
     dark = dark_nodes(values, weights)
     assert sorted(zip(*np.nonzero(dark))) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
 
+    values[1, 0:3, 0:3] = 0.0005  # a wide shadow: its centre has no lit neighbour
+    dark = dark_nodes(values, weights)
+    assert dark[1, 0:3, 0:3].sum() == 8  # the unweighed node excepted
+
     out = without_dark(weights, dark)
-    assert (out[dark] == 0).all()
+    inner = [(1, 1, 1), (1, 0, 1), (1, 1, 0)]  # no lit neighbour: the unweighed node is none
+    assert [out[i] for i in inner] == [0.0] * 3
+    edge = dark.copy()
+    for i in inner:
+        edge[i] = False
+    assert np.allclose(out[edge], RULES.shadow_keep_weight)
     around = np.zeros_like(dark)
-    around[0, 1:5, 4:7] = around[1, 5:8, 5:8] = True
+    around[0, 1:5, 4:7] = around[1, 5:8, 5:8] = around[1, 0:4, 0:4] = True
     around &= ~dark
+    around[1, 0, 0] = False  # not weighed
     assert np.allclose(out[around], RULES.shadow_edge_factor)  # neighbours in the same image only
-    assert (out[~dark & ~around] == weights[~dark & ~around]).all()
+    rest = ~dark & ~around
+    assert (out[rest] == weights[rest]).all()
 
 
 def test_weigh_maplet_on_real_shadows_and_occlusion():
