@@ -166,21 +166,11 @@ def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():
     dark = dark_nodes(values, weights)
     assert sorted(zip(*np.nonzero(dark))) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
 
-    values[1, 0:3, 0:3] = 0.0005  # a wide shadow: its centre has no lit neighbour
-    dark = dark_nodes(values, weights)
-    assert dark[1, 0:3, 0:3].sum() == 8  # the unweighed node excepted
-
     out = without_dark(weights, dark)
-    inner = [(1, 1, 1), (1, 0, 1), (1, 1, 0)]  # no lit neighbour: the unweighed node is none
-    assert [out[i] for i in inner] == [0.0] * 3
-    edge = dark.copy()
-    for i in inner:
-        edge[i] = False
-    assert np.allclose(out[edge], RULES.shadow_keep_weight)
+    assert (out[dark] == 0).all()
     around = np.zeros_like(dark)
-    around[0, 1:5, 4:7] = around[1, 5:8, 5:8] = around[1, 0:4, 0:4] = True
+    around[0, 1:5, 4:7] = around[1, 5:8, 5:8] = True
     around &= ~dark
-    around[1, 0, 0] = False  # not weighed
     assert np.allclose(out[around], RULES.shadow_edge_factor)  # neighbours in the same image only
     rest = ~dark & ~around
     assert (out[rest] == weights[rest]).all()
