@@ -130,10 +130,16 @@ def search_levels(search_px: float) -> tuple[tuple[int, float], ...]:
 _WORKER: dict = {}
 
 
-def _init_worker(start: Mesh, views: list[View], mode: Mode, search_px: float = 1.0, processes: int = 1) -> None:
-    share_cores(processes)
+def _init_worker(start: Mesh, views: list[View], mode: Mode, search_px: float = 1.0) -> None:
     # An Embree scene cannot cross processes: each worker builds its own from the start model.
     _WORKER.update(tracer=RayTracer(start), views=views, mode=mode, search_px=search_px)
+
+
+def _init_pool_process(processes: int, *args) -> None:
+    """A pool process: its share of the cores (the caller's own thread limits stay as they are),
+    then `_init_worker(*args)`."""
+    share_cores(processes)
+    _init_worker(*args)
 
 
 def _refine_in_worker(maplet: Maplet) -> MapletResult:
@@ -151,7 +157,8 @@ def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, mod
         iterator = map(_refine_in_worker, maplets)
         pool = None
     else:
-        pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_worker, initargs=(start, views, mode, search_px, workers))
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_pool_process,
+                                   initargs=(workers, start, views, mode, search_px))
         iterator = pool.map(_refine_in_worker, maplets)
     try:
         for k, result in enumerate(iterator, 1):
