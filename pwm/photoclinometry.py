@@ -8,10 +8,15 @@ w_i -> infinity limit), and no slope integration step is needed before re-projec
 objective (METHOD.md section 5), with reflectance normalised by the mean data brightness I_ref:
 
     sum_k sum_nodes (w_k (I_k(x_k + o_k) - s_k A G_k(p, q)) / I_ref)^2
-      + (slope_weight / w_PWM) sum_edges ((p - p0)^2 + (q - q0)^2)
+      + (slope_weight / w_PWM) sum_edges rho(p - p0) + rho(q - q0)
       + (height_weight / w_PWM) sum_nodes ((z - z0) / spacing)^2
       + albedo_weight sum_nodes ((A - A_ref) / A_ref)^2 + offset_weight sum_k |o_k - o_k,start|^2
 
+rho(d) = 2 c^2 (sqrt(1 + (d / c)^2) - 1) with c = slope_scale: the pseudo-Huber function, d^2 for
+slope changes well below c and growing only linearly beyond, so that the relief the start lacks
+(boulders, whose flanks differ from the start's slopes by far more than noise does) is not held
+down as hard as noise is. I_k(x) is sampled by cubic convolution, which does not blur detail
+between the pixel centres as bilinear sampling does.
 x_k: the nodes projected into image k at their current heights; G: the McEwen lunar-Lambert
 function of pwm.photometry with the node normal from central differences of the heights
 (one-sided on the border). The slope tie uses forward differences, which also see the odd-even
@@ -149,6 +154,45 @@ def bilinear_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray
     along = (np.array([0.5, 0.0]), np.array([0.0, 0.5]))
     gradient = np.stack([bilinear(image, pixels + d) - bilinear(image, pixels - d) for d in along], axis=-1)
     return bilinear(image, pixels), gradient
+
+
+def _keys(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weights (..., 4) of Keys' cubic convolution (a = -1/2) for the pixels at -1, 0, 1, 2 from
+    the one below a sample at fraction f (...) in [0, 1), and their derivatives in f."""
+    f2, f3 = f * f, f * f * f
+    w = 0.5 * np.stack([-f3 + 2 * f2 - f, 3 * f3 - 5 * f2 + 2, -3 * f3 + 4 * f2 + f, f3 - f2], axis=-1)
+    dw = 0.5 * np.stack([-3 * f2 + 4 * f - 1, 9 * f2 - 10 * f, -9 * f2 + 8 * f + 1, 3 * f2 - 2 * f], axis=-1)
+    return w, dw
+
+
+def cubic_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cubic-convolution samples (...) of an image [line, sample] at pixels (..., 2) = (sample,
+    line), pixel centres at integers, and the interpolant's derivatives (..., 2) per px (it is
+    continuously differentiable); NaN outside the frame or next to a NaN pixel. Unlike bilinear
+    sampling, it does not blur what lies between the pixel centres."""
+    height, width = image.shape
+    s, l = pixels[..., 0], pixels[..., 1]
+    inside = (s >= 0) & (s <= width - 1) & (l >= 0) & (l <= height - 1)
+    s = np.where(inside, s, 0.0)
+    l = np.where(inside, l, 0.0)
+    s0, l0 = np.floor(s), np.floor(l)
+    taps = np.arange(-1, 3)
+    ws, dws = _keys(s - s0)
+    wl, dwl = _keys(l - l0)
+    cols = np.clip(s0.astype(np.intp)[..., None] + taps, 0, width - 1)
+    rows = np.clip(l0.astype(np.intp)[..., None] + taps, 0, height - 1)
+    patch = image.ravel()[rows[..., :, None] * width + cols[..., None, :]]  # (..., 4 lines, 4 samples)
+    along = np.einsum("...ij,...j->...i", patch, ws)
+    value = np.einsum("...i,...i->...", along, wl)
+    ds = np.einsum("...i,...i->...", np.einsum("...ij,...j->...i", patch, dws), wl)
+    dl = np.einsum("...i,...i->...", along, dwl)
+    nan = np.where(inside, 0.0, np.nan)
+    return value + nan, np.stack([ds, dl], axis=-1) + nan[..., None]
+
+
+def cubic(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Cubic-convolution samples, as `cubic_gradient` without the derivatives."""
+    return cubic_gradient(image, pixels)[0]
 
 
 def extract(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | None = None,
@@ -298,14 +342,16 @@ class _Problem:
     """One maplet's refinement: data, operators on the node grid (units of one spacing), priors."""
 
     def __init__(self, maplet: Maplet, data: MapletImages, *, weights: np.ndarray, region: float,
-                 offsets: np.ndarray, solve_offsets: bool, slope_weight: float, height_weight: float,
+                 offsets: np.ndarray, solve_offsets: bool, slope_weight: float, slope_scale: float, height_weight: float,
                  albedo_weight: float, offset_weight: float) -> None:
         n = maplet.n
         self.maplet, self.data = maplet, data
         self.weights = weights.reshape(data.count, -1)
         self.dx, self.dy = _gradient_operators(n)
-        fwd = _difference_operator(n)
-        self.prior = ((slope_weight / region) * (fwd.T @ fwd) + (height_weight / region) * sp.identity(n * n)).tocsr()
+        self.fwd = _difference_operator(n)
+        self.slope_tie = slope_weight / region
+        self.height_tie = height_weight / region
+        self.slope_scale = slope_scale
         self.u0 = maplet.heights.ravel() / maplet.spacing_km
         self.offsets0 = offsets
         self.offset_weight = offset_weight
@@ -337,11 +383,11 @@ class _Problem:
         pixels = node_pixels(maplet, data, heights=heights, offsets=state.offsets).reshape(data.count, -1, 2)
         gradients = None
         if self.solve_offsets:
-            sampled = [bilinear_gradient(image, pixels[k]) for k, image in enumerate(data.images)]
+            sampled = [cubic_gradient(image, pixels[k]) for k, image in enumerate(data.images)]
             values = np.stack([v for v, _ in sampled])
             gradients = np.stack([g for _, g in sampled])
         else:
-            values = np.stack([bilinear(image, pixels[k]) for k, image in enumerate(data.images)])
+            values = np.stack([cubic(image, pixels[k]) for k, image in enumerate(data.images)])
         used = np.isfinite(values) & (self.weights > 0)
         if gradients is not None:
             used &= np.isfinite(gradients).all(axis=-1)
@@ -353,9 +399,26 @@ class _Problem:
         du = state.u - self.u0
         da = (state.albedo - self.albedo_prior) / self.albedo_prior
         do = state.offsets - self.offsets0
-        cost = float((residuals**2).sum() + du @ (self.prior @ du) + self.albedo_weight * (da @ da)
+        cost = float((residuals**2).sum() + self._tie_cost(du) + self.albedo_weight * (da @ da)
                      + self.offset_weight * (do * do).sum())
         return _Evaluation(rows=rows, gradients=gradients, G=G, Gp=Gp, Gq=Gq, residuals=residuals, cost=cost), values
+
+    def _tie_cost(self, du: np.ndarray) -> float:
+        """The ties to the start: pseudo-Huber on the slope changes (quadratic below slope_scale,
+        linear beyond, so that relief the start lacks is not held down as hard as noise), quadratic
+        on the heights."""
+        d = self.fwd @ du
+        c = self.slope_scale
+        slope = float(np.sum(2 * c * c * (np.sqrt(1 + (d / c) ** 2) - 1)))
+        return self.slope_tie * slope + self.height_tie * float(du @ du)
+
+    def _tie_matrix(self, du: np.ndarray) -> sp.csr_matrix:
+        """The ties' Gauss-Newton matrix at du (IRLS weights on the slope changes): its product
+        with du is half the gradient of `_tie_cost`."""
+        n2 = len(du)
+        d = self.fwd @ du
+        w = 1.0 / np.sqrt(1 + (d / self.slope_scale) ** 2)
+        return (self.slope_tie * (self.fwd.T @ sp.diags(w) @ self.fwd) + self.height_tie * sp.identity(n2)).tocsr()
 
     def step(self, state: _State, ev: _Evaluation) -> _State:
         """One Gauss-Newton step (as a _State of increments). The albedo (a diagonal block) is
@@ -406,9 +469,10 @@ class _Problem:
             xta, xtx, xty = basis.T @ xta, basis.T @ xtx, basis.T @ xty
 
         dx, dy = self.dx, self.dy
+        tie = self._tie_matrix(state.u - self.u0)
         huu = (dx.T @ sp.diags(mxx) @ dx + dx.T @ sp.diags(mxy) @ dy + dy.T @ sp.diags(mxy) @ dx
-               + dy.T @ sp.diags(myy) @ dy + self.prior)
-        gu = dx.T @ gx + dy.T @ gy + self.prior @ (state.u - self.u0)
+               + dy.T @ sp.diags(myy) @ dy + tie)
+        gu = dx.T @ gx + dy.T @ gy + tie @ (state.u - self.u0)
         hut = np.asarray(dx.T @ xtx.T + dy.T @ xty.T)
         solved = splu(huu.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(np.column_stack([gu, hut]))
         yg, yt = solved[:, 0], solved[:, 1:]
@@ -471,6 +535,7 @@ def refine(
     max_iterations: int = 30,
     tolerance: float = 0.01,
     slope_weight: float = 0.02,
+    slope_scale: float = 0.25,
     height_weight: float = 1e-3,
     albedo_weight: float = 1e-3,
     offset_weight: float = 1e-3,
@@ -482,7 +547,10 @@ def refine(
     px, e.g. from `pwm.alignment.align`; solve_offsets: refine them too, jointly (image gradients
     as their derivatives), tied to the given ones by offset_weight per px^2. tolerance: RMS height
     change of one step that ends the iterations, in node spacings. slope_weight, height_weight:
-    strengths of the ties to the starting slopes and heights (divided by w_PWM); albedo_weight: of
+    strengths of the ties to the starting slopes and heights (divided by w_PWM); slope_scale: the
+    slope change (dimensionless, dz per spacing) beyond which the slope tie grows only linearly
+    (site scenario, steep boulders' median height: 0.81 of the truth at 0.1, 0.80 at 0.25; site-polar's
+    held-out NCC: 0.79 at 0.1, 0.81 at 0.25); albedo_weight: of
     the tie to the maplet's albedo (or to the median albedo if it has none). Nodes without data
     keep the starting shape.
     """
@@ -490,7 +558,7 @@ def refine(
     weights, region = data.data_weights(mode)
     start = np.zeros((k_images, 2)) if offsets is None else np.asarray(offsets, float).reshape(k_images, 2)
     problem = _Problem(maplet, data, weights=weights, region=region, offsets=start, solve_offsets=solve_offsets,
-                       slope_weight=slope_weight, height_weight=height_weight, albedo_weight=albedo_weight,
+                       slope_weight=slope_weight, slope_scale=slope_scale, height_weight=height_weight, albedo_weight=albedo_weight,
                        offset_weight=offset_weight)
     state, ev = problem.start()
     converged = not ev.rows.any()

@@ -22,7 +22,8 @@ from pwm.camera import Camera, Pose, look_at, project
 from pwm.frames import latlon_to_unit, local_frame
 from pwm.maplets import Maplet
 from pwm.mesh import Mesh
-from pwm.photoclinometry import MapletImages, Refinement, _Geometry, _shading, bilinear, extract, refine, slopes
+from pwm.photoclinometry import (MapletImages, Refinement, _Geometry, _Problem, _shading, bilinear, cubic, cubic_gradient, extract, refine,
+                                 slopes)
 from pwm.raytrace import RayTracer
 from pwm.render import render
 
@@ -174,6 +175,25 @@ def test_extract_samples_bilinearly_and_marks_outside(scene: Scene) -> None:
     assert np.isnan(bilinear(image, np.array([[-0.01, 5.0], [5.0, 79.01]]))).all()
 
 
+def test_cubic_sampling_is_exact_on_quadratics_and_sharper_than_bilinear() -> None:
+    lines, samples = np.mgrid[0:40, 0:50].astype(float)
+    image = 0.3 + 0.02 * samples - 0.01 * lines + 1e-3 * samples * lines - 2e-4 * samples**2 + 3e-4 * lines**2
+    at = np.random.default_rng(3).uniform(0.0, [49.0, 39.0], (500, 2))
+    s, l = at[:, 0], at[:, 1]
+    values, gradient = cubic_gradient(image, at)
+    inner = (s >= 1) & (s <= 48) & (l >= 1) & (l <= 38)  # the clamped border is not exact
+    np.testing.assert_allclose(values[inner], (0.3 + 0.02 * s - 0.01 * l + 1e-3 * s * l - 2e-4 * s**2 + 3e-4 * l**2)[inner], atol=1e-12)
+    np.testing.assert_allclose(gradient[inner, 0], (0.02 + 1e-3 * l - 4e-4 * s)[inner], atol=1e-12)
+    np.testing.assert_allclose(gradient[inner, 1], (-0.01 + 1e-3 * s + 6e-4 * l)[inner], atol=1e-12)
+    assert np.isnan(cubic(image, np.array([[-0.01, 5.0], [5.0, 39.01]]))).all()
+    # detail at six pixels a period, between the pixel centres
+    wave = np.sin(2 * np.pi * samples / 6.0)
+    truth = np.sin(2 * np.pi * s[inner] / 6.0)
+    cubic_error = np.sqrt(np.mean((cubic(wave, at[inner]) - truth) ** 2))
+    bilinear_error = np.sqrt(np.mean((bilinear(wave, at[inner]) - truth) ** 2))
+    assert cubic_error < 0.5 * bilinear_error
+
+
 def test_refine_recovers_bump_and_scales(scene: Scene, refined: Refinement) -> None:
     result = refined
     truth = scene.truth.heights
@@ -207,6 +227,24 @@ def test_nodes_without_data_keep_the_starting_shape(scene: Scene) -> None:
 def test_region_weight_tightens_to_the_start(scene: Scene, refined: Refinement) -> None:
     tight = refine(scene.start, dataclasses.replace(scene.data, region_weight=0.02))
     assert _bump_height(tight.heights) < 0.7 * _bump_height(refined.heights)
+
+
+def test_the_slope_tie_holds_relief_the_start_lacks_less_than_noise(scene: Scene) -> None:
+    # Held tight to the flat start, a quadratic tie (slope_scale far above any slope) flattens
+    # the bump more than the pseudo-Huber tie, which grows only linearly beyond slope_scale.
+    tight = dataclasses.replace(scene.data, region_weight=0.02)
+    quadratic = refine(scene.start, tight, slope_scale=1e3)
+    robust = refine(scene.start, tight, slope_scale=0.1)
+    assert _bump_height(robust.heights) > 1.15 * _bump_height(quadratic.heights)
+    # and the tie's Gauss-Newton matrix is its gradient: finite differences of its cost
+    problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0, offsets=np.zeros((scene.data.count, 2)),
+                       solve_offsets=False, slope_weight=0.02, slope_scale=0.1, height_weight=1e-3, albedo_weight=1e-3,
+                       offset_weight=1e-3)
+    du = (robust.heights - scene.start.heights).ravel() / SPACING_KM
+    step = np.random.default_rng(5).normal(size=du.size)
+    h = 1e-6
+    numeric = (problem._tie_cost(du + h * step) - problem._tie_cost(du - h * step)) / (2 * h)
+    assert numeric == pytest.approx(2 * step @ (problem._tie_matrix(du) @ du), rel=1e-6)
 
 
 def test_pwm_weights_beat_standard_photoclinometry_in_shadow() -> None:
