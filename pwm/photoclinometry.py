@@ -535,7 +535,7 @@ def refine(
     max_iterations: int = 30,
     tolerance: float = 0.01,
     slope_weight: float = 0.02,
-    slope_scale: float = 0.25,
+    slope_scale: float = 0.17,
     height_weight: float = 1e-3,
     albedo_weight: float = 1e-3,
     offset_weight: float = 1e-3,
@@ -549,8 +549,8 @@ def refine(
     change of one step that ends the iterations, in node spacings. slope_weight, height_weight:
     strengths of the ties to the starting slopes and heights (divided by w_PWM); slope_scale: the
     slope change (dimensionless, dz per spacing) beyond which the slope tie grows only linearly
-    (site scenario, steep boulders' median height: 0.81 of the truth at 0.1, 0.80 at 0.25; site-polar's
-    held-out NCC: 0.79 at 0.1, 0.81 at 0.25); albedo_weight: of
+    (site scenario, steep boulders' median height: 0.81 of the truth at 0.1 and 0.17, 0.80 at 0.25;
+    site-polar's held-out NCC: 0.79 at 0.1, 0.80 at 0.17, 0.81 at 0.25); albedo_weight: of
     the tie to the maplet's albedo (or to the median albedo if it has none). Nodes without data
     keep the starting shape.
     """
