@@ -204,7 +204,7 @@ def test_refine_recovers_bump_and_scales(scene: Scene, refined: Refinement) -> N
     np.testing.assert_allclose(result.scales, scene.scales, rtol=0.02)
     albedo_error = np.sqrt(np.mean((result.albedo / scene.truth.albedo - 1) ** 2))
     assert albedo_error < 0.03
-    # The residuals come down to the noise (bilinear sampling averages some of it away).
+    # The residuals come down to the noise (interpolating between pixels averages some of it away).
     assert np.all(result.rms < 1.5 * NOISE * 0.03)
 
 
