@@ -282,7 +282,8 @@ def _read_array(label: Path, lines: int, samples: int) -> np.ndarray:
     try:
         structures = pds4_tools.read(str(label), lazy_load=True, quiet=True)
         image = next(s for s in structures if s.type == "Array_2D_Image")
-        data = np.ma.asarray(image.as_masked().data).astype(np.float64).filled(np.nan)
+        # a plain ndarray: pds4_tools' subclass makes every indexing call several times slower
+        data = np.asarray(np.ma.asarray(image.as_masked().data).astype(np.float64).filled(np.nan))
     except Exception as exc:  # pds4_tools has no exception hierarchy of its own to catch
         raise ProductError("unreadable", f"pds4_tools could not read {label.name}: {exc}") from exc
     finally:
