@@ -20,10 +20,12 @@ between the pixel centres as bilinear sampling does.
 x_k: the nodes projected into image k at their current heights; G: the McEwen lunar-Lambert
 function of pwm.photometry with the node normal from central differences of the heights
 (one-sided on the border). The slope tie uses forward differences, which also see the odd-even
-height patterns that central differences cannot. The height tie fixes what brightness cannot:
-the mean height and the longest wavelengths. Gauges: the scales keep a geometric mean of 1 (the
-data fix only s_k * A), and the offsets never move as a sideways shift of the whole maplet would
-move them (photometry cannot see that shift; the starting shape and poses fix it).
+height patterns that central differences cannot. The height tie holds what brightness barely
+sees: the longest wavelengths. Gauges, which the starting shape and poses fix: the scales keep a
+geometric mean of 1 (the data fix only s_k * A); the offsets never move as a sideways shift of
+the whole maplet would move them (photometry cannot see that shift); and the mean height stays
+the start's (the offsets can absorb a common rise's parallax, so the data see it only by
+perspective, and a direction that weak took many steps to drift along, to no gain).
 Gauss-Newton with backtracking on the objective re-projected at the trial heights, until the RMS
 height change of a step, or the relative decrease of the objective, is below its tolerance. The
 Jacobian includes each node's parallax: as a node rises it moves in every image, and its sample
@@ -34,6 +36,7 @@ the heights see no stereo at all.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Literal
@@ -381,7 +384,10 @@ class _Problem:
             self.i_ref = float(values[used].mean())
         albedo, scales, self.albedo_prior = _initial_albedo_and_scales(self.maplet, values, ev.rows, ev.G)
         state = _State(u=state.u, albedo=albedo, scales=scales, offsets=state.offsets)
-        return state, self.evaluate(state)
+        # the shape and offsets are the same: only the residuals change (rows were scaled by 1)
+        rows = ev.rows / self.i_ref
+        residuals = rows * (values - scales[:, None] * albedo * ev.G)
+        return state, dataclasses.replace(ev, rows=rows, residuals=residuals, cost=self._cost(state, residuals))
 
     def evaluate(self, state: _State) -> _Evaluation:
         return self._evaluate(state)[0]
@@ -403,12 +409,16 @@ class _Problem:
         rows = np.where(used, self.weights, 0.0) / self.i_ref
         G, Gp, Gq = _shading(-(self.dx @ state.u), -(self.dy @ state.u), _geometry(maplet, data, heights))
         residuals = rows * (values - state.scales[:, None] * state.albedo * G)
+        return _Evaluation(rows=rows, gradients=gradients, parallax=parallax, G=G, Gp=Gp, Gq=Gq, residuals=residuals,
+                           cost=self._cost(state, residuals)), values
+
+    def _cost(self, state: _State, residuals: np.ndarray) -> float:
+        """The objective at the state with these residuals."""
         du = state.u - self.u0
         da = (state.albedo - self.albedo_prior) / self.albedo_prior
         do = state.offsets - self.offsets0
-        cost = float((residuals**2).sum() + self._tie_cost(du) + self.albedo_weight * (da @ da)
+        return float((residuals**2).sum() + self._tie_cost(du) + self.albedo_weight * (da @ da)
                      + self.offset_weight * (do * do).sum())
-        return _Evaluation(rows=rows, gradients=gradients, parallax=parallax, G=G, Gp=Gp, Gq=Gq, residuals=residuals, cost=cost), values
 
     def _tie_cost(self, du: np.ndarray) -> float:
         """The ties to the start: pseudo-Huber on the slope changes (quadratic below slope_scale,
@@ -478,6 +488,11 @@ class _Problem:
         huu = ops.T @ sp.bmat([[sp.diags(mij) for mij in row] for row in m], format="csr") @ ops + tie
         gu = ops.T @ np.concatenate(g) + tie @ (state.u - self.u0)
         hut = ops.T @ np.vstack([x.T for x in xt])
+        # The mean height stays the start's: a Lagrange multiplier joins the per-image unknowns.
+        hut = np.column_stack([hut, np.ones(len(gu))])
+        htt = np.block([[htt, np.zeros((len(htt), 1))], [np.zeros((1, len(htt) + 1))]])
+        gt = np.append(gt, (state.u - self.u0).sum())
+        xta = np.vstack([xta, np.zeros((1, xta.shape[1]))])
         # huu is symmetric positive definite: symmetric mode with diagonal pivots skips
         # SuperLU's row pivoting, which it never needs here
         lu = splu(huu.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -486,6 +501,7 @@ class _Problem:
         dt = np.linalg.solve(htt - hut.T @ yt, -gt + hut.T @ yg)
         du = -(yg + yt @ dt)
         da = -(ga + (np.concatenate(pa) * (ops @ du)).reshape(3, -1).sum(axis=0) + xta.T @ dt) * inv
+        dt = dt[:-1]
         if self.solve_offsets:
             dt = self.image_basis @ dt
             return _State(u=du, albedo=da, scales=dt[:k_images], offsets=dt[k_images:].reshape(k_images, 2))
@@ -495,7 +511,7 @@ class _Problem:
 def datum_complement(maplet: Maplet, data: MapletImages) -> np.ndarray:
     """(2K, m) orthonormal basis of the image offsets (sample, line per image) orthogonal to those
     a shift of the maplet along its local x and y would cause (m = 2K - 2 in general). A shift
-    along z stays free: the height tie sets the mean height, and the offsets absorb its parallax."""
+    along z stays free: `refine` holds the mean height, and the offsets absorb its parallax."""
     centre = maplet.frame.origin
     step = maplet.spacing_km
     shift = np.column_stack([
@@ -541,7 +557,7 @@ def refine(
     solve_offsets: bool = True,
     max_iterations: int = 30,
     tolerance: float = 0.01,
-    cost_tolerance: float = 1e-3,
+    cost_tolerance: float = 1e-2,
     slope_weight: float = 0.02,
     slope_scale: float = 0.17,
     height_weight: float = 1e-3,
@@ -555,10 +571,9 @@ def refine(
     px, e.g. from `pwm.alignment.align`; solve_offsets: refine them too, jointly (image gradients
     as their derivatives), tied to the given ones by offset_weight per px^2. tolerance: RMS height
     change of one step that ends the iterations, in node spacings; cost_tolerance: the relative
-    decrease of the objective in one step that ends them (once it is this small, the steps left
-    move heights by about a hundredth of a spacing, and backtracking spends most evaluations
-    finding so). slope_weight, height_weight:
-    strengths of the ties to the starting slopes and heights (divided by w_PWM); slope_scale: the
+    decrease of the objective in one step that ends them (site: the steps left after 1% would
+    move heights by about a tenth of a spacing RMS, mostly at nodes few images see, and take as
+    long again). slope_weight, height_weight: strengths of the ties to the starting slopes and heights (divided by w_PWM); slope_scale: the
     slope change (dimensionless, dz per spacing) beyond which the slope tie grows only linearly
     (lower keeps more of the boulders the start lacks, higher keeps shadow-poor maplets closer to
     the start); albedo_weight: of

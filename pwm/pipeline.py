@@ -93,8 +93,8 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode:
     """Weigh and refine one maplet; with fewer than `min_images` usable images it keeps its start.
 
     search_px: how far (px) the images may be off the maplet, from the pose knowledge (about
-    3 sigma of position error / range plus pointing error, times the focal length): the images are
-    registered (`pwm.alignment.register`) within it before the joint solution."""
+    3 sigma of position error / range plus pointing error, times the focal length): beyond a pixel,
+    the images are registered (`pwm.alignment.register`) within it before the joint solution."""
     clock = time.perf_counter()
     data, weights, keep = maplet_images(maplet, views, tracer)
     views_found = {role: views[i].name for role, i in vars(weights.views).items() if i is not None}
@@ -105,8 +105,10 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode:
     iterations, converged, rms = 0, False, []
     if data.count >= min_images:
         # navigation knowledge errors move images by many pixels: register them before the joint
-        # solution, which only corrects offsets within its linear reach (about a pixel)
-        offsets = register(maplet, data, levels=search_levels(search_px)).offsets
+        # solution, which only corrects offsets within its linear reach (about a pixel); within
+        # that, registering against the start's shading, itself off by its height errors, only
+        # moves the joint solution's starting point away from the poses
+        offsets = register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0 else np.zeros((data.count, 2))
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
             data.weights = without_dark(data.weights, dark_nodes(extract(maplet, data, offsets=offsets), data.weights))

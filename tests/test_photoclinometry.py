@@ -232,15 +232,35 @@ def test_stopping_on_a_small_decrease_of_the_objective_costs_no_accuracy(scene: 
     assert np.sqrt(np.mean((refined.heights - longer.heights) ** 2)) < 0.02 * SPACING_KM
 
 
-def test_refine_finds_a_maplet_too_high_by_its_parallax(scene: Scene) -> None:
-    # The start has the true relief but sits 2 spacings (10 cm) too high: the oblique images see
-    # its nodes ~1 px off. Brightness alone cannot tell; with the pointing known (offsets held)
-    # and a loose height tie, the nodes' parallax can.
+def test_parallax_is_the_change_of_the_samples_as_the_nodes_rise(scene: Scene) -> None:
+    problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0, offsets=np.zeros((scene.data.count, 2)),
+                       solve_offsets=True, slope_weight=0.02, slope_scale=0.17, height_weight=1e-3, albedo_weight=1e-3,
+                       offset_weight=1e-3)
+    state, ev = problem.start()
+    h = 1e-3  # spacings: a uniform rise leaves the slopes, so only the samples change
+    risen, values = problem._evaluate(dataclasses.replace(state, u=state.u + h))
+    _, before = problem._evaluate(state)
+    both = (ev.rows > 0) & (risen.rows > 0)
+    assert both.mean() > 0.9 and np.abs(ev.parallax[both]).max() > 1e-3
+    np.testing.assert_allclose((values - before)[both] / h, ev.parallax[both], rtol=0.02, atol=1e-4)
+
+
+def test_a_maplet_too_high_keeps_its_mean_height_and_the_offsets_take_the_parallax(scene: Scene) -> None:
+    # The start sits 2 spacings (10 cm) too high: the oblique images see its nodes ~1 px off.
+    # Brightness cannot tell, and the data see a common rise only by perspective, apart from
+    # offsets: the mean height stays the start's, and the offsets absorb the parallax of what
+    # separates it from the true mean (the lift less the bump's mean, which the flat start lacks),
+    # up to the maplet's sideways datum, which they keep.
     lift = 2 * SPACING_KM
-    start = dataclasses.replace(scene.start, heights=scene.truth.heights + lift)
-    result = refine(start, scene.data, solve_offsets=False, height_weight=1e-5)
-    assert abs(float(np.median(result.heights - scene.truth.heights))) < 0.05 * lift
-    assert _bump_height(result.heights) == pytest.approx(BUMP_KM, rel=0.05)
+    start = dataclasses.replace(scene.start, heights=scene.start.heights + lift)
+    result = refine(start, scene.data)
+    assert float(np.mean(result.heights - start.heights)) == pytest.approx(0.0, abs=1e-6 * SPACING_KM)
+    rise = start.frame.rotation[2] * (lift - float(np.mean(scene.truth.heights)))
+    centre = scene.truth.nodes_body()[N_NODES // 2, N_NODES // 2]
+    parallax = np.array([project(centre, c, p) - project(centre + rise, c, p) for c, p in zip(scene.data.cameras, scene.data.poses)])
+    assert np.abs(parallax).max() > 0.5
+    np.testing.assert_allclose(_datum_free(result.offsets, start, scene.data), _datum_free(parallax, start, scene.data), atol=0.05)
+    assert _bump_height(result.heights) == pytest.approx(BUMP_KM, rel=0.10)
 
 
 def test_region_weight_tightens_to_the_start(scene: Scene, refined: Refinement) -> None:
