@@ -106,8 +106,8 @@ class Refinement:
     """Result of `refine`. heights (km) and albedo: (n, n); scales: (K,) brightness scale per
     image (geometric mean 1); offsets: (K, 2) pointing corrections (sample, line), px; rms: (K,)
     RMS of I - s A G over the nodes each image weighs (reflectance units; NaN if none);
-    iterations: Gauss-Newton steps taken; converged: the last step's RMS height change was below
-    the tolerance."""
+    iterations: Gauss-Newton steps taken; converged: the last step's RMS height change, or the
+    objective's relative decrease, was below its tolerance."""
 
     heights: np.ndarray
     albedo: np.ndarray
@@ -492,7 +492,6 @@ class _Problem:
         hut = np.column_stack([hut, np.ones(len(gu))])
         htt = np.block([[htt, np.zeros((len(htt), 1))], [np.zeros((1, len(htt) + 1))]])
         gt = np.append(gt, (state.u - self.u0).sum())
-        xta = np.vstack([xta, np.zeros((1, xta.shape[1]))])
         # huu is symmetric positive definite: symmetric mode with diagonal pivots skips
         # SuperLU's row pivoting, which it never needs here
         lu = splu(huu.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -500,8 +499,8 @@ class _Problem:
         yg, yt = solved[:, 0], solved[:, 1:]
         dt = np.linalg.solve(htt - hut.T @ yt, -gt + hut.T @ yg)
         du = -(yg + yt @ dt)
+        dt = dt[:-1]  # the multiplier's part is done
         da = -(ga + (np.concatenate(pa) * (ops @ du)).reshape(3, -1).sum(axis=0) + xta.T @ dt) * inv
-        dt = dt[:-1]
         if self.solve_offsets:
             dt = self.image_basis @ dt
             return _State(u=du, albedo=da, scales=dt[:k_images], offsets=dt[k_images:].reshape(k_images, 2))
@@ -573,11 +572,11 @@ def refine(
     change of one step that ends the iterations, in node spacings; cost_tolerance: the relative
     decrease of the objective in one step that ends them (site: the steps left after 1% would
     move heights by about a tenth of a spacing RMS, mostly at nodes few images see, and take as
-    long again). slope_weight, height_weight: strengths of the ties to the starting slopes and heights (divided by w_PWM); slope_scale: the
-    slope change (dimensionless, dz per spacing) beyond which the slope tie grows only linearly
-    (lower keeps more of the boulders the start lacks, higher keeps shadow-poor maplets closer to
-    the start); albedo_weight: of
-    the tie to the maplet's albedo (or to the median albedo if it has none). Nodes without data
+    long again). slope_weight, height_weight: strengths of the ties to the starting slopes and
+    heights (divided by w_PWM); slope_scale: the slope change (dimensionless, dz per spacing)
+    beyond which the slope tie grows only linearly (lower keeps more of the boulders the start
+    lacks, higher keeps shadow-poor maplets closer to the start); albedo_weight: of the tie to
+    the maplet's albedo (or to the median albedo if it has none). Nodes without data
     keep the starting shape.
     """
     k_images = data.count

@@ -121,11 +121,11 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode:
 
 
 def search_levels(search_px: float) -> tuple[tuple[int, float], ...]:
-    """Registration levels (factor, search px) for images up to search_px off: full resolution
-    only for a pixel or two (coarse levels could lock onto chance peaks that a close start never
-    needs), coarse to fine beyond."""
+    """Registration levels (factor, search px) for images up to search_px (> 1) off: full
+    resolution only for a pixel or two (coarse levels could lock onto chance peaks that a close
+    start never needs), coarse to fine beyond."""
     if search_px <= 2.0:
-        return ((1, max(search_px, 1.0)),)
+        return ((1, search_px),)
     return ((8, search_px), (4, min(search_px, 24.0)), (1, 1.0))
 
 
