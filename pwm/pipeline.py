@@ -1,5 +1,6 @@
 """The refinement chain on arrays: tile the start model, weigh and refine each maplet against
-the images that see it, fuse the maplets back into one model.
+the images that see it, fuse the maplets back into one model; again from that model, pass after
+pass.
 
 No files and no catalog here: `pwm refine` (service/cli/science.py) reads a downlink into views, and the
 Celery workers build the same views from the catalog.
@@ -24,6 +25,7 @@ from pwm.mesh import Mesh
 from pwm.parallel import share_cores
 from pwm.photoclinometry import MapletImages, Mode, extract, refine
 from pwm.raytrace import RayTracer
+from pwm.tiling import tile
 from pwm.visibility import Visibility, node_visibility
 from pwm.weights import ImageGeometry, MapletWeights, dark_nodes, image_geometry, weigh_maplet, without_dark
 
@@ -202,6 +204,27 @@ def imaged_region(views: list[View], start: Mesh, *, radius_fraction: float = 0.
     width = np.array([views[k].camera.width for k in np.flatnonzero(hits.hit)]) * pixel
     return Region(lat_deg=float(lat), lon_deg=float(lon), radius_km=float(radius_fraction * np.median(width)),
                   spacing_km=float(np.median(pixel)))
+
+
+def refine_region(start: Mesh, views: list[View], region: Region, *, nodes: int, overlap: float, passes: int = 2,
+                  mode: Mode = "pwm", workers: int = 1, search_px: float = 1.0) -> tuple[Mesh, list[MapletResult]]:
+    """Tile `region` of `start`, refine every maplet and fuse them, `passes` times: each later pass
+    tiles the previous one's fused model afresh, so that a maplet starts from what its
+    neighbours made of its edges, and its visibility and shadows come from a shape that has the
+    relief (the start's lacks most of what casts shadows). Each pass takes the shape only: the
+    albedo comes from the images. Returns the last fused model and the last pass's results."""
+    if passes < 1:
+        raise ValueError("at least one pass")
+    model, results = start, []
+    for done in range(passes):
+        shape = Mesh(model.vertices, model.faces)
+        maplets = tile(shape, spacing_km=region.spacing_km, nodes=nodes, overlap=overlap,
+                       centre_lat_deg=region.lat_deg, centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
+        log.info("pass %d/%d: %d maplets of %d nodes at %.3f m", done + 1, passes, len(maplets), nodes,
+                 region.spacing_km * 1e3)
+        results = refine_maplets(maplets, views, shape, mode=mode, workers=workers, search_px=search_px)
+        model, _ = fuse([r.maplet for r in results], shape, overlap=overlap)
+    return model, results
 
 
 def fuse(maplets: list[Maplet], base: Mesh, *, overlap: float) -> tuple[Mesh, VoxelGrid]:

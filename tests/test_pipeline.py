@@ -3,11 +3,14 @@ the truth than the start model, and their fusion is a valid model."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pytest
 
 from pwm.io.downlink import read_views
 from pwm.io.meshio import read_mesh
-from pwm.pipeline import fuse, imaged_region, refine_maplets
+from pwm.pipeline import fuse, imaged_region, refine_maplets, refine_region
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
 from pwm.tiling import sample_heights, tile
@@ -40,3 +43,26 @@ def test_refined_maplets_beat_the_start_and_fuse(tiny_sim):
         nodes = m.nodes_body().reshape(-1, 3)[:: 7]
         hits = tracer.intersect(nodes + 0.01 * m.frame.normal, np.broadcast_to(-m.frame.normal, nodes.shape))
         assert hits.hit.all()
+
+
+def test_a_second_pass_refines_the_first_pass_model(tiny_sim):
+    views = read_views(tiny_sim / "downlink", instrument_id=-64361, target="BENNU", body_frame="IAU_BENNU")
+    start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
+    truth_tracer = RayTracer(load_truth(tiny_sim / "truth").mesh)
+    region = dataclasses.replace(imaged_region(views, start), radius_km=0.0015)
+    with pytest.raises(ValueError, match="one pass"):
+        refine_region(start, views, region, nodes=48, overlap=0.25, passes=0)
+    first, _ = refine_region(start, views, region, nodes=48, overlap=0.25, passes=1)
+    second, results = refine_region(start, views, region, nodes=48, overlap=0.25, passes=2)
+    assert second.albedo is not None
+    # on the second pass's maplets: its refined heights, the first pass's model and the start
+    first_tracer, start_tracer = RayTracer(first), RayTracer(start)
+    err = {"start": [], "first": [], "second": []}
+    for result in results:
+        m = result.maplet
+        true_h = sample_heights(truth_tracer, m)
+        err["start"].append(np.std(sample_heights(start_tracer, m) - true_h))
+        err["first"].append(np.std(sample_heights(first_tracer, m) - true_h))
+        err["second"].append(np.std(m.heights - true_h))
+    mean = {k: float(np.mean(v)) for k, v in err.items()}
+    assert mean["first"] < 0.8 * mean["start"] and mean["second"] < 1.05 * mean["first"], mean

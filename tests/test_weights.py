@@ -31,7 +31,7 @@ def directions(frame: LocalFrame, angles_deg: list[tuple[float, float]]) -> np.n
 
 
 def test_each_drop_rule_fires_and_says_why():
-    geom = geometry(visible_fraction=[0.9, 0.1, 0.9, 0.9, 0.9], shadow_fraction=[0.0, 0.0, 0.3, 0.0, 0.0],
+    geom = geometry(visible_fraction=[0.9, 0.1, 0.9, 0.9, 0.9], shadow_fraction=[0.0, 0.0, 0.7, 0.0, 0.0],
                     emission_deg=[10.0, 10.0, 10.0, 45.0, 10.0], resolution_ratio=[1.0, 1.0, 1.0, 1.0, 2.5])
     keep, reasons = select_images(geom)
     assert keep.tolist() == [True, False, False, False, False]
@@ -43,7 +43,7 @@ def test_each_drop_rule_fires_and_says_why():
 
 
 def test_image_weight_favours_moderate_incidence_low_emission_and_fine_pixels():
-    w = image_weights(geometry(incidence_deg=[5.0, 20.0, 30.0, 45.0, 60.0, 75.0, 88.0]))
+    w = image_weights(geometry(incidence_deg=[5.0, 20.0, 30.0, 45.0, 75.0, 82.0, 90.0]))
     assert w[2] == w[3] == w[4] == 1.0
     assert RULES.incidence_floor < w[0] < w[1] < 1.0 and 0.0 < w[5] < 1.0 and w[6] == 0.0
     w = image_weights(geometry(emission_deg=[0.0, 30.0, 40.0, 55.0, 70.0]))
@@ -88,7 +88,7 @@ def test_five_views_and_region_weight():
                     phase_deg=[40.0, 30.0, 50.0, 50.0, 50.0, 50.0, 50.0],
                     camera_azimuth_deg=[0.0, 0.0, 80.0, 275.0, 350.0, 185.0, 100.0],
                     sun_azimuth_deg=[60.0, 90.0, 120.0, 150.0, 100.0, 70.0, 130.0],
-                    incidence_deg=[45.0, 45.0, 45.0, 45.0, 45.0, 45.0, 70.0])
+                    incidence_deg=[45.0, 45.0, 45.0, 45.0, 45.0, 45.0, 80.0])
     keep, _ = select_images(geom)
     weight = image_weights(geom)
     views = five_views(geom, weight, keep)

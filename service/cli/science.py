@@ -78,6 +78,7 @@ def refine(
     spacing_gsd: float = typer.Option(1.0, min=0.25, max=2.0, help="node spacing in image GSDs (median pixel scale)"),
     overlap: float = typer.Option(0.25, min=0.0, max=0.75, help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
+    passes: int = typer.Option(2, min=1, help="refinement passes; each later one re-tiles the previous pass's fused model"),
     search_px: float = typer.Option(1.0, min=0.0, help="how far images may be off the maplets (px), from the pose knowledge"),
     corrections: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="pose corrections to apply (corrections.json of pwm spg)"),
     instrument: int = INSTRUMENT,
@@ -91,8 +92,7 @@ def refine(
 
     from pwm.io.downlink import read_views
     from pwm.io.meshio import read_mesh, write_obj, write_ply
-    from pwm.pipeline import fuse, imaged_region, refine_maplets
-    from pwm.tiling import tile
+    from pwm.pipeline import imaged_region, refine_region
     from service.cli.spg import read_corrections
 
     setup_logging(verbose)
@@ -108,16 +108,15 @@ def refine(
     if radius is not None:
         region = dataclasses.replace(region, radius_km=radius)
     region = dataclasses.replace(region, spacing_km=spacing_gsd * region.spacing_km)
-    maplets = tile(start_model, spacing_km=region.spacing_km, nodes=nodes, overlap=overlap, centre_lat_deg=region.lat_deg,
-                   centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
-    logging.getLogger("pwm").info("%d images, %d maplets of %d nodes at %.3f m around (%.3f, %.3f) within %.1f m",
-                                  len(views), len(maplets), nodes, region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
-    results = refine_maplets(maplets, views, start_model, mode=mode, workers=workers, search_px=search_px)
-    model, _ = fuse([r.maplet for r in results], start_model, overlap=overlap)
+    logging.getLogger("pwm").info("%d images, maplets at %.3f m around (%.3f, %.3f) within %.1f m", len(views),
+                                  region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
+    model, results = refine_region(start_model, views, region, nodes=nodes, overlap=overlap, passes=passes, mode=mode,
+                                   workers=workers, search_px=search_px)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "refined.ply", model)
     write_obj(out / "refined.obj", model)
-    report = {"mode": mode, "region": dataclasses.asdict(region), "images": len(views), "seconds": time.perf_counter() - clock,
+    report = {"mode": mode, "passes": passes, "region": dataclasses.asdict(region), "images": len(views),
+              "seconds": time.perf_counter() - clock,
               "maplets": [{"name": r.maplet.name, "images": r.images, "region_weight": r.region_weight, "five_views": r.five_views,
                            "dropped": r.dropped, "iterations": r.iterations, "converged": r.converged,
                            "residual_rms": r.residual_rms, "seconds": r.seconds} for r in results]}
