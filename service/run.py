@@ -61,7 +61,9 @@ class RunReport:
 def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_dir: Path,
                     start: Path | None = None, mode: str = "pwm", maplet_nodes: int = 100,
                     tile_radius_km: float | None = None) -> Plan:
-    """Ingest a downlink against the current model and list the maplets its images changed.
+    """Ingest a downlink against the current model and list the maplets whose input changed:
+    those its images weigh into, and those its coverage update re-weighed against the current
+    model (the shape moved, and with it which images they keep) or a stopped run left stale.
 
     The current model is the latest version; a catalog without one first imports `start` (or
     DIRECTORY/start_model.obj when present) as a version of kind start. maplet_nodes,
@@ -87,8 +89,8 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
         touched = session.scalars(select(Coverage.maplet_id).distinct().join(Image).where(
             Image.downlink_id == downlink_id)).all()
-        work = stale_maplets(session, mode=mode, maplet_ids=touched)
-    log.info("%s: %d maplets to refine of %d its images see", report.downlink, len(work),
+        work = stale_maplets(session, mode=mode)
+    log.info("%s: %d maplets to refine (its images see %d)", report.downlink, len(work),
              len(touched))
     return Plan(downlink_id=downlink_id, ingest=report, work=work, base_version=base_version)
 
