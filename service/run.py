@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import make_engine, make_sessionmaker, session_scope
 from service.ingest import IngestReport, ingest_directory
-from service.models import Coverage, Downlink, Image, ModelKind
+from service.models import Downlink, ModelKind
 from service.publish import fuse_and_publish
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
 from service.versions import import_model, latest_version, publication_lock, version_mesh
@@ -87,11 +87,8 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
                               tile_radius_km=tile_radius_km)
     with sessions() as session:
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
-        touched = session.scalars(select(Coverage.maplet_id).distinct().join(Image).where(
-            Image.downlink_id == downlink_id)).all()
         work = stale_maplets(session, mode=mode)
-    log.info("%s: %d maplets to refine (its images see %d)", report.downlink, len(work),
-             len(touched))
+    log.info("%s: %d maplets to refine", report.downlink, len(work))
     return Plan(downlink_id=downlink_id, ingest=report, work=work, base_version=base_version)
 
 
