@@ -32,9 +32,9 @@ def main() -> None:
     parser.add_argument("--mode", default="pwm", choices=["pwm", "standard"])
     args = parser.parse_args()
 
-    from pwm.io.downlink import read_views
+    from pwm.io.downlink import read_downlink
     from pwm.io.meshio import read_mesh
-    from pwm.pipeline import imaged_region, refine_maplet, view_geometry
+    from pwm.pipeline import imaged_region, refine_maplet, views_over_maplet
     from pwm.raytrace import RayTracer
     from pwm.tiling import tile
     from pwm.weights import weigh_maplet
@@ -43,13 +43,13 @@ def main() -> None:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     except (AttributeError, OSError):
         pass
-    views = read_views(args.downlink, instrument_id=-64361, target="BENNU", body_frame="IAU_BENNU")
+    views = read_downlink(args.downlink).views
     start = read_mesh(args.downlink / "start_model.obj")
     region = imaged_region(views, start)
     maplet = tile(start, spacing_km=region.spacing_km, nodes=args.nodes, centre_lat_deg=region.lat_deg,
                   centre_lon_deg=region.lon_deg, radius_km=0.1 * region.spacing_km)[0]
     tracer = RayTracer(start)
-    vis, in_frame, geom = view_geometry(maplet, views, tracer)
+    vis, in_frame, geom = views_over_maplet(maplet, views, tracer)
     weights = weigh_maplet(maplet, vis, geom, in_frame=in_frame)
     best = np.argsort(-weights.image)[: args.images]
     chosen = [views[k] for k in sorted(best) if weights.keep[k]]

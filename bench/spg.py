@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from pwm.camera import Pose, project
 from pwm.evaluate.report import evaluate
-from pwm.io.downlink import read_views
+from pwm.io.downlink import read_downlink
 from pwm.io.meshio import read_mesh
 from pwm.raytrace import RayTracer
 from pwm.spg import PoseCorrection
@@ -45,8 +45,7 @@ def pose_errors(downlink: Path, truth: Path, corrections: dict[str, PoseCorrecti
     """RMS over images of position (m; lateral to the boresight and along it), attitude (urad;
     across the boresight) and line-of-sight errors (px, and m on the ground at the site range)."""
     manifest = json.loads((truth / "manifest.json").read_text())
-    sc = manifest["scenario"]
-    views = read_views(downlink, instrument_id=sc["instrument_id"], target=sc["target"], body_frame=sc["body_frame"], corrections=corrections)
+    views = read_downlink(downlink, corrections=corrections).views
     true = {Path(im["label"]).stem: im for im in manifest["images"]}
     pos, lateral, along, att, across, los, los_m = [], [], [], [], [], [], []
     for v in views:
@@ -73,7 +72,7 @@ def feature_timing(sims: Path, names: list[str], count: int) -> dict:
     chosen = []
     for name in names:
         downlink = sims / name / "downlink"
-        views = read_views(downlink, instrument_id=-64361, target="BENNU", body_frame="IAU_BENNU")
+        views = read_downlink(downlink).views
         chosen.append((views[: count - sum(len(v) for v, _ in chosen)], read_mesh(downlink / "start_model.obj")))
         if sum(len(v) for v, _ in chosen) >= count:
             break

@@ -19,7 +19,7 @@ import numpy as np
 from pwm.alignment import register
 from pwm.camera import project
 from pwm.fusion import VoxelGrid
-from pwm.io.downlink import View
+from pwm.views import View
 from pwm.maplets import Maplet
 from pwm.mesh import Mesh
 from pwm.parallel import share_cores
@@ -27,7 +27,7 @@ from pwm.photoclinometry import MapletImages, Mode, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
 from pwm.visibility import Visibility, node_visibility
-from pwm.weights import ImageGeometry, MapletWeights, dark_nodes, image_geometry, weigh_maplet, without_dark
+from pwm.weights import MapletGeometry, MapletWeights, dark_nodes, maplet_geometry, weigh_maplet, without_dark
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ class MapletResult:
 def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer) -> tuple[MapletImages, MapletWeights, list[int]]:
     """The images of `views` that the weighting rules keep for `maplet`, with visibility against
     the tracer's shape, per-node weights and the region weight; and their indices in `views`."""
-    vis, in_frame, geom = view_geometry(maplet, views, tracer)
+    vis, in_frame, geom = views_over_maplet(maplet, views, tracer)
     weights = weigh_maplet(maplet, vis, geom, in_frame=in_frame)
     suns = np.array([v.sun for v in views])
     keep = np.flatnonzero(weights.keep)
@@ -64,8 +64,8 @@ def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer) -> tuple
     return data, weights, keep.tolist()
 
 
-def view_geometry(maplet: Maplet, views: list[View], tracer: RayTracer, *,
-                  spacing_km: float | None = None) -> tuple[Visibility, np.ndarray, ImageGeometry]:
+def views_over_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *,
+                      spacing_km: float | None = None) -> tuple[Visibility, np.ndarray, MapletGeometry]:
     """Visibility of the maplet's nodes in `views` against the tracer's shape, which nodes fall
     in each image's frame (K, n*n), and the images' geometry over the maplet. Only the views'
     camera, pose and Sun are used. spacing_km: the spacing the resolution is judged against
@@ -78,7 +78,7 @@ def view_geometry(maplet: Maplet, views: list[View], tracer: RayTracer, *,
     in_frame = np.array([_in_frame(points, v) for v in views])
     ranges = np.linalg.norm(cams - maplet.frame.origin, axis=1)
     scale = ranges / np.array([0.5 * (v.camera.fx + v.camera.fy) for v in views])
-    geom = image_geometry(maplet.frame, vis, camera_positions=cams, sun_directions=suns, pixel_scale_km=scale,
+    geom = maplet_geometry(maplet.frame, vis, camera_positions=cams, sun_directions=suns, pixel_scale_km=scale,
                           spacing_km=maplet.spacing_km if spacing_km is None else spacing_km, in_frame=in_frame)
     return vis, in_frame, geom
 

@@ -107,7 +107,7 @@ _SAME_IMAGE[1] = True
 
 
 @dataclass
-class ImageGeometry:
+class MapletGeometry:
     """Geometry of K images over one maplet, each (K,). Angles in degrees at the maplet origin in
     its frame. resolution_ratio: image pixel scale at the maplet / maplet spacing.
     visible_fraction: nodes in frame and visible; shadow_fraction: unlit among those (1 if none)."""
@@ -153,10 +153,10 @@ class MapletWeights:
     factors: dict = field(default_factory=dict)
 
 
-def image_geometry(
+def maplet_geometry(
     frame: LocalFrame, vis: Visibility, *, camera_positions: np.ndarray, sun_directions: np.ndarray,
     pixel_scale_km: np.ndarray, spacing_km: float, in_frame: np.ndarray | None = None,
-) -> ImageGeometry:
+) -> MapletGeometry:
     """Geometry of K images over the maplet with this frame. vis: visibility of its nodes (K, N);
     camera_positions (K, 3) km and sun_directions (K, 3), body-fixed; pixel_scale_km (K,): image
     pixel footprint at the maplet (range / focal length in pixels); in_frame (K, N): nodes inside
@@ -170,7 +170,7 @@ def image_geometry(
     seen = vis.visible if in_frame is None else vis.visible & in_frame
     n_seen = seen.sum(axis=1)
     dark = (seen & ~vis.lit).sum(axis=1)
-    return ImageGeometry(
+    return MapletGeometry(
         incidence_deg=incidence, emission_deg=emission,
         phase_deg=np.degrees(np.arccos(np.clip(np.einsum("ki,ki->k", to_cam, sun), -1.0, 1.0))),
         camera_azimuth_deg=cam_az, sun_azimuth_deg=sun_az,
@@ -185,7 +185,7 @@ def raised_cosine(t: np.ndarray) -> np.ndarray:
     return 0.5 - 0.5 * np.cos(np.pi * np.clip(t, 0.0, 1.0))
 
 
-def image_weights(geom: ImageGeometry, rules: Rules = RULES) -> np.ndarray:
+def image_weights(geom: MapletGeometry, rules: Rules = RULES) -> np.ndarray:
     """Image weights (K,) in [0, 1] (before the drop rules)."""
     lo, hi = rules.incidence_best_deg
     i = geom.incidence_deg
@@ -197,7 +197,7 @@ def image_weights(geom: ImageGeometry, rules: Rules = RULES) -> np.ndarray:
     return w_inc * w_em * w_res * geom.visible_fraction * (1.0 - geom.shadow_fraction)
 
 
-def select_images(geom: ImageGeometry, rules: Rules = RULES) -> tuple[np.ndarray, list[list[str]]]:
+def select_images(geom: MapletGeometry, rules: Rules = RULES) -> tuple[np.ndarray, list[list[str]]]:
     """The SPC drop rules: (keep (K,) bool, for each image the reasons it was dropped)."""
     tests = [
         (geom.visible_fraction < rules.min_visible_fraction,
@@ -253,7 +253,7 @@ def without_dark(weights: np.ndarray, dark: np.ndarray, rules: Rules = RULES) ->
     return np.where(dark, 0.0, np.where(near, rules.shadow_edge_factor * weights, weights))
 
 
-def five_views(geom: ImageGeometry, image_weight: np.ndarray, keep: np.ndarray, rules: Rules = RULES) -> FiveViews:
+def five_views(geom: MapletGeometry, image_weight: np.ndarray, keep: np.ndarray, rules: Rules = RULES) -> FiveViews:
     """Nadir view (lowest phase, then most visible, among the kept images within
     nadir_tolerance_deg of the lowest emission) and the best-weighted kept view from each side."""
     views = FiveViews()
@@ -282,7 +282,7 @@ def azimuth_spread_deg(azimuth_deg: np.ndarray) -> float:
     return float(360.0 - gaps.max())
 
 
-def region_weight(geom: ImageGeometry, image_weight: np.ndarray, keep: np.ndarray, views: FiveViews,
+def region_weight(geom: MapletGeometry, image_weight: np.ndarray, keep: np.ndarray, views: FiveViews,
                   rules: Rules = RULES) -> tuple[float, dict]:
     """w_PWM in (0, 1] and its factors: the fraction of the five views found, the Sun azimuth
     spread (sun_floor with none, 1 at sun_spread_deg), the image count (1 at min_images) and the
@@ -300,10 +300,10 @@ def region_weight(geom: ImageGeometry, image_weight: np.ndarray, keep: np.ndarra
     return max(rules.min_region_weight, float(np.prod(list(factors.values())))), factors
 
 
-def weigh_maplet(maplet: Maplet, vis: Visibility, geom: ImageGeometry, *, in_frame: np.ndarray | None = None,
+def weigh_maplet(maplet: Maplet, vis: Visibility, geom: MapletGeometry, *, in_frame: np.ndarray | None = None,
                  rules: Rules = RULES) -> MapletWeights:
     """All the weights of one maplet seen in K images. vis: visibility of its nodes in row-major
-    order (maplet.nodes_body().reshape(-1, 3)); geom: from `image_geometry`; in_frame (K, n*n)."""
+    order (maplet.nodes_body().reshape(-1, 3)); geom: from `maplet_geometry`; in_frame (K, n*n)."""
     keep, reasons = select_images(geom, rules)
     image = np.where(keep, image_weights(geom, rules), 0.0)
     pixel = image[:, None, None] * node_factors(vis, maplet.heights, maplet.spacing_km, in_frame=in_frame, rules=rules)

@@ -4,7 +4,7 @@ After a downlink's images are in, and given the current shape model (body-fixed,
 1. when the catalog has no maplets over the region the downlink's images look at
    (pwm.pipeline.imaged_region), that region of the shape is tiled (pwm.tiling.tile) and stored;
 2. every maplet that one of the downlink's images may see is weighed against every catalogued
-   image that may see it, with the refinement's own rules (pwm.pipeline.view_geometry,
+   image that may see it, with the refinement's own rules (pwm.pipeline.views_over_maplet,
    pwm.weights.weigh_maplet): visibility by Embree against the shape (in frame, not occluded,
    lit) on a subsample of the maplet's nodes, angles at the maplet origin in its frame, image
    weights (0 where the SPC rules drop the image), the five-view roles and the region weight
@@ -27,10 +27,10 @@ from sqlalchemy.orm import Session
 
 from pwm.camera import project
 from pwm.frames import LocalFrame, unit_to_latlon
-from pwm.io.downlink import View
+from pwm.views import View
 from pwm.maplets import Maplet as MapletGrid
 from pwm.mesh import Mesh
-from pwm.pipeline import imaged_region, view_geometry
+from pwm.pipeline import imaged_region, views_over_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_heights, tile
 from pwm.weights import weigh_maplet
@@ -162,7 +162,7 @@ def _store(session: Session, maplet: Maplet, grid: MapletGrid, image_ids: list[i
            views: list[View], tracer: RayTracer, report: CoverageReport) -> None:
     """Weigh the maplet in the views and upsert its coverage rows and region weight."""
     spacing_km = maplet.gsd_m * 1e-3
-    vis, in_frame, geom = view_geometry(grid, views, tracer, spacing_km=spacing_km)
+    vis, in_frame, geom = views_over_maplet(grid, views, tracer, spacing_km=spacing_km)
     weights = weigh_maplet(grid, vis, geom, in_frame=in_frame)
     roles = {k: CoverageRole(name) for name, k in vars(weights.views).items() if k is not None}
     existing = {row.image_id: row for row in session.scalars(

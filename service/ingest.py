@@ -4,7 +4,7 @@ viewing geometry of each image.
 Kernels come first (service.kernels). Then every *.xml label is read with
 pwm.io.pds4.read_image_product, inside a kernel pool holding the catalog's accepted kernels, and
 becomes one Image row:
-- accepted with its geometry (service.geometry);
+- accepted with its geometry (pwm.geometry, from the kernel pool by pwm.io.spice_geometry.observe);
 - accepted with geometry unavailable, and why, when the catalog has no kernels at all for its
   observer (products of other missions, ground telescopes);
 - rejected with a code and a reason: a ProductError code, unknown_instrument, instrument_kernel,
@@ -23,11 +23,10 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import re
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import datetime
 from pathlib import Path
 
 import spiceypy as sp
@@ -35,14 +34,16 @@ from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import Camera
+from pwm.geometry import Ellipsoid, MeshSurface, Surface, ViewGeometry
+from pwm.io.labels import (COVERAGE_ERRORS, exposure_et, exposure_times, find_labels, instrument_code,
+                           observer_code, target_frame)
 from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
-from pwm.io.spice_geometry import camera_from_kernel, instrument_frame, spacecraft_of
+from pwm.io.spice_geometry import (ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, observe,
+                                   spacecraft_of)
 from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
 from service.coverage import CoverageReport, update_coverage
 from service.db import make_sessionmaker, session_scope
-from service.geometry import (ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry,
-                              ellipsoid_of, observe)
 from service.kernels import (KernelOutcome, accepted_kernels, coverage_windows, et_to_datetime,
                              register_kernels, spice_message)
 from service.models import (Downlink, DownlinkStatus, GeometryStatus, Image, ImageGeometry,
@@ -54,8 +55,6 @@ COMMIT_EVERY = 200  # products per transaction: a crash loses at most this much,
 # Outcomes that new kernels can change: such products are judged again on every ingest.
 KERNEL_DEPENDENT_CODES = frozenset(
     {"unknown_instrument", "instrument_kernel", "unknown_target", "outside_coverage", "geometry"})
-# SPICE errors that mean "no data for that time" rather than a broken kernel set.
-_COVERAGE_ERRORS = frozenset({"SPICE(SPKINSUFFDATA)", "SPICE(NOFRAMECONNECT)"})
 _UNIDENTIFIED = "unidentified:"
 _HASH_CHUNK = 1 << 20
 
@@ -335,8 +334,7 @@ def _focal_source(naif_id: int, fx: float) -> tuple[str, str]:
 
 def _ingest_images(sessions: sessionmaker[Session], directory: Path, downlink_id: int,
                    report: IngestReport, shape: Surface | None) -> None:
-    labels = [p for p in sorted(directory.rglob("*")) if p.suffix.lower() == ".xml"
-              and p.is_file()]
+    labels = find_labels(directory)
     with sessions() as session:
         kernels = accepted_kernels(session)
         missing = [k.path for k in kernels if not Path(k.path).is_file()]
@@ -458,84 +456,13 @@ def _judge(catalog: _Catalog, label: Path) -> _Outcome:
                         times=times)
 
 
-def _parse_utc(stamp: str) -> datetime:
-    """A PDS4 date_time (calendar or day-of-year form, UTC) as an aware datetime."""
-    text = stamp.strip().removesuffix("Z")
-    try:
-        if re.fullmatch(r"\d{4}-\d{3}T.*", text):
-            parsed = datetime.strptime(text, "%Y-%jT%H:%M:%S.%f" if "." in text
-                                       else "%Y-%jT%H:%M:%S")
-        else:
-            parsed = datetime.fromisoformat(text)
-    except ValueError as exc:
-        raise _Rejected("bad_time", f"time {stamp!r} is not a PDS4 UTC date_time") from exc
-    if parsed.utcoffset():
-        raise _Rejected("bad_time", f"time {stamp!r} is not UTC")
-    return parsed.replace(tzinfo=UTC)
-
-
 def _times(product: ImageProduct, has_lsk: bool
            ) -> tuple[datetime, datetime, float | None, float | None]:
-    start, stop = _parse_utc(product.start_utc), _parse_utc(product.stop_utc)
-    if stop < start:
-        raise _Rejected("bad_time", f"stop {product.stop_utc} precedes start {product.start_utc}")
-    if not has_lsk:
-        return start, stop, None, None
     try:
-        return start, stop, sp.str2et(product.start_utc), sp.str2et(product.stop_utc)
-    except sp.utils.exceptions.SpiceyError as exc:
-        raise _Rejected("bad_time", spice_message(exc)) from exc
-
-
-def _name_variants(name: str) -> list[str]:
-    """Names SPICE may know a label's name by: as given, upper case, spaces and hyphens as
-    underscores; '(101955) Bennu' also as 'BENNU' and '101955 BENNU'."""
-    upper = " ".join(name.split()).upper()
-    numbered = re.fullmatch(r"\((\d+)\)\s*(.+)", upper)
-    forms = [name.strip(), upper, re.sub(r"[\s\-]+", "_", upper)]
-    if numbered:
-        forms += [numbered[2], f"{numbered[1]} {numbered[2]}", re.sub(r"[\s\-]+", "_",
-                                                                       numbered[2])]
-    return list(dict.fromkeys(forms))
-
-
-def _body_code(names: list[str]) -> int | None:
-    with sp.no_found_check():
-        for name in names:
-            code, found = sp.bodn2c(name)
-            if found:
-                return int(code)
-    return None
-
-
-def _instrument_code(product: ImageProduct, observer: int) -> int | None:
-    """The NAIF id of the product's instrument on `observer`: bodn2c of the label's (or FITS
-    INSTRUME) name in its variants, bare or prefixed with the host's, else the one instrument
-    of that spacecraft whose kernel-pool name ends in _<name>."""
-    names = [n for n in (product.instrument_name, (product.fits_header or {}).get("INSTRUME"))
-             if isinstance(n, str) and n.strip()]
-    variants = [v for n in names for v in _name_variants(n)]
-    hosts = _name_variants(product.host_name) if product.host_name else []
-    candidates = variants + [f"{h}_{v}" for h in hosts for v in variants]
-
-    def on_observer(code: int) -> bool:
-        return code <= -1000 and spacecraft_of(code) == observer
-
-    with sp.no_found_check():
-        for name in candidates:
-            code, found = sp.bodn2c(name)
-            if found and on_observer(int(code)):
-                return int(code)
-    with sp.no_found_check():
-        count, _, defined = sp.dtpool("NAIF_BODY_NAME")
-    if not defined:
-        return None
-    pool_names = sp.gcpool("NAIF_BODY_NAME", 0, count)
-    pool_codes = sp.gipool("NAIF_BODY_CODE", 0, count)
-    suffixes = {"_" + v for v in variants}
-    matches = {int(c) for n, c in zip(pool_names, pool_codes)
-               if on_observer(int(c)) and any(n.upper().endswith(s) for s in suffixes)}
-    return matches.pop() if len(matches) == 1 else None
+        start, stop = exposure_times(product)
+        return (start, stop, *exposure_et(product)) if has_lsk else (start, stop, None, None)
+    except ProductError as exc:
+        raise _Rejected(exc.code, str(exc)) from exc
 
 
 def _covered(windows: list[tuple[float, float]], et: float) -> bool:
@@ -545,22 +472,20 @@ def _covered(windows: list[tuple[float, float]], et: float) -> bool:
 def _geometry(catalog: _Catalog, product: ImageProduct,
               times: tuple[datetime, datetime, float | None, float | None]) -> _Outcome:
     host = product.host_name or ""
-    observer = _body_code(_name_variants(host)) if host else None
+    observer = observer_code(host)
     if observer is None or observer not in catalog.spk:
         why = ("the label names no host (spacecraft)" if not host else
                f"observer {host!r} is not a body SPICE knows" if observer is None else
                f"the catalog has no SPK for observer {host!r} ({observer})")
         return _Outcome(ImageStatus.ACCEPTED, geometry_reason=f"no kernels: {why}",
                         product=product, times=times)
-    instrument_id = _instrument_code(product, observer)
+    instrument_id = instrument_code(product, observer)
     if instrument_id is None:
         raise _Rejected("unknown_instrument", f"instrument {product.instrument_name!r} of "
                         f"{host!r} is not an instrument of {observer} in the catalog's kernels")
     instrument = catalog.instrument(instrument_id)
-    target = _body_code(_name_variants(product.target_name or ""))
-    with sp.no_found_check():
-        _, body_frame, has_frame = sp.cidfrm(target) if target is not None else (0, "", False)
-    if target is None or not has_frame:
+    target, body_frame = target_frame(product.target_name)
+    if target is None or body_frame is None:
         raise _Rejected("unknown_target", f"target {product.target_name!r} is "
                         + ("not a body SPICE knows" if target is None
                            else f"{target}, which has no body-fixed frame in the catalog"),
@@ -581,7 +506,7 @@ def _geometry(catalog: _Catalog, product: ImageProduct,
     except sp.utils.exceptions.SpiceyError as exc:
         gaps = [f for f, w in catalog.ck.items()
                 if f <= -1000 and spacecraft_of(f) == observer and not _covered(w, et)]
-        if exc.short in _COVERAGE_ERRORS or gaps:
+        if exc.short in COVERAGE_ERRORS or gaps:
             detail = (f"; no CK data then for frames {', '.join(map(str, sorted(gaps)))}"
                       if gaps else "")
             raise _Rejected("outside_coverage", f"no geometry at {when}{detail}: "

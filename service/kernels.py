@@ -25,7 +25,7 @@ from sqlalchemy.orm import Session
 
 from pwm.io.pds4 import file_sha256
 from pwm.io.spice_geometry import coverage_ck, coverage_spk
-from pwm.io.spice_kernels import KernelError, kernel_pool, metakernel_files
+from pwm.io.spice_kernels import KernelError, kernel_pool, metakernel_files, spice_message
 from service.models import Acceptance, Kernel, KernelCoverage, KernelKind
 
 KIND_BY_EXTENSION = {
@@ -56,11 +56,6 @@ class KernelOutcome:
     kind: KernelKind | None
     result: str
     reason: str | None = None
-
-
-def spice_message(exc: sp.utils.exceptions.SpiceyError) -> str:
-    """SPICE's short and long error message on one line."""
-    return f"{exc.short}: {' '.join(exc.long.split())}" if exc.short else " ".join(str(exc).split())
 
 
 def et_to_datetime(et: float) -> datetime:

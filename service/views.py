@@ -1,4 +1,4 @@
-"""Catalogued images as views (pwm.io.downlink.View): camera of the array read out, pose and Sun
+"""Catalogued images as views (pwm.views.View): camera of the array read out, pose and Sun
 from the stored geometry, with the image's pose correction applied, and optionally the pixels.
 
 The one place that turns catalog rows into what the refinement chain takes, for the coverage
@@ -15,7 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
 from pwm.camera import Camera, Pose, corrected_pose
-from pwm.io.downlink import View
+from pwm.views import View
 from pwm.io.pds4 import read_image_product
 from service.models import GeometryStatus, Image, ImageStatus
 

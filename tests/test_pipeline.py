@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pwm.io.downlink import read_views
+from pwm.io.downlink import read_downlink
 from pwm.io.meshio import read_mesh
 from pwm.pipeline import fuse, imaged_region, refine_maplets, refine_region
 from pwm.raytrace import RayTracer
@@ -17,7 +17,7 @@ from pwm.tiling import sample_heights, tile
 
 
 def test_refined_maplets_beat_the_start_and_fuse(tiny_sim):
-    views = read_views(tiny_sim / "downlink", instrument_id=-64361, target="BENNU", body_frame="IAU_BENNU")
+    views = read_downlink(tiny_sim / "downlink").views
     start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
     truth = load_truth(tiny_sim / "truth")
     region = imaged_region(views, start)
@@ -46,7 +46,7 @@ def test_refined_maplets_beat_the_start_and_fuse(tiny_sim):
 
 
 def test_a_second_pass_refines_the_first_pass_model(tiny_sim):
-    views = read_views(tiny_sim / "downlink", instrument_id=-64361, target="BENNU", body_frame="IAU_BENNU")
+    views = read_downlink(tiny_sim / "downlink").views
     start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
     truth_tracer = RayTracer(load_truth(tiny_sim / "truth").mesh)
     region = dataclasses.replace(imaged_region(views, start), radius_km=0.0015)

@@ -9,7 +9,7 @@ import numpy as np
 from typer.testing import CliRunner
 
 from pwm.camera import Camera, look_at, project
-from pwm.io.downlink import read_views
+from pwm.io.downlink import read_downlink
 from pwm.mesh import Mesh
 from pwm.spg import PoseCorrection
 from pwm.camera import corrected_pose
@@ -145,9 +145,9 @@ def test_spg_command_on_the_tiny_downlink(tiny_sim, tmp_path):
     stats = json.loads((out / "spg.json").read_text())
     assert stats["points"] >= 30 and stats["residual_rms_px"] < 1.5
     corrections = {k: PoseCorrection(**v) for k, v in json.loads((out / "corrections.json").read_text())["images"].items()}
-    plain = read_views(downlink, instrument_id=-64361, target="BENNU", body_frame="IAU_BENNU")
+    plain = read_downlink(downlink).views
     assert set(corrections) == {v.name for v in plain}
-    moved = read_views(downlink, instrument_id=-64361, target="BENNU", body_frame="IAU_BENNU", corrections=corrections)
+    moved = read_downlink(downlink, corrections=corrections).views
     for a, b in zip(plain, moved):
         c = corrections[a.name]
         assert np.allclose(b.pose.position, a.pose.position + np.array(c.position_km))

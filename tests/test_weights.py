@@ -11,17 +11,17 @@ from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.visibility import Visibility, node_visibility
 from pwm.weights import (
-    RULES, ImageGeometry, Rules, azimuth_spread_deg, dark_nodes, five_views, image_geometry, image_weights,
+    RULES, MapletGeometry, Rules, azimuth_spread_deg, dark_nodes, five_views, maplet_geometry, image_weights,
     node_factors, region_weight, select_images, slope_spread_deg, weigh_maplet, without_dark,
 )
 
 
-def geometry(**columns) -> ImageGeometry:
+def geometry(**columns) -> MapletGeometry:
     """K images of good geometry, with the given columns replaced."""
     k = len(next(iter(columns.values())))
     base = dict(incidence_deg=45.0, emission_deg=10.0, phase_deg=50.0, camera_azimuth_deg=0.0,
                 sun_azimuth_deg=90.0, resolution_ratio=1.0, visible_fraction=1.0, shadow_fraction=0.0)
-    return ImageGeometry(**{key: np.asarray(columns.get(key, np.full(k, v)), float) for key, v in base.items()})
+    return MapletGeometry(**{key: np.asarray(columns.get(key, np.full(k, v)), float) for key, v in base.items()})
 
 
 def directions(frame: LocalFrame, angles_deg: list[tuple[float, float]]) -> np.ndarray:
@@ -67,8 +67,8 @@ def test_image_geometry_in_the_maplet_frame():
     vis = Visibility(visible=visible, lit=lit, mu0=np.ones((3, n)), mu=np.ones((3, n)), phase=np.zeros((3, n)))
     in_frame = np.ones((3, n), dtype=bool)
     in_frame[2, 5:] = False
-    geom = image_geometry(frame, vis, camera_positions=cams, sun_directions=sun,
-                          pixel_scale_km=np.array([1e-4, 2e-4, 4e-4]), spacing_km=2e-4, in_frame=in_frame)
+    geom = maplet_geometry(frame, vis, camera_positions=cams, sun_directions=sun,
+                           pixel_scale_km=np.array([1e-4, 2e-4, 4e-4]), spacing_km=2e-4, in_frame=in_frame)
     assert geom.emission_deg == pytest.approx([0.0, 30.0, 40.0], abs=1e-9)
     assert geom.camera_azimuth_deg[1:] == pytest.approx([90.0, 200.0])
     assert geom.incidence_deg == pytest.approx([45.0] * 3) and geom.sun_azimuth_deg == pytest.approx([300.0] * 3)
@@ -193,8 +193,8 @@ def test_weigh_maplet_on_real_shadows_and_occlusion():
     sun = directions(frame, [(50.0, 70.0), (55.0, 100.0), (45.0, 130.0), (50.0, 160.0), (60.0, 80.0), (40.0, 90.0)])
     vis = node_visibility(tracer, maplet.nodes_body().reshape(-1, 3), normals, camera_positions=cams,
                           sun_directions=sun)
-    geom = image_geometry(frame, vis, camera_positions=cams, sun_directions=sun,
-                          pixel_scale_km=np.full(6, 4e-4), spacing_km=spacing)
+    geom = maplet_geometry(frame, vis, camera_positions=cams, sun_directions=sun,
+                           pixel_scale_km=np.full(6, 4e-4), spacing_km=spacing)
     w = weigh_maplet(maplet, vis, geom)
 
     assert (~vis.visible[1:5]).sum() > 20 and (~vis.lit).sum() > 100  # the boulder hides and shadows

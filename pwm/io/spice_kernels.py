@@ -69,6 +69,11 @@ class CkSegment:
     reference: str = "J2000"
 
 
+def spice_message(exc: sp.utils.exceptions.SpiceyError) -> str:
+    """SPICE's short and long error message on one line."""
+    return f"{exc.short}: {' '.join(exc.long.split())}" if exc.short else " ".join(str(exc).split())
+
+
 def bundled_kernels() -> dict[str, Path]:
     """The generic and OSIRIS-REx kernels shipped in pwm/data/spice, by file name."""
     return {p.name: p for p in sorted(BUNDLED_DIR.iterdir()) if p.is_file()}

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pwm.camera import Camera, project
-from pwm.io.downlink import View
+from pwm.views import View
 from pwm.raytrace import RayTracer
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pwm.camera import PoseCorrection, corrected_pose
-from pwm.io.downlink import View
+from pwm.views import View
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.spg.adjustment import bundle_adjust

@@ -2,18 +2,27 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Optional
 
 import typer
+
+if TYPE_CHECKING:
+    from pwm.camera import PoseCorrection
+    from pwm.io.downlink import DownlinkViews
 
 app = typer.Typer(help="Shape modeling of an asteroid with pixel-weighted maplets.", no_args_is_help=True,
                   add_completion=False, pretty_exceptions_enable=False)
 
-# Options of the commands that read a downlink directory through its SPICE kernels.
-INSTRUMENT = typer.Option(-64361, help="NAIF id of the camera (default: OSIRIS-REx MapCam)")
-TARGET = typer.Option("BENNU", help="SPICE name of the target body")
-BODY_FRAME = typer.Option("IAU_BENNU", help="body-fixed frame of the target")
+# Overrides of the commands that read a downlink directory through its SPICE kernels: by
+# default the labels and the kernels say what each image is (pwm.io.downlink).
+INSTRUMENT = typer.Option(None, help="only this camera's images (NAIF name or id), taken for those "
+                          "whose label names no known instrument; default: each image's own")
+TARGET = typer.Option(None, help="target body (SPICE name or id) in place of the labels'")
+BODY_FRAME = typer.Option(None, help="body-fixed frame in place of the target's")
 
 
 def setup_logging(verbose: bool) -> None:
@@ -24,3 +33,29 @@ def setup_logging(verbose: bool) -> None:
 def echo_json(value: object) -> None:
     """Print `value` as indented JSON."""
     typer.echo(json.dumps(value, indent=2))
+
+
+def downlink_views(downlink: Path, *, instrument: Optional[str], target: Optional[str], body_frame: Optional[str],
+                   corrections: dict[str, PoseCorrection] | None = None) -> DownlinkViews:
+    """The downlink's views (pwm.io.downlink.read_downlink), each skipped product reported on
+    stderr; a clear message and exit status 1 when nothing usable is left."""
+    from pwm.io.downlink import read_downlink
+    from pwm.io.spice_kernels import KernelError
+
+    try:
+        read = read_downlink(downlink, instrument=instrument, target=target, body_frame=body_frame,
+                             corrections=corrections)
+    except (ValueError, KernelError) as exc:  # NoUsableImages is a ValueError
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from None
+    for skipped in read.skipped:
+        typer.echo(f"skipped {skipped.path}: {skipped.code}: {skipped.reason}", err=True)
+    return read
+
+
+def downlink_report(read: DownlinkViews) -> dict:
+    """What a downlink read gave, for a command's JSON report: target, frame, cameras and the
+    products skipped (file, code, reason)."""
+    return {"target": read.target, "body_frame": read.body_frame,
+            "instruments": {str(k): v for k, v in read.instruments.items()},
+            "skipped": [dataclasses.asdict(s) for s in read.skipped]}

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, setup_logging
+from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, downlink_report, downlink_views, setup_logging
 
 
 def _knowledge_error(value: Optional[str]) -> tuple[float, float]:
@@ -81,16 +81,15 @@ def refine(
     passes: int = typer.Option(2, min=1, help="refinement passes; each later one re-tiles the previous pass's fused model"),
     search_px: float = typer.Option(1.0, min=0.0, help="how far images may be off the maplets (px), from the pose knowledge"),
     corrections: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="pose corrections to apply (corrections.json of pwm spg)"),
-    instrument: int = INSTRUMENT,
-    target: str = TARGET,
-    body_frame: str = BODY_FRAME,
+    instrument: Optional[str] = INSTRUMENT,
+    target: Optional[str] = TARGET,
+    body_frame: Optional[str] = BODY_FRAME,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Refine a start model with a downlink's images: tile, weigh, photoclinometry, fuse."""
     import dataclasses
     import time
 
-    from pwm.io.downlink import read_views
     from pwm.io.meshio import read_mesh, write_obj, write_ply
     from pwm.pipeline import imaged_region, refine_region
     from service.cli.spg import read_corrections
@@ -99,8 +98,9 @@ def refine(
     if mode not in ("pwm", "standard"):
         raise typer.BadParameter("mode is pwm or standard")
     clock = time.perf_counter()
-    views = read_views(downlink, instrument_id=instrument, target=target, body_frame=body_frame,
-                       corrections=None if corrections is None else read_corrections(corrections))
+    read = downlink_views(downlink, instrument=instrument, target=target, body_frame=body_frame,
+                          corrections=None if corrections is None else read_corrections(corrections))
+    views = read.views
     start_model = read_mesh(start)
     region = imaged_region(views, start_model)
     if lat is not None and lon is not None:
@@ -116,7 +116,7 @@ def refine(
     write_ply(out / "refined.ply", model)
     write_obj(out / "refined.obj", model)
     report = {"mode": mode, "passes": passes, "region": dataclasses.asdict(region), "images": len(views),
-              "seconds": time.perf_counter() - clock,
+              **downlink_report(read), "seconds": time.perf_counter() - clock,
               "maplets": [{"name": r.maplet.name, "images": r.images, "region_weight": r.region_weight, "five_views": r.five_views,
                            "dropped": r.dropped, "iterations": r.iterations, "converged": r.converged,
                            "residual_rms": r.residual_rms, "seconds": r.seconds} for r in results]}

@@ -11,7 +11,7 @@ from typing import Optional
 import typer
 
 from pwm.camera import PoseCorrection
-from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, setup_logging
+from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, downlink_report, downlink_views, setup_logging
 
 
 # options both commands take
@@ -45,25 +45,25 @@ def spg(
     first_octave: Optional[int] = FIRST_OCTAVE,
     per_image: int = PER_IMAGE,
     threads: int = THREADS,
-    instrument: int = INSTRUMENT,
-    target: str = TARGET,
-    body_frame: str = BODY_FRAME,
+    instrument: Optional[str] = INSTRUMENT,
+    target: Optional[str] = TARGET,
+    body_frame: Optional[str] = BODY_FRAME,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Photogrammetric model and per-image pose corrections from a downlink's images."""
-    from pwm.io.downlink import read_views
     from pwm.io.meshio import read_mesh, write_obj, write_ply
     from pwm.spg import stereo_photogrammetry
 
     setup_logging(verbose)
-    views = read_views(downlink, instrument_id=instrument, target=target, body_frame=body_frame)
+    read = downlink_views(downlink, instrument=instrument, target=target, body_frame=body_frame)
+    views = read.views
     result = stereo_photogrammetry(views, read_mesh(start), sigma_position_km=sigma_position * 1e-3, sigma_pointing_rad=sigma_pointing,
                                    max_features=max_features, first_octave=first_octave, per_image=per_image, threads=threads)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "spg.ply", result.mesh)
     write_obj(out / "spg.obj", result.mesh)
-    write_corrections(out / "corrections.json", result.corrections, body_frame=body_frame)
-    (out / "spg.json").write_text(json.dumps({**result.stats, "pairs": [dataclasses.asdict(p) for p in result.pairs]}, indent=1))
+    write_corrections(out / "corrections.json", result.corrections, body_frame=read.body_frame)
+    (out / "spg.json").write_text(json.dumps({**result.stats, **downlink_report(read), "pairs": [dataclasses.asdict(p) for p in result.pairs]}, indent=1))
     typer.echo(f"{result.stats['points']} points from {len(views)} images, residual {result.stats['residual_rms_px']:.2f} px RMS, "
                f"{result.stats['seconds']:.1f} s -> {out}")
 

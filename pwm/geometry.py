@@ -1,11 +1,9 @@
 """Viewing geometry of one image: camera pose and Sun direction in the body-fixed frame (km),
 and where the boresight and the four image corners meet the surface, which is the target's
-triaxial ellipsoid (PCK radii) or a shape model.
+triaxial ellipsoid or a shape model.
 
-`view_geometry` is pure; `observe` reads the loaded SPICE kernel pool (load kernels with
-pwm.io.spice_kernels.kernel_pool). The camera position is geometric (no aberration correction:
-light time over the km ranges of proximity operations moves the body by far less than a
-pixel); the Sun direction is the apparent one, corrected by ABCORR.
+Pure: pwm.io.spice_geometry.observe gives the same geometry from the SPICE kernel pool (PCK
+radii, camera position and Sun at an epoch).
 """
 
 from __future__ import annotations
@@ -14,15 +12,11 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-import spiceypy as sp
 
 from pwm.camera import Camera, Pose
 from pwm.frames import unit_to_latlon
-from pwm.io.spice_geometry import camera_pose, sun_direction
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
-
-ABCORR = "LT+S"
 
 
 class Surface(Protocol):
@@ -137,16 +131,3 @@ def view_geometry(*, pose: Pose, sun: np.ndarray, camera: Camera, surface: Surfa
         pixel_scale_m=distance * 1e3 / ((camera.fx + camera.fy) / 2), phase_deg=phase,
         incidence_deg=incidence, emission_deg=emission, intercept_lat_deg=latlon[0][0],
         intercept_lon_deg=latlon[0][1])
-
-
-def ellipsoid_of(target: str) -> Ellipsoid:
-    """The target's triaxial ellipsoid from the PCK radii (km)."""
-    return Ellipsoid(radii=np.asarray(sp.bodvrd(target, "RADII", 3)[1], dtype=float))
-
-
-def observe(*, et: float, instrument_id: int, target: str, body_frame: str, camera: Camera,
-            surface: Surface) -> ViewGeometry:
-    """The view of `instrument_id` at `et` (ET s) of `target` in `body_frame`, from the pool."""
-    pose = camera_pose(et=et, instrument_id=instrument_id, target=target, body_frame=body_frame)
-    sun = sun_direction(et=et, target=target, body_frame=body_frame, abcorr=ABCORR)
-    return view_geometry(pose=pose, sun=sun, camera=camera, surface=surface)
