@@ -13,6 +13,7 @@ import os
 import re
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -116,6 +117,29 @@ def write_ck(path: str | Path, *, segments: Sequence[CkSegment]) -> None:
                      np.ascontiguousarray(seg.angular_velocities, dtype=float), len(starts), starts)
     finally:
         sp.ckcls(handle)
+
+
+def write_sclk(path: str | Path, *, spacecraft: int, epoch_et: float) -> None:
+    """Write a type-1 SCLK kernel for `spacecraft` (its NAIF id, negative): one partition, a
+    clock of seconds (65536 ticks each) counting from 0 at `epoch_et` (TDB s past J2000) at
+    exactly one second per second of TDB. For simulated downlinks of a mission whose real clock
+    kernel is not at hand."""
+    if spacecraft >= 0:
+        raise ValueError(f"{spacecraft} is not a spacecraft NAIF id")
+    n = -spacecraft
+    written = (datetime(2000, 1, 1, 12) + timedelta(seconds=epoch_et)).date()  # an identifier only
+    lines = ["KPL/SCLK", "", _COMMENT, "", "\\begindata", "",
+             f"SCLK_KERNEL_ID = ( @{written.isoformat()} )",
+             f"SCLK_DATA_TYPE_{n} = ( 1 )",
+             f"SCLK01_TIME_SYSTEM_{n} = ( 1 )",  # TDB
+             f"SCLK01_N_FIELDS_{n} = ( 2 )",
+             f"SCLK01_MODULI_{n} = ( 4294967296 65536 )",
+             f"SCLK01_OFFSETS_{n} = ( 0 0 )",
+             f"SCLK01_OUTPUT_DELIM_{n} = ( 1 )",
+             f"SCLK_PARTITION_START_{n} = ( 0.0 )",
+             f"SCLK_PARTITION_END_{n} = ( {4294967296 * 65536 - 1:.13E} )",
+             f"SCLK01_COEFFICIENTS_{n} = ( 0.0 {epoch_et:.6f} 1.0 )", "", "\\begintext", ""]
+    Path(path).write_text("\n".join(lines))
 
 
 def _epoch_index(epochs: np.ndarray, et: float) -> int:

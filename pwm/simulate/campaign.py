@@ -22,6 +22,7 @@ from pwm.io.meshio import read_obj, write_obj
 from pwm.io.pds4 import file_sha256, write_image_product
 from pwm.io.spice_geometry import camera_from_kernel, camera_pose, instrument_frame, spacecraft_of, sun_direction
 from pwm.io.spice_kernels import CkSegment, SpkSegment, bundled_kernels, kernel_pool, write_ck, write_metakernel, write_spk
+from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
 from pwm.raytrace import RayTracer
 from pwm.render import render
 from pwm.simulate.detector import choose_exposure, to_dn
@@ -32,13 +33,8 @@ from pwm.simulate.truth import Truth, build_truth, low_pass, save as save_truth
 log = logging.getLogger(__name__)
 
 SUN, SSB = 10, 0
-SPACECRAFT_FRAME = -64000
+CK_FRAME_CLASS = 3  # SPICE frame class of frames whose attitude a CK gives
 WINDOW_S = 60.0  # each image sits in the middle of a short observation window of the kernels
-FIXED_KERNELS = {  # bundled real kernels and the folder of the downlink they go in
-    "naif0012.tls": "lsk", "bennu_v16.tpc": "pck", "orx_v14.tf": "fk",
-    "orx_ocams_v07.ti": "ik", "orx_sclkscet_00065.tsc": "sclk",
-}
-MISSION, HOST = "OSIRIS-REx", "OSIRIS-REX"
 EXPOSURE_S = 0.004  # labels carry start and stop; the geometry is at mid-exposure
 
 
@@ -52,8 +48,11 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
     rng = np.random.default_rng(seed)
     clock = time.perf_counter()
 
-    fixed = _copy_fixed_kernels(downlink / "kernels")
-    base = read_obj(Path(__file__).resolve().parent.parent / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj")
+    mission = MISSIONS[scenario.mission]
+    fixed = _copy_fixed_kernels(downlink / "kernels", mission)
+    if mission.write_kernels is not None:
+        fixed += mission.write_kernels(downlink / "kernels")
+    base = read_obj(SHAPES_DIR / mission.shape)
     log.info("building the truth asteroid (%s)", scenario.name)
     truth = build_truth(
         base=base, site_lat_deg=scenario.site_lat_deg, site_lon_deg=scenario.site_lon_deg,
@@ -77,9 +76,9 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
             # on the millisecond grid of the labels' UTC times, so that mid-exposure is exact
             obs.et = sp.utc2et(sp.et2utc(obs.et, "ISOC", 3))
 
-        true_kernels = _write_pose_kernels(truth_dir / "kernels", scenario=scenario, observations=observations + validation)
+        true_kernels = _write_pose_kernels(truth_dir / "kernels", scenario=scenario, mission=mission, observations=observations + validation)
         noisy = _perturb(observations, position_error_m=position_error_m, pointing_error_rad=pointing_error_rad, rng=rng)
-        downlink_kernels = _write_pose_kernels(downlink / "kernels", scenario=scenario, observations=noisy)
+        downlink_kernels = _write_pose_kernels(downlink / "kernels", scenario=scenario, mission=mission, observations=noisy)
 
     all_fixed = fixed + [sun_spk]
     (downlink / "kernels" / "mk").mkdir(parents=True, exist_ok=True)
@@ -94,7 +93,8 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
         for k, obs in enumerate(observations):
             pose, sun = _geometry(obs.et, scenario)
             view = render(tracer, camera=camera, pose=pose, sun_direction=sun)
-            images.append(_write_product(downlink / "images", obs=obs, view=view.reflectance, scenario=scenario, window=window, rng=rng))
+            images.append(_write_product(downlink / "images", obs=obs, view=view.reflectance, scenario=scenario, mission=mission,
+                                         window=window, rng=rng))
             images[-1].update(_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera))
             log.info("image %d/%d %s rendered", k + 1, len(observations), obs.name)
         held_out = []
@@ -144,10 +144,10 @@ def _readout(detector: Camera, scenario: Scenario) -> tuple[Camera, tuple[int, i
     return detector.subframe(first_sample=first_sample, first_line=first_line, samples=n, lines=n), (first_line, first_sample)
 
 
-def _copy_fixed_kernels(kernel_dir: Path) -> list[Path]:
+def _copy_fixed_kernels(kernel_dir: Path, mission: Mission) -> list[Path]:
     bundled = bundled_kernels()
     paths = []
-    for name, kind in FIXED_KERNELS.items():
+    for name, kind in mission.kernels.items():
         dest = kernel_dir / kind / name
         dest.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(bundled[name], dest)
@@ -156,7 +156,7 @@ def _copy_fixed_kernels(kernel_dir: Path) -> list[Path]:
 
 
 def _write_sun(path: Path, *, scenario: Scenario, start_et: float, campaign_s: float) -> None:
-    """Bennu relative to the Sun, and the Sun at the barycentre, as real kernel sets chain them."""
+    """The target relative to the Sun, and the Sun at the barycentre, as real kernel sets chain them."""
     epochs = np.arange(start_et - 86400.0, start_et + campaign_s + 2 * 86400.0, 3600.0)
     pole = sp.pxform(scenario.body_frame, "J2000", start_et) @ np.array([0.0, 0.0, 1.0])
     sun = sun_states(epochs, pole=pole, subsolar_lat_deg=scenario.subsolar_lat_deg)
@@ -184,12 +184,20 @@ def _plan(scenario: Scenario, *, truth: Truth, camera: Camera, start_et: float, 
             plan_site(start_et=start_et + 0.41 * 86400.0, views=val_views, incidences_deg=val_inc, prefix="val", **kw))
 
 
-def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, observations: list[Observation]) -> list[Path]:
-    """SPK of the spacecraft and CKs of the spacecraft and the camera mount, one window per image.
+def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Mission, observations: list[Observation]) -> list[Path]:
+    """SPK of the spacecraft and CKs of the spacecraft and, where a CK gives the camera frame
+    (its mount), of the camera, one window per image.
 
     The spacecraft holds an inertial attitude and position through each short window, so the
-    kernels give exactly the planned pose at the image epoch.
+    kernels give exactly the planned pose at the image epoch. A camera frame fixed to the
+    spacecraft by the FK (a TK frame) turns the spacecraft's attitude by its mount; one a CK
+    gives is mounted with the identity.
     """
+    frame_id = sp.namfrm(instrument_frame(scenario.instrument_id))
+    spacecraft_frame = sp.namfrm(mission.spacecraft_frame)
+    ck_mounted = sp.frinfo(frame_id)[1] == CK_FRAME_CLASS
+    # spacecraft -> camera; constant for a TK frame, so any epoch gives it
+    mount = np.eye(3) if ck_mounted else sp.pxform(mission.spacecraft_frame, instrument_frame(scenario.instrument_id), 0.0)
     sc = spacecraft_of(scenario.instrument_id)
     body = sp.bodn2c(scenario.target)
     order = sorted(observations, key=lambda o: o.et)
@@ -204,8 +212,7 @@ def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, observations: l
         states = np.tile(np.concatenate([position, np.zeros(3)]), (3, 1))
         spk_segments.append(SpkSegment(body=sc, center=body, epochs=window, states=states))
         epochs.append(window)
-        # camera == spacecraft attitude: the mount CK below is the identity
-        rotations.append(np.repeat((obs.rotation @ to_j2000.T)[None], 3, axis=0))
+        rotations.append(np.repeat((mount.T @ obs.rotation @ to_j2000.T)[None], 3, axis=0))
     epochs_a = np.concatenate(epochs)
     rot_a = np.concatenate(rotations)
     name = f"pwm_{scenario.name}"
@@ -216,12 +223,14 @@ def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, observations: l
         p.parent.mkdir(parents=True, exist_ok=True)
     write_spk(spk, segments=spk_segments)
     # the spacecraft clock carries the spacecraft's own NAIF id
-    write_ck(ck_sc, segments=[CkSegment(frame_id=SPACECRAFT_FRAME, sclk_id=sc, epochs=epochs_a, rotations=rot_a,
+    write_ck(ck_sc, segments=[CkSegment(frame_id=spacecraft_frame, sclk_id=sc, epochs=epochs_a, rotations=rot_a,
                                         angular_velocities=np.zeros((len(epochs_a), 3)), interval_starts=[e[0] for e in epochs])])
+    if not ck_mounted:
+        return [spk, ck_sc]
     span = np.array([epochs_a[0], epochs_a[-1]])
-    frame_id = sp.namfrm(instrument_frame(scenario.instrument_id))
     write_ck(ck_mount, segments=[CkSegment(frame_id=frame_id, sclk_id=sc, epochs=span, rotations=np.repeat(np.eye(3)[None], 2, axis=0),
-                                           angular_velocities=np.zeros((2, 3)), interval_starts=[span[0]], reference="ORX_SPACECRAFT")])
+                                           angular_velocities=np.zeros((2, 3)), interval_starts=[span[0]],
+                                           reference=mission.spacecraft_frame)])
     return [spk, ck_sc, ck_mount]
 
 
@@ -243,7 +252,8 @@ def _geometry(et: float, scenario: Scenario) -> tuple[Pose, np.ndarray]:
     return pose, sun_direction(et=et, target=scenario.target, body_frame=scenario.body_frame)
 
 
-def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scenario: Scenario, window: tuple[int, int] | None, rng: np.random.Generator) -> dict:
+def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scenario: Scenario, mission: Mission,
+                   window: tuple[int, int] | None, rng: np.random.Generator) -> dict:
     expected_max = max(float(np.percentile(view[view > 0], 99.9)) if (view > 0).any() else 0.05, 1e-4)
     exposure = choose_exposure(expected_max, full_well_dn=scenario.full_well_dn, fill=scenario.exposure_fill, error=scenario.exposure_error, rng=rng)
     dn = to_dn(view, exposure, full_well_dn=scenario.full_well_dn, gain_e_per_dn=scenario.gain_e_per_dn, read_noise_dn=scenario.read_noise_dn, rng=rng)
@@ -254,8 +264,9 @@ def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scena
     label, data = write_image_product(
         directory=directory, basename=basename, dn=dn, scaling_factor=exposure.scaling, value_offset=0.0,
         lid=f"urn:nasa:pds:pwm_sim:{scenario.name.replace('-', '_')}:{basename}", start_utc=utc, stop_utc=stop,
-        mission=MISSION, host_name=HOST, instrument_name=instrument_frame(scenario.instrument_id),
-        target_name=scenario.target.title(), title=f"Simulated {scenario.name} image {obs.name}", exposure_s=EXPOSURE_S, subframe=window,
+        mission=mission.name, host_name=mission.host,
+        instrument_name=mission.instrument_label or instrument_frame(scenario.instrument_id),
+        target_name=mission.target_label, title=f"Simulated {scenario.name} image {obs.name}", exposure_s=EXPOSURE_S, subframe=window,
     )
     return {"name": obs.name, "label": f"images/{label.name}", "data": f"images/{data.name}", "start_utc": utc, "et": obs.et,
             "scaling": exposure.scaling, "true_gain": exposure.true_gain}

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pydantic import BaseModel, Field
 
 MAPCAM = -64361
+ONC_T = -37100  # Hayabusa2's telescopic optical navigation camera
 
 
 class Scenario(BaseModel):
@@ -12,6 +13,7 @@ class Scenario(BaseModel):
 
     name: str
     description: str
+    mission: str = Field("osiris-rex", description="a key of pwm.simulate.missions.MISSIONS: labels, kernels, base shape")
     instrument_id: int = MAPCAM
     target: str = "BENNU"
     body_frame: str = "IAU_BENNU"
@@ -67,6 +69,20 @@ SCENARIOS: dict[str, Scenario] = {
             n_craters=2, n_boulders=12, steep_boulders=5,
             n_nadir=2, emissions_deg=(30.0,), n_azimuths=4, incidences_deg=(35.0, 50.0, 60.0),
             n_validation=1, campaign_days=2.0, subframe_px=320,
+        ),
+        Scenario(
+            name="ryugu-tiny",
+            description="tiny's design on Ryugu with Hayabusa2's ONC-T (1024 px, 13 um pixels): a second mission for tests",
+            mission="hayabusa2", instrument_id=ONC_T, target="RYUGU", body_frame="RYUGU_FIXED",
+            start_utc="2018-10-01T00:00:00",
+            site_lat_deg=10.0, site_lon_deg=40.0, site_size_km=0.010,
+            gsd_km=5.0e-5, truth_resolution_km=1.25e-5, base_edge_km=0.008,
+            n_craters=2, n_boulders=12, steep_boulders=5,
+            n_nadir=2, emissions_deg=(30.0,), n_azimuths=4, incidences_deg=(35.0, 50.0, 60.0),
+            n_validation=1, campaign_days=2.0, subframe_px=320,
+            # aim points off the site centre: a boresight through a vertex of the start model's
+            # grid can slip between its single-precision triangles (Embree) and meet the far side
+            pointing_scatter_km=0.001,
         ),
         Scenario(
             name="site",

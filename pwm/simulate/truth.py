@@ -110,7 +110,9 @@ def build_base(
     low_pass_km: Gaussian cut-off wavelength applied to the roughness, for a smoothed copy of the
     same body (same seed) to start a global model from.
     """
-    v, f = base.vertices, base.faces
+    # shape files may list vertices no face uses (ryugu_test.obj does): subdivision cannot place them
+    used = np.unique(base.faces)
+    v, f = base.vertices[used], np.searchsorted(used, base.faces)
     edge = base.mean_edge_length()
     # each level halves the edges; measuring them only once keeps fine bodies cheap
     while edge > base_edge_km:

@@ -27,7 +27,7 @@ def _knowledge_error(value: Optional[str]) -> tuple[float, float]:
 @app.command()
 def simulate(
     out: Path = typer.Argument(..., help="output directory (downlink/ and truth/ are written in it)"),
-    scenario: str = typer.Option("tiny", help="tiny | site | site-polar | global-coarse"),
+    scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-polar | global-coarse"),
     seed: int = typer.Option(0, help="random seed: the same seed gives the same products"),
     knowledge_error: Optional[str] = typer.Option(None, help="POS_M,POINT_RAD: 1-sigma position (m) and pointing (rad) errors in the kernels"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
