@@ -189,6 +189,27 @@ def tiny_sim(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The project's shared real data (PROVENANCE.md there says where each file comes from)."""
+    assert SHARED_DATA.is_dir(), f"shared data missing at {SHARED_DATA}"
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def ryugu_sim(tmp_path_factory) -> Path:
+    """OUT directory of `pwm simulate OUT --scenario ryugu-tiny --seed 3`: a second mission
+    (Hayabusa2's ONC-T at Ryugu), simulated through the command line."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    out = tmp_path_factory.mktemp("ryugu") / "sim"
+    result = CliRunner().invoke(app, ["simulate", str(out), "--scenario", "ryugu-tiny", "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    return out
+
+
 @pytest.fixture
 def open_catalog_at() -> Iterator[Callable[[str], sessionmaker[Session]]]:
     """Sessions on the database at a URL, migrated to head; the engines are disposed afterwards."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
@@ -13,6 +14,7 @@ import typer
 if TYPE_CHECKING:
     from pwm.camera import PoseCorrection
     from pwm.io.downlink import DownlinkViews
+    from service.ingest import Failure
 
 app = typer.Typer(help="Shape modeling of an asteroid with pixel-weighted maplets.", no_args_is_help=True,
                   add_completion=False, pretty_exceptions_enable=False)
@@ -51,6 +53,12 @@ def downlink_views(downlink: Path, *, instrument: Optional[str], target: Optiona
     for skipped in read.skipped:
         typer.echo(f"skipped {skipped.path}: {skipped.code}: {skipped.reason}", err=True)
     return read
+
+
+def echo_rejected(failures: Iterable[Failure]) -> None:
+    """Each file an ingest rejected, with its code and reason, on stderr."""
+    for failure in failures:
+        typer.echo(f"rejected {failure.path}: {failure.code}: {failure.reason}", err=True)
 
 
 def downlink_report(read: DownlinkViews) -> dict:

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from service.cli.app import app, echo_json, setup_logging
+from service.cli.app import app, echo_json, echo_rejected, setup_logging
 
 
 @app.command()
@@ -29,6 +29,7 @@ def ingest(
     setup_logging(verbose)
     report = ingest_directory(open_catalog(), directory, downlink_name=name, shape=read_mesh(shape) if shape else None,
                               maplet_nodes=maplet_nodes)
+    echo_rejected(report.failures)
     typer.echo(report.summary())
     raise typer.Exit(min(report.failed, 100))
 

@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from service.cli.app import app, echo_json, setup_logging
+from service.cli.app import app, echo_json, echo_rejected, setup_logging
 
 version_app = typer.Typer(help="One model version.", no_args_is_help=True)
 app.add_typer(version_app, name="version")
@@ -39,6 +39,7 @@ def run(
     except FileNotFoundError as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(1) from None
+    echo_rejected(report.plan.ingest.failures)
     typer.echo(report.summary())
 
 
