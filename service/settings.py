@@ -5,7 +5,7 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import SecretStr, model_validator
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 CATALOG_FILENAME = "catalog.sqlite"
@@ -18,6 +18,11 @@ class Settings(BaseSettings):
     database_url: PWM_DATABASE_URL; empty means the SQLite file `catalog.sqlite` in data_dir.
     broker_url: PWM_BROKER_URL; None runs jobs in-process instead of through a broker.
     api_token: PWM_API_TOKEN, the bearer token of the API's changing calls; None refuses them all.
+    export_cache_bytes: PWM_EXPORT_CACHE_BYTES, how many bytes of made exports (decimated meshes,
+    DSK, ICQ, site products, difference maps) the data directory keeps; the least recently
+    served go first.
+    cors_origins: PWM_CORS_ORIGINS, the origins (a JSON list) whose pages may call the API from
+    a browser; empty: none (no CORS headers).
     """
 
     model_config = SettingsConfigDict(env_prefix="PWM_")
@@ -26,6 +31,8 @@ class Settings(BaseSettings):
     database_url: str = ""
     broker_url: str | None = None
     api_token: SecretStr | None = None
+    export_cache_bytes: int = Field(2 * 1024**3, ge=0)
+    cors_origins: list[str] = []
 
     @model_validator(mode="after")
     def _resolve_paths(self) -> Settings:

@@ -38,7 +38,7 @@ def export(
 ) -> None:
     """Export a model version; a site product is a zip of its PDS4 label, data file and PNG preview."""
     from service.catalog import open_catalog
-    from service.exports import ExportError, ExportFormat, Site, export_version
+    from service.exports import ExportError, ExportFormat, Site, make_export, plan_export
     from service.settings import get_settings
     from service.versions import get_version
 
@@ -53,9 +53,11 @@ def export(
     settings = get_settings()
     with open_catalog(settings)() as session:
         try:
-            made = export_version(session, data_dir=settings.data_dir, version=get_version(session, version),
-                                  fmt=fmt, faces=faces, body=body, frame=frame,
-                                  site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius) if fmt is ExportFormat.SITE else None)
+            plan = plan_export(session, data_dir=settings.data_dir, version=get_version(session, version),
+                               fmt=fmt, faces=faces, body=body, frame=frame,
+                               site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius) if fmt is ExportFormat.SITE else None)
+            session.close()
+            made = make_export(plan, cache_bytes=settings.export_cache_bytes)
         except (LookupError, ExportError) as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None

@@ -13,7 +13,7 @@ from service.api.deps import (Authorized, PagingDep, SessionDep, SettingsDep, Ve
 from service.releases import ReleaseConflict, release_version
 from service.api.schemas import (ArtifactOut, DownlinkRef, Lineage, Page, Problem,
                                  ReleaseRequest, VersionDetail, VersionSummary)
-from service.exports import ExportError, ExportFormat, Site, export_version
+from service.exports import ExportError, ExportFormat, Site, make_export, plan_export
 from service.models import ModelKind, ModelVersion
 from service.versions import ArtifactError, artifact_path
 
@@ -94,7 +94,7 @@ def download_artifact(session: SessionDep, settings: SettingsDep, ref: VersionRe
 
 @router.get("/{ref}/export", response_class=FileResponse,
             responses={200: {"content": {"application/octet-stream": {}}},
-                       404: {"model": Problem}})
+                       404: {"model": Problem}, 503: {"model": Problem}})
 def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
            format: ExportFormat,
            faces: Annotated[int | None, Query(ge=4, le=100_000_000,
@@ -113,7 +113,8 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
            ) -> FileResponse:
     """The version as OBJ, PLY (albedo per vertex), ICQ, SPICE DSK type 2 (km, body-fixed), or
     the terrain product of a site (format `site` with lat, lon and radius_km: a zip of the PDS4
-    label, its data file and a PNG preview). Body and frame default to the catalog's."""
+    label, its data file and a PNG preview). Body and frame default to the catalog's. While
+    too many exports are being made, one not made yet is refused with 503 and Retry-After."""
     version = resolve_version(session, ref)
     site_args = (lat, lon, radius_km)
     if format is ExportFormat.SITE and None in site_args:
@@ -125,8 +126,11 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
     site = (Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
             if format is ExportFormat.SITE else None)
     try:
-        made = export_version(session, data_dir=settings.data_dir, version=version, fmt=format,
-                              faces=faces, site=site, body=body, frame=frame)
+        plan = plan_export(session, data_dir=settings.data_dir, version=version, fmt=format,
+                           faces=faces, site=site, body=body, frame=frame)
+        # The connection goes back to the pool before the export waits for its turn.
+        session.close()
+        made = make_export(plan, cache_bytes=settings.export_cache_bytes)
     except ExportError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
     except ArtifactError as exc:
