@@ -17,6 +17,7 @@ transaction: commit promptly so that the API sees progress.
 
 from __future__ import annotations
 
+import re
 from datetime import datetime, timedelta
 from typing import Any
 
@@ -27,6 +28,11 @@ from sqlalchemy.orm import Session
 from service.models import Job, JobKind, JobStatus, utcnow
 
 _INSERT_IGNORING_CONFLICT = {"postgresql": postgresql.insert, "sqlite": sqlite.insert}
+# An absolute path in a message: a quoted one whole (it may hold spaces), else from a slash at
+# the start or after a space, bracket or `=` up to the next space, quote or bracket.
+_ABSOLUTE_PATH = re.compile(r"(?<=')/[^']*(?=')|(?<=\")/[^\"]*(?=\")"
+                            r"|(?<![^\s(\[=])/[^\s'\"()\[\]]*")
+MAX_REASON_CHARS = 500
 
 
 class JobBusy(Exception):
@@ -102,6 +108,20 @@ def fail_job(session: Session, job: Job, *, error: str) -> None:
     """Mark the attempt `job` failed with `error` (a traceback or a message)."""
     _update_running(session, job, {"status": JobStatus.FAILED, "finished_at": utcnow(),
                                    "error": error})
+
+
+def error_reason(error: str | None) -> str | None:
+    """The reason a job failed, fit to show to anyone: the last line of its error (a
+    traceback's is the exception and its message), with absolute paths reduced to their file
+    names, at most MAX_REASON_CHARS characters."""
+    if error is None:
+        return None
+    lines = [line.strip() for line in error.splitlines() if line.strip()]
+    if not lines:
+        return None
+    reason = _ABSOLUTE_PATH.sub(lambda m: m.group().rstrip("/").rsplit("/", 1)[-1] or "/",
+                                lines[-1])
+    return reason[:MAX_REASON_CHARS]
 
 
 def _insert_if_missing(session: Session, *, kind: JobKind, key: str, downlink_id: int | None,
