@@ -1,6 +1,7 @@
 """Exports under load, through a real uvicorn server on a PostgreSQL catalog: many distinct
 anonymous exports at once get 200 or 503 with Retry-After (never 500), the catalog stays
-readable meanwhile, and the kept exports stay within the configured bytes."""
+readable meanwhile, and the kept exports stay within the configured bytes, least recently served
+removed first. A catalog whose connections are all in use answers 503, not 500."""
 
 from __future__ import annotations
 
@@ -165,3 +166,23 @@ def test_the_least_recently_served_export_is_removed_first(large_catalog):
         records = list((large_catalog.data_dir / EXPORTS_DIRNAME).glob("*.json"))
         assert len(records) == len(kept)
         assert etag(2010) == old  # made again when asked for
+
+
+def test_a_catalog_without_free_connections_answers_503(postgres_url, tmp_path):
+    app = create_app(Settings(data_dir=tmp_path, database_url=postgres_url))
+    engine = app.state.sessions.kw["bind"]
+    held = []
+    try:
+        # every connection of the pool (SQLAlchemy's default: 5 and 10 overflow) in use for
+        # its 30 s timeout
+        held = [engine.connect() for _ in range(15)]
+        assert engine.pool.size() == 5 and engine.pool.overflow() == 10
+        with TestClient(app) as client:
+            began = time.monotonic()
+            response = client.get("/versions")
+            assert time.monotonic() - began < STORM_LIMIT_S
+        assert response.status_code == 503, response.text
+        assert int(response.headers["retry-after"]) > 0 and response.json()["detail"]
+    finally:
+        for connection in held:
+            connection.close()

@@ -52,6 +52,9 @@ def diff_map(session: SessionDep, settings: SettingsDep, old: VersionRef, new: V
                       new=versions[1].version, png=path, threshold_m=threshold_m,
                       max_distance_km=max_distance_km)
 
+    # No connection held while the map waits for the making lock (making it reads the catalog
+    # again).
+    session.rollback()
     try:
         record = cached_artifact(settings.data_dir, key, suffix=".png", make=make,
                                  cache_bytes=settings.export_cache_bytes)
