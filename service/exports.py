@@ -290,8 +290,8 @@ def _kept(data_dir: Path, key: str) -> dict[str, Any] | None:
         record = json.loads(index.read_text())
         artifact_path(data_dir, record)
         os.utime(index)  # the eviction order: least recently served first
-    except (OSError, ValueError, KeyError, ArtifactError):
-        return None
+    except (OSError, ValueError, KeyError, TypeError, ArtifactError):
+        return None  # missing, being replaced, or damaged: made again
     return record
 
 
@@ -318,11 +318,12 @@ def _evict(data_dir: Path, *, cache_bytes: int, keep: str) -> None:
     entries = []
     for index in directory.glob("*.json"):
         try:
-            entries.append((index.stat().st_mtime, index, json.loads(index.read_text())))
-        except (OSError, ValueError):
-            continue  # removed meanwhile by another process, or being replaced
-    total = sum(int(record.get("bytes", 0)) for _, _, record in entries)
-    for _, index, record in sorted(entries, key=lambda entry: entry[0]):
+            record = json.loads(index.read_text())
+            entries.append((index.stat().st_mtime, index, record, int(record["bytes"])))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # removed meanwhile by another process, or not a record of ours
+    total = sum(size for *_, size in entries)
+    for _, index, record, size in sorted(entries, key=lambda entry: entry[0]):
         if total <= cache_bytes:
             break
         if index.stem == keep:
@@ -331,7 +332,7 @@ def _evict(data_dir: Path, *, cache_bytes: int, keep: str) -> None:
         file = data_dir / str(record.get("path", ""))
         if file.parent.resolve() == directory.resolve():
             file.unlink(missing_ok=True)
-        total -= int(record.get("bytes", 0))
+        total -= size
 
 
 def resolve_target(kernels: Iterable[Path], *, body: str | None, frame: str) -> Target:
