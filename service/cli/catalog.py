@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from service.cli.app import app, echo_json, setup_logging
+from service.cli.app import app, echo_json, refinement_config, setup_logging
 
 
 @app.command()
@@ -15,7 +15,7 @@ def ingest(
     directory: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 labels, SPICE kernels)"),
     shape: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="current shape model for boresight intercepts and maplet coverage (.obj/.ply, km); default: the PCK ellipsoid, no coverage"),
     name: Optional[str] = typer.Option(None, help="downlink name (default: the directory name)"),
-    maplet_nodes: int = typer.Option(100, min=8, help="nodes per side of maplets tiled where the images look and no maplet is catalogued yet (with --shape)"),
+    maplet_nodes: Optional[int] = typer.Option(None, help="nodes per side of maplets tiled where the images look and no maplet is catalogued yet (with --shape); default PWM_MAPLET_NODES"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Catalogue a downlink: kernels first, then every PDS4 product, accepted or rejected with a reason.
@@ -25,10 +25,13 @@ def ingest(
     from pwm.io.meshio import read_mesh
     from service.catalog import open_catalog
     from service.ingest import ingest_directory
+    from service.settings import get_settings
 
     setup_logging(verbose)
-    report = ingest_directory(open_catalog(), directory, downlink_name=name, shape=read_mesh(shape) if shape else None,
-                              maplet_nodes=maplet_nodes)
+    settings = get_settings()
+    config = refinement_config(settings.refinement(), nodes=maplet_nodes)
+    report = ingest_directory(open_catalog(settings), directory, downlink_name=name,
+                              shape=read_mesh(shape) if shape else None, config=config)
     typer.echo(report.summary())
     raise typer.Exit(min(report.failed, 100))
 
