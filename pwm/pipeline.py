@@ -47,7 +47,8 @@ class MapletResult:
     seconds: float
 
 
-def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer) -> tuple[MapletImages, MapletWeights, list[int]]:
+def maplet_images(maplet: Maplet, views: list[View],
+                  tracer: RayTracer) -> tuple[MapletImages, MapletWeights, list[int]]:
     """The images of `views` that the weighting rules keep for `maplet`, with visibility against
     the tracer's shape, per-node weights and the region weight; and their indices in `views`."""
     vis, in_frame, geom = view_geometry(maplet, views, tracer)
@@ -87,7 +88,8 @@ def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
     """Points that project inside the image (half a pixel in from the edges, for interpolation)."""
     px = project(points, view.camera, view.pose)
     in_front = view.pose.to_camera(points)[:, 2] > 0
-    return in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1)
+    return (in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1)
+            & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
 
 
 def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode: Mode = "pwm", min_images: int = 3,
@@ -110,7 +112,8 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode:
         # solution, which only corrects offsets within its linear reach (about a pixel); within
         # that, registering against the start's shading, itself off by its height errors, only
         # moves the joint solution's starting point away from the poses
-        offsets = register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0 else np.zeros((data.count, 2))
+        offsets = (register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0
+                   else np.zeros((data.count, 2)))
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
             data.weights = without_dark(data.weights, dark_nodes(extract(maplet, data, offsets=offsets), data.weights))
@@ -147,7 +150,8 @@ def _init_pool_process(processes: int, *args) -> None:
 
 
 def _refine_in_worker(maplet: Maplet) -> MapletResult:
-    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], mode=_WORKER["mode"], search_px=_WORKER["search_px"])
+    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], mode=_WORKER["mode"],
+                         search_px=_WORKER["search_px"])
 
 
 def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, mode: Mode = "pwm", workers: int = 1,

@@ -16,10 +16,10 @@ repeated ingest changes nothing; rows of images that no longer see a maplet are 
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass
 import dataclasses
+import logging
 from collections.abc import Collection
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy import select, update
@@ -68,10 +68,10 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     that a new image may see against all catalogued images that may see it.
 
     New images: the accepted images with geometry of image_ids if given, else of downlink
-    `downlink_id` (all such images when None); their coverage_computed_at is set. nodes_per_side: of the maplets tiled here, spaced at the images' median pixel
-    scale; sample_nodes: nodes per side on which visibility is traced; tile_radius_km: radius
-    of the disc tiled about the centre of the region the images look at (default that
-    region's, pwm.pipeline.imaged_region).
+    `downlink_id` (all such images when None); their coverage_computed_at is set. nodes_per_side:
+    of the maplets tiled here, spaced at the images' median pixel scale; sample_nodes: nodes per
+    side on which visibility is traced; tile_radius_km: radius of the disc tiled about the centre
+    of the region the images look at (default that region's, pwm.pipeline.imaged_region).
     """
     report = CoverageReport()
     views = catalog_views(session)
@@ -174,7 +174,7 @@ def _store(session: Session, maplet: Maplet, grid: MapletGrid, image_ids: list[i
             float(geom.visible_fraction[k]), float(geom.shadow_fraction[k]),
             float(geom.incidence_deg[k]), float(geom.emission_deg[k]), float(geom.phase_deg[k]),
             float(geom.sun_azimuth_deg[k]), float(geom.resolution_ratio[k] * spacing_km * 1e3),
-            float(weights.image[k]), roles.get(k))))
+            float(weights.image[k]), roles.get(k)), strict=True))
         row = existing.pop(image_id, None)
         if row is None:
             session.add(Coverage(image_id=image_id, maplet_id=maplet.id, **values))

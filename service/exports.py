@@ -44,8 +44,15 @@ from pwm.io.spice_kernels import kernel_pool
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from service.kernels import accepted_kernels
-from service.models import (Image, ImageGeometry, ImageStatus, Instrument, KernelKind,
-                            ModelVersion, model_version_downlinks)
+from service.models import (
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    KernelKind,
+    ModelVersion,
+    model_version_downlinks,
+)
 from service.versions import ArtifactError, artifact_path, store_artifact, version_mesh
 
 EXPORTS_DIRNAME = "exports"

@@ -120,7 +120,7 @@ def view_geometry(*, pose: Pose, sun: np.ndarray, camera: Camera, surface: Surfa
     lat, lon = unit_to_latlon(points)
     latlon = np.column_stack([lat, lon]).tolist()
     missed = np.isnan(points).any(axis=1)
-    footprint = [None if m else (lat, lon) for m, (lat, lon) in zip(missed[1:], latlon[1:])]
+    footprint = [None if m else (lat, lon) for m, (lat, lon) in zip(missed[1:], latlon[1:], strict=True)]
     base = dict(position_km=np.asarray(pose.position, float), rotation=np.asarray(pose.rotation),
                 sun=np.asarray(sun, float), range_km=float(np.linalg.norm(pose.position)),
                 footprint=footprint)

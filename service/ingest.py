@@ -41,12 +41,25 @@ from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
 from service.coverage import CoverageReport, update_coverage
 from service.db import make_sessionmaker, session_scope
-from service.geometry import (ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry,
-                              ellipsoid_of, observe)
-from service.kernels import (KernelOutcome, accepted_kernels, coverage_windows, et_to_datetime,
-                             register_kernels, spice_message)
-from service.models import (Downlink, DownlinkStatus, GeometryStatus, Image, ImageGeometry,
-                            ImageStatus, Instrument, KernelKind)
+from service.geometry import ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry, ellipsoid_of, observe
+from service.kernels import (
+    KernelOutcome,
+    accepted_kernels,
+    coverage_windows,
+    et_to_datetime,
+    register_kernels,
+    spice_message,
+)
+from service.models import (
+    Downlink,
+    DownlinkStatus,
+    GeometryStatus,
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    KernelKind,
+)
 
 log = logging.getLogger(__name__)
 
@@ -533,7 +546,7 @@ def _instrument_code(product: ImageProduct, observer: int) -> int | None:
     pool_names = sp.gcpool("NAIF_BODY_NAME", 0, count)
     pool_codes = sp.gipool("NAIF_BODY_CODE", 0, count)
     suffixes = {"_" + v for v in variants}
-    matches = {int(c) for n, c in zip(pool_names, pool_codes)
+    matches = {int(c) for n, c in zip(pool_names, pool_codes, strict=False)
                if on_observer(int(c)) and any(n.upper().endswith(s) for s in suffixes)}
     return matches.pop() if len(matches) == 1 else None
 

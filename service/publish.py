@@ -27,8 +27,14 @@ from service.coverage import OVERLAP
 from service.db import session_scope
 from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion
 from service.refinement import load_revision_maplet
-from service.versions import (artifact_path, latest_version, publication_lock, publish_version,
-                              scratch_path, version_mesh)
+from service.versions import (
+    artifact_path,
+    latest_version,
+    publication_lock,
+    publish_version,
+    scratch_path,
+    version_mesh,
+)
 
 log = logging.getLogger(__name__)
 

@@ -257,7 +257,7 @@ def _records(result: Result[Any]) -> Iterator[dict[str, Any]]:
     """The rows as dicts, column name to value: a model built from these is built several
     times faster than from Row._mapping."""
     keys = tuple(result.keys())
-    return (dict(zip(keys, row)) for row in result)
+    return (dict(zip(keys, row, strict=True)) for row in result)
 
 
 def _maplet_rows() -> Select[Any]:

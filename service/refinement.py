@@ -33,10 +33,8 @@ from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface
 from service.db import session_scope
-from service.models import (Coverage, GeometryStatus, Image, ImageStatus, Maplet,
-                            MapletRevision)
-from service.versions import (artifact_mesh, artifact_path, latest_version, scratch_path,
-                              store_artifact)
+from service.models import Coverage, GeometryStatus, Image, ImageStatus, Maplet, MapletRevision
+from service.versions import artifact_mesh, artifact_path, latest_version, scratch_path, store_artifact
 from service.views import catalog_views
 
 log = logging.getLogger(__name__)

@@ -113,7 +113,7 @@ def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir:
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
             jobs = [pool.submit(_refine_in_process, url, data_dir, work, mode)
                     for work in plan.work]
-            for k, (work, job) in enumerate(zip(plan.work, jobs), 1):
+            for k, (work, job) in enumerate(zip(plan.work, jobs, strict=True), 1):
                 report.revisions.append(job.result())
                 _log_progress(k, len(plan.work), work, clock)
     report.version = fuse_and_publish(sessions, data_dir=data_dir,

@@ -15,7 +15,7 @@ def read_obj(path: str | Path) -> Mesh:
     verts: list[list[float]] = []
     faces: list[list[int]] = []
     albedo: list[float] = []
-    with open(path, "r", encoding="ascii", errors="replace") as fh:
+    with open(path, encoding="ascii", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             parts = line.split()
             if not parts:

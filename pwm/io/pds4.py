@@ -11,7 +11,7 @@ import hashlib
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -193,7 +193,7 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
             ("File", [
                 ("file_name", data_path.name),
                 ("creation_date_time",
-                 datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")),
+                 datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")),
                 ("file_size", data_path.stat().st_size, "byte"),
                 ("md5_checksum", checksum_md5(data_path))]),
             ("Header", [("offset", 0, "byte"), ("object_length", header_bytes, "byte"),

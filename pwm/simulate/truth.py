@@ -22,8 +22,17 @@ from pwm.io.meshio import read_ply, write_ply
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.terrain import (
-    Boulder, Crater, albedo_patches, boulder_relief, cobble_relief, crater_relief, fractal_grid, gaussian_sigma_km,
-    plane_waves, sample_boulders, sample_craters,
+    Boulder,
+    Crater,
+    albedo_patches,
+    boulder_relief,
+    cobble_relief,
+    crater_relief,
+    fractal_grid,
+    gaussian_sigma_km,
+    plane_waves,
+    sample_boulders,
+    sample_craters,
 )
 
 BENNU_ALBEDO = 0.044

@@ -21,9 +21,8 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from pwm.simulate.windows import window_downlink
-from service.models import (Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision,
-                            ModelKind, ModelVersion)
 from service.db import session_scope
+from service.models import Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision, ModelKind, ModelVersion
 from service.refinement import MIN_IMAGES
 from service.versions import artifact_path, version_mesh
 from workers.app import WorkerSettings

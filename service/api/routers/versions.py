@@ -8,13 +8,20 @@ from fastapi import APIRouter, HTTPException, Path, Query, status
 from fastapi.responses import FileResponse
 from sqlalchemy import func, select
 
-from service.api.deps import (Authorized, PagingDep, SessionDep, SettingsDep, VersionRef,
-                              resolve_version)
-from service.releases import ReleaseConflict, release_version
-from service.api.schemas import (ArtifactOut, DownlinkRef, Lineage, Page, Problem,
-                                 ReleaseRequest, VersionDetail, VersionSummary)
+from service.api.deps import Authorized, PagingDep, SessionDep, SettingsDep, VersionRef, resolve_version
+from service.api.schemas import (
+    ArtifactOut,
+    DownlinkRef,
+    Lineage,
+    Page,
+    Problem,
+    ReleaseRequest,
+    VersionDetail,
+    VersionSummary,
+)
 from service.exports import ExportError, ExportFormat, Site, export_version
 from service.models import ModelKind, ModelVersion
+from service.releases import ReleaseConflict, release_version
 from service.versions import ArtifactError, artifact_path
 
 router = APIRouter(prefix="/versions", tags=["versions"])
