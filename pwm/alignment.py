@@ -92,7 +92,7 @@ def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, *, search_p
                 score[i, j] = np.nan_to_num(_ncc(values[ok], model[ok]), nan=-np.inf)
     if not np.isfinite(score).any():
         return None
-    i, j = np.unravel_index(np.argmax(score), score.shape)
+    i, j = map(int, np.unravel_index(np.argmax(score), score.shape))
     coarse = np.array([shifts[j], shifts[i]], float) + _peak(score, i, j)
 
     offset = coarse.copy()
@@ -299,7 +299,7 @@ def _search(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, steps: np.
     if not np.isfinite(score).any():
         return None
     score = score.reshape(ds.shape)
-    i, j = np.unravel_index(np.argmax(score), score.shape)
+    i, j = map(int, np.unravel_index(np.argmax(score), score.shape))
     step = float(steps[1] - steps[0]) if len(steps) > 1 else 1.0
     best = np.array([steps[j], steps[i]], float) + step * _peak(score, i, j)
     return best, float(score[i, j])

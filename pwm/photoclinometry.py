@@ -449,13 +449,13 @@ class _Problem:
         jz = c * ev.parallax               # dr / du through the node's move in the image
         # Per-image unknowns t: scales, then offsets (sample, line) image by image; image[t] is
         # the image each belongs to and jt[t] its derivative on that image's residuals.
-        jt = [-c * albedo * ev.G]
-        image = [np.arange(k_images)]
+        jt_blocks = [-c * albedo * ev.G]
+        image_blocks = [np.arange(k_images)]
         if self.solve_offsets:
-            jt.append((c[..., None] * ev.gradients).transpose(0, 2, 1).reshape(2 * k_images, -1))
-            image.append(np.repeat(np.arange(k_images), 2))
-        jt = np.vstack(jt)
-        image = np.concatenate(image)
+            jt_blocks.append((c[..., None] * ev.gradients).transpose(0, 2, 1).reshape(2 * k_images, -1))
+            image_blocks.append(np.repeat(np.arange(k_images), 2))
+        jt = np.vstack(jt_blocks)
+        image = np.concatenate(image_blocks)
 
         a2 = self.albedo_weight / self.albedo_prior**2
         haa = (ja * ja).sum(axis=0) + a2

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -162,7 +163,7 @@ def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, mod
     clock = time.perf_counter()
     if workers <= 1:
         _init_worker(start, views, mode, search_px)
-        iterator = map(_refine_in_worker, maplets)
+        iterator: Iterator[MapletResult] = map(_refine_in_worker, maplets)
         pool = None
     else:
         pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_pool_process,

@@ -63,7 +63,7 @@ def tile(
     half = 0.5 * (nodes - 1) * spacing_km
     step = (1.0 - overlap) * 2.0 * half
     fine = 2.0 * half / COVERAGE_SAMPLES_PER_SIDE
-    if radius_km is None:
+    if centre_lat_deg is None or centre_lon_deg is None or radius_km is None:  # all None, checked above
         centres, samples = _body_centres(surface, step, fine)
     else:
         centres, samples = _region_centres(surface, centre_lat_deg, centre_lon_deg, radius_km, step, half, fine)

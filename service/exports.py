@@ -165,8 +165,10 @@ def export_version(session: Session, *, data_dir: Path, version: ModelVersion,
         if fmt is ExportFormat.ICQ:
             _write_icq(path, mesh, icq_size(faces or len(mesh.faces)))
         elif fmt is ExportFormat.DSK:
+            assert target is not None  # resolved above for DSK and site products
             _write_dsk(session, path, mesh, version=version, target=target)
         elif fmt is ExportFormat.SITE:
+            assert site is not None and target is not None  # checked and resolved above
             _write_site(session, path, mesh, version=version, site=site, target=target)
         else:
             (write_ply if fmt is ExportFormat.PLY else write_obj)(path, mesh)

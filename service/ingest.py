@@ -210,10 +210,10 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                                                   tile_radius_km=tile_radius_km)
     except BaseException:
         with session_scope(sessions) as session:
-            session.get(Downlink, downlink_id).status = DownlinkStatus.FAILED
+            session.get_one(Downlink, downlink_id).status = DownlinkStatus.FAILED
         raise
     with session_scope(sessions) as session:
-        session.get(Downlink, downlink_id).status = DownlinkStatus.INGESTED
+        session.get_one(Downlink, downlink_id).status = DownlinkStatus.INGESTED
     report.elapsed_s = time.perf_counter() - clock
     log.info("%s", report.summary())
     return report
@@ -396,7 +396,7 @@ def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | 
     """Store the outcome as a new row, or over `same`; False if `same` already says it."""
     versions = catalog.known[(identity.lid, identity.vid)]
     if same is not None:
-        image = catalog.session.get(Image, same.id)
+        image = catalog.session.get_one(Image, same.id)
         if _verdict(image) == outcome.verdict:
             return False
         same.status, same.code = outcome.status, outcome.code

@@ -107,7 +107,7 @@ def _current_revisions(session: Session) -> dict[int, MapletRevision]:
     """Each maplet's current revision, by maplet id."""
     rows = session.scalars(select(Maplet).where(Maplet.current_revision_id.is_not(None))
                            .options(selectinload(Maplet.current_revision)).order_by(Maplet.id))
-    return {m.id: m.current_revision for m in rows}
+    return {m.id: m.current_revision for m in rows if m.current_revision is not None}  # all, by the query
 
 
 def _base(version: ModelVersion) -> ModelVersion:

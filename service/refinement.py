@@ -20,6 +20,7 @@ from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 from sqlalchemy import func, select
@@ -29,6 +30,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from pwm.frames import LocalFrame
 from pwm.io.fusion_state import read_maplet, write_maplet
 from pwm.maplets import Maplet as MapletGrid
+from pwm.photoclinometry import Mode
 from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface
@@ -127,7 +129,7 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
     The refined maplet is a content-addressed artifact (pwm.io.fusion_state.write_maplet).
     progress(fraction, message) is told how far it got.
     """
-    _check_mode(mode)
+    checked_mode = _check_mode(mode)
     say = progress or (lambda fraction, message: None)
     with sessions() as session:
         found = _revision_id(session, maplet_id, input_hash)
@@ -156,7 +158,7 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
     say(0.2, f"refining against version {model_version}")
     tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
     grid.heights, grid.albedo = sample_surface(tracer, grid)
-    result = refine_maplet(grid, ordered, tracer, mode=mode, min_images=MIN_IMAGES)
+    result = refine_maplet(grid, ordered, tracer, mode=checked_mode, min_images=MIN_IMAGES)
     say(0.9, "storing the revision")
     scratch = scratch_path(data_dir, ".npz")
     write_maplet(scratch, result.maplet)
@@ -189,9 +191,10 @@ def _tracer(data_dir: Path, path: str, sha256: str) -> RayTracer:
     return RayTracer(artifact_mesh(data_dir, {"path": path, "sha256": sha256}))
 
 
-def _check_mode(mode: str) -> None:
+def _check_mode(mode: str) -> Mode:
     if mode not in MODES:
         raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
+    return cast(Mode, mode)
 
 
 def _revision_id(session: Session, maplet_id: int, input_hash: str) -> int | None:

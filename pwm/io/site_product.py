@@ -147,7 +147,7 @@ def _preview(path: Path, x: np.ndarray, y: np.ndarray, height_m: np.ndarray,
                                                          dy=step_m)
     relief[missing] = np.nan
     half = step_m / 2
-    extent = [x[0] * 1e3 - half, x[-1] * 1e3 + half, y[0] * 1e3 - half, y[-1] * 1e3 + half]
+    extent = (x[0] * 1e3 - half, x[-1] * 1e3 + half, y[0] * 1e3 - half, y[-1] * 1e3 + half)
     fig = Figure(figsize=(10.0, 4.5), layout="constrained")
     FigureCanvasAgg(fig)
     for k, (image, label) in enumerate([(relief, "shaded relief"), (albedo, "normal albedo")]):

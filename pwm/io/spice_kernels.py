@@ -180,7 +180,7 @@ def metakernel_files(path: str | Path) -> list[Path]:
 
 def _pool_string(name: str) -> list[str]:
     """The strings of a pool variable, continued pieces joined (SPICE's stpool)."""
-    strings = []
+    strings: list[str] = []
     with sp.no_found_check():
         while (found := sp.stpool(name, len(strings), "+"))[2]:
             strings.append(found[0])

@@ -12,6 +12,7 @@ import logging
 import shutil
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import spiceypy as sp
@@ -193,8 +194,8 @@ def _plan(scenario: Scenario, *, truth: Truth, camera: Camera, start_et: float, 
     range_km = scenario.gsd_km * camera.fx
     if scenario.global_views:
         radius = float(np.linalg.norm(truth.mesh.vertices, axis=1).mean())
-        kw = dict(sun=sun, campaign_s=campaign_s, range_km=range_km + radius, phases_deg=scenario.incidences_deg,
-                  rng=rng)
+        kw: dict[str, Any] = dict(sun=sun, campaign_s=campaign_s, range_km=range_km + radius,
+                                  phases_deg=scenario.incidences_deg, rng=rng)
         return (plan_global(start_et=start_et, n=scenario.n_azimuths, prefix="img", **kw),
                 plan_global(start_et=start_et + 0.37 * 86400.0, n=scenario.n_validation, prefix="val", **kw))
     views = [(0.0, 0.0)] * scenario.n_nadir + scenario.off_nadir_views()

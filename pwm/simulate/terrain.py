@@ -125,7 +125,8 @@ def gaussian_sigma_km(cutoff_km: float) -> float:
     return cutoff_km * np.sqrt(2 * np.log(2.0)) / (2 * np.pi)
 
 
-def _power_law(rng: np.random.Generator, n: int, lo: float, hi: float, slope: float) -> np.ndarray:
+def _power_law(rng: np.random.Generator, n: int, lo: float | np.ndarray, hi: float | np.ndarray,
+               slope: float) -> np.ndarray:
     """Sizes between lo and hi with a cumulative distribution N(>D) ~ D**-slope."""
     u = rng.uniform(0.0, 1.0, n)
     return (lo**-slope - u * (lo**-slope - hi**-slope)) ** (-1.0 / slope)

@@ -144,12 +144,17 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_k
     spacing = point_spacing(points)
     surface = fit_surface(at_resolution(previous, 2.0 * spacing, points), points, radius_km=2.0 * spacing)
     stats.update(point_spacing_km=spacing, surface_vertices=len(surface.vertices), seconds=time.perf_counter() - clock)
-    corrections = {v.name: PoseCorrection(tuple(map(float, adjusted.position_corrections[i])),
-                                          tuple(map(float, adjusted.rotation_corrections[i])))
+    corrections = {v.name: PoseCorrection(_triple(adjusted.position_corrections[i]),
+                                          _triple(adjusted.rotation_corrections[i]))
                    for i, v in enumerate(views)}
     log.info("SPG: %d points at %.2f m spacing, residual %.2f px RMS, %d vertices (%.1f s)", len(points), spacing * 1e3,
              stats["residual_rms_px"], len(surface.vertices), stats["seconds"])
     return SpgResult(mesh=surface, corrections=corrections, points=points, pairs=pairs, stats=stats)
+
+
+def _triple(values: np.ndarray) -> tuple[float, float, float]:
+    x, y, z = (float(v) for v in values)
+    return x, y, z
 
 
 def _ranges(views: list[View], tracer: RayTracer) -> np.ndarray:

@@ -54,8 +54,8 @@ def export(
         try:
             made = export_version(session, data_dir=settings.data_dir, version=get_version(session, version),
                                   fmt=fmt, faces=faces, body=body, frame=frame,
-                                  site=Site(lat_deg=lat, lon_deg=lon,
-                                            radius_km=radius) if fmt is ExportFormat.SITE else None)
+                                  site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius)
+                                  if lat is not None and lon is not None and radius is not None else None)
         except (LookupError, ExportError) as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None

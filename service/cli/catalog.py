@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal, cast
 
 import typer
 
@@ -77,7 +78,8 @@ def images_near(
     if order not in ("weight", "time"):
         raise typer.BadParameter("expected weight or time", param_hint="--order")
     with open_catalog()() as session:
-        hits = images_covering(session, lat_deg=lat, lon_deg=lon, radius_km=radius, order=order, limit=limit)
+        hits = images_covering(session, lat_deg=lat, lon_deg=lon, radius_km=radius,
+                               order=cast(Literal["weight", "time"], order), limit=limit)
     if json_out:
         echo_json([h.model_dump(mode="json") for h in hits])
         return

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import cast
 
 import typer
 
@@ -98,12 +99,14 @@ def refine(
 
     from pwm.io.downlink import read_views
     from pwm.io.meshio import read_mesh, write_obj, write_ply
+    from pwm.photoclinometry import Mode
     from pwm.pipeline import imaged_region, refine_region
     from service.cli.spg import read_corrections
 
     setup_logging(verbose)
     if mode not in ("pwm", "standard"):
         raise typer.BadParameter("mode is pwm or standard")
+    checked_mode = cast(Mode, mode)
     clock = time.perf_counter()
     views = read_views(downlink, instrument_id=instrument, target=target, body_frame=body_frame,
                        corrections=None if corrections is None else read_corrections(corrections))
@@ -116,8 +119,8 @@ def refine(
     region = dataclasses.replace(region, spacing_km=spacing_gsd * region.spacing_km)
     logging.getLogger("pwm").info("%d images, maplets at %.3f m around (%.3f, %.3f) within %.1f m", len(views),
                                   region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
-    model, results = refine_region(start_model, views, region, nodes=nodes, overlap=overlap, passes=passes, mode=mode,
-                                   workers=workers, search_px=search_px)
+    model, results = refine_region(start_model, views, region, nodes=nodes, overlap=overlap, passes=passes,
+                                   mode=checked_mode, workers=workers, search_px=search_px)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "refined.ply", model)
     write_obj(out / "refined.obj", model)
