@@ -549,55 +549,69 @@ def _backtrack(problem: _Problem, state: _State, ev: _Evaluation, step: _State) 
     return None
 
 
+@dataclass(frozen=True)
+class Solver:
+    """Every setting of `refine`.
+
+    tolerance: RMS height change of one step that ends the iterations, in node spacings;
+    cost_tolerance: the relative decrease of the objective in one step that ends them (the steps
+    left after 1% move heights by about a tenth of a spacing RMS, mostly at nodes few images see,
+    and take as long again: bench/RESULTS.md). slope_weight, height_weight: strengths of the
+    ties to the starting slopes and heights (divided by w_PWM); slope_scale: the slope change
+    (dimensionless, dz per spacing) beyond which the slope tie grows only linearly (lower keeps
+    more of the boulders the start lacks, higher keeps shadow-poor maplets closer to the start);
+    albedo_weight: of the tie to the maplet's albedo (or to the median albedo if it has none);
+    solve_offsets: refine the images' pointing offsets too, jointly (image gradients as their
+    derivatives), tied to the given ones by offset_weight per px^2.
+    """
+
+    max_iterations: int = 30
+    tolerance: float = 0.01
+    cost_tolerance: float = 1e-2
+    slope_weight: float = 0.02
+    slope_scale: float = 0.17
+    height_weight: float = 1e-3
+    albedo_weight: float = 1e-3
+    offset_weight: float = 1e-3
+    solve_offsets: bool = True
+
+
+SOLVER = Solver()
+
+
 def refine(
     maplet: Maplet,
     data: MapletImages,
     *,
     mode: Mode = "pwm",
     offsets: np.ndarray | None = None,
-    solve_offsets: bool = True,
-    max_iterations: int = 30,
-    tolerance: float = 0.01,
-    cost_tolerance: float = 1e-2,
-    slope_weight: float = 0.02,
-    slope_scale: float = 0.17,
-    height_weight: float = 1e-3,
-    albedo_weight: float = 1e-3,
-    offset_weight: float = 1e-3,
+    solver: Solver = SOLVER,
 ) -> Refinement:
     """Refine the maplet's heights and albedo and the images' brightness scales (module docstring).
 
     mode: 'pwm' (pixel weights and region weight of `data`) or 'standard' (every visible node
     weighs 1, shadows included, w_PWM = 1). offsets: (K, 2) pointing corrections (sample, line),
-    px, e.g. from `pwm.alignment.align`; solve_offsets: refine them too, jointly (image gradients
-    as their derivatives), tied to the given ones by offset_weight per px^2. tolerance: RMS height
-    change of one step that ends the iterations, in node spacings; cost_tolerance: the relative
-    decrease of the objective in one step that ends them (site: the steps left after 1% would
-    move heights by about a tenth of a spacing RMS, mostly at nodes few images see, and take as
-    long again). slope_weight, height_weight: strengths of the ties to the starting slopes and
-    heights (divided by w_PWM); slope_scale: the slope change (dimensionless, dz per spacing)
-    beyond which the slope tie grows only linearly (lower keeps more of the boulders the start
-    lacks, higher keeps shadow-poor maplets closer to the start); albedo_weight: of the tie to
-    the maplet's albedo (or to the median albedo if it has none). Nodes without data
-    keep the starting shape.
+    px, e.g. from `pwm.alignment.align`, the start of the joint solution. solver: the iteration's
+    settings (`Solver`). Nodes without data keep the starting shape.
     """
     k_images = data.count
     weights, region = data.data_weights(mode)
     start = np.zeros((k_images, 2)) if offsets is None else np.asarray(offsets, float).reshape(k_images, 2)
-    problem = _Problem(maplet, data, weights=weights, region=region, offsets=start, solve_offsets=solve_offsets,
-                       slope_weight=slope_weight, slope_scale=slope_scale, height_weight=height_weight,
-                       albedo_weight=albedo_weight, offset_weight=offset_weight)
+    problem = _Problem(maplet, data, weights=weights, region=region, offsets=start, solve_offsets=solver.solve_offsets,
+                       slope_weight=solver.slope_weight, slope_scale=solver.slope_scale,
+                       height_weight=solver.height_weight, albedo_weight=solver.albedo_weight,
+                       offset_weight=solver.offset_weight)
     state, ev = problem.start()
     converged = not ev.rows.any()
     iterations = 0
-    while not converged and iterations < max_iterations:
+    while not converged and iterations < solver.max_iterations:
         iterations += 1
         step = problem.step(state, ev)
-        converged = float(np.sqrt(np.mean(step.u**2))) < tolerance
+        converged = float(np.sqrt(np.mean(step.u**2))) < solver.tolerance
         accepted = _backtrack(problem, state, ev, step)
         if accepted is None:
             break
-        converged |= ev.cost - accepted[1].cost < cost_tolerance * ev.cost
+        converged |= ev.cost - accepted[1].cost < solver.cost_tolerance * ev.cost
         state, ev = accepted
 
     n = maplet.n

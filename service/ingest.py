@@ -35,6 +35,7 @@ from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import Camera
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
 from pwm.io.spice_geometry import camera_from_kernel, instrument_frame, spacecraft_of
 from pwm.io.spice_kernels import KernelError, kernel_pool
@@ -172,15 +173,14 @@ class _Rejected(Exception):
 
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
                      downlink_name: str | None = None, shape: Mesh | None = None,
-                     maplet_nodes: int = 100, tile_radius_km: float | None = None) -> IngestReport:
+                     config: RefinementConfig = DEFAULTS) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
     holds that name). shape: the current shape model of the target (body-fixed, km); boresight
     and corner intercepts use it instead of the PCK ellipsoid, and the catalog's images not
     weighed yet (Image.coverage_computed_at) get their coverage rows against it
-    (service.coverage; maplets tiled there have maplet_nodes nodes per side, within
-    tile_radius_km of the imaged region's centre when given). SPICE's
+    (service.coverage; maplets tiled there as config says). SPICE's
     process-wide kernel pool is cleared on the way in and out (pwm.io.spice_kernels.kernel_pool).
     """
     sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
@@ -205,9 +205,7 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                 # a shape): a repeated ingest leaves the maplets' inputs as they are.
                 unweighed = set(session.scalars(select(Image.id).where(
                     Image.coverage_computed_at.is_(None))))
-                report.coverage = update_coverage(session, shape, image_ids=unweighed,
-                                                  nodes_per_side=maplet_nodes,
-                                                  tile_radius_km=tile_radius_km)
+                report.coverage = update_coverage(session, shape, image_ids=unweighed, config=config)
     except BaseException:
         with session_scope(sessions) as session:
             session.get_one(Downlink, downlink_id).status = DownlinkStatus.FAILED

@@ -21,9 +21,9 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_grid, write_grid
-from service.coverage import OVERLAP
 from service.db import session_scope
 from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion
 from service.refinement import load_revision_maplet
@@ -40,11 +40,12 @@ log = logging.getLogger(__name__)
 
 
 def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
-                     downlink_ids: Sequence[int] = ()) -> int | None:
+                     downlink_ids: Sequence[int] = (), config: RefinementConfig = DEFAULTS) -> int | None:
     """Fuse the maplets' current revisions into the latest version and publish the result as a
     new version (kind refined); its number, or None when no maplet's current revision differs
     from the latest version's (nothing is published then).
 
+    config.overlap: the maplets' overlap, over which fusion tapers their weights.
     Lineage: the parent, the maplet revisions fused, the parent's downlinks plus downlink_ids.
     Statistics: maplets changed, added, replaced and fused in all, images used, whether the
     parent's sums were reused, the base version, voxels and seconds (with the mesh's own).
@@ -73,7 +74,7 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
             grid = None
         maplets = [load_revision_maplet(data_dir, r) for r in added]
         if grid is None:
-            grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=OVERLAP)
+            grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=config.overlap)
         for maplet in maplets:
             grid.add(maplet)
         base = _base(parent)

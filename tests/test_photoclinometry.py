@@ -25,6 +25,7 @@ from pwm.mesh import Mesh
 from pwm.photoclinometry import (
     MapletImages,
     Refinement,
+    Solver,
     _Geometry,
     _Problem,
     _shading,
@@ -239,7 +240,7 @@ def test_nodes_without_data_keep_the_starting_shape(scene: Scene) -> None:
 def test_stopping_on_a_small_decrease_of_the_objective_costs_no_accuracy(scene: Scene, refined: Refinement) -> None:
     # Iterating until the steps themselves vanish (no objective stop, a tolerance of 1e-4
     # spacings) takes more iterations and ends within a fiftieth of a spacing of the default.
-    longer = refine(scene.start, scene.data, cost_tolerance=0.0, tolerance=1e-4)
+    longer = refine(scene.start, scene.data, solver=Solver(cost_tolerance=0.0, tolerance=1e-4))
     assert refined.iterations < longer.iterations
     assert np.sqrt(np.mean((refined.heights - longer.heights) ** 2)) < 0.02 * SPACING_KM
 
@@ -287,8 +288,8 @@ def test_the_slope_tie_holds_relief_the_start_lacks_less_than_noise(scene: Scene
     # Held tight to the flat start, a quadratic tie (slope_scale far above any slope) flattens
     # the bump more than the pseudo-Huber tie, which grows only linearly beyond slope_scale.
     tight = dataclasses.replace(scene.data, region_weight=0.02)
-    quadratic = refine(scene.start, tight, slope_scale=1e3)
-    robust = refine(scene.start, tight, slope_scale=0.1)
+    quadratic = refine(scene.start, tight, solver=Solver(slope_scale=1e3))
+    robust = refine(scene.start, tight, solver=Solver(slope_scale=0.1))
     assert _bump_height(robust.heights) > 1.15 * _bump_height(quadratic.heights)
     # and the tie's Gauss-Newton matrix is its gradient: finite differences of its cost
     problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0,
@@ -356,7 +357,7 @@ def test_refine_solves_pointing_up_to_the_maplet_datum(scene: Scene) -> None:
     assert np.abs(miss).max() > 0.1   # the datum part is really there
     assert np.abs(miss - common).max() < 0.05
     assert _bump_height(result.heights) == pytest.approx(BUMP_KM, rel=0.10)
-    assert np.all(refine(scene.start, bad, solve_offsets=False).rms > 2 * result.rms)
+    assert np.all(refine(scene.start, bad, solver=Solver(solve_offsets=False)).rms > 2 * result.rms)
 
 
 def _datum_free(offsets: np.ndarray, maplet: Maplet, data: MapletImages) -> np.ndarray:

@@ -7,7 +7,7 @@ from typing import Literal, cast
 
 import typer
 
-from service.cli.app import app, echo_json, setup_logging
+from service.cli.app import app, echo_json, refinement_config, setup_logging
 
 
 @app.command()
@@ -18,9 +18,9 @@ def ingest(
                                       help="current shape model for boresight intercepts and maplet coverage "
                                            "(.obj/.ply, km); default: the PCK ellipsoid, no coverage"),
     name: str | None = typer.Option(None, help="downlink name (default: the directory name)"),
-    maplet_nodes: int = typer.Option(100, min=8,
-                                     help="nodes per side of maplets tiled where the images look and no maplet is "
-                                          "catalogued yet (with --shape)"),
+    maplet_nodes: int | None = typer.Option(None,
+                                            help="nodes per side of maplets tiled where the images look and no maplet "
+                                                 "is catalogued yet (with --shape); default PWM_MAPLET_NODES"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Catalogue a downlink: kernels first, then every PDS4 product, accepted or rejected with a reason.
@@ -30,10 +30,13 @@ def ingest(
     from pwm.io.meshio import read_mesh
     from service.catalog import open_catalog
     from service.ingest import ingest_directory
+    from service.settings import get_settings
 
     setup_logging(verbose)
-    report = ingest_directory(open_catalog(), directory, downlink_name=name, shape=read_mesh(shape) if shape else None,
-                              maplet_nodes=maplet_nodes)
+    settings = get_settings()
+    config = refinement_config(settings.refinement(), nodes=maplet_nodes)
+    report = ingest_directory(open_catalog(settings), directory, downlink_name=name,
+                              shape=read_mesh(shape) if shape else None, config=config)
     typer.echo(report.summary())
     raise typer.Exit(min(report.failed, 100))
 

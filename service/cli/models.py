@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from service.cli.app import app, echo_json, setup_logging
+from service.cli.app import app, echo_json, refinement_config, setup_logging
 
 version_app = typer.Typer(help="One model version.", no_args_is_help=True)
 app.add_typer(version_app, name="version")
@@ -20,14 +20,16 @@ def run(
     start: Path | None = typer.Option(None, exists=True, dir_okay=False,
                                       help="start model (.obj/.ply/.bds, km) when the catalog has no version yet; "
                                            "default DIR/start_model.obj"),
-    mode: str = typer.Option("pwm", help="pwm (pixel and region weights) | standard (weights off)"),
+    mode: str | None = typer.Option(None,
+                                    help="pwm (pixel and region weights) | standard (weights off); default "
+                                         "PWM_REFINE_MODE"),
     workers: int = typer.Option(1, min=1, help="processes refining maplets in parallel"),
-    maplet_nodes: int = typer.Option(100, min=8,
-                                     help="nodes per side of maplets tiled where the images look and none is "
-                                          "catalogued"),
-    tile_radius: float | None = typer.Option(None, min=0.0,
-                                             help="radius (km) of the region tiled about where the images look "
-                                                  "(default: from their footprints)"),
+    maplet_nodes: int | None = typer.Option(None,
+                                            help="nodes per side of maplets tiled where the images look and none is "
+                                                 "catalogued; default PWM_MAPLET_NODES"),
+    tile_radius: float | None = typer.Option(None,
+                                             help="radius (km) of the region tiled about where the images look; "
+                                                  "default PWM_TILE_RADIUS_KM, else from their footprints"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Ingest a downlink, refine the maplets whose images changed, and publish a new model version, in this process."""
@@ -36,12 +38,11 @@ def run(
     from service.settings import get_settings
 
     setup_logging(verbose)
-    if mode not in ("pwm", "standard"):
-        raise typer.BadParameter("mode is pwm or standard", param_hint="--mode")
     settings = get_settings()
+    config = refinement_config(settings.refinement(), mode=mode, nodes=maplet_nodes, tile_radius_km=tile_radius)
     try:
         report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,
-                               mode=mode, workers=workers, maplet_nodes=maplet_nodes, tile_radius_km=tile_radius)
+                               config=config, workers=workers)
     except FileNotFoundError as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(1) from None

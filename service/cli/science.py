@@ -5,11 +5,11 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import cast
 
 import typer
 
-from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, setup_logging
+from pwm.config import DEFAULTS
+from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, refinement_config, setup_logging
 
 
 def _knowledge_error(value: str | None) -> tuple[float, float]:
@@ -74,17 +74,17 @@ def refine(
     start: Path = typer.Option(..., exists=True, dir_okay=False,
                                help="starting shape model (.obj/.ply, km, body-fixed)"),
     out: Path = typer.Option(..., help="output directory: refined.ply (with albedo), refined.obj, maplets.json"),
-    mode: str = typer.Option("pwm", help="pwm (pixel and region weights) | standard (weights off)"),
+    mode: str = typer.Option(DEFAULTS.mode, help="pwm (pixel and region weights) | standard (weights off)"),
     lat: float | None = typer.Option(None, help="region centre latitude, deg (default: where the images look)"),
     lon: float | None = typer.Option(None, help="region centre east longitude, deg"),
     radius: float | None = typer.Option(None, min=0.0, help="region radius, km"),
-    nodes: int = typer.Option(100, min=8, help="maplet nodes per side"),
-    spacing_gsd: float = typer.Option(1.0, min=0.25, max=2.0, help="node spacing in image GSDs (median pixel scale)"),
-    overlap: float = typer.Option(0.25, min=0.0, max=0.75, help="fraction of a maplet shared with each neighbour"),
+    nodes: int = typer.Option(DEFAULTS.nodes, help="maplet nodes per side"),
+    spacing_gsd: float = typer.Option(DEFAULTS.spacing_gsd, help="node spacing in image GSDs (median pixel scale)"),
+    overlap: float = typer.Option(DEFAULTS.overlap, help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
-    passes: int = typer.Option(2, min=1,
+    passes: int = typer.Option(DEFAULTS.passes,
                                help="refinement passes; each later one re-tiles the previous pass's fused model"),
-    search_px: float = typer.Option(1.0, min=0.0,
+    search_px: float = typer.Option(DEFAULTS.search_px,
                                     help="how far images may be off the maplets (px), from the pose knowledge"),
     corrections: Path | None = typer.Option(None, exists=True, dir_okay=False,
                                             help="pose corrections to apply (corrections.json of pwm spg)"),
@@ -99,14 +99,12 @@ def refine(
 
     from pwm.io.downlink import read_views
     from pwm.io.meshio import read_mesh, write_obj, write_ply
-    from pwm.photoclinometry import Mode
     from pwm.pipeline import imaged_region, refine_region
     from service.cli.spg import read_corrections
 
     setup_logging(verbose)
-    if mode not in ("pwm", "standard"):
-        raise typer.BadParameter("mode is pwm or standard")
-    checked_mode = cast(Mode, mode)
+    config = refinement_config(mode=mode, nodes=nodes, spacing_gsd=spacing_gsd, overlap=overlap, passes=passes,
+                               search_px=search_px)
     clock = time.perf_counter()
     views = read_views(downlink, instrument_id=instrument, target=target, body_frame=body_frame,
                        corrections=None if corrections is None else read_corrections(corrections))
@@ -116,11 +114,10 @@ def refine(
         region = dataclasses.replace(region, lat_deg=lat, lon_deg=lon)
     if radius is not None:
         region = dataclasses.replace(region, radius_km=radius)
-    region = dataclasses.replace(region, spacing_km=spacing_gsd * region.spacing_km)
+    region = dataclasses.replace(region, spacing_km=config.spacing_gsd * region.spacing_km)
     logging.getLogger("pwm").info("%d images, maplets at %.3f m around (%.3f, %.3f) within %.1f m", len(views),
                                   region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
-    model, results = refine_region(start_model, views, region, nodes=nodes, overlap=overlap, passes=passes,
-                                   mode=checked_mode, workers=workers, search_px=search_px)
+    model, results = refine_region(start_model, views, region, config=config, workers=workers)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "refined.ply", model)
     write_obj(out / "refined.obj", model)

@@ -9,6 +9,7 @@ from sqlalchemy import select
 from typer.testing import CliRunner
 
 from pwm.camera import Pose, PoseCorrection
+from pwm.config import RefinementConfig
 from service.cli import app
 from service.models import Image, ImageGeometry, ModelKind
 from service.refinement import refine_catalog_maplet, stale_maplets
@@ -18,7 +19,7 @@ from service.spg import _store_correction, photogrammetry_version
 from service.versions import get_version, latest_version, version_mesh
 from service.views import catalog_views, image_pose
 
-SITE = {"maplet_nodes": 40, "tile_radius_km": 0.0003}  # one maplet on the site's centre
+SITE = {"config": RefinementConfig(nodes=40, tile_radius_km=0.0003)}  # one maplet on the site's centre
 
 
 def _geometry_pose(image: Image) -> Pose:
