@@ -46,8 +46,7 @@ from pwm.maplets import Maplet  # noqa: E402
 from pwm.tiling import tile  # noqa: E402
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
 from service.ingest import ingest_directory  # noqa: E402
-from service.queries import (images_covering, list_maplets, maplet_coverage,  # noqa: E402
-                             maplets_seen_by)
+from service.queries import images_covering, list_maplets, maplet_coverage, maplets_seen_by  # noqa: E402
 from tests import conftest as test_servers  # noqa: E402
 from tests.service import test_ingest  # noqa: E402
 
@@ -238,7 +237,7 @@ def query_workload(names: list[str], lidvids: list[str], calls: int,
     images and maplets uniform over the catalog."""
     lat = np.degrees(np.arcsin(rng.uniform(-1.0, 1.0, calls)))
     lon = rng.uniform(0.0, 360.0, calls)
-    points = [dict(lat_deg=float(a), lon_deg=float(b)) for a, b in zip(lat, lon)]
+    points = [dict(lat_deg=float(a), lon_deg=float(b)) for a, b in zip(lat, lon, strict=True)]
     return {
         "images_covering": (images_covering, points),
         "maplets_seen_by": (maplets_seen_by, [dict(lidvid=lidvids[k]) for k in

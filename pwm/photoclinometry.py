@@ -124,7 +124,7 @@ def node_pixels(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | Non
     offsets (K, 2) (pointing corrections from `pwm.alignment.align`); NaN behind the camera."""
     points = maplet.nodes_body(heights).reshape(-1, 3)
     out = np.empty((data.count, maplet.n, maplet.n, 2))
-    for k, (camera, pose) in enumerate(zip(data.cameras, data.poses)):
+    for k, (camera, pose) in enumerate(zip(data.cameras, data.poses, strict=True)):
         cam = pose.to_camera(points)
         pix = camera.project_camera(cam)
         pix[cam[:, 2] <= 0] = np.nan
@@ -138,13 +138,13 @@ def bilinear(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     """Bilinear samples of an image [line, sample] at pixels (..., 2) = (sample, line) with pixel
     centres at integers; NaN outside the frame (or next to a NaN pixel)."""
     height, width = image.shape
-    s, l = pixels[..., 0], pixels[..., 1]
-    inside = (s >= 0) & (s <= width - 1) & (l >= 0) & (l <= height - 1)
+    s, line = pixels[..., 0], pixels[..., 1]
+    inside = (s >= 0) & (s <= width - 1) & (line >= 0) & (line <= height - 1)
     s = np.where(inside, s, 0.0)
-    l = np.where(inside, l, 0.0)
+    line = np.where(inside, line, 0.0)
     s0 = np.minimum(np.floor(s).astype(np.intp), max(width - 2, 0))
-    l0 = np.minimum(np.floor(l).astype(np.intp), max(height - 2, 0))
-    fs, fl = s - s0, l - l0
+    l0 = np.minimum(np.floor(line).astype(np.intp), max(height - 2, 0))
+    fs, fl = s - s0, line - l0
     flat = image.ravel()
     i00 = l0 * width + s0
     right = 1 if width > 1 else 0
@@ -178,13 +178,13 @@ def cubic_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, n
     continuously differentiable); NaN outside the frame or next to a NaN pixel. Unlike bilinear
     sampling, it does not blur what lies between the pixel centres."""
     height, width = image.shape
-    s, l = pixels[..., 0], pixels[..., 1]
-    inside = (s >= 0) & (s <= width - 1) & (l >= 0) & (l <= height - 1)
+    s, line = pixels[..., 0], pixels[..., 1]
+    inside = (s >= 0) & (s <= width - 1) & (line >= 0) & (line <= height - 1)
     s = np.where(inside, s, 0.0)
-    l = np.where(inside, l, 0.0)
-    s0, l0 = np.floor(s), np.floor(l)
+    line = np.where(inside, line, 0.0)
+    s0, l0 = np.floor(s), np.floor(line)
     ws, dws = _keys(s - s0)
-    wl, dwl = _keys(l - l0)
+    wl, dwl = _keys(line - l0)
     cols = np.clip(s0.astype(np.intp)[..., None] + np.arange(-1, 3), 0, width - 1)
     first = l0.astype(np.intp)
     flat = image.ravel()
@@ -352,8 +352,8 @@ class _Problem:
     """One maplet's refinement: data, operators on the node grid (units of one spacing), priors."""
 
     def __init__(self, maplet: Maplet, data: MapletImages, *, weights: np.ndarray, region: float,
-                 offsets: np.ndarray, solve_offsets: bool, slope_weight: float, slope_scale: float, height_weight: float,
-                 albedo_weight: float, offset_weight: float) -> None:
+                 offsets: np.ndarray, solve_offsets: bool, slope_weight: float, slope_scale: float,
+                 height_weight: float, albedo_weight: float, offset_weight: float) -> None:
         n = maplet.n
         self.maplet, self.data = maplet, data
         self.weights = weights.reshape(data.count, -1)
@@ -402,7 +402,8 @@ class _Problem:
         sampled = [cubic_gradient(image, pixels[k]) for k, image in enumerate(data.images)]
         values = np.stack([v for v, _ in sampled])
         gradients = np.stack([g for _, g in sampled])
-        used = np.isfinite(values) & (self.weights > 0) & np.isfinite(gradients).all(axis=-1) & np.isfinite(raised).all(axis=-1)
+        used = (np.isfinite(values) & (self.weights > 0) & np.isfinite(gradients).all(axis=-1)
+                & np.isfinite(raised).all(axis=-1))
         gradients = np.where(used[..., None], gradients, 0.0)
         parallax = np.einsum("kni,kni->kn", gradients, np.where(used[..., None], raised - pixels, 0.0)) / _RISE
         values = np.where(used, values, 0.0)
@@ -448,13 +449,13 @@ class _Problem:
         jz = c * ev.parallax               # dr / du through the node's move in the image
         # Per-image unknowns t: scales, then offsets (sample, line) image by image; image[t] is
         # the image each belongs to and jt[t] its derivative on that image's residuals.
-        jt = [-c * albedo * ev.G]
-        image = [np.arange(k_images)]
+        jt_blocks = [-c * albedo * ev.G]
+        image_blocks = [np.arange(k_images)]
         if self.solve_offsets:
-            jt.append((c[..., None] * ev.gradients).transpose(0, 2, 1).reshape(2 * k_images, -1))
-            image.append(np.repeat(np.arange(k_images), 2))
-        jt = np.vstack(jt)
-        image = np.concatenate(image)
+            jt_blocks.append((c[..., None] * ev.gradients).transpose(0, 2, 1).reshape(2 * k_images, -1))
+            image_blocks.append(np.repeat(np.arange(k_images), 2))
+        jt = np.vstack(jt_blocks)
+        image = np.concatenate(image_blocks)
 
         a2 = self.albedo_weight / self.albedo_prior**2
         haa = (ja * ja).sum(axis=0) + a2
@@ -462,10 +463,11 @@ class _Problem:
         inv = 1.0 / haa
         parts = (jx, jy, jz)
         pa = [(ja * j).sum(axis=0) for j in parts]
-        m = [[(ji * jj).sum(axis=0) - pi * pj * inv for jj, pj in zip(parts, pa)] for ji, pi in zip(parts, pa)]
-        g = [(j * r).sum(axis=0) - p * ga * inv for j, p in zip(parts, pa)]
+        m = [[(ji * jj).sum(axis=0) - pi * pj * inv for jj, pj in zip(parts, pa, strict=True)]
+             for ji, pi in zip(parts, pa, strict=True)]
+        g = [(j * r).sum(axis=0) - p * ga * inv for j, p in zip(parts, pa, strict=True)]
         xta = jt * ja[image]
-        xt = [jt * j[image] - xta * (p * inv) for j, p in zip(parts, pa)]
+        xt = [jt * j[image] - xta * (p * inv) for j, p in zip(parts, pa, strict=True)]
         htt = (jt @ jt.T) * (image[:, None] == image[None, :]) - (xta * inv) @ xta.T
         gt = (jt * r[image]).sum(axis=1) - xta @ (ga * inv)
         # The data fix only s_k * A: a penalty on sum(log s) holds the scales' geometric mean at 1.
@@ -515,7 +517,7 @@ def datum_complement(maplet: Maplet, data: MapletImages) -> np.ndarray:
     step = maplet.spacing_km
     shift = np.column_stack([
         np.concatenate([project(centre + step * axis, camera, pose) - project(centre - step * axis, camera, pose)
-                        for camera, pose in zip(data.cameras, data.poses)]) / (2 * step)
+                        for camera, pose in zip(data.cameras, data.poses, strict=True)]) / (2 * step)
         for axis in maplet.frame.rotation[:2]
     ])
     u, sv, _ = np.linalg.svd(shift)

@@ -26,7 +26,16 @@ from pwm.photoclinometry import MapletImages, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
 from pwm.visibility import Visibility, node_visibility
-from pwm.weights import RULES, ImageGeometry, MapletWeights, Rules, dark_nodes, image_geometry, weigh_maplet, without_dark
+from pwm.weights import (
+    RULES,
+    ImageGeometry,
+    MapletWeights,
+    Rules,
+    dark_nodes,
+    image_geometry,
+    weigh_maplet,
+    without_dark,
+)
 
 log = logging.getLogger(__name__)
 
@@ -87,7 +96,8 @@ def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
     """Points that project inside the image (half a pixel in from the edges, for interpolation)."""
     px = project(points, view.camera, view.pose)
     in_front = view.pose.to_camera(points)[:, 2] > 0
-    return in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1)
+    return (in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1)
+            & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
 
 
 def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *,
@@ -112,7 +122,8 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *,
         # solution, which only corrects offsets within its linear reach (about a pixel); within
         # that, registering against the start's shading, itself off by its height errors, only
         # moves the joint solution's starting point away from the poses
-        offsets = register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0 else np.zeros((data.count, 2))
+        offsets = (register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0
+                   else np.zeros((data.count, 2)))
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
             data.weights = without_dark(data.weights, dark_nodes(extract(maplet, data, offsets=offsets), data.weights,

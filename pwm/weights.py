@@ -239,7 +239,7 @@ def dark_nodes(values: np.ndarray, weights: np.ndarray, rules: Rules = RULES) ->
     image's median over the nodes it weighs. values: image values at the nodes (K, n, n), NaN where
     missing; weights: the pixel weights (K, n, n)."""
     used = np.isfinite(values) & (weights > 0)
-    typical = np.array([np.median(v[u]) if u.any() else np.nan for v, u in zip(values, used)])
+    typical = np.array([np.median(v[u]) if u.any() else np.nan for v, u in zip(values, used, strict=True)])
     with np.errstate(invalid="ignore"):
         return used & (values < rules.dark_fraction * typical[:, None, None])
 

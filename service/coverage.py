@@ -16,10 +16,10 @@ repeated ingest changes nothing; rows of images that no longer see a maplet are 
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass
 import dataclasses
+import logging
 from collections.abc import Collection
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy import select, update
@@ -170,7 +170,7 @@ def _store(session: Session, maplet: Maplet, grid: MapletGrid, image_ids: list[i
             float(geom.visible_fraction[k]), float(geom.shadow_fraction[k]),
             float(geom.incidence_deg[k]), float(geom.emission_deg[k]), float(geom.phase_deg[k]),
             float(geom.sun_azimuth_deg[k]), float(geom.resolution_ratio[k] * spacing_km * 1e3),
-            float(weights.image[k]), roles.get(k))))
+            float(weights.image[k]), roles.get(k)), strict=True))
         row = existing.pop(image_id, None)
         if row is None:
             session.add(Coverage(image_id=image_id, maplet_id=maplet.id, **values))

@@ -44,8 +44,15 @@ from pwm.io.spice_kernels import kernel_pool
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from service.kernels import accepted_kernels
-from service.models import (Image, ImageGeometry, ImageStatus, Instrument, KernelKind,
-                            ModelVersion, model_version_downlinks)
+from service.models import (
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    KernelKind,
+    ModelVersion,
+    model_version_downlinks,
+)
 from service.versions import ArtifactError, artifact_path, store_artifact, version_mesh
 
 EXPORTS_DIRNAME = "exports"
@@ -158,8 +165,10 @@ def export_version(session: Session, *, data_dir: Path, version: ModelVersion,
         if fmt is ExportFormat.ICQ:
             _write_icq(path, mesh, icq_size(faces or len(mesh.faces)))
         elif fmt is ExportFormat.DSK:
+            assert target is not None  # resolved above for DSK and site products
             _write_dsk(session, path, mesh, version=version, target=target)
         elif fmt is ExportFormat.SITE:
+            assert site is not None and target is not None  # checked and resolved above
             _write_site(session, path, mesh, version=version, site=site, target=target)
         else:
             (write_ply if fmt is ExportFormat.PLY else write_obj)(path, mesh)

@@ -34,20 +34,33 @@ import spiceypy as sp
 from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from pwm.config import DEFAULTS, RefinementConfig
 from pwm.camera import Camera
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
 from pwm.io.spice_geometry import camera_from_kernel, instrument_frame, spacecraft_of
 from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
 from service.coverage import CoverageReport, update_coverage
 from service.db import make_sessionmaker, session_scope
-from service.geometry import (ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry,
-                              ellipsoid_of, observe)
-from service.kernels import (KernelOutcome, accepted_kernels, coverage_windows, et_to_datetime,
-                             register_kernels, spice_message)
-from service.models import (Downlink, DownlinkStatus, GeometryStatus, Image, ImageGeometry,
-                            ImageStatus, Instrument, KernelKind)
+from service.geometry import ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry, ellipsoid_of, observe
+from service.kernels import (
+    KernelOutcome,
+    accepted_kernels,
+    coverage_windows,
+    et_to_datetime,
+    register_kernels,
+    spice_message,
+)
+from service.models import (
+    Downlink,
+    DownlinkStatus,
+    GeometryStatus,
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    KernelKind,
+)
 
 log = logging.getLogger(__name__)
 
@@ -195,10 +208,10 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                 report.coverage = update_coverage(session, shape, image_ids=unweighed, config=config)
     except BaseException:
         with session_scope(sessions) as session:
-            session.get(Downlink, downlink_id).status = DownlinkStatus.FAILED
+            session.get_one(Downlink, downlink_id).status = DownlinkStatus.FAILED
         raise
     with session_scope(sessions) as session:
-        session.get(Downlink, downlink_id).status = DownlinkStatus.INGESTED
+        session.get_one(Downlink, downlink_id).status = DownlinkStatus.INGESTED
     report.elapsed_s = time.perf_counter() - clock
     log.info("%s", report.summary())
     return report
@@ -381,7 +394,7 @@ def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | 
     """Store the outcome as a new row, or over `same`; False if `same` already says it."""
     versions = catalog.known[(identity.lid, identity.vid)]
     if same is not None:
-        image = catalog.session.get(Image, same.id)
+        image = catalog.session.get_one(Image, same.id)
         if _verdict(image) == outcome.verdict:
             return False
         same.status, same.code = outcome.status, outcome.code
@@ -531,7 +544,7 @@ def _instrument_code(product: ImageProduct, observer: int) -> int | None:
     pool_names = sp.gcpool("NAIF_BODY_NAME", 0, count)
     pool_codes = sp.gipool("NAIF_BODY_CODE", 0, count)
     suffixes = {"_" + v for v in variants}
-    matches = {int(c) for n, c in zip(pool_names, pool_codes)
+    matches = {int(c) for n, c in zip(pool_names, pool_codes, strict=False)
                if on_observer(int(c)) and any(n.upper().endswith(s) for s in suffixes)}
     return matches.pop() if len(matches) == 1 else None
 

@@ -27,8 +27,14 @@ from pwm.io.fusion_state import read_grid, write_grid
 from service.db import session_scope
 from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion
 from service.refinement import load_revision_maplet
-from service.versions import (artifact_path, latest_version, publication_lock, publish_version,
-                              scratch_path, version_mesh)
+from service.versions import (
+    artifact_path,
+    latest_version,
+    publication_lock,
+    publish_version,
+    scratch_path,
+    version_mesh,
+)
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +108,7 @@ def _current_revisions(session: Session) -> dict[int, MapletRevision]:
     """Each maplet's current revision, by maplet id."""
     rows = session.scalars(select(Maplet).where(Maplet.current_revision_id.is_not(None))
                            .options(selectinload(Maplet.current_revision)).order_by(Maplet.id))
-    return {m.id: m.current_revision for m in rows}
+    return {m.id: m.current_revision for m in rows if m.current_revision is not None}  # all, by the query
 
 
 def _base(version: ModelVersion) -> ModelVersion:

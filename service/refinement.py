@@ -2,10 +2,10 @@
 
 A maplet's input is the set of images its coverage rows weigh above zero (the refinement's own
 rules, service.coverage), each with its pose correction, plus the refinement settings
-(pwm.config.RefinementConfig.digest) and the maplet's grid. Its input hash names that input: a maplet whose current revision was made from
-another input is stale. Refining a maplet stores a new revision, keyed by the input hash, so the
-same input is never solved twice; the maplet's current revision moves to it while the hash is
-still the maplet's input.
+(pwm.config.RefinementConfig.digest) and the maplet's grid. Its input hash names that input: a
+maplet whose current revision was made from another input is stale. Refining a maplet stores a
+new revision, keyed by the input hash, so the same input is never solved twice; the maplet's
+current revision moves to it while the hash is still the maplet's input.
 
 The refinement itself is pwm.pipeline.refine_maplet, on the maplet's nodes at the heights of
 the current model (the latest version), with visibility against that model.
@@ -34,10 +34,8 @@ from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface
 from service.db import session_scope
-from service.models import (Coverage, GeometryStatus, Image, ImageStatus, Maplet,
-                            MapletRevision)
-from service.versions import (artifact_mesh, artifact_path, latest_version, scratch_path,
-                              store_artifact)
+from service.models import Coverage, GeometryStatus, Image, ImageStatus, Maplet, MapletRevision
+from service.versions import artifact_mesh, artifact_path, latest_version, scratch_path, store_artifact
 from service.views import catalog_views
 
 log = logging.getLogger(__name__)

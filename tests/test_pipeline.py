@@ -28,7 +28,7 @@ def test_refined_maplets_beat_the_start_and_fuse(tiny_sim):
     results = refine_maplets(maplets, views, start)
     truth_tracer = RayTracer(truth.mesh)
     start_err, refined_err = [], []
-    for original, result in zip(maplets, results):
+    for original, result in zip(maplets, results, strict=True):
         assert len(result.images) >= 3 and 0 < result.region_weight <= 1
         true_h = sample_heights(truth_tracer, original)
         # heights are compared after removing the mean: photometry does not see a common offset

@@ -65,8 +65,8 @@ def refine_key(downlink_id: int | None, maplet_id: int, input_hash: str) -> str:
     return f"refine:{REQUESTED if downlink_id is None else downlink_id}:{maplet_id}:{input_hash}"
 
 
-def fuse_key(downlink_id: int) -> str:
-    """The key of fusing a downlink's refinements into a new version."""
+def fuse_key(downlink_id: int | None) -> str:
+    """The key of fusing a downlink's refinements (None: the catalog's) into a new version."""
     return f"fuse:{downlink_id}"
 
 

@@ -9,10 +9,8 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from service.models import (DownlinkStatus, GeometryStatus, ImageStatus, JobKind, JobStatus,
-                            ModelKind)
-from service.queries import (CoverageSummary, MapletCoverage, MapletImage, MapletInfo,
-                             RevisionInfo)
+from service.models import DownlinkStatus, GeometryStatus, ImageStatus, JobKind, JobStatus, ModelKind
+from service.queries import CoverageSummary, MapletCoverage, MapletImage, MapletInfo, RevisionInfo
 
 Item = TypeVar("Item")
 

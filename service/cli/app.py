@@ -22,7 +22,8 @@ BODY_FRAME = typer.Option("IAU_BENNU", help="body-fixed frame of the target")
 
 def setup_logging(verbose: bool) -> None:
     """Log to stderr: INFO, or DEBUG with --verbose."""
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
 
 
 def echo_json(value: object) -> None:

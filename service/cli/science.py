@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -13,7 +12,7 @@ from pwm.config import DEFAULTS
 from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, refinement_config, setup_logging
 
 
-def _knowledge_error(value: Optional[str]) -> tuple[float, float]:
+def _knowledge_error(value: str | None) -> tuple[float, float]:
     if value is None:
         return 0.0, 0.0
     try:
@@ -30,7 +29,9 @@ def simulate(
     out: Path = typer.Argument(..., help="output directory (downlink/ and truth/ are written in it)"),
     scenario: str = typer.Option("tiny", help="tiny | site | site-polar | global-coarse"),
     seed: int = typer.Option(0, help="random seed: the same seed gives the same products"),
-    knowledge_error: Optional[str] = typer.Option(None, help="POS_M,POINT_RAD: 1-sigma position (m) and pointing (rad) errors in the kernels"),
+    knowledge_error: str | None = typer.Option(None,
+                                               help="POS_M,POINT_RAD: 1-sigma position (m) and pointing (rad) errors "
+                                                    "in the kernels"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Simulate a mission downlink (PDS4 images, SPICE kernels, start model) from a truth asteroid."""
@@ -51,8 +52,8 @@ def simulate(
 def evaluate(
     model: Path = typer.Argument(..., exists=True, dir_okay=False, help="model mesh (.obj or .ply, km, body-fixed)"),
     truth: Path = typer.Option(..., exists=True, file_okay=False, help="the simulation's truth/ directory"),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="write the figures as JSON here"),
-    plots: Optional[Path] = typer.Option(None, help="write PNG plots (height error, profiles, views) here"),
+    json_out: Path | None = typer.Option(None, "--json", help="write the figures as JSON here"),
+    plots: Path | None = typer.Option(None, help="write PNG plots (height error, profiles, views) here"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Measure a model against the truth: ICP, RMS and median error, NCC/SSIM, boulder heights."""
@@ -68,20 +69,25 @@ def evaluate(
 
 @app.command()
 def refine(
-    downlink: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 images, kernels with one meta-kernel)"),
-    start: Path = typer.Option(..., exists=True, dir_okay=False, help="starting shape model (.obj/.ply, km, body-fixed)"),
+    downlink: Path = typer.Argument(..., exists=True, file_okay=False,
+                                    help="a downlink directory (PDS4 images, kernels with one meta-kernel)"),
+    start: Path = typer.Option(..., exists=True, dir_okay=False,
+                               help="starting shape model (.obj/.ply, km, body-fixed)"),
     out: Path = typer.Option(..., help="output directory: refined.ply (with albedo), refined.obj, maplets.json"),
     mode: str = typer.Option(DEFAULTS.mode, help="pwm (pixel and region weights) | standard (weights off)"),
-    lat: Optional[float] = typer.Option(None, help="region centre latitude, deg (default: where the images look)"),
-    lon: Optional[float] = typer.Option(None, help="region centre east longitude, deg"),
-    radius: Optional[float] = typer.Option(None, min=0.0, help="region radius, km"),
+    lat: float | None = typer.Option(None, help="region centre latitude, deg (default: where the images look)"),
+    lon: float | None = typer.Option(None, help="region centre east longitude, deg"),
+    radius: float | None = typer.Option(None, min=0.0, help="region radius, km"),
     nodes: int = typer.Option(DEFAULTS.nodes, help="maplet nodes per side"),
     spacing_gsd: float = typer.Option(DEFAULTS.spacing_gsd, help="node spacing in image GSDs (median pixel scale)"),
     overlap: float = typer.Option(DEFAULTS.overlap, help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
-    passes: int = typer.Option(DEFAULTS.passes, help="refinement passes; each later one re-tiles the previous pass's fused model"),
-    search_px: float = typer.Option(DEFAULTS.search_px, help="how far images may be off the maplets (px), from the pose knowledge"),
-    corrections: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="pose corrections to apply (corrections.json of pwm spg)"),
+    passes: int = typer.Option(DEFAULTS.passes,
+                               help="refinement passes; each later one re-tiles the previous pass's fused model"),
+    search_px: float = typer.Option(DEFAULTS.search_px,
+                                    help="how far images may be off the maplets (px), from the pose knowledge"),
+    corrections: Path | None = typer.Option(None, exists=True, dir_okay=False,
+                                            help="pose corrections to apply (corrections.json of pwm spg)"),
     instrument: int = INSTRUMENT,
     target: str = TARGET,
     body_frame: str = BODY_FRAME,
@@ -117,7 +123,8 @@ def refine(
     write_obj(out / "refined.obj", model)
     report = {"mode": mode, "passes": passes, "region": dataclasses.asdict(region), "images": len(views),
               "seconds": time.perf_counter() - clock,
-              "maplets": [{"name": r.maplet.name, "images": r.images, "region_weight": r.region_weight, "five_views": r.five_views,
+              "maplets": [{"name": r.maplet.name, "images": r.images, "region_weight": r.region_weight,
+                           "five_views": r.five_views,
                            "dropped": r.dropped, "iterations": r.iterations, "converged": r.converged,
                            "residual_rms": r.residual_rms, "seconds": r.seconds} for r in results]}
     (out / "maplets.json").write_text(json.dumps(report, indent=1))

@@ -8,8 +8,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 from sqlalchemy import func, select
 
-from pwm.io.meshio import write_ply
 from pwm.config import RefinementConfig
+from pwm.io.meshio import write_ply
 from service.db import session_scope
 from service.models import ModelKind, ModelVersion
 from service.publish import fuse_and_publish

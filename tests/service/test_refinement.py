@@ -10,11 +10,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from sqlalchemy import func, select
 
+from pwm.config import RefinementConfig
 from pwm.frames import LocalFrame
 from pwm.maplets import Maplet as MapletGrid
-from pwm.tiling import sample_heights
-from pwm.config import RefinementConfig
 from pwm.photoclinometry import Solver
+from pwm.tiling import sample_heights
 from service.db import session_scope
 from service.models import Coverage, Image, Maplet, MapletRevision
 from service.refinement import load_revision_maplet, refine_catalog_maplet, stale_maplets

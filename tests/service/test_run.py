@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy import func, select
 
+from pwm.config import RefinementConfig
 from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_grid
 from pwm.io.pds4 import MISSING_DN, read_image_product, write_image_product
-from pwm.config import RefinementConfig
 from service.models import Coverage, Maplet, MapletRevision, ModelKind
 from service.refinement import load_revision_maplet
 from service.run import run_directory

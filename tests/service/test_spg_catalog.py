@@ -24,7 +24,8 @@ SITE = {"config": RefinementConfig(nodes=40, tile_radius_km=0.0003)}  # one mapl
 
 def _geometry_pose(image: Image) -> Pose:
     g = image.geometry
-    return Pose(np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]), np.asarray(g.camera_rotation, float).reshape(3, 3))
+    return Pose(np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
+                np.asarray(g.camera_rotation, float).reshape(3, 3))
 
 
 def test_photogrammetric_version_corrects_poses_and_stales_maplets(tiny_sim, catalog, tmp_path):

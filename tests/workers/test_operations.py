@@ -20,11 +20,10 @@ from harness import PWM, REPO, Worker, pwm_worker_command, result_of, wait_for
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
-from pwm.simulate.windows import window_downlink
-from service.models import (Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision,
-                            ModelKind, ModelVersion)
-from service.db import session_scope
 from pwm.config import DEFAULTS
+from pwm.simulate.windows import window_downlink
+from service.db import session_scope
+from service.models import Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision, ModelKind, ModelVersion
 from service.versions import artifact_path, version_mesh
 from workers.app import WorkerSettings
 from workers.tasks import fuse_key, ingest_downlink, ingest_key
