@@ -30,8 +30,8 @@ Gauss-Newton with backtracking on the objective re-projected at the trial height
 height change of a step, or the relative decrease of the objective, is below its tolerance. The
 Jacobian includes each node's parallax: as a node rises it moves in every image, and its sample
 changes along the image gradient. Without that term the steps ignore what re-projection does to
-the data, stall short of the objective's minimum (site: RMS 0.44 against 0.30 GSD with it), and
-the heights see no stereo at all.
+the data, stall short of the objective's minimum (bench/RESULTS.md), and the heights see no
+stereo at all.
 """
 
 from __future__ import annotations
