@@ -51,8 +51,15 @@ from pwm.io.spice_kernels import kernel_pool
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from service.kernels import accepted_kernels
-from service.models import (Image, ImageGeometry, ImageStatus, Instrument, KernelKind,
-                            ModelVersion, model_version_downlinks)
+from service.models import (
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    KernelKind,
+    ModelVersion,
+    model_version_downlinks,
+)
 from service.versions import ArtifactError, artifact_mesh, artifact_path
 
 EXPORTS_DIRNAME = "exports"
@@ -403,7 +410,7 @@ def _write_icq(path: Path, mesh: Mesh, q: int) -> None:
 
 
 def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
-    target = resolve_target(_kernel_paths(plan), body=plan.body, frame=plan.frame)
+    target = _target(plan)
     comment = (f"pwm shape model version {plan.version} ({plan.kind}), made "
                f"{plan.created_at:%Y-%m-%dT%H:%M:%SZ}; plate model in km in {target.frame}; "
                f"{len(mesh.vertices)} vertices, {len(mesh.faces)} plates.")
@@ -413,7 +420,7 @@ def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
 
 def _write_site(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
     assert plan.site is not None and plan.time_span is not None  # plan_export sets them
-    target = resolve_target(_kernel_paths(plan), body=plan.body, frame=plan.frame)
+    target = _target(plan)
     grid = resample_site(mesh, plan.site)
     if np.isnan(grid.height_km).all():
         raise ExportError("the site grid meets no surface")
@@ -437,6 +444,11 @@ def _write_site(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
 
 def _kernel_paths(plan: ExportPlan) -> list[Path]:
     return [path for path, _ in plan.kernels]
+
+
+def _target(plan: ExportPlan) -> Target:
+    assert plan.frame is not None  # plan_export sets it for DSK and site products
+    return resolve_target(_kernel_paths(plan), body=plan.body, frame=plan.frame)
 
 
 def _time_span(session: Session, version: ModelVersion) -> tuple[datetime, datetime]:

@@ -35,18 +35,32 @@ from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import Camera
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
 from pwm.io.spice_geometry import camera_from_kernel, instrument_frame, spacecraft_of
 from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
 from service.coverage import CoverageReport, update_coverage
 from service.db import make_sessionmaker, session_scope
-from service.geometry import (ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry,
-                              ellipsoid_of, observe)
-from service.kernels import (KernelOutcome, accepted_kernels, coverage_windows, et_to_datetime,
-                             register_kernels, spice_message)
-from service.models import (Downlink, DownlinkStatus, GeometryStatus, Image, ImageGeometry,
-                            ImageStatus, Instrument, KernelKind)
+from service.geometry import ABCORR, Ellipsoid, MeshSurface, Surface, ViewGeometry, ellipsoid_of, observe
+from service.kernels import (
+    KernelOutcome,
+    accepted_kernels,
+    coverage_windows,
+    et_to_datetime,
+    register_kernels,
+    spice_message,
+)
+from service.models import (
+    Downlink,
+    DownlinkStatus,
+    GeometryStatus,
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    KernelKind,
+)
 
 log = logging.getLogger(__name__)
 
@@ -159,15 +173,14 @@ class _Rejected(Exception):
 
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
                      downlink_name: str | None = None, shape: Mesh | None = None,
-                     maplet_nodes: int = 100, tile_radius_km: float | None = None) -> IngestReport:
+                     config: RefinementConfig = DEFAULTS) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
     holds that name). shape: the current shape model of the target (body-fixed, km); boresight
     and corner intercepts use it instead of the PCK ellipsoid, and the catalog's images not
     weighed yet (Image.coverage_computed_at) get their coverage rows against it
-    (service.coverage; maplets tiled there have maplet_nodes nodes per side, within
-    tile_radius_km of the imaged region's centre when given). SPICE's
+    (service.coverage; maplets tiled there as config says). SPICE's
     process-wide kernel pool is cleared on the way in and out (pwm.io.spice_kernels.kernel_pool).
     """
     sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
@@ -192,15 +205,13 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                 # a shape): a repeated ingest leaves the maplets' inputs as they are.
                 unweighed = set(session.scalars(select(Image.id).where(
                     Image.coverage_computed_at.is_(None))))
-                report.coverage = update_coverage(session, shape, image_ids=unweighed,
-                                                  nodes_per_side=maplet_nodes,
-                                                  tile_radius_km=tile_radius_km)
+                report.coverage = update_coverage(session, shape, image_ids=unweighed, config=config)
     except BaseException:
         with session_scope(sessions) as session:
-            session.get(Downlink, downlink_id).status = DownlinkStatus.FAILED
+            session.get_one(Downlink, downlink_id).status = DownlinkStatus.FAILED
         raise
     with session_scope(sessions) as session:
-        session.get(Downlink, downlink_id).status = DownlinkStatus.INGESTED
+        session.get_one(Downlink, downlink_id).status = DownlinkStatus.INGESTED
     report.elapsed_s = time.perf_counter() - clock
     log.info("%s", report.summary())
     return report
@@ -383,7 +394,7 @@ def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | 
     """Store the outcome as a new row, or over `same`; False if `same` already says it."""
     versions = catalog.known[(identity.lid, identity.vid)]
     if same is not None:
-        image = catalog.session.get(Image, same.id)
+        image = catalog.session.get_one(Image, same.id)
         if _verdict(image) == outcome.verdict:
             return False
         same.status, same.code = outcome.status, outcome.code
@@ -533,7 +544,7 @@ def _instrument_code(product: ImageProduct, observer: int) -> int | None:
     pool_names = sp.gcpool("NAIF_BODY_NAME", 0, count)
     pool_codes = sp.gipool("NAIF_BODY_CODE", 0, count)
     suffixes = {"_" + v for v in variants}
-    matches = {int(c) for n, c in zip(pool_names, pool_codes)
+    matches = {int(c) for n, c in zip(pool_names, pool_codes, strict=False)
                if on_observer(int(c)) and any(n.upper().endswith(s) for s in suffixes)}
     return matches.pop() if len(matches) == 1 else None
 

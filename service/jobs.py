@@ -18,16 +18,18 @@ transaction: commit promptly so that the API sees progress.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import select, update
+from sqlalchemy import CursorResult, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
 from service.models import Job, JobKind, JobStatus, utcnow
 
-_INSERT_IGNORING_CONFLICT = {"postgresql": postgresql.insert, "sqlite": sqlite.insert}
+_INSERT_IGNORING_CONFLICT: dict[str, Callable[..., postgresql.Insert | sqlite.Insert]] = {
+    "postgresql": postgresql.insert, "sqlite": sqlite.insert}
 # An absolute path in a message: a quoted one whole (it may hold spaces), else from a slash at
 # the start or after a space, bracket or `=` up to the next space, quote or bracket.
 _ABSOLUTE_PATH = re.compile(r"(?<=')/[^']*(?=')|(?<=\")/[^\"]*(?=\")"
@@ -147,9 +149,10 @@ def _locked(session: Session, kind: JobKind, key: str) -> Job:
 
 
 def _update_running(session: Session, job: Job, values: dict[str, Any]) -> None:
-    result = session.execute(
+    # an UPDATE's result is a CursorResult, which counts the rows matched
+    result = cast(CursorResult[Any], session.execute(
         update(Job).where(Job.id == job.id, Job.attempts == job.attempts,
                           Job.status == JobStatus.RUNNING).values(**values)
-        .execution_options(synchronize_session=False))
+        .execution_options(synchronize_session=False)))
     if result.rowcount != 1:
         raise JobLost(f"attempt {job.attempts} of job {job.key!r} no longer holds it")

@@ -3,7 +3,9 @@ a release is never undone or changed."""
 
 from __future__ import annotations
 
-from sqlalchemy import select, update
+from typing import Any, cast
+
+from sqlalchemy import CursorResult, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -27,12 +29,13 @@ def release_version(session: Session, ref: str | int, *, tag: str) -> ModelVersi
     number = get_version(session, ref).version
     try:
         with session.begin_nested():
-            released = session.execute(
+            result = cast(CursorResult[Any], session.execute(
                 update(ModelVersion).where(ModelVersion.version == number,
                                            ModelVersion.released.is_(False),
                                            ModelVersion.release_tag.is_(None))
                 .values(released=True, release_tag=tag)
-                .execution_options(synchronize_session=False)).rowcount == 1
+                .execution_options(synchronize_session=False)))
+            released = result.rowcount == 1
     except IntegrityError as exc:  # the unique tag: another version holds it
         holder = session.scalar(select(ModelVersion.version).filter_by(release_tag=tag))
         raise ReleaseConflict(f"tag {tag!r} names version {holder} already") from exc

@@ -115,7 +115,7 @@ def test_dsk_intercepts_match_the_mesh(tmp_path, bennu, subdivisions):
         from_dskxv = _dskxv("BENNU", "IAU_BENNU", origins, directions)
         from_sincpt = np.array([
             sp.sincpt("DSK/UNPRIORITIZED", "BENNU", et, "IAU_BENNU", "NONE", str(OBSERVER),
-                      "IAU_BENNU", d)[0] for et, d in zip(epochs, directions)])
+                      "IAU_BENNU", d)[0] for et, d in zip(epochs, directions, strict=True)])
     assert np.abs(from_dskxv - expected).max() < MM_KM
     assert np.abs(from_sincpt - expected).max() < MM_KM
 

@@ -11,8 +11,20 @@ from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.visibility import Visibility, node_visibility
 from pwm.weights import (
-    RULES, ImageGeometry, Rules, azimuth_spread_deg, dark_nodes, five_views, image_geometry, image_weights,
-    node_factors, region_weight, select_images, slope_spread_deg, weigh_maplet, without_dark,
+    RULES,
+    ImageGeometry,
+    Rules,
+    azimuth_spread_deg,
+    dark_nodes,
+    five_views,
+    image_geometry,
+    image_weights,
+    node_factors,
+    region_weight,
+    select_images,
+    slope_spread_deg,
+    weigh_maplet,
+    without_dark,
 )
 
 
@@ -164,7 +176,7 @@ def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():
     weights[1, 0, 0] = 0.0    # not weighed: never dark, and not counted in the median
     values[1, 0, 0] = 0.0
     dark = dark_nodes(values, weights)
-    assert sorted(zip(*np.nonzero(dark))) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
+    assert sorted(zip(*np.nonzero(dark), strict=True)) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
 
     out = without_dark(weights, dark)
     assert (out[dark] == 0).all()

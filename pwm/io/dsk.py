@@ -66,7 +66,9 @@ def read_dsk(path: str | Path) -> Mesh:
     segments must share body and frame."""
     handle = sp.dasopr(str(path))
     try:
-        vertices, faces, owners = [], [], set()
+        vertices: list[np.ndarray] = []
+        faces: list[np.ndarray] = []
+        owners: set[tuple[int, int]] = set()
         found = True
         descriptor = sp.dlabfs(handle)
         while found:

@@ -42,7 +42,8 @@ class Scenario(BaseModel):
     subframe_px: int | None = Field(None, description="read out a centred square detector window of this size")
     full_well_dn: float = 16383.0
     exposure_fill: float = Field(0.7, description="fraction of full scale the brightest expected pixel reaches")
-    exposure_error: float = Field(0.03, description="1-sigma relative brightness error per image, unknown to processing")
+    exposure_error: float = Field(0.03,
+                                  description="1-sigma relative brightness error per image, unknown to processing")
     read_noise_dn: float = 2.0
     gain_e_per_dn: float = 4.0
 

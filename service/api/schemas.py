@@ -10,10 +10,8 @@ from typing import Any, Generic, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from service.jobs import error_reason
-from service.models import (DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, JobStatus,
-                            ModelKind)
-from service.queries import (CoverageSummary, MapletCoverage, MapletImage, MapletInfo,
-                             RevisionInfo)
+from service.models import DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, JobStatus, ModelKind
+from service.queries import CoverageSummary, MapletCoverage, MapletImage, MapletInfo, RevisionInfo
 
 Item = TypeVar("Item")
 

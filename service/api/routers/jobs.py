@@ -30,7 +30,7 @@ def list_jobs(session: SessionDep, paging: PagingDep, token: TokenGiven,
         query = query.where(Job.kind == kind)
     if key is not None:
         query = query.where(Job.key == key)
-    total = session.scalar(select(func.count()).select_from(query.subquery()))
+    total = session.execute(select(func.count()).select_from(query.subquery())).scalar_one()
     rows = session.scalars(query.order_by(Job.created_at.desc(), Job.id.desc())
                            .limit(paging.limit).offset(paging.offset))
     return Page(items=[JobOut.shown(j, with_traceback=token) for j in rows], total=total,

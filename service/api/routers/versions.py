@@ -8,13 +8,20 @@ from fastapi import APIRouter, HTTPException, Path, Query, status
 from fastapi.responses import FileResponse
 from sqlalchemy import func, select
 
-from service.api.deps import (Authorized, PagingDep, SessionDep, SettingsDep, VersionRef,
-                              resolve_version)
-from service.releases import ReleaseConflict, release_version
-from service.api.schemas import (ArtifactOut, DownlinkRef, Lineage, Page, Problem,
-                                 ReleaseRequest, VersionDetail, VersionSummary)
+from service.api.deps import Authorized, PagingDep, SessionDep, SettingsDep, VersionRef, resolve_version
+from service.api.schemas import (
+    ArtifactOut,
+    DownlinkRef,
+    Lineage,
+    Page,
+    Problem,
+    ReleaseRequest,
+    VersionDetail,
+    VersionSummary,
+)
 from service.exports import ExportError, ExportFormat, Site, make_export, plan_export
 from service.models import ModelKind, ModelVersion
+from service.releases import ReleaseConflict, release_version
 from service.versions import ArtifactError, artifact_path
 
 router = APIRouter(prefix="/versions", tags=["versions"])
@@ -59,7 +66,7 @@ def list_versions(session: SessionDep, paging: PagingDep,
         query = query.where(ModelVersion.kind == kind)
     if released is not None:
         query = query.where(ModelVersion.released.is_(released))
-    total = session.scalar(select(func.count()).select_from(query.subquery()))
+    total = session.execute(select(func.count()).select_from(query.subquery())).scalar_one()
     rows = session.scalars(query.order_by(ModelVersion.version.desc())
                            .limit(paging.limit).offset(paging.offset))
     return Page(items=[summary(v) for v in rows], total=total, **paging.model_dump())
@@ -124,7 +131,7 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             "lat, lon and radius_km go with format=site only")
     site = (Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
-            if format is ExportFormat.SITE else None)
+            if lat is not None and lon is not None and radius_km is not None else None)  # site format only
     try:
         plan = plan_export(session, data_dir=settings.data_dir, version=version, fmt=format,
                            faces=faces, site=site, body=body, frame=frame)
