@@ -157,6 +157,7 @@ def test_the_least_recently_served_export_is_removed_first(large_catalog):
         recent, old = etag(2000), etag(2010)
         made = 2
         while len(_kept_bytes(large_catalog.data_dir)) == made:  # until one was removed
+            assert made * 50_000 < CACHE_BYTES, "nothing was removed"
             assert etag(2000) == recent  # served again: the most recently served but one
             etag(2020 + 10 * made)
             made += 1
