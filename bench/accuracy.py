@@ -50,7 +50,8 @@ def row(label: str, figures: dict, seconds: float | None, peak: float | None) ->
     time_s = f"{seconds:.0f}" if seconds is not None else "-"
     peak_g = f"{peak:.2f}" if peak is not None else "-"
     return (f"{label:<10}{f('rms_m', '.3f'):>8}{f('rms_gsd', '.2f'):>8}{f('median_m', '.3f'):>9}{f('ncc', '.3f'):>7}"
-            f"{f('ssim', '.3f'):>7}{f('boulder_height_ratio_median', '.2f'):>9}{f('steep_boulder_height_ratio_median', '.2f'):>7}"
+            f"{f('ssim', '.3f'):>7}{f('boulder_height_ratio_median', '.2f'):>9}"
+            f"{f('steep_boulder_height_ratio_median', '.2f'):>7}"
             f"{time_s:>8}{peak_g:>8}")
 
 
@@ -63,7 +64,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("out/bench-accuracy"))
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--search-px", type=float, default=None,
-                        help="pwm refine --search-px (default: 32 with --knowledge-error or a directory named *-ke, else 1)")
+                        help="pwm refine --search-px (default: 32 with --knowledge-error or a directory named *-ke, "
+                             "else 1)")
     args = parser.parse_args()
     scenarios = args.scenarios if args.scenarios is not None else ([] if args.sims else ["tiny", "site", "site-polar"])
     runs = []
@@ -82,17 +84,20 @@ def main() -> None:
         steps = [("start", downlink / "start_model.obj", None)]
         for mode in args.modes:
             out = work / f"refined-{mode}"
-            seconds, peak = pwm("refine", str(downlink), "--start", str(downlink / "start_model.obj"), "--out", str(out),
-                                "--mode", mode, "--workers", str(args.workers), "--radius", str(1.3 * site_radius_km), "--search-px", str(search))
+            seconds, peak = pwm("refine", str(downlink), "--start", str(downlink / "start_model.obj"),
+                                "--out", str(out), "--mode", mode, "--workers", str(args.workers),
+                                "--radius", str(1.3 * site_radius_km), "--search-px", str(search))
             steps.append((mode, out / "refined.ply", (seconds, peak)))
         for label, model, cost in steps:
             report = work / f"evaluation-{label}.json"
-            pwm("evaluate", str(model), "--truth", str(truth), "--json", str(report), "--plots", str(work / f"plots-{label}"))
+            pwm("evaluate", str(model), "--truth", str(truth), "--json", str(report), "--plots",
+                str(work / f"plots-{label}"))
             figures = json.loads(report.read_text())
             lines.append(row(label, figures, *(cost or (None, None))))
         gsd = json.loads((truth / "manifest.json").read_text())["gsd_m"]
         print(f"\n{sim.name}: GSD {gsd:.3f} m")
-        print(f"{'model':<10}{'RMS m':>8}{'RMS GSD':>8}{'median m':>9}{'NCC':>7}{'SSIM':>7}{'boulders':>9}{'steep':>7}{'time s':>8}{'GiB':>8}")
+        print(f"{'model':<10}{'RMS m':>8}{'RMS GSD':>8}{'median m':>9}{'NCC':>7}{'SSIM':>7}{'boulders':>9}{'steep':>7}"
+              f"{'time s':>8}{'GiB':>8}")
         print("\n".join(lines), flush=True)
 
 

@@ -38,6 +38,7 @@ from sqlalchemy.orm import Session, sessionmaker
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from pwm.config import DEFAULTS  # noqa: E402
 from pwm.frames import latlon_to_unit, unit_to_latlon  # noqa: E402
 from pwm.io.meshio import read_obj  # noqa: E402
 from pwm.io.spice_kernels import bundled_kernels, kernel_pool  # noqa: E402
@@ -45,13 +46,11 @@ from pwm.maplets import Maplet  # noqa: E402
 from pwm.tiling import tile  # noqa: E402
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
 from service.ingest import ingest_directory  # noqa: E402
-from service.queries import (images_covering, list_maplets, maplet_coverage,  # noqa: E402
-                             maplets_seen_by)
+from service.queries import images_covering, list_maplets, maplet_coverage, maplets_seen_by  # noqa: E402
 from tests import conftest as test_servers  # noqa: E402
 from tests.service import test_ingest  # noqa: E402
 
 BENNU_OBJ = REPO / "pwm" / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
-OVERLAP = 0.25
 GSD_M = 0.05
 IFOV_RAD = 8.5e-3 / 125.20  # MapCam pixel pitch over focal length
 RANGE_KM = (0.7, 4.5)
@@ -109,10 +108,10 @@ def bennu_maplets(n: int) -> list[Maplet]:
     """About n maplets of 5 x 5 nodes tiling the Bennu radar shape. The side that n squares
     need, less the overlap, is corrected once for the maplets the tiler adds to close gaps."""
     mesh = read_obj(BENNU_OBJ)
-    side_km = np.sqrt(mesh.face_areas().sum() / n) / (1.0 - OVERLAP)
-    maplets = tile(mesh, spacing_km=side_km / 4, nodes=5, overlap=OVERLAP)
+    side_km = np.sqrt(mesh.face_areas().sum() / n) / (1.0 - DEFAULTS.overlap)
+    maplets = tile(mesh, spacing_km=side_km / 4, nodes=5, overlap=DEFAULTS.overlap)
     side_km *= np.sqrt(len(maplets) / n)
-    return tile(mesh, spacing_km=side_km / 4, nodes=5, overlap=OVERLAP)
+    return tile(mesh, spacing_km=side_km / 4, nodes=5, overlap=DEFAULTS.overlap)
 
 
 def load_catalog(connection: psycopg.Connection, *, n_images: int, n_maplets: int,
@@ -238,7 +237,7 @@ def query_workload(names: list[str], lidvids: list[str], calls: int,
     images and maplets uniform over the catalog."""
     lat = np.degrees(np.arcsin(rng.uniform(-1.0, 1.0, calls)))
     lon = rng.uniform(0.0, 360.0, calls)
-    points = [dict(lat_deg=float(a), lon_deg=float(b)) for a, b in zip(lat, lon)]
+    points = [dict(lat_deg=float(a), lon_deg=float(b)) for a, b in zip(lat, lon, strict=True)]
     return {
         "images_covering": (images_covering, points),
         "maplets_seen_by": (maplets_seen_by, [dict(lidvid=lidvids[k]) for k in

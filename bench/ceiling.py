@@ -36,7 +36,8 @@ def main() -> None:
         write_ply(path, sampled(truth, spacing_km=spacing * gsd_km, average_km=average * gsd_km))
         r = evaluate(path, truth_dir=args.truth)
         views = " ".join(f"{v['ncc']:.3f}/{v['ssim']:.3f}" for v in r["views"])
-        print(f"{spacing:>12.2f}{average:>12.2f}{r['rms_gsd']:>9.2f}{r['ncc']:>7.3f}{r['ssim']:>7.3f}  {views}", flush=True)
+        print(f"{spacing:>12.2f}{average:>12.2f}{r['rms_gsd']:>9.2f}{r['ncc']:>7.3f}{r['ssim']:>7.3f}  {views}",
+              flush=True)
 
 
 if __name__ == "__main__":

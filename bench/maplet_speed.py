@@ -17,19 +17,22 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from pwm.config import DEFAULTS, MODES  # noqa: E402
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("downlink", type=Path)
-    parser.add_argument("--nodes", type=int, default=100)
+    parser.add_argument("--nodes", type=int, default=DEFAULTS.nodes)
     parser.add_argument("--images", type=int, default=10)
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--mode", default="pwm", choices=["pwm", "standard"])
+    parser.add_argument("--mode", default=DEFAULTS.mode, choices=MODES)
     args = parser.parse_args()
 
     from pwm.io.downlink import read_downlink
@@ -53,10 +56,11 @@ def main() -> None:
     weights = weigh_maplet(maplet, vis, geom, in_frame=in_frame)
     best = np.argsort(-weights.image)[: args.images]
     chosen = [views[k] for k in sorted(best) if weights.keep[k]]
+    config = dataclasses.replace(DEFAULTS, mode=args.mode)
     times = []
     for _ in range(args.repeat):
         clock = time.perf_counter()
-        result = refine_maplet(maplet, chosen, tracer, mode=args.mode)
+        result = refine_maplet(maplet, chosen, tracer, config=config)
         times.append(time.perf_counter() - clock)
     print(f"maplet {maplet.name}: {maplet.n} x {maplet.n} nodes at {maplet.spacing_km * 1e3:.3f} m, "
           f"{len(result.images)} of {len(chosen)} images used, {result.iterations} iterations, mode {args.mode}")

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 CHILD = """
 import resource, sys, time
 from pwm.simulate.campaign import simulate
@@ -30,7 +29,8 @@ print(time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF).ru_m
 
 
 def run_scenario(name: str, out: Path) -> dict:
-    done = subprocess.run([sys.executable, "-c", CHILD, str(out / name), name], check=True, capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-c", CHILD, str(out / name), name], check=True, capture_output=True,
+                          text=True)
     wall, peak_kib = done.stdout.split()[-2:]
     manifest = json.loads((out / name / "truth" / "manifest.json").read_text())
     return {"scenario": name, "images": manifest["image_count"], "gsd_m": manifest["gsd_m"], "wall_s": float(wall),
@@ -62,7 +62,8 @@ def ray_rate(faces: int = 100_000, rays: int = 2_000_000) -> tuple[float, float,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenarios", nargs="+", default=["tiny", "site", "site-polar", "global-coarse"])
-    parser.add_argument("--out", type=Path, default=None, help="keep the simulations here (default: a temporary directory)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="keep the simulations here (default: a temporary directory)")
     args = parser.parse_args()
     hit, occ, nfaces = ray_rate()
     print(f"renderer, one core, {nfaces} faces: first hit {hit / 1e6:.2f} M rays/s, occlusion {occ / 1e6:.2f} M rays/s")

@@ -92,7 +92,7 @@ def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, *, search_p
                 score[i, j] = np.nan_to_num(_ncc(values[ok], model[ok]), nan=-np.inf)
     if not np.isfinite(score).any():
         return None
-    i, j = np.unravel_index(np.argmax(score), score.shape)
+    i, j = map(int, np.unravel_index(np.argmax(score), score.shape))
     coarse = np.array([shifts[j], shifts[i]], float) + _peak(score, i, j)
 
     offset = coarse.copy()
@@ -164,7 +164,8 @@ def register(
     out = np.zeros((data.count, 2)) if offsets is None else np.asarray(offsets, float).copy()
     correlation = np.full(data.count, np.nan)
     # a search wider than a quarter of the maplet finds chance peaks in what little overlaps
-    limit = 0.25 * maplet.n * float(np.median([_pixels_per_spacing(maplet, c, p) for c, p in zip(data.cameras, data.poses)]))
+    scales = [_pixels_per_spacing(maplet, c, p) for c, p in zip(data.cameras, data.poses, strict=True)]
+    limit = 0.25 * maplet.n * float(np.median(scales))
     for level, (factor, reach) in enumerate(levels):
         reach = min(reach, max(limit, factor))
         if (maplet.n - 1) // factor + 1 < 8:
@@ -274,7 +275,8 @@ def _leave_one_out_albedo(values: np.ndarray, shading: np.ndarray, weights: np.n
     den = w2 * shading**2
     num_others = num.sum(axis=0) - num
     den_others = den.sum(axis=0) - den
-    return np.where(den_others > 1e-12 * den.sum(axis=0).max(initial=1.0), num_others / np.where(den_others > 0, den_others, 1.0), 0.0)
+    return np.where(den_others > 1e-12 * den.sum(axis=0).max(initial=1.0),
+                    num_others / np.where(den_others > 0, den_others, 1.0), 0.0)
 
 
 def _search(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, steps: np.ndarray, *,
@@ -297,7 +299,7 @@ def _search(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, steps: np.
     if not np.isfinite(score).any():
         return None
     score = score.reshape(ds.shape)
-    i, j = np.unravel_index(np.argmax(score), score.shape)
+    i, j = map(int, np.unravel_index(np.argmax(score), score.shape))
     step = float(steps[1] - steps[0]) if len(steps) > 1 else 1.0
     best = np.array([steps[j], steps[i]], float) + step * _peak(score, i, j)
     return best, float(score[i, j])

@@ -48,13 +48,16 @@ class Camera:
             axis=-1,
         )
 
-    def subframe(self, *, first_sample: int, first_line: int, samples: int, lines: int) -> "Camera":
+    def subframe(self, *, first_sample: int, first_line: int, samples: int, lines: int) -> Camera:
         """The camera of a detector window starting at zero-based (first_sample, first_line)."""
-        if first_sample < 0 or first_line < 0 or first_sample + samples > self.width or first_line + lines > self.height:
-            raise ValueError(f"subframe {samples}x{lines}+{first_sample}+{first_line} exceeds the {self.width}x{self.height} detector")
-        return Camera(width=samples, height=lines, fx=self.fx, fy=self.fy, cx=self.cx - first_sample, cy=self.cy - first_line)
+        if (first_sample < 0 or first_line < 0 or first_sample + samples > self.width
+                or first_line + lines > self.height):
+            raise ValueError(f"subframe {samples}x{lines}+{first_sample}+{first_line} exceeds the "
+                             f"{self.width}x{self.height} detector")
+        return Camera(width=samples, height=lines, fx=self.fx, fy=self.fy, cx=self.cx - first_sample,
+                      cy=self.cy - first_line)
 
-    def scaled(self, factor: float) -> "Camera":
+    def scaled(self, factor: float) -> Camera:
         """The same optics on a detector binned by `factor` (pixel-centre convention kept)."""
         return Camera(
             width=int(round(self.width / factor)),

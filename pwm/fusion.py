@@ -259,7 +259,7 @@ def _stitch(base: Mesh, points: np.ndarray, faces: np.ndarray, albedo: np.ndarra
     if base.albedo is None and not fused_has:
         return Mesh(vertices, faces)
     base_albedo = base.albedo[used] if base.albedo is not None else np.full(n_base, np.nanmean(albedo))
-    if not fused_has:
+    if not fused_has and base.albedo is not None:  # without either, returned above
         albedo = _fill_nearest(albedo, points, base.vertices, base.albedo)
     return Mesh(vertices, faces, np.concatenate([base_albedo, albedo]))
 

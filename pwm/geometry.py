@@ -9,7 +9,7 @@ radii, camera position and Sun at an epoch).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -114,10 +114,10 @@ def view_geometry(*, pose: Pose, sun: np.ndarray, camera: Camera, surface: Surfa
     lat, lon = unit_to_latlon(points)
     latlon = np.column_stack([lat, lon]).tolist()
     missed = np.isnan(points).any(axis=1)
-    footprint = [None if m else (lat, lon) for m, (lat, lon) in zip(missed[1:], latlon[1:])]
-    base = dict(position_km=np.asarray(pose.position, float), rotation=np.asarray(pose.rotation),
-                sun=np.asarray(sun, float), range_km=float(np.linalg.norm(pose.position)),
-                footprint=footprint)
+    footprint = [None if m else (lat, lon) for m, (lat, lon) in zip(missed[1:], latlon[1:], strict=True)]
+    base: dict[str, Any] = dict(position_km=np.asarray(pose.position, float), rotation=np.asarray(pose.rotation),
+                                sun=np.asarray(sun, float), range_km=float(np.linalg.norm(pose.position)),
+                                footprint=footprint)
     if missed[0]:
         return ViewGeometry(**base, intercept_range_km=None, pixel_scale_m=None, phase_deg=None,
                             incidence_deg=None, emission_deg=None, intercept_lat_deg=None,

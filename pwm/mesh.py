@@ -28,6 +28,12 @@ class Mesh:
             if self.albedo.shape != (len(self.vertices),):
                 raise ValueError("albedo must have one value per vertex")
 
+    def require_albedo(self) -> np.ndarray:
+        """The per-vertex albedo (N,); ValueError for a mesh that has none."""
+        if self.albedo is None:
+            raise ValueError("the mesh has no per-vertex albedo")
+        return self.albedo
+
     def face_normals(self) -> np.ndarray:
         """Unit outward normals per face, (M, 3)."""
         v = self.vertices[self.faces]

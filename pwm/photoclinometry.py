@@ -30,8 +30,8 @@ Gauss-Newton with backtracking on the objective re-projected at the trial height
 height change of a step, or the relative decrease of the objective, is below its tolerance. The
 Jacobian includes each node's parallax: as a node rises it moves in every image, and its sample
 changes along the image gradient. Without that term the steps ignore what re-projection does to
-the data, stall short of the objective's minimum (site: RMS 0.44 against 0.30 GSD with it), and
-the heights see no stereo at all.
+the data, stall short of the objective's minimum (bench/RESULTS.md), and the heights see no
+stereo at all.
 """
 
 from __future__ import annotations
@@ -124,7 +124,7 @@ def node_pixels(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | Non
     offsets (K, 2) (pointing corrections from `pwm.alignment.align`); NaN behind the camera."""
     points = maplet.nodes_body(heights).reshape(-1, 3)
     out = np.empty((data.count, maplet.n, maplet.n, 2))
-    for k, (camera, pose) in enumerate(zip(data.cameras, data.poses)):
+    for k, (camera, pose) in enumerate(zip(data.cameras, data.poses, strict=True)):
         cam = pose.to_camera(points)
         pix = camera.project_camera(cam)
         pix[cam[:, 2] <= 0] = np.nan
@@ -138,13 +138,13 @@ def bilinear(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     """Bilinear samples of an image [line, sample] at pixels (..., 2) = (sample, line) with pixel
     centres at integers; NaN outside the frame (or next to a NaN pixel)."""
     height, width = image.shape
-    s, l = pixels[..., 0], pixels[..., 1]
-    inside = (s >= 0) & (s <= width - 1) & (l >= 0) & (l <= height - 1)
+    s, line = pixels[..., 0], pixels[..., 1]
+    inside = (s >= 0) & (s <= width - 1) & (line >= 0) & (line <= height - 1)
     s = np.where(inside, s, 0.0)
-    l = np.where(inside, l, 0.0)
+    line = np.where(inside, line, 0.0)
     s0 = np.minimum(np.floor(s).astype(np.intp), max(width - 2, 0))
-    l0 = np.minimum(np.floor(l).astype(np.intp), max(height - 2, 0))
-    fs, fl = s - s0, l - l0
+    l0 = np.minimum(np.floor(line).astype(np.intp), max(height - 2, 0))
+    fs, fl = s - s0, line - l0
     flat = image.ravel()
     i00 = l0 * width + s0
     right = 1 if width > 1 else 0
@@ -178,13 +178,13 @@ def cubic_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, n
     continuously differentiable); NaN outside the frame or next to a NaN pixel. Unlike bilinear
     sampling, it does not blur what lies between the pixel centres."""
     height, width = image.shape
-    s, l = pixels[..., 0], pixels[..., 1]
-    inside = (s >= 0) & (s <= width - 1) & (l >= 0) & (l <= height - 1)
+    s, line = pixels[..., 0], pixels[..., 1]
+    inside = (s >= 0) & (s <= width - 1) & (line >= 0) & (line <= height - 1)
     s = np.where(inside, s, 0.0)
-    l = np.where(inside, l, 0.0)
-    s0, l0 = np.floor(s), np.floor(l)
+    line = np.where(inside, line, 0.0)
+    s0, l0 = np.floor(s), np.floor(line)
     ws, dws = _keys(s - s0)
-    wl, dwl = _keys(l - l0)
+    wl, dwl = _keys(line - l0)
     cols = np.clip(s0.astype(np.intp)[..., None] + np.arange(-1, 3), 0, width - 1)
     first = l0.astype(np.intp)
     flat = image.ravel()
@@ -352,8 +352,8 @@ class _Problem:
     """One maplet's refinement: data, operators on the node grid (units of one spacing), priors."""
 
     def __init__(self, maplet: Maplet, data: MapletImages, *, weights: np.ndarray, region: float,
-                 offsets: np.ndarray, solve_offsets: bool, slope_weight: float, slope_scale: float, height_weight: float,
-                 albedo_weight: float, offset_weight: float) -> None:
+                 offsets: np.ndarray, solve_offsets: bool, slope_weight: float, slope_scale: float,
+                 height_weight: float, albedo_weight: float, offset_weight: float) -> None:
         n = maplet.n
         self.maplet, self.data = maplet, data
         self.weights = weights.reshape(data.count, -1)
@@ -402,7 +402,8 @@ class _Problem:
         sampled = [cubic_gradient(image, pixels[k]) for k, image in enumerate(data.images)]
         values = np.stack([v for v, _ in sampled])
         gradients = np.stack([g for _, g in sampled])
-        used = np.isfinite(values) & (self.weights > 0) & np.isfinite(gradients).all(axis=-1) & np.isfinite(raised).all(axis=-1)
+        used = (np.isfinite(values) & (self.weights > 0) & np.isfinite(gradients).all(axis=-1)
+                & np.isfinite(raised).all(axis=-1))
         gradients = np.where(used[..., None], gradients, 0.0)
         parallax = np.einsum("kni,kni->kn", gradients, np.where(used[..., None], raised - pixels, 0.0)) / _RISE
         values = np.where(used, values, 0.0)
@@ -448,13 +449,13 @@ class _Problem:
         jz = c * ev.parallax               # dr / du through the node's move in the image
         # Per-image unknowns t: scales, then offsets (sample, line) image by image; image[t] is
         # the image each belongs to and jt[t] its derivative on that image's residuals.
-        jt = [-c * albedo * ev.G]
-        image = [np.arange(k_images)]
+        jt_blocks = [-c * albedo * ev.G]
+        image_blocks = [np.arange(k_images)]
         if self.solve_offsets:
-            jt.append((c[..., None] * ev.gradients).transpose(0, 2, 1).reshape(2 * k_images, -1))
-            image.append(np.repeat(np.arange(k_images), 2))
-        jt = np.vstack(jt)
-        image = np.concatenate(image)
+            jt_blocks.append((c[..., None] * ev.gradients).transpose(0, 2, 1).reshape(2 * k_images, -1))
+            image_blocks.append(np.repeat(np.arange(k_images), 2))
+        jt = np.vstack(jt_blocks)
+        image = np.concatenate(image_blocks)
 
         a2 = self.albedo_weight / self.albedo_prior**2
         haa = (ja * ja).sum(axis=0) + a2
@@ -462,10 +463,11 @@ class _Problem:
         inv = 1.0 / haa
         parts = (jx, jy, jz)
         pa = [(ja * j).sum(axis=0) for j in parts]
-        m = [[(ji * jj).sum(axis=0) - pi * pj * inv for jj, pj in zip(parts, pa)] for ji, pi in zip(parts, pa)]
-        g = [(j * r).sum(axis=0) - p * ga * inv for j, p in zip(parts, pa)]
+        m = [[(ji * jj).sum(axis=0) - pi * pj * inv for jj, pj in zip(parts, pa, strict=True)]
+             for ji, pi in zip(parts, pa, strict=True)]
+        g = [(j * r).sum(axis=0) - p * ga * inv for j, p in zip(parts, pa, strict=True)]
         xta = jt * ja[image]
-        xt = [jt * j[image] - xta * (p * inv) for j, p in zip(parts, pa)]
+        xt = [jt * j[image] - xta * (p * inv) for j, p in zip(parts, pa, strict=True)]
         htt = (jt @ jt.T) * (image[:, None] == image[None, :]) - (xta * inv) @ xta.T
         gt = (jt * r[image]).sum(axis=1) - xta @ (ga * inv)
         # The data fix only s_k * A: a penalty on sum(log s) holds the scales' geometric mean at 1.
@@ -515,7 +517,7 @@ def datum_complement(maplet: Maplet, data: MapletImages) -> np.ndarray:
     step = maplet.spacing_km
     shift = np.column_stack([
         np.concatenate([project(centre + step * axis, camera, pose) - project(centre - step * axis, camera, pose)
-                        for camera, pose in zip(data.cameras, data.poses)]) / (2 * step)
+                        for camera, pose in zip(data.cameras, data.poses, strict=True)]) / (2 * step)
         for axis in maplet.frame.rotation[:2]
     ])
     u, sv, _ = np.linalg.svd(shift)
@@ -547,55 +549,69 @@ def _backtrack(problem: _Problem, state: _State, ev: _Evaluation, step: _State) 
     return None
 
 
+@dataclass(frozen=True)
+class Solver:
+    """Every setting of `refine`.
+
+    tolerance: RMS height change of one step that ends the iterations, in node spacings;
+    cost_tolerance: the relative decrease of the objective in one step that ends them (the steps
+    left after 1% move heights by about a tenth of a spacing RMS, mostly at nodes few images see,
+    and take as long again: bench/RESULTS.md). slope_weight, height_weight: strengths of the
+    ties to the starting slopes and heights (divided by w_PWM); slope_scale: the slope change
+    (dimensionless, dz per spacing) beyond which the slope tie grows only linearly (lower keeps
+    more of the boulders the start lacks, higher keeps shadow-poor maplets closer to the start);
+    albedo_weight: of the tie to the maplet's albedo (or to the median albedo if it has none);
+    solve_offsets: refine the images' pointing offsets too, jointly (image gradients as their
+    derivatives), tied to the given ones by offset_weight per px^2.
+    """
+
+    max_iterations: int = 30
+    tolerance: float = 0.01
+    cost_tolerance: float = 1e-2
+    slope_weight: float = 0.02
+    slope_scale: float = 0.17
+    height_weight: float = 1e-3
+    albedo_weight: float = 1e-3
+    offset_weight: float = 1e-3
+    solve_offsets: bool = True
+
+
+SOLVER = Solver()
+
+
 def refine(
     maplet: Maplet,
     data: MapletImages,
     *,
     mode: Mode = "pwm",
     offsets: np.ndarray | None = None,
-    solve_offsets: bool = True,
-    max_iterations: int = 30,
-    tolerance: float = 0.01,
-    cost_tolerance: float = 1e-2,
-    slope_weight: float = 0.02,
-    slope_scale: float = 0.17,
-    height_weight: float = 1e-3,
-    albedo_weight: float = 1e-3,
-    offset_weight: float = 1e-3,
+    solver: Solver = SOLVER,
 ) -> Refinement:
     """Refine the maplet's heights and albedo and the images' brightness scales (module docstring).
 
     mode: 'pwm' (pixel weights and region weight of `data`) or 'standard' (every visible node
     weighs 1, shadows included, w_PWM = 1). offsets: (K, 2) pointing corrections (sample, line),
-    px, e.g. from `pwm.alignment.align`; solve_offsets: refine them too, jointly (image gradients
-    as their derivatives), tied to the given ones by offset_weight per px^2. tolerance: RMS height
-    change of one step that ends the iterations, in node spacings; cost_tolerance: the relative
-    decrease of the objective in one step that ends them (site: the steps left after 1% would
-    move heights by about a tenth of a spacing RMS, mostly at nodes few images see, and take as
-    long again). slope_weight, height_weight: strengths of the ties to the starting slopes and
-    heights (divided by w_PWM); slope_scale: the slope change (dimensionless, dz per spacing)
-    beyond which the slope tie grows only linearly (lower keeps more of the boulders the start
-    lacks, higher keeps shadow-poor maplets closer to the start); albedo_weight: of the tie to
-    the maplet's albedo (or to the median albedo if it has none). Nodes without data
-    keep the starting shape.
+    px, e.g. from `pwm.alignment.align`, the start of the joint solution. solver: the iteration's
+    settings (`Solver`). Nodes without data keep the starting shape.
     """
     k_images = data.count
     weights, region = data.data_weights(mode)
     start = np.zeros((k_images, 2)) if offsets is None else np.asarray(offsets, float).reshape(k_images, 2)
-    problem = _Problem(maplet, data, weights=weights, region=region, offsets=start, solve_offsets=solve_offsets,
-                       slope_weight=slope_weight, slope_scale=slope_scale, height_weight=height_weight, albedo_weight=albedo_weight,
-                       offset_weight=offset_weight)
+    problem = _Problem(maplet, data, weights=weights, region=region, offsets=start, solve_offsets=solver.solve_offsets,
+                       slope_weight=solver.slope_weight, slope_scale=solver.slope_scale,
+                       height_weight=solver.height_weight, albedo_weight=solver.albedo_weight,
+                       offset_weight=solver.offset_weight)
     state, ev = problem.start()
     converged = not ev.rows.any()
     iterations = 0
-    while not converged and iterations < max_iterations:
+    while not converged and iterations < solver.max_iterations:
         iterations += 1
         step = problem.step(state, ev)
-        converged = float(np.sqrt(np.mean(step.u**2))) < tolerance
+        converged = float(np.sqrt(np.mean(step.u**2))) < solver.tolerance
         accepted = _backtrack(problem, state, ev, step)
         if accepted is None:
             break
-        converged |= ev.cost - accepted[1].cost < cost_tolerance * ev.cost
+        converged |= ev.cost - accepted[1].cost < solver.cost_tolerance * ev.cost
         state, ev = accepted
 
     n = maplet.n

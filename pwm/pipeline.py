@@ -10,24 +10,32 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from multiprocessing import get_context
 
 import numpy as np
 
 from pwm.alignment import register
 from pwm.camera import project
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.fusion import VoxelGrid
-from pwm.views import View
 from pwm.maplets import Maplet
 from pwm.mesh import Mesh
-from pwm.parallel import share_cores
-from pwm.photoclinometry import MapletImages, Mode, extract, refine
+from pwm.parallel import map_processes
+from pwm.photoclinometry import MapletImages, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
+from pwm.views import View
 from pwm.visibility import Visibility, node_visibility
-from pwm.weights import MapletGeometry, MapletWeights, dark_nodes, maplet_geometry, weigh_maplet, without_dark
+from pwm.weights import (
+    RULES,
+    MapletGeometry,
+    MapletWeights,
+    Rules,
+    dark_nodes,
+    maplet_geometry,
+    weigh_maplet,
+    without_dark,
+)
 
 log = logging.getLogger(__name__)
 
@@ -47,11 +55,12 @@ class MapletResult:
     seconds: float
 
 
-def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer) -> tuple[MapletImages, MapletWeights, list[int]]:
+def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer, *,
+                  rules: Rules = RULES) -> tuple[MapletImages, MapletWeights, list[int]]:
     """The images of `views` that the weighting rules keep for `maplet`, with visibility against
     the tracer's shape, per-node weights and the region weight; and their indices in `views`."""
     vis, in_frame, geom = views_over_maplet(maplet, views, tracer)
-    weights = weigh_maplet(maplet, vis, geom, in_frame=in_frame)
+    weights = weigh_maplet(maplet, vis, geom, in_frame=in_frame, rules=rules)
     suns = np.array([v.sun for v in views])
     keep = np.flatnonzero(weights.keep)
     n = maplet.n
@@ -87,34 +96,39 @@ def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
     """Points that project inside the image (half a pixel in from the edges, for interpolation)."""
     px = project(points, view.camera, view.pose)
     in_front = view.pose.to_camera(points)[:, 2] > 0
-    return in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1)
+    return (in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1)
+            & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
 
 
-def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *, mode: Mode = "pwm", min_images: int = 3,
-                  search_px: float = 1.0) -> MapletResult:
-    """Weigh and refine one maplet; with fewer than `min_images` usable images it keeps its start.
+def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *,
+                  config: RefinementConfig = DEFAULTS) -> MapletResult:
+    """Weigh and refine one maplet; with fewer than config.min_images usable images it keeps its
+    start.
 
-    search_px: how far (px) the images may be off the maplet, from the pose knowledge (about
+    config.search_px: how far (px) the images may be off the maplet, from the pose knowledge (about
     3 sigma of position error / range plus pointing error, times the focal length): beyond a pixel,
     the images are registered (`pwm.alignment.register`) within it before the joint solution."""
     clock = time.perf_counter()
-    data, weights, keep = maplet_images(maplet, views, tracer)
+    mode, search_px = config.mode, config.search_px
+    data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)
     views_found = {role: views[i].name for role, i in vars(weights.views).items() if i is not None}
     dropped = {views[k].name: reasons for k, reasons in enumerate(weights.reasons) if reasons}
     refined = Maplet(name=maplet.name, frame=maplet.frame, spacing_km=maplet.spacing_km, heights=maplet.heights.copy(),
                      albedo=None if maplet.albedo is None else maplet.albedo.copy(),
                      weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
     iterations, converged, rms = 0, False, []
-    if data.count >= min_images:
+    if data.count >= config.min_images:
         # navigation knowledge errors move images by many pixels: register them before the joint
         # solution, which only corrects offsets within its linear reach (about a pixel); within
         # that, registering against the start's shading, itself off by its height errors, only
         # moves the joint solution's starting point away from the poses
-        offsets = register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0 else np.zeros((data.count, 2))
+        offsets = (register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0
+                   else np.zeros((data.count, 2)))
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
-            data.weights = without_dark(data.weights, dark_nodes(extract(maplet, data, offsets=offsets), data.weights))
-        result = refine(maplet, data, mode=mode, offsets=offsets)
+            data.weights = without_dark(data.weights, dark_nodes(extract(maplet, data, offsets=offsets), data.weights,
+                                                                      config.rules), config.rules)
+        result = refine(maplet, data, mode=mode, offsets=offsets, solver=config.solver)
         refined.heights, refined.albedo = result.heights, result.albedo
         iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
     return MapletResult(maplet=refined, images=[views[k].name for k in keep], region_weight=weights.region,
@@ -134,45 +148,27 @@ def search_levels(search_px: float) -> tuple[tuple[int, float], ...]:
 _WORKER: dict = {}
 
 
-def _init_worker(start: Mesh, views: list[View], mode: Mode, search_px: float = 1.0) -> None:
-    # An Embree scene cannot cross processes: each worker builds its own from the start model.
-    _WORKER.update(tracer=RayTracer(start), views=views, mode=mode, search_px=search_px)
-
-
-def _init_pool_process(processes: int, *args) -> None:
-    """A pool process: its share of the cores (the caller's own thread limits stay as they are),
-    then `_init_worker(*args)`."""
-    share_cores(processes)
-    _init_worker(*args)
+def _init_worker(start: Mesh, views: list[View], config: RefinementConfig) -> None:
+    # An Embree scene cannot cross processes: each process builds its own from the start model.
+    _WORKER.update(tracer=RayTracer(start), views=views, config=config)
 
 
 def _refine_in_worker(maplet: Maplet) -> MapletResult:
-    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], mode=_WORKER["mode"], search_px=_WORKER["search_px"])
+    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], config=_WORKER["config"])
 
 
-def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, mode: Mode = "pwm", workers: int = 1,
-                   search_px: float = 1.0) -> list[MapletResult]:
-    """Refine every maplet (in `workers` processes), logging progress; results in input order.
-    search_px: see `refine_maplet`."""
+def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, config: RefinementConfig = DEFAULTS,
+                   workers: int = 1) -> list[MapletResult]:
+    """Refine every maplet against `start` (in `workers` processes, pwm.parallel.map_processes),
+    logging progress; results in input order."""
     results: list[MapletResult] = []
     clock = time.perf_counter()
-    if workers <= 1:
-        _init_worker(start, views, mode, search_px)
-        iterator = map(_refine_in_worker, maplets)
-        pool = None
-    else:
-        pool = ProcessPoolExecutor(workers, mp_context=get_context("fork"), initializer=_init_pool_process,
-                                   initargs=(workers, start, views, mode, search_px))
-        iterator = pool.map(_refine_in_worker, maplets)
-    try:
-        for k, result in enumerate(iterator, 1):
-            results.append(result)
-            log.info("maplet %d/%d %s: %d images, w_PWM %.2f, %d iterations (%.1f s; %.0f s elapsed)", k, len(maplets),
-                     result.maplet.name, len(result.images), result.region_weight, result.iterations, result.seconds,
-                     time.perf_counter() - clock)
-    finally:
-        if pool is not None:
-            pool.shutdown()
+    for k, result in enumerate(map_processes(_refine_in_worker, maplets, workers=workers, initializer=_init_worker,
+                                             initargs=(start, views, config)), 1):
+        results.append(result)
+        log.info("maplet %d/%d %s: %d images, w_PWM %.2f, %d iterations (%.1f s; %.0f s elapsed)", k, len(maplets),
+                 result.maplet.name, len(result.images), result.region_weight, result.iterations, result.seconds,
+                 time.perf_counter() - clock)
     return results
 
 
@@ -206,24 +202,22 @@ def imaged_region(views: list[View], start: Mesh, *, radius_fraction: float = 0.
                   spacing_km=float(np.median(pixel)))
 
 
-def refine_region(start: Mesh, views: list[View], region: Region, *, nodes: int, overlap: float, passes: int = 2,
-                  mode: Mode = "pwm", workers: int = 1, search_px: float = 1.0) -> tuple[Mesh, list[MapletResult]]:
-    """Tile `region` of `start`, refine every maplet and fuse them, `passes` times: each later pass
-    tiles the previous one's fused model afresh, so that a maplet starts from what its
+def refine_region(start: Mesh, views: list[View], region: Region, *, config: RefinementConfig = DEFAULTS,
+                  workers: int = 1) -> tuple[Mesh, list[MapletResult]]:
+    """Tile `region` of `start`, refine every maplet and fuse them, config.passes times: each later
+    pass tiles the previous one's fused model afresh, so that a maplet starts from what its
     neighbours made of its edges, and its visibility and shadows come from a shape that has the
     relief (the start's lacks most of what casts shadows). Each pass takes the shape only: the
     albedo comes from the images. Returns the last fused model and the last pass's results."""
-    if passes < 1:
-        raise ValueError("at least one pass")
     model, results = start, []
-    for done in range(passes):
+    for done in range(config.passes):
         shape = Mesh(model.vertices, model.faces)
-        maplets = tile(shape, spacing_km=region.spacing_km, nodes=nodes, overlap=overlap,
+        maplets = tile(shape, spacing_km=region.spacing_km, nodes=config.nodes, overlap=config.overlap,
                        centre_lat_deg=region.lat_deg, centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
-        log.info("pass %d/%d: %d maplets of %d nodes at %.3f m", done + 1, passes, len(maplets), nodes,
+        log.info("pass %d/%d: %d maplets of %d nodes at %.3f m", done + 1, config.passes, len(maplets), config.nodes,
                  region.spacing_km * 1e3)
-        results = refine_maplets(maplets, views, shape, mode=mode, workers=workers, search_px=search_px)
-        model, _ = fuse([r.maplet for r in results], shape, overlap=overlap)
+        results = refine_maplets(maplets, views, shape, config=config, workers=workers)
+        model, _ = fuse([r.maplet for r in results], shape, overlap=config.overlap)
     return model, results
 
 

@@ -123,4 +123,5 @@ class RayTracer:
 def surface_offset(mesh: Mesh) -> float:
     """Distance (km) to lift ray origins off the surface: above float32 noise, far below the facets."""
     scale = float(np.abs(mesh.vertices).max())
-    return max(1e-3 * mesh.mean_edge_length(), 64 * np.finfo(np.float32).eps * scale)
+    noise = float(64 * np.finfo(np.float32).eps * scale)  # computed in float32, as always
+    return max(1e-3 * mesh.mean_edge_length(), noise)

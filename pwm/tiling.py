@@ -63,11 +63,11 @@ def tile(
     half = 0.5 * (nodes - 1) * spacing_km
     step = (1.0 - overlap) * 2.0 * half
     fine = 2.0 * half / COVERAGE_SAMPLES_PER_SIDE
-    if radius_km is None:
+    if centre_lat_deg is None or centre_lon_deg is None or radius_km is None:  # all None, checked above
         centres, samples = _body_centres(surface, step, fine)
     else:
         centres, samples = _region_centres(surface, centre_lat_deg, centre_lon_deg, radius_km, step, half, fine)
-    frames = [local_frame(p, n) for p, n in zip(centres, surface.regional_normals(centres, half))]
+    frames = [local_frame(p, n) for p, n in zip(centres, surface.regional_normals(centres, half), strict=True)]
     frames += _complete(surface, frames, samples, half, margin=COVERAGE_MARGIN * fine, link=1.5 * fine)
     axis = (np.arange(nodes) - (nodes - 1) / 2) * spacing_km
     maplets = []
@@ -116,7 +116,7 @@ class _Surface:
         """Area-weighted mean normal of the facets whose centroid lies within radius_km of each
         point (of the nearest facet where none does), (N, 3) unnormalised."""
         out = np.empty((len(points), 3))
-        for k, (p, idx) in enumerate(zip(points, self.centroids.query_ball_point(points, radius_km))):
+        for k, (p, idx) in enumerate(zip(points, self.centroids.query_ball_point(points, radius_km), strict=True)):
             out[k] = self.area_vectors[idx or [self.centroids.query(p)[1]]].sum(axis=0)
         return out
 
@@ -203,7 +203,7 @@ def _complete(surface: _Surface, frames: list[LocalFrame], samples: np.ndarray, 
         # first sample of each patch in order of distance to its mean
         order = np.lexsort((dist, patch))
         centres = uncovered[order[np.searchsorted(patch[order], np.arange(n_patches))]]
-        new = [local_frame(p, n) for p, n in zip(centres, surface.regional_normals(centres, half))]
+        new = [local_frame(p, n) for p, n in zip(centres, surface.regional_normals(centres, half), strict=True)]
         extra += new
         for frame in new:
             uncovered = uncovered[~_inside(frame, uncovered, half, margin)]

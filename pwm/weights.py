@@ -49,10 +49,7 @@ class Rules:
     incidence_best_deg: tuple[float, float] = (30.0, 75.0)
     """Incidence range with full weight. Liu & Wu 2021 (cited by the PWM paper) found 30-60 deg
     best, beyond which shadows hide the terrain; with the shadowed nodes excluded one by one, the
-    lit rest of a 60-75 deg image is the best slope data there is (site-polar, Suns 55-75 deg
-    from the zenith: RMS 0.517 GSD and held-out NCC 0.848 with full weight to 60 deg, 0.487 and
-    0.869 to 75, 0.490 and 0.870 to 85; site, Suns 20-70 deg: 0.314 and 0.927 against 0.310 and
-    0.928)."""
+    lit rest of a 60-75 deg image is the best slope data there is (bench/RESULTS.md)."""
     incidence_floor: float = 0.3
     """Incidence weight at 0 deg: albedo is still measured, slopes barely."""
     incidence_zero_deg: float = 90.0
@@ -67,8 +64,7 @@ class Rules:
     """The SPC drop rules: visible fraction, shadowed fraction, emission, pixel scale / spacing.
     SPC drops an image over 20% in shadow; with shadowed nodes weighed out one by one, an image's
     lit nodes are worth keeping well beyond that. The rule only bites once the shape casts the
-    shadows the images show (a smooth start casts few): on site-polar's second pass, 20% dropped
-    40% of the images (13 left of 22 per maplet) and gave RMS 0.471 GSD, 60% gave 0.412."""
+    shadows the images show (a smooth start casts few; bench/RESULTS.md)."""
     shadow_keep_weight: float = 0.1
     """Weight of a shadowed node next to a lit one, in steep terrain."""
     steep_slope_std_deg: float = 15.0
@@ -78,12 +74,8 @@ class Rules:
     dark_fraction: float = 0.05
     """A node darker in an image than this fraction of the image's median over the maplet lies in
     a shadow, cast by relief the current shape may not have yet (boulders missing from the start).
-    Low enough to keep the dim faces of steep boulders, which carry their slopes (on the site
-    scenario, with bilinear sampling and a quadratic slope tie, steep boulders came out at 68% of
-    their height at 0.15, 75% at 0.05, 98% with no image shadows at all; site-polar's held-out NCC
-    was 0.81, 0.80 and 0.57. With cubic sampling and the pseudo-Huber tie of
-    `pwm.photoclinometry.refine`, before its Jacobian carried the nodes' parallax, 0.05 gave 81%
-    and 0.80)."""
+    Low enough to keep the dim faces of steep boulders, which carry their slopes; without it,
+    the shadows of a low Sun are read as dark terrain (bench/RESULTS.md)."""
     nadir_tolerance_deg: float = 10.0
     """Nadir candidates: within this of the lowest emission; the lowest phase angle among them wins."""
     side_min_emission_deg: float = 10.0
@@ -239,7 +231,7 @@ def dark_nodes(values: np.ndarray, weights: np.ndarray, rules: Rules = RULES) ->
     image's median over the nodes it weighs. values: image values at the nodes (K, n, n), NaN where
     missing; weights: the pixel weights (K, n, n)."""
     used = np.isfinite(values) & (weights > 0)
-    typical = np.array([np.median(v[u]) if u.any() else np.nan for v, u in zip(values, used)])
+    typical = np.array([np.median(v[u]) if u.any() else np.nan for v, u in zip(values, used, strict=True)])
     with np.errstate(invalid="ignore"):
         return used & (values < rules.dark_fraction * typical[:, None, None])
 
@@ -247,8 +239,8 @@ def dark_nodes(values: np.ndarray, weights: np.ndarray, rules: Rules = RULES) ->
 def without_dark(weights: np.ndarray, dark: np.ndarray, rules: Rules = RULES) -> np.ndarray:
     """Pixel weights (K, n, n) with the dark nodes (K, n, n) excluded and their neighbours in the
     same image taken down by shadow_edge_factor, as for the shadows the shape casts
-    (`node_factors`). Dark nodes next to lit ones are not kept at shadow_keep_weight: on the
-    site-polar scenario that cut the held-out NCC from 0.804 to 0.783."""
+    (`node_factors`). Dark nodes next to lit ones are not kept at shadow_keep_weight: that cost a
+    long-shadowed site its held-out NCC (bench/RESULTS.md)."""
     near = ndimage.binary_dilation(dark, structure=_SAME_IMAGE) & ~dark
     return np.where(dark, 0.0, np.where(near, rules.shadow_edge_factor * weights, weights))
 

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Set up everything the tests need (Debian's PostgreSQL and Redis, the venv) and run them.
+# Set up everything the tests need (Debian's PostgreSQL and Redis, the venv), then run the
+# linter and the type checker (their settings are in pyproject.toml) and the tests.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
@@ -10,4 +11,6 @@ if ! have_servers; then
   as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql redis-server >/dev/null
 fi
 bash scripts/setup.sh test
+.venv/bin/ruff check .
+.venv/bin/mypy
 exec .venv/bin/python -m pytest "$@"

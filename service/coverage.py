@@ -16,23 +16,24 @@ repeated ingest changes nothing; rows of images that no longer see a maplet are 
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass
 import dataclasses
+import logging
 from collections.abc import Collection
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from pwm.camera import project
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.frames import LocalFrame, unit_to_latlon
-from pwm.views import View
 from pwm.maplets import Maplet as MapletGrid
 from pwm.mesh import Mesh
 from pwm.pipeline import imaged_region, views_over_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_heights, tile
+from pwm.views import View
 from pwm.weights import weigh_maplet
 from service.models import Coverage, CoverageRole, Image, Maplet, utcnow
 from service.queries import list_maplets
@@ -42,8 +43,6 @@ log = logging.getLogger(__name__)
 
 SAMPLE_NODES = 25
 """Nodes per side on which visibility is traced: enough for the fractions, fast for the catalog."""
-OVERLAP = 0.25
-"""Fraction of a maplet's side shared with each neighbour, as `pwm refine` tiles."""
 
 _COLUMNS = ("visible_fraction", "shadowed_fraction", "incidence_deg", "emission_deg",
             "phase_deg", "sun_azimuth_deg", "resolution_m_per_px", "weight", "role")
@@ -61,17 +60,15 @@ class CoverageReport:
 
 
 def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = None,
-                    image_ids: Collection[int] | None = None, nodes_per_side: int = 100,
-                    sample_nodes: int = SAMPLE_NODES,
-                    tile_radius_km: float | None = None) -> CoverageReport:
+                    image_ids: Collection[int] | None = None, config: RefinementConfig = DEFAULTS,
+                    sample_nodes: int = SAMPLE_NODES) -> CoverageReport:
     """Tile the region the new images look at if no maplet covers it, then weigh every maplet
     that a new image may see against all catalogued images that may see it.
 
     New images: the accepted images with geometry of image_ids if given, else of downlink
-    `downlink_id` (all such images when None); their coverage_computed_at is set. nodes_per_side: of the maplets tiled here, spaced at the images' median pixel
-    scale; sample_nodes: nodes per side on which visibility is traced; tile_radius_km: radius
-    of the disc tiled about the centre of the region the images look at (default that
-    region's, pwm.pipeline.imaged_region).
+    `downlink_id` (all such images when None); their coverage_computed_at is set. config: how
+    maplets are tiled here (nodes, overlap, spacing in the images' median pixel scale, tile
+    radius) and weighed (rules); sample_nodes: nodes per side on which visibility is traced.
     """
     report = CoverageReport()
     views = catalog_views(session)
@@ -81,8 +78,7 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     if not new:
         return report
     tracer = RayTracer(shape)
-    report.maplets_added = _tile_if_bare(session, shape, [views[i] for i in sorted(new)],
-                                         nodes_per_side=nodes_per_side, radius_km=tile_radius_km)
+    report.maplets_added = _tile_if_bare(session, shape, [views[i] for i in sorted(new)], config=config)
     ids = sorted(views)
     for maplet in session.scalars(select(Maplet).order_by(Maplet.id)).all():
         grid = _subsample(maplet, tracer, sample_nodes)
@@ -91,7 +87,7 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
         if not new.intersection(seen):
             continue
         report.maplets_weighed += 1
-        _store(session, maplet, grid, seen, [views[i] for i in seen], tracer, report)
+        _store(session, maplet, grid, seen, [views[i] for i in seen], tracer, report, config=config)
     session.execute(update(Image).where(Image.id.in_(sorted(new))).values(
         coverage_computed_at=utcnow()))
     session.flush()
@@ -101,20 +97,20 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     return report
 
 
-def _tile_if_bare(session: Session, shape: Mesh, views: list[View], *, nodes_per_side: int,
-                  radius_km: float | None) -> int:
-    """Tile and store the region the views look at (within radius_km of its centre, if given)
-    when no catalogued maplet lies in it; the number of maplets added."""
+def _tile_if_bare(session: Session, shape: Mesh, views: list[View], *, config: RefinementConfig) -> int:
+    """Tile and store the region the views look at (within config.tile_radius_km of its centre,
+    if given) when no catalogued maplet lies in it; the number of maplets added."""
     try:
         region = imaged_region(views, shape)
     except ValueError:  # no boresight meets the shape: nothing to tile
         return 0
-    if radius_km is not None:
-        region = dataclasses.replace(region, radius_km=radius_km)
+    region = dataclasses.replace(region, spacing_km=config.spacing_gsd * region.spacing_km)
+    if config.tile_radius_km is not None:
+        region = dataclasses.replace(region, radius_km=config.tile_radius_km)
     if list_maplets(session, lat_deg=region.lat_deg, lon_deg=region.lon_deg,
                     radius_km=region.radius_km, limit=1):
         return 0
-    maplets = tile(shape, spacing_km=region.spacing_km, nodes=nodes_per_side, overlap=OVERLAP,
+    maplets = tile(shape, spacing_km=region.spacing_km, nodes=config.nodes, overlap=config.overlap,
                    centre_lat_deg=region.lat_deg, centre_lon_deg=region.lon_deg,
                    radius_km=region.radius_km)
     taken = set(session.scalars(select(Maplet.name).where(
@@ -130,7 +126,7 @@ def _tile_if_bare(session: Session, shape: Mesh, views: list[View], *, nodes_per
                            nodes_per_side=m.n))
     session.flush()
     log.info("tiled %d maplets of %d nodes at %.3f m about (%.4f, %.4f) within %.1f m",
-             len(added), nodes_per_side, region.spacing_km * 1e3, region.lat_deg, region.lon_deg,
+             len(added), config.nodes, region.spacing_km * 1e3, region.lat_deg, region.lon_deg,
              region.radius_km * 1e3)
     return len(added)
 
@@ -159,11 +155,11 @@ def _may_see(points: np.ndarray, view: View) -> bool:
 
 
 def _store(session: Session, maplet: Maplet, grid: MapletGrid, image_ids: list[int],
-           views: list[View], tracer: RayTracer, report: CoverageReport) -> None:
+           views: list[View], tracer: RayTracer, report: CoverageReport, *, config: RefinementConfig) -> None:
     """Weigh the maplet in the views and upsert its coverage rows and region weight."""
     spacing_km = maplet.gsd_m * 1e-3
     vis, in_frame, geom = views_over_maplet(grid, views, tracer, spacing_km=spacing_km)
-    weights = weigh_maplet(grid, vis, geom, in_frame=in_frame)
+    weights = weigh_maplet(grid, vis, geom, in_frame=in_frame, rules=config.rules)
     roles = {k: CoverageRole(name) for name, k in vars(weights.views).items() if k is not None}
     existing = {row.image_id: row for row in session.scalars(
         select(Coverage).where(Coverage.maplet_id == maplet.id))}
@@ -174,7 +170,7 @@ def _store(session: Session, maplet: Maplet, grid: MapletGrid, image_ids: list[i
             float(geom.visible_fraction[k]), float(geom.shadow_fraction[k]),
             float(geom.incidence_deg[k]), float(geom.emission_deg[k]), float(geom.phase_deg[k]),
             float(geom.sun_azimuth_deg[k]), float(geom.resolution_ratio[k] * spacing_km * 1e3),
-            float(weights.image[k]), roles.get(k))))
+            float(weights.image[k]), roles.get(k)), strict=True))
         row = existing.pop(image_id, None)
         if row is None:
             session.add(Coverage(image_id=image_id, maplet_id=maplet.id, **values))

@@ -2,17 +2,23 @@
 a local terrain product of a site (PDS4 heights and albedo in the site frame, with a PNG preview).
 
 Every export may be decimated to a requested face count first. An export is made once and kept
-in the data directory's content-addressed store (service.versions.store_artifact); an index
-file `<data_dir>/exports/<key>.json` names the artifact made for a key, which hashes the
-version's mesh checksum with the format and parameters. The mesh formats at full resolution are
-the version's own artifacts.
+in `<data_dir>/exports/`: the file `<key><suffix>` and its record `<key>.json`, where the key
+hashes the version's mesh checksum with the format and the parameters as asked (so that a
+request already served needs neither SPICE nor a lock). The mesh formats at full resolution are
+the version's own artifacts. What is kept is bounded: once the kept files pass the configured
+bytes, the least recently served ones are removed (they are made again when asked for).
 
-spiceypy's kernel pool and fast-simplification keep process-global state: their calls are
-serialised by one lock, so that the API's worker threads can share them.
+An export is planned from the catalog first (plan_export) and made without it (make_export), so
+that no database connection is held while a request waits for its turn or while the file is
+made. spiceypy's kernel pool and fast-simplification keep process-global state: making is
+serialised by one lock, and only MAX_QUEUED_EXPORTS requests of a process may wait for it or
+hold it; the others are refused at once (ExportBusy), so that exports never take all the API's
+worker threads.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import hashlib
 import json
@@ -21,7 +27,7 @@ import os
 import tempfile
 import threading
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
@@ -39,22 +45,37 @@ from pwm.frames import LocalFrame, latlon_to_unit, local_frame
 from pwm.io.dsk import write_dsk
 from pwm.io.icq import mesh_to_icq, write_icq
 from pwm.io.meshio import write_obj, write_ply
+from pwm.io.pds4 import file_sha256
 from pwm.io.site_product import write_site_product
 from pwm.io.spice_kernels import kernel_pool
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from service.kernels import accepted_kernels
-from service.models import (Image, ImageGeometry, ImageStatus, Instrument, KernelKind,
-                            ModelVersion, model_version_downlinks)
-from service.versions import ArtifactError, artifact_path, store_artifact, version_mesh
+from service.models import (
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    KernelKind,
+    ModelVersion,
+    model_version_downlinks,
+)
+from service.versions import ArtifactError, artifact_mesh, artifact_path
 
 EXPORTS_DIRNAME = "exports"
 # Bump when an export's content changes for the same inputs, so that old cache entries are
 # not served for new requests.
-EXPORT_REVISION = 1
+EXPORT_REVISION = 2
 # The site grid has at most (2 * MAX_SITE_HALF_NODES + 1)^2 nodes.
 MAX_SITE_HALF_NODES = 500
+# Requests of one process that may wait for the making lock or hold it; one more is refused.
+MAX_QUEUED_EXPORTS = 4
+# The longest a queued request waits for the making lock (s) before it is refused.
+EXPORT_WAIT_S = 60.0
+# What a refused request is told to wait before it asks again (s).
+RETRY_AFTER_S = 5
 _PROCESS_GLOBAL = threading.Lock()
+_QUEUE = threading.BoundedSemaphore(MAX_QUEUED_EXPORTS)
 
 
 class ExportFormat(enum.StrEnum):
@@ -74,6 +95,14 @@ MEDIA_TYPES = {ExportFormat.OBJ: "model/obj", ExportFormat.PLY: "application/oct
 
 class ExportError(Exception):
     """The export cannot be made from this version with these parameters."""
+
+
+class ExportBusy(Exception):
+    """Too many exports are being made: ask again after `retry_after_s` (s)."""
+
+    def __init__(self, retry_after_s: int = RETRY_AFTER_S) -> None:
+        super().__init__(f"too many exports are being made; try again in {retry_after_s} s")
+        self.retry_after_s = retry_after_s
 
 
 class Site(BaseModel):
@@ -123,16 +152,50 @@ def icq_size(faces: int) -> int:
     return max(1, round(math.sqrt(faces / 12)))
 
 
-def export_version(session: Session, *, data_dir: Path, version: ModelVersion,
-                   fmt: ExportFormat, faces: int | None = None, site: Site | None = None,
-                   body: str | None = None, frame: str | None = None) -> ExportFile:
-    """The file of `version` in format `fmt`, made and stored on first request.
+@dataclass(frozen=True)
+class ExportPlan:
+    """What making an export needs from the catalog, read beforehand: the version (number, kind,
+    creation time, PLY artifact record; its own record of the file asked for, for the mesh
+    formats at full resolution), the request (format, faces, site, body and frame; frame
+    from the catalog's images unless given), the catalog's accepted PCK and FK files with their
+    checksums, and for a site product the time span and spacecraft of its images."""
+
+    data_dir: Path
+    version: int
+    kind: str
+    created_at: datetime
+    mesh: dict[str, Any]
+    fmt: ExportFormat
+    faces: int | None
+    filename: str
+    site: Site | None = None
+    body: str | None = None
+    frame: str | None = None
+    kernels: tuple[tuple[Path, str], ...] = ()
+    time_span: tuple[datetime, datetime] | None = None
+    spacecraft_id: int | None = None
+    own: dict[str, Any] | None = None
+
+    def key(self) -> str:
+        """The cache key: a hex digest of everything the file depends on."""
+        return digest({"mesh": self.mesh["sha256"], "version": self.version,
+                       "revision": EXPORT_REVISION, "fmt": self.fmt.value, "faces": self.faces,
+                       "site": self.site.model_dump() if self.site else None, "body": self.body,
+                       "frame": self.frame, "kernels": [sha for _, sha in self.kernels],
+                       "time_span": self.time_span, "spacecraft": self.spacecraft_id})
+
+
+def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt: ExportFormat,
+                faces: int | None = None, site: Site | None = None, body: str | None = None,
+                frame: str | None = None) -> ExportPlan:
+    """Read from the catalog what exporting `version` in format `fmt` needs (make_export makes
+    it, without the catalog: end the session's transaction in between).
 
     faces: decimate to about this many faces first (none, or at least the version's count:
     full resolution); ICQ takes q from it (icq_size). site: needed by, and only by, the site
     product. body (NAIF name or ID) and frame (body-fixed frame name) override what the
     catalog's images give, for DSK and site products. Raises ExportError when the export cannot
-    be made, ArtifactError when the version's files are damaged.
+    be made.
     """
     if (fmt is ExportFormat.SITE) != (site is not None):
         raise ExportError("a site product needs a site, and only a site product takes one")
@@ -142,65 +205,148 @@ def export_version(session: Session, *, data_dir: Path, version: ModelVersion,
     if faces is not None and total is not None and faces >= total:
         faces = None
     name = f"pwm-v{version.version:04d}" + (f"-f{faces}" if faces else "") + SUFFIXES[fmt]
+    plan = ExportPlan(data_dir=data_dir, version=version.version, kind=str(version.kind),
+                      created_at=version.created_at, mesh=dict(version.artifacts["ply"]),
+                      fmt=fmt, faces=faces, filename=name, site=site)
     if fmt in (ExportFormat.PLY, ExportFormat.OBJ) and faces is None:
-        record = version.artifacts[fmt.value]
-        return ExportFile(artifact_path(data_dir, record), name, MEDIA_TYPES[fmt],
-                          record["sha256"])
-    target = (resolve_target(session, body=body, frame=frame)
-              if fmt in (ExportFormat.DSK, ExportFormat.SITE) else None)
-    key = _cache_key(version, fmt=fmt, faces=faces, site=site, target=target)
-
-    def make(path: Path) -> None:
-        mesh = version_mesh(data_dir, version)
-        if faces is not None and faces < len(mesh.faces):
-            with _PROCESS_GLOBAL:
-                mesh = decimate(mesh, faces)
-        if fmt is ExportFormat.ICQ:
-            _write_icq(path, mesh, icq_size(faces or len(mesh.faces)))
-        elif fmt is ExportFormat.DSK:
-            _write_dsk(session, path, mesh, version=version, target=target)
-        elif fmt is ExportFormat.SITE:
-            _write_site(session, path, mesh, version=version, site=site, target=target)
-        else:
-            (write_ply if fmt is ExportFormat.PLY else write_obj)(path, mesh)
-
-    record = cached_artifact(data_dir, key, suffix=SUFFIXES[fmt], make=make)
-    return ExportFile(artifact_path(data_dir, record), name, MEDIA_TYPES[fmt], record["sha256"])
-
-
-def cached_artifact(data_dir: Path, key: str, *, suffix: str,
-                    make: Callable[[Path], None]) -> dict[str, Any]:
-    """The artifact record stored for `key` (a hex digest), made by `make(path)` (which writes
-    the file `path`) and stored the first time, or again when its file went missing."""
-    index = data_dir / EXPORTS_DIRNAME / f"{key}.json"
-    if index.is_file():
-        record = json.loads(index.read_text())
-        try:
-            artifact_path(data_dir, record)
-            return record
-        except ArtifactError:
-            pass
-    with _workspace(data_dir) as scratch:
-        path = scratch / f"export{suffix}"
-        make(path)
-        record = store_artifact(data_dir, path)
-        staged = scratch / "index.json"
-        staged.write_text(json.dumps(record))
-        os.replace(staged, index)  # atomic: a concurrent reader sees the old index or the new
-    return record
-
-
-def resolve_target(session: Session, *, body: str | None = None,
-                   frame: str | None = None) -> Target:
-    """The body-fixed frame of the catalogued image geometry (the most frequent) and the body at
-    its centre, each overridable (body: NAIF name or ID); known to SPICE from its built-in names
-    and the catalog's accepted frame and constants kernels. Raises ExportError when unknown."""
+        return dataclasses.replace(plan, own=dict(version.artifacts[fmt.value]))
+    if fmt not in (ExportFormat.DSK, ExportFormat.SITE):
+        return plan
     if frame is None:
         frame = _most_common(session, select(ImageGeometry.body_frame))
     if frame is None:
         raise ExportError("the catalog has no image geometry to take the body-fixed frame "
                           "from: give the frame")
-    with _spice(session), sp.no_found_check():
+    kernels = tuple((Path(k.path), k.sha256) for k in accepted_kernels(session)
+                    if k.kind in (KernelKind.PCK, KernelKind.FK) and Path(k.path).is_file())
+    site_context = {}
+    if fmt is ExportFormat.SITE:
+        site_context = {"time_span": _time_span(session, version),
+                        "spacecraft_id": _most_common(session, select(
+                            Instrument.spacecraft_id).join(
+                                Image, Image.instrument_id == Instrument.id))}
+    return dataclasses.replace(plan, body=body, frame=frame, kernels=kernels, **site_context)
+
+
+def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
+    """The file of an export plan, made and kept on first request (cache_bytes: how many bytes
+    of exports the data directory keeps; see cached_artifact).
+
+    Raises ExportError when the export cannot be made, ArtifactError when the version's files
+    are damaged, ExportBusy when too many exports are being made.
+    """
+    fmt, faces = plan.fmt, plan.faces
+    if plan.own is not None:
+        return ExportFile(artifact_path(plan.data_dir, plan.own), plan.filename,
+                          MEDIA_TYPES[fmt], plan.own["sha256"])
+
+    def make(path: Path) -> None:
+        mesh = artifact_mesh(plan.data_dir, plan.mesh)
+        if faces is not None and faces < len(mesh.faces):
+            mesh = decimate(mesh, faces)
+        if fmt is ExportFormat.ICQ:
+            _write_icq(path, mesh, icq_size(faces or len(mesh.faces)))
+        elif fmt is ExportFormat.DSK:
+            _write_dsk(path, mesh, plan=plan)
+        elif fmt is ExportFormat.SITE:
+            _write_site(path, mesh, plan=plan)
+        else:
+            (write_ply if fmt is ExportFormat.PLY else write_obj)(path, mesh)
+
+    record = cached_artifact(plan.data_dir, plan.key(), suffix=SUFFIXES[fmt], make=make,
+                             cache_bytes=cache_bytes)
+    return ExportFile(artifact_path(plan.data_dir, record), plan.filename, MEDIA_TYPES[fmt],
+                      record["sha256"])
+
+
+def cached_artifact(data_dir: Path, key: str, *, suffix: str, make: Callable[[Path], None],
+                    cache_bytes: int) -> dict[str, Any]:
+    """The record ({"path", "sha256", "bytes"}) of the file kept for `key` (a hex digest), made
+    by `make(path)` (which writes the file `path`) the first time, or again when it went missing.
+
+    Making holds the process's making lock (so `make` may use SPICE and fast-simplification);
+    of requests that must make their file, MAX_QUEUED_EXPORTS wait for it at most EXPORT_WAIT_S,
+    and the others are refused with ExportBusy. Once made, the least recently served files are
+    removed until the kept ones total at most `cache_bytes` (the new one always stays).
+    """
+    record = _kept(data_dir, key)
+    if record is not None:
+        return record
+    if not _QUEUE.acquire(blocking=False):
+        raise ExportBusy()
+    try:
+        if not _PROCESS_GLOBAL.acquire(timeout=EXPORT_WAIT_S):
+            raise ExportBusy()
+        try:
+            # made meanwhile by the request this one waited for
+            record = _kept(data_dir, key)
+            if record is None:
+                record = _make_and_keep(data_dir, key, suffix=suffix, make=make)
+                _evict(data_dir, cache_bytes=cache_bytes, keep=key)
+        finally:
+            _PROCESS_GLOBAL.release()
+    finally:
+        _QUEUE.release()
+    return record
+
+
+def _kept(data_dir: Path, key: str) -> dict[str, Any] | None:
+    """The record kept for `key` if its file is there, marked as just served."""
+    index = data_dir / EXPORTS_DIRNAME / f"{key}.json"
+    try:
+        record = json.loads(index.read_text())
+        artifact_path(data_dir, record)
+        os.utime(index)  # the eviction order: least recently served first
+    except (OSError, ValueError, KeyError, TypeError, ArtifactError):
+        return None  # missing, being replaced, or damaged: made again
+    return record
+
+
+def _make_and_keep(data_dir: Path, key: str, *, suffix: str,
+                   make: Callable[[Path], None]) -> dict[str, Any]:
+    directory = data_dir / EXPORTS_DIRNAME
+    with _workspace(data_dir) as scratch:
+        path = scratch / f"export{suffix}"
+        make(path)
+        relative = Path(EXPORTS_DIRNAME) / f"{key}{suffix}"
+        record = {"path": relative.as_posix(), "sha256": file_sha256(path),
+                  "bytes": path.stat().st_size}
+        os.replace(path, data_dir / relative)  # same filesystem: atomic
+        staged = scratch / "index.json"
+        staged.write_text(json.dumps(record))
+        os.replace(staged, directory / f"{key}.json")  # a concurrent reader sees old or new
+    return record
+
+
+def _evict(data_dir: Path, *, cache_bytes: int, keep: str) -> None:
+    """Remove the least recently served kept files, other than `keep`'s, until the kept files
+    total at most cache_bytes. Only files inside the exports folder are removed."""
+    directory = data_dir / EXPORTS_DIRNAME
+    entries = []
+    for index in directory.glob("*.json"):
+        try:
+            record = json.loads(index.read_text())
+            entries.append((index.stat().st_mtime, index, record, int(record["bytes"])))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # removed meanwhile by another process, or not a record of ours
+    total = sum(size for *_, size in entries)
+    for _, index, record, size in sorted(entries, key=lambda entry: entry[0]):
+        if total <= cache_bytes:
+            break
+        if index.stem == keep:
+            continue
+        index.unlink(missing_ok=True)
+        file = data_dir / str(record.get("path", ""))
+        if file.parent.resolve() == directory.resolve():
+            file.unlink(missing_ok=True)
+        total -= size
+
+
+def resolve_target(kernels: Iterable[Path], *, body: str | None, frame: str) -> Target:
+    """The body-fixed `frame` and the body at its centre (or `body`: NAIF name or ID), known to
+    SPICE from its built-in names and the given frame and constants kernels. Raises ExportError
+    when unknown. The caller holds the making lock."""
+    with kernel_pool(kernels), sp.no_found_check():
         frame_code = sp.namfrm(frame)
         if frame_code == 0:
             raise ExportError(f"SPICE knows no frame {frame!r}")
@@ -263,36 +409,46 @@ def _write_icq(path: Path, mesh: Mesh, q: int) -> None:
     write_icq(path, grid)
 
 
-def _write_dsk(session: Session, path: Path, mesh: Mesh, *, version: ModelVersion,
-               target: Target) -> None:
-    comment = (f"pwm shape model version {version.version} ({version.kind}), made "
-               f"{version.created_at:%Y-%m-%dT%H:%M:%SZ}; plate model in km in {target.frame}; "
+def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
+    target = _target(plan)
+    comment = (f"pwm shape model version {plan.version} ({plan.kind}), made "
+               f"{plan.created_at:%Y-%m-%dT%H:%M:%SZ}; plate model in km in {target.frame}; "
                f"{len(mesh.vertices)} vertices, {len(mesh.faces)} plates.")
-    with _spice(session):
+    with kernel_pool(_kernel_paths(plan)):
         write_dsk(path, mesh, body=target.body_id, frame=target.frame, comment=comment)
 
 
-def _write_site(session: Session, path: Path, mesh: Mesh, *, version: ModelVersion, site: Site,
-                target: Target) -> None:
-    grid = resample_site(mesh, site)
+def _write_site(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
+    assert plan.site is not None and plan.time_span is not None  # plan_export sets them
+    target = _target(plan)
+    grid = resample_site(mesh, plan.site)
     if np.isnan(grid.height_km).all():
         raise ExportError("the site grid meets no surface")
-    start, stop = _time_span(session, version)
-    host = _spacecraft(session)
-    name = f"pwm_site_v{version.version:04d}_{digest(site.model_dump())[:10]}"
+    start, stop = plan.time_span
+    host = _spacecraft(plan.spacecraft_id)
+    name = f"pwm_site_v{plan.version:04d}_{digest(plan.site.model_dump())[:10]}"
     scratch = path.parent / "site"
     scratch.mkdir()
     files = write_site_product(
         scratch, name=name, frame=grid.frame, x_km=grid.x_km, y_km=grid.y_km,
         height_km=grid.height_km, albedo=grid.albedo,
         lid=f"urn:nasa:pds:pwm:data_site:{name}", version="1.0",
-        model_version=str(version.version), body_frame=target.frame,
+        model_version=str(plan.version), body_frame=target.frame,
         target_name=target.name, mission=host, host_name=host,
         start_utc=start.isoformat(), stop_utc=stop.isoformat())
     # Stored, not deflated: binary doubles compress little.
     with zipfile.ZipFile(path, "x", compression=zipfile.ZIP_STORED) as archive:
         for file in files:
             archive.write(file, arcname=file.name)
+
+
+def _kernel_paths(plan: ExportPlan) -> list[Path]:
+    return [path for path, _ in plan.kernels]
+
+
+def _target(plan: ExportPlan) -> Target:
+    assert plan.frame is not None  # plan_export sets it for DSK and site products
+    return resolve_target(_kernel_paths(plan), body=plan.body, frame=plan.frame)
 
 
 def _time_span(session: Session, version: ModelVersion) -> tuple[datetime, datetime]:
@@ -309,13 +465,12 @@ def _time_span(session: Session, version: ModelVersion) -> tuple[datetime, datet
     return (start or version.created_at, stop or version.created_at)
 
 
-def _spacecraft(session: Session) -> str:
-    """The name of the spacecraft that took most of the catalogued images, or 'unknown'."""
-    code = _most_common(session, select(Instrument.spacecraft_id).join(
-        Image, Image.instrument_id == Instrument.id))
+def _spacecraft(code: int | None) -> str:
+    """The name of the spacecraft of NAIF ID `code` (SPICE's built-in names), or 'unknown'.
+    The caller holds the making lock."""
     if code is None:
         return "unknown"
-    with _PROCESS_GLOBAL, sp.no_found_check():
+    with sp.no_found_check():
         name, found = sp.bodc2n(code)
     return name if found else str(code)
 
@@ -328,16 +483,6 @@ def _most_common(session: Session, query: Any) -> Any:
 
 
 @contextmanager
-def _spice(session: Session) -> Iterator[None]:
-    """SPICE with the catalog's accepted constants and frame kernels loaded, one thread at a
-    time (the pool is per process)."""
-    paths = [Path(k.path) for k in accepted_kernels(session)
-             if k.kind in (KernelKind.PCK, KernelKind.FK) and Path(k.path).is_file()]
-    with _PROCESS_GLOBAL, kernel_pool(paths):
-        yield
-
-
-@contextmanager
 def _workspace(data_dir: Path) -> Iterator[Path]:
     """A scratch directory inside the data directory (one filesystem: stored files are renamed,
     not copied), removed afterwards."""
@@ -345,14 +490,6 @@ def _workspace(data_dir: Path) -> Iterator[Path]:
     root.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=root) as scratch:
         yield Path(scratch)
-
-
-def _cache_key(version: ModelVersion, **parameters: Any) -> str:
-    values = {name: (value.model_dump() if isinstance(value, BaseModel) else
-                     value.__dict__ if isinstance(value, Target) else value)
-              for name, value in parameters.items()}
-    return digest({"mesh": version.artifacts["ply"]["sha256"], "revision": EXPORT_REVISION,
-                    **values})
 
 
 def digest(value: Any) -> str:

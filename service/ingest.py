@@ -34,20 +34,41 @@ from sqlalchemy import Engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import Camera
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.geometry import Ellipsoid, MeshSurface, Surface, ViewGeometry
-from pwm.io.labels import (COVERAGE_ERRORS, exposure_et, exposure_times, find_labels, instrument_code,
-                           observer_code, target_frame)
+from pwm.io.labels import (
+    COVERAGE_ERRORS,
+    exposure_et,
+    exposure_times,
+    find_labels,
+    instrument_code,
+    observer_code,
+    target_frame,
+)
 from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
-from pwm.io.spice_geometry import (ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, observe,
-                                   spacecraft_of)
+from pwm.io.spice_geometry import ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, observe, spacecraft_of
 from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
 from service.coverage import CoverageReport, update_coverage
 from service.db import make_sessionmaker, session_scope
-from service.kernels import (KernelOutcome, accepted_kernels, coverage_windows, et_to_datetime,
-                             register_kernels, spice_message)
-from service.models import (Downlink, DownlinkStatus, GeometryStatus, Image, ImageGeometry,
-                            ImageStatus, Instrument, KernelKind)
+from service.kernels import (
+    KernelOutcome,
+    accepted_kernels,
+    coverage_windows,
+    et_to_datetime,
+    register_kernels,
+    spice_message,
+)
+from service.models import (
+    Downlink,
+    DownlinkStatus,
+    GeometryStatus,
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    KernelKind,
+)
 
 log = logging.getLogger(__name__)
 
@@ -158,15 +179,14 @@ class _Rejected(Exception):
 
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
                      downlink_name: str | None = None, shape: Mesh | None = None,
-                     maplet_nodes: int = 100, tile_radius_km: float | None = None) -> IngestReport:
+                     config: RefinementConfig = DEFAULTS) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
     holds that name). shape: the current shape model of the target (body-fixed, km); boresight
     and corner intercepts use it instead of the PCK ellipsoid, and the catalog's images not
     weighed yet (Image.coverage_computed_at) get their coverage rows against it
-    (service.coverage; maplets tiled there have maplet_nodes nodes per side, within
-    tile_radius_km of the imaged region's centre when given). SPICE's
+    (service.coverage; maplets tiled there as config says). SPICE's
     process-wide kernel pool is cleared on the way in and out (pwm.io.spice_kernels.kernel_pool).
     """
     sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
@@ -191,15 +211,13 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                 # a shape): a repeated ingest leaves the maplets' inputs as they are.
                 unweighed = set(session.scalars(select(Image.id).where(
                     Image.coverage_computed_at.is_(None))))
-                report.coverage = update_coverage(session, shape, image_ids=unweighed,
-                                                  nodes_per_side=maplet_nodes,
-                                                  tile_radius_km=tile_radius_km)
+                report.coverage = update_coverage(session, shape, image_ids=unweighed, config=config)
     except BaseException:
         with session_scope(sessions) as session:
-            session.get(Downlink, downlink_id).status = DownlinkStatus.FAILED
+            session.get_one(Downlink, downlink_id).status = DownlinkStatus.FAILED
         raise
     with session_scope(sessions) as session:
-        session.get(Downlink, downlink_id).status = DownlinkStatus.INGESTED
+        session.get_one(Downlink, downlink_id).status = DownlinkStatus.INGESTED
     report.elapsed_s = time.perf_counter() - clock
     log.info("%s", report.summary())
     return report
@@ -381,7 +399,7 @@ def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | 
     """Store the outcome as a new row, or over `same`; False if `same` already says it."""
     versions = catalog.known[(identity.lid, identity.vid)]
     if same is not None:
-        image = catalog.session.get(Image, same.id)
+        image = catalog.session.get_one(Image, same.id)
         if _verdict(image) == outcome.verdict:
             return False
         same.status, same.code = outcome.status, outcome.code

@@ -17,16 +17,24 @@ transaction: commit promptly so that the API sees progress.
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
 from datetime import datetime, timedelta
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import select, update
+from sqlalchemy import CursorResult, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
 from service.models import Job, JobKind, JobStatus, utcnow
 
-_INSERT_IGNORING_CONFLICT = {"postgresql": postgresql.insert, "sqlite": sqlite.insert}
+_INSERT_IGNORING_CONFLICT: dict[str, Callable[..., postgresql.Insert | sqlite.Insert]] = {
+    "postgresql": postgresql.insert, "sqlite": sqlite.insert}
+# An absolute path in a message: a quoted one whole (it may hold spaces), else from a slash at
+# the start or after a space, bracket or `=` up to the next space, quote or bracket.
+_ABSOLUTE_PATH = re.compile(r"(?<=')/[^']*(?=')|(?<=\")/[^\"]*(?=\")"
+                            r"|(?<![^\s(\[=])/[^\s'\"()\[\]]*")
+MAX_REASON_CHARS = 500
 
 
 class JobBusy(Exception):
@@ -104,6 +112,20 @@ def fail_job(session: Session, job: Job, *, error: str) -> None:
                                    "error": error})
 
 
+def error_reason(error: str | None) -> str | None:
+    """The reason a job failed, fit to show to anyone: the last line of its error (a
+    traceback's is the exception and its message), with absolute paths reduced to their file
+    names, at most MAX_REASON_CHARS characters."""
+    if error is None:
+        return None
+    lines = [line.strip() for line in error.splitlines() if line.strip()]
+    if not lines:
+        return None
+    reason = _ABSOLUTE_PATH.sub(lambda m: m.group().rstrip("/").rsplit("/", 1)[-1] or "/",
+                                lines[-1])
+    return reason[:MAX_REASON_CHARS]
+
+
 def _insert_if_missing(session: Session, *, kind: JobKind, key: str, downlink_id: int | None,
                        maplet_id: int | None) -> None:
     # INSERT .. ON CONFLICT DO NOTHING rather than select-then-insert: concurrent first
@@ -127,9 +149,10 @@ def _locked(session: Session, kind: JobKind, key: str) -> Job:
 
 
 def _update_running(session: Session, job: Job, values: dict[str, Any]) -> None:
-    result = session.execute(
+    # an UPDATE's result is a CursorResult, which counts the rows matched
+    result = cast(CursorResult[Any], session.execute(
         update(Job).where(Job.id == job.id, Job.attempts == job.attempts,
                           Job.status == JobStatus.RUNNING).values(**values)
-        .execution_options(synchronize_session=False))
+        .execution_options(synchronize_session=False)))
     if result.rowcount != 1:
         raise JobLost(f"attempt {job.attempts} of job {job.key!r} no longer holds it")

@@ -81,10 +81,11 @@ def is_kernel_file(path: Path) -> bool:
 def kernel_kind(path: Path) -> KernelKind | None:
     """The kind SPICE's getfat reports, else the one the extension implies (None if neither)."""
     try:
-        file_type = tuple(sp.getfat(str(path)))
+        architecture, file_type = sp.getfat(str(path))
+        by_type = KIND_BY_FILE_TYPE.get((architecture, file_type))
     except sp.utils.exceptions.SpiceyError:
-        file_type = None
-    return KIND_BY_FILE_TYPE.get(file_type) or KIND_BY_EXTENSION.get(path.suffix.lower())
+        by_type = None
+    return by_type or KIND_BY_EXTENSION.get(path.suffix.lower())
 
 
 def _windows(path: Path, kind: KernelKind) -> dict[int, list[tuple[float, float]]]:
@@ -128,7 +129,7 @@ def _candidates(directory: Path) -> list[Path]:
         except (sp.utils.exceptions.SpiceyError, KernelError):
             pass  # the meta-kernel itself is rejected with the reason when it is registered
     unique = list(dict.fromkeys(Path(os.path.abspath(p)) for p in [*named, *found]))
-    rank = {kind: i for i, kind in enumerate(_REGISTER_ORDER)}
+    rank: dict[KernelKind | None, int] = {kind: i for i, kind in enumerate(_REGISTER_ORDER)}
     return sorted(unique, key=lambda p: rank.get(kernel_kind(p), len(rank)))
 
 

@@ -21,6 +21,7 @@ from sqlalchemy import (
     DateTime,
     Dialect,
     Double,
+    Enum as SAEnum,
     ForeignKey,
     Index,
     MetaData,
@@ -32,7 +33,6 @@ from sqlalchemy import (
     event,
     inspect,
 )
-from sqlalchemy import Enum as SAEnum
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
 # Explicit constraint names keep migrations identical on both databases and let Alembic's

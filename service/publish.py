@@ -21,24 +21,31 @@ from pathlib import Path
 from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_grid, write_grid
-from service.coverage import OVERLAP
 from service.db import session_scope
 from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion
 from service.refinement import load_revision_maplet
-from service.versions import (artifact_path, latest_version, publication_lock, publish_version,
-                              scratch_path, version_mesh)
+from service.versions import (
+    artifact_path,
+    latest_version,
+    publication_lock,
+    publish_version,
+    scratch_path,
+    version_mesh,
+)
 
 log = logging.getLogger(__name__)
 
 
 def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
-                     downlink_ids: Sequence[int] = ()) -> int | None:
+                     downlink_ids: Sequence[int] = (), config: RefinementConfig = DEFAULTS) -> int | None:
     """Fuse the maplets' current revisions into the latest version and publish the result as a
     new version (kind refined); its number, or None when no maplet's current revision differs
     from the latest version's (nothing is published then).
 
+    config.overlap: the maplets' overlap, over which fusion tapers their weights.
     Lineage: the parent, the maplet revisions fused, the parent's downlinks plus downlink_ids.
     Statistics: maplets changed, added, replaced and fused in all, images used, whether the
     parent's sums were reused, the base version, voxels and seconds (with the mesh's own).
@@ -67,7 +74,7 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
             grid = None
         maplets = [load_revision_maplet(data_dir, r) for r in added]
         if grid is None:
-            grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=OVERLAP)
+            grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=config.overlap)
         for maplet in maplets:
             grid.add(maplet)
         base = _base(parent)
@@ -101,7 +108,7 @@ def _current_revisions(session: Session) -> dict[int, MapletRevision]:
     """Each maplet's current revision, by maplet id."""
     rows = session.scalars(select(Maplet).where(Maplet.current_revision_id.is_not(None))
                            .options(selectinload(Maplet.current_revision)).order_by(Maplet.id))
-    return {m.id: m.current_revision for m in rows}
+    return {m.id: m.current_revision for m in rows if m.current_revision is not None}  # all, by the query
 
 
 def _base(version: ModelVersion) -> ModelVersion:

@@ -17,7 +17,7 @@ serialise to JSON as they are.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from datetime import datetime
 from typing import Any, Literal
 
@@ -213,7 +213,7 @@ def maplet_coverage(
         holders.setdefault(r.role, r.image_id)
     lidvids = {image_id: lidvid for image_id, lidvid in session.execute(
         select(Image.id, Image.lidvid).where(Image.id.in_(holders.values())))} if holders else {}
-    views = {role: lidvids.get(holders.get(role)) for role in CoverageRole}
+    views = {role: lidvids.get(holders[role]) if role in holders else None for role in CoverageRole}
 
     def extent(values: np.ndarray) -> tuple[float, float] | None:
         return (float(values.min()), float(values.max())) if values.size else None
@@ -235,9 +235,9 @@ def list_maplets(
         raise ValueError("limit and offset must be >= 0")
     if (lat_deg is None) != (lon_deg is None):
         raise ValueError("give lat_deg and lon_deg together, or neither")
-    if lat_deg is None:
+    if lat_deg is None or lon_deg is None:  # both, checked above
         rows = session.execute(_maplet_rows().order_by(Maplet.name).limit(limit).offset(offset))
-        page: list[tuple[Row[Any], float | None]] = [(row, None) for row in rows]
+        page: Sequence[tuple[Row[Any], float | None]] = [(row, None) for row in rows]
     else:
         near = _maplets_near(session, lat_deg=lat_deg, lon_deg=lon_deg, radius_km=radius_km)
         page = sorted(near, key=lambda item: (item[1], item[0].name))[offset:offset + limit]
@@ -257,7 +257,7 @@ def _records(result: Result[Any]) -> Iterator[dict[str, Any]]:
     """The rows as dicts, column name to value: a model built from these is built several
     times faster than from Row._mapping."""
     keys = tuple(result.keys())
-    return (dict(zip(keys, row)) for row in result)
+    return (dict(zip(keys, row, strict=True)) for row in result)
 
 
 def _maplet_rows() -> Select[Any]:
@@ -380,6 +380,6 @@ def count_maplets(session: Session, *, lat_deg: float | None = None,
     """How many maplets list_maplets pages through with the same arguments."""
     if (lat_deg is None) != (lon_deg is None):
         raise ValueError("give lat_deg and lon_deg together, or neither")
-    if lat_deg is None:
+    if lat_deg is None or lon_deg is None:  # both, checked above
         return session.scalar(select(func.count(Maplet.id))) or 0
     return len(_maplets_near(session, lat_deg=lat_deg, lon_deg=lon_deg, radius_km=radius_km))

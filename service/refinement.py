@@ -1,11 +1,11 @@
 """Refinement driven by the catalog: which maplets need refining, and the refinement of one.
 
 A maplet's input is the set of images its coverage rows weigh above zero (the refinement's own
-rules, service.coverage), each with its pose correction, plus the refinement mode and the
-maplet's grid. Its input hash names that input: a maplet whose current revision was made from
-another input is stale. Refining a maplet stores a new revision, keyed by the input hash, so the
-same input is never solved twice; the maplet's current revision moves to it while the hash is
-still the maplet's input.
+rules, service.coverage), each with its pose correction, plus the refinement settings
+(pwm.config.RefinementConfig.digest) and the maplet's grid. Its input hash names that input: a
+maplet whose current revision was made from another input is stale. Refining a maplet stores a
+new revision, keyed by the input hash, so the same input is never solved twice; the maplet's
+current revision moves to it while the hash is still the maplet's input.
 
 The refinement itself is pwm.pipeline.refine_maplet, on the maplet's nodes at the heights of
 the current model (the latest version), with visibility against that model.
@@ -26,6 +26,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
+from pwm.config import DEFAULTS, RefinementConfig
 from pwm.frames import LocalFrame
 from pwm.io.fusion_state import read_maplet, write_maplet
 from pwm.maplets import Maplet as MapletGrid
@@ -33,17 +34,12 @@ from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface
 from service.db import session_scope
-from service.models import (Coverage, GeometryStatus, Image, ImageStatus, Maplet,
-                            MapletRevision)
-from service.versions import (artifact_mesh, artifact_path, latest_version, scratch_path,
-                              store_artifact)
+from service.models import Coverage, GeometryStatus, Image, ImageStatus, Maplet, MapletRevision
+from service.versions import artifact_mesh, artifact_path, latest_version, scratch_path, store_artifact
 from service.views import catalog_views
 
 log = logging.getLogger(__name__)
 
-MIN_IMAGES = 3
-"""Fewest images a maplet needs to be refined (with fewer it keeps its start: nothing to do)."""
-MODES = ("pwm", "standard")
 _INSERT_ATTEMPTS = 5
 
 
@@ -64,16 +60,17 @@ class _Input:
     input_hash: str
 
 
-def input_hash(image_keys: Collection[str], *, mode: str, nodes_per_side: int,
+def input_hash(image_keys: Collection[str], *, config: RefinementConfig, nodes_per_side: int,
                size_km: float) -> str:
     """sha256 naming a refinement's input: the images' keys (sha256 of the product, with its
-    pose correction), the mode and the maplet's grid (nodes per side, side in km)."""
-    payload = {"images": sorted(image_keys), "mode": mode, "min_images": MIN_IMAGES,
+    pose correction), the refinement settings (config.digest()) and the maplet's grid (nodes per
+    side, side in km)."""
+    payload = {"images": sorted(image_keys), "config": config.digest(),
                "nodes_per_side": nodes_per_side, "size_km": repr(float(size_km))}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
-def _inputs(session: Session, mode: str, maplet_ids: Collection[int] | None
+def _inputs(session: Session, config: RefinementConfig, maplet_ids: Collection[int] | None
             ) -> dict[int, _Input]:
     """The input of each maplet (of maplet_ids, or all) that some image weighs into."""
     query = (select(Coverage.maplet_id, Image.id, Image.sha256, Image.pose_dx_km,
@@ -95,17 +92,16 @@ def _inputs(session: Session, mode: str, maplet_ids: Collection[int] | None
         select(Maplet.id, Maplet.nodes_per_side, Maplet.size_km).where(
             Maplet.id.in_(list(images)))))
     return {m: _Input(tuple(i for i, _ in rows),
-                      input_hash([k for _, k in rows], mode=mode, nodes_per_side=grids[m][0],
+                      input_hash([k for _, k in rows], config=config, nodes_per_side=grids[m][0],
                                  size_km=grids[m][1]))
             for m, rows in images.items()}
 
 
-def stale_maplets(session: Session, *, mode: str = "pwm",
+def stale_maplets(session: Session, *, config: RefinementConfig = DEFAULTS,
                   maplet_ids: Collection[int] | None = None) -> list[MapletWork]:
-    """The maplets (of maplet_ids, or all) with at least MIN_IMAGES images whose input hash is
+    """The maplets (of maplet_ids, or all) with at least config.min_images images whose input hash is
     not their current revision's, by id."""
-    _check_mode(mode)
-    inputs = _inputs(session, mode, maplet_ids)
+    inputs = _inputs(session, config, maplet_ids)
     rows = session.execute(
         select(Maplet.id, Maplet.name, MapletRevision.input_hash)
         .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
@@ -113,11 +109,11 @@ def stale_maplets(session: Session, *, mode: str = "pwm",
     return [MapletWork(maplet_id=m, name=name, input_hash=inputs[m].input_hash,
                        images=len(inputs[m].image_ids))
             for m, name, current in rows
-            if len(inputs[m].image_ids) >= MIN_IMAGES and current != inputs[m].input_hash]
+            if len(inputs[m].image_ids) >= config.min_images and current != inputs[m].input_hash]
 
 
 def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, maplet_id: int,
-                          input_hash: str, mode: str = "pwm",
+                          input_hash: str, config: RefinementConfig = DEFAULTS,
                           progress: Callable[[float, str], None] | None = None) -> int:
     """Refine one maplet from the catalog; the id of its revision for `input_hash`.
 
@@ -129,7 +125,6 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
     The refined maplet is a content-addressed artifact (pwm.io.fusion_state.write_maplet).
     progress(fraction, message) is told how far it got.
     """
-    _check_mode(mode)
     say = progress or (lambda fraction, message: None)
     with sessions() as session:
         found = _revision_id(session, maplet_id, input_hash)
@@ -138,9 +133,9 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
         row = session.get(Maplet, maplet_id)
         if row is None:
             raise LookupError(f"no maplet {maplet_id}")
-        current = _inputs(session, mode, [maplet_id]).get(maplet_id)
-        if current is None or len(current.image_ids) < MIN_IMAGES:
-            raise ValueError(f"maplet {row.name} has fewer than {MIN_IMAGES} usable images")
+        current = _inputs(session, config, [maplet_id]).get(maplet_id)
+        if current is None or len(current.image_ids) < config.min_images:
+            raise ValueError(f"maplet {row.name} has fewer than {config.min_images} usable images")
         if current.input_hash != input_hash:
             log.info("maplet %s: input changed since planned; refining its current input",
                      row.name)
@@ -158,7 +153,7 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
     say(0.2, f"refining against version {model_version}")
     tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
     grid.heights, grid.albedo = sample_surface(tracer, grid)
-    result = refine_maplet(grid, ordered, tracer, mode=mode, min_images=MIN_IMAGES)
+    result = refine_maplet(grid, ordered, tracer, config=config)
     say(0.9, "storing the revision")
     scratch = scratch_path(data_dir, ".npz")
     write_maplet(scratch, result.maplet)
@@ -171,7 +166,7 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
                   "height_change_rms_m": float(np.sqrt(np.mean(
                       (result.maplet.heights - grid.heights) ** 2)) * 1e3)}
     revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=current.input_hash,
-                                  mode=mode, artifact=artifact, statistics=statistics)
+                                  config=config, artifact=artifact, statistics=statistics)
     say(1.0, "done")
     log.info("maplet %s: revision %d from %d images, %d iterations (%.1f s)", grid.name,
              revision_id, len(result.images), result.iterations, result.seconds)
@@ -191,11 +186,6 @@ def _tracer(data_dir: Path, path: str, sha256: str) -> RayTracer:
     return RayTracer(artifact_mesh(data_dir, {"path": path, "sha256": sha256}))
 
 
-def _check_mode(mode: str) -> None:
-    if mode not in MODES:
-        raise ValueError(f"mode {mode!r}: expected one of {', '.join(MODES)}")
-
-
 def _revision_id(session: Session, maplet_id: int, input_hash: str) -> int | None:
     return session.scalar(select(MapletRevision.id).filter_by(maplet_id=maplet_id,
                                                              input_hash=input_hash))
@@ -211,7 +201,7 @@ def _grid(row: Maplet) -> MapletGrid:
 
 
 def _store_revision(sessions: sessionmaker[Session], *, maplet_id: int, input_hash: str,
-                    mode: str, artifact: dict, statistics: dict) -> int:
+                    config: RefinementConfig, artifact: dict, statistics: dict) -> int:
     """Insert the revision (next number for its maplet) unless a concurrent job stored the same
     input first, and make it current if its hash is the maplet's input now; its id."""
     for _ in range(_INSERT_ATTEMPTS):
@@ -226,12 +216,12 @@ def _store_revision(sessions: sessionmaker[Session], *, maplet_id: int, input_ha
                 number = (session.scalar(select(func.max(MapletRevision.revision))
                                          .where(MapletRevision.maplet_id == maplet_id)) or 0) + 1
                 revision = MapletRevision(maplet_id=maplet_id, revision=number,
-                                          input_hash=input_hash, mode=mode,
+                                          input_hash=input_hash, mode=config.mode,
                                           statistics=statistics, artifact_path=artifact["path"],
                                           sha256=artifact["sha256"])
                 session.add(revision)
                 session.flush()
-                now = _inputs(session, mode, [maplet_id]).get(maplet_id)
+                now = _inputs(session, config, [maplet_id]).get(maplet_id)
                 if now is not None and now.input_hash == input_hash:
                     maplet.current_revision_id = revision.id
                 return revision.id

@@ -3,7 +3,9 @@ a release is never undone or changed."""
 
 from __future__ import annotations
 
-from sqlalchemy import select
+from typing import Any, cast
+
+from sqlalchemy import CursorResult, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -17,23 +19,29 @@ class ReleaseConflict(Exception):
 
 def release_version(session: Session, ref: str | int, *, tag: str) -> ModelVersion:
     """Mark the version `ref` released as `tag`, in the caller's transaction. Releasing it again
-    with the same tag changes nothing. Raises LookupError (no such version) or ReleaseConflict."""
+    with the same tag changes nothing. Raises LookupError (no such version) or ReleaseConflict.
+
+    One conditional UPDATE decides, so that of concurrent releases exactly one sets the tag on
+    both databases: PostgreSQL makes a second writer of the row wait for the first and re-check
+    the condition, SQLite runs writes one at a time (a read first and a write later would not
+    do: SQLite takes no lock for the read, and with_for_update is a no-op there).
+    """
     number = get_version(session, ref).version
-    # Locked, so that of two concurrent releases of one version the second sees the first.
-    version = session.scalars(select(ModelVersion).filter_by(version=number).with_for_update()
-                              .execution_options(populate_existing=True)).one()
-    if version.released or version.release_tag is not None:
-        if version.release_tag == tag:
-            return version
-        raise ReleaseConflict(f"version {number} is released as {version.release_tag!r}; a "
-                              "release cannot be changed")
-    holder = session.scalar(select(ModelVersion.version).filter_by(release_tag=tag))
-    if holder is not None:
-        raise ReleaseConflict(f"tag {tag!r} names version {holder} already")
-    version.released, version.release_tag = True, tag
     try:
         with session.begin_nested():
-            session.flush()
-    except IntegrityError as exc:  # a concurrent release took the tag
-        raise ReleaseConflict(f"tag {tag!r} was taken meanwhile") from exc
+            result = cast(CursorResult[Any], session.execute(
+                update(ModelVersion).where(ModelVersion.version == number,
+                                           ModelVersion.released.is_(False),
+                                           ModelVersion.release_tag.is_(None))
+                .values(released=True, release_tag=tag)
+                .execution_options(synchronize_session=False)))
+            released = result.rowcount == 1
+    except IntegrityError as exc:  # the unique tag: another version holds it
+        holder = session.scalar(select(ModelVersion.version).filter_by(release_tag=tag))
+        raise ReleaseConflict(f"tag {tag!r} names version {holder} already") from exc
+    version = session.scalars(select(ModelVersion).filter_by(version=number)
+                              .execution_options(populate_existing=True)).one()
+    if not released and version.release_tag != tag:
+        raise ReleaseConflict(f"version {number} is released as {version.release_tag!r}; a "
+                              "release cannot be changed")
     return version

@@ -9,14 +9,15 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from multiprocessing import get_context
+from functools import partial
 from pathlib import Path
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from pwm.config import DEFAULTS, RefinementConfig
+from pwm.parallel import map_processes
 from service.db import make_engine, make_sessionmaker, session_scope
 from service.ingest import IngestReport, ingest_directory
 from service.models import Downlink, ModelKind
@@ -59,16 +60,15 @@ class RunReport:
 
 
 def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_dir: Path,
-                    start: Path | None = None, mode: str = "pwm", maplet_nodes: int = 100,
-                    tile_radius_km: float | None = None) -> Plan:
+                    start: Path | None = None, config: RefinementConfig = DEFAULTS) -> Plan:
     """Ingest a downlink against the current model and list the maplets whose input changed:
     those its images weigh into, and those its coverage update re-weighed against the current
     model (the shape moved, and with it which images they keep) or a stopped run left stale.
 
     The current model is the latest version; a catalog without one first imports `start` (or
-    DIRECTORY/start_model.obj when present) as a version of kind start. maplet_nodes,
-    tile_radius_km: of the maplets tiled where the images look and none is catalogued
-    (service.ingest.ingest_directory).
+    DIRECTORY/start_model.obj when present) as a version of kind start. config: how maplets
+    are tiled where the images look and none is catalogued (service.ingest.ingest_directory),
+    and refined.
     """
     directory = Path(directory)
     with session_scope(sessions) as session:
@@ -83,41 +83,33 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
             log.info("the catalog's latest version %d is the current model; %s is not used",
                      base.version, start)
         shape, base_version = version_mesh(data_dir, base), base.version
-    report = ingest_directory(sessions, directory, shape=shape, maplet_nodes=maplet_nodes,
-                              tile_radius_km=tile_radius_km)
+    report = ingest_directory(sessions, directory, shape=shape, config=config)
     with sessions() as session:
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
-        work = stale_maplets(session, mode=mode)
+        work = stale_maplets(session, config=config)
     log.info("%s: %d maplets to refine", report.downlink, len(work))
     return Plan(downlink_id=downlink_id, ingest=report, work=work, base_version=base_version)
 
 
 def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir: Path,
-                  start: Path | None = None, mode: str = "pwm", workers: int = 1,
-                  maplet_nodes: int = 100, tile_radius_km: float | None = None) -> RunReport:
-    """Ingest, refine (in `workers` processes) and fuse one downlink; see `ingest_and_plan`.
-    A version is published when some maplet's current revision changed."""
+                  start: Path | None = None, config: RefinementConfig = DEFAULTS,
+                  workers: int = 1) -> RunReport:
+    """Ingest, refine (in `workers` processes, pwm.parallel.map_processes) and fuse one downlink;
+    see `ingest_and_plan`. A version is published when some maplet's current revision changed."""
     clock = time.perf_counter()
-    plan = ingest_and_plan(sessions, directory, data_dir=data_dir, start=start, mode=mode,
-                           maplet_nodes=maplet_nodes, tile_radius_km=tile_radius_km)
+    plan = ingest_and_plan(sessions, directory, data_dir=data_dir, start=start, config=config)
     report = RunReport(plan=plan)
-    if workers <= 1 or len(plan.work) <= 1:
-        for k, work in enumerate(plan.work, 1):
-            report.revisions.append(refine_catalog_maplet(
-                sessions, data_dir=data_dir, maplet_id=work.maplet_id,
-                input_hash=work.input_hash, mode=mode))
+    url = sessions.kw["bind"].url.render_as_string(hide_password=False)
+    refine = partial(_refine_in_process, data_dir=data_dir, config=config)
+    revisions = map_processes(refine, plan.work, workers=workers, initializer=_open_catalog, initargs=(url,))
+    try:
+        for k, (work, revision) in enumerate(zip(plan.work, revisions, strict=True), 1):
+            report.revisions.append(revision)
             _log_progress(k, len(plan.work), work, clock)
-    else:
-        url = sessions.kw["bind"].url.render_as_string(hide_password=False)
-        # spawn: each process opens its own engine and Embree scenes, nothing inherited.
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            jobs = [pool.submit(_refine_in_process, url, data_dir, work, mode)
-                    for work in plan.work]
-            for k, (work, job) in enumerate(zip(plan.work, jobs), 1):
-                report.revisions.append(job.result())
-                _log_progress(k, len(plan.work), work, clock)
-    report.version = fuse_and_publish(sessions, data_dir=data_dir,
-                                      downlink_ids=[plan.downlink_id])
+    finally:
+        _close_catalog()
+    report.version = fuse_and_publish(sessions, data_dir=data_dir, downlink_ids=[plan.downlink_id],
+                                      config=config)
     report.seconds = time.perf_counter() - clock
     log.info("run %s: %d maplets refined, version %s (%.1f s)", directory, len(plan.work),
              report.version, report.seconds)
@@ -134,14 +126,24 @@ def _start_model(directory: Path, start: Path | None) -> Path:
                             "or pwm import MODEL)")
 
 
-def _refine_in_process(url: str, data_dir: Path, work: MapletWork, mode: str) -> int:
-    engine = make_engine(url)
-    try:
-        return refine_catalog_maplet(make_sessionmaker(engine), data_dir=data_dir,
-                                     maplet_id=work.maplet_id, input_hash=work.input_hash,
-                                     mode=mode)
-    finally:
-        engine.dispose()
+_CATALOG: dict[str, sessionmaker[Session]] = {}
+
+
+def _open_catalog(url: str) -> None:
+    # Each refining process opens its own engine: connections do not cross processes.
+    _CATALOG["sessions"] = make_sessionmaker(make_engine(url))
+
+
+def _close_catalog() -> None:
+    # Only where the refinement ran in this process: its engine goes with the run.
+    sessions = _CATALOG.pop("sessions", None)
+    if sessions is not None:
+        sessions.kw["bind"].dispose()
+
+
+def _refine_in_process(work: MapletWork, *, data_dir: Path, config: RefinementConfig) -> int:
+    return refine_catalog_maplet(_CATALOG["sessions"], data_dir=data_dir, maplet_id=work.maplet_id,
+                                 input_hash=work.input_hash, config=config)
 
 
 def _log_progress(k: int, total: int, work: MapletWork, clock: float) -> None:

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import SecretStr, model_validator
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from pwm.config import DEFAULTS, RefinementConfig
+from pwm.photoclinometry import Mode
 
 CATALOG_FILENAME = "catalog.sqlite"
 
@@ -18,6 +22,14 @@ class Settings(BaseSettings):
     database_url: PWM_DATABASE_URL; empty means the SQLite file `catalog.sqlite` in data_dir.
     broker_url: PWM_BROKER_URL; None runs jobs in-process instead of through a broker.
     api_token: PWM_API_TOKEN, the bearer token of the API's changing calls; None refuses them all.
+    export_cache_bytes: PWM_EXPORT_CACHE_BYTES, how many bytes of made exports (decimated
+        meshes, DSK, ICQ, site products, difference maps) the data directory keeps; the least
+        recently served go first.
+    cors_origins: PWM_CORS_ORIGINS, the origins (a JSON list) whose pages may call the API from
+        a browser; empty: none (no CORS headers).
+    refine_mode, maplet_nodes, tile_radius_km: PWM_REFINE_MODE, PWM_MAPLET_NODES and
+        PWM_TILE_RADIUS_KM, the catalog's refinement settings (`refinement`); their defaults and
+        every other setting are pwm.config.DEFAULTS.
     """
 
     model_config = SettingsConfigDict(env_prefix="PWM_")
@@ -26,6 +38,11 @@ class Settings(BaseSettings):
     database_url: str = ""
     broker_url: str | None = None
     api_token: SecretStr | None = None
+    export_cache_bytes: int = Field(2 * 1024**3, ge=0)
+    cors_origins: list[str] = []
+    refine_mode: Mode = DEFAULTS.mode
+    maplet_nodes: int = DEFAULTS.nodes
+    tile_radius_km: float | None = DEFAULTS.tile_radius_km
 
     @model_validator(mode="after")
     def _resolve_paths(self) -> Settings:
@@ -33,7 +50,13 @@ class Settings(BaseSettings):
         self.data_dir = self.data_dir.resolve()
         if not self.database_url:
             self.database_url = f"sqlite:///{self.data_dir / CATALOG_FILENAME}"
+        self.refinement()  # its checks, at load time
         return self
+
+    def refinement(self) -> RefinementConfig:
+        """How the catalog tiles and refines maplets: pwm.config.DEFAULTS with these settings."""
+        return dataclasses.replace(DEFAULTS, mode=self.refine_mode, nodes=self.maplet_nodes,
+                                   tile_radius_km=self.tile_radius_km)
 
 
 @lru_cache(maxsize=1)

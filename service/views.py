@@ -15,8 +15,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
 from pwm.camera import Camera, Pose, corrected_pose
-from pwm.views import View
 from pwm.io.pds4 import read_image_product
+from pwm.views import View
 from service.models import GeometryStatus, Image, ImageStatus
 
 
@@ -24,6 +24,8 @@ def image_pose(image: Image) -> Pose:
     """The image's camera pose (body-fixed, km; body -> image frame), with its bundle-adjustment
     correction (Image.pose_d*_km, pose_r*_rad) applied when set (pwm.camera.corrected_pose)."""
     g = image.geometry
+    if g is None:
+        raise ValueError(f"image {image.lidvid} has no geometry")
     pose = Pose(position=np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
                 rotation=np.asarray(g.camera_rotation, float).reshape(3, 3))
     offset = [image.pose_dx_km, image.pose_dy_km, image.pose_dz_km]
@@ -49,6 +51,8 @@ def catalog_views(session: Session, *, image_ids: Collection[int] | None = None,
 def image_view(image: Image, *, pixels: bool = False) -> View:
     """One catalogued image (accepted, with geometry) as a view; see `catalog_views`."""
     g, inst = image.geometry, image.instrument
+    if g is None or inst is None or image.start_et is None or image.stop_et is None:
+        raise ValueError(f"image {image.lidvid} lacks its geometry, instrument or times")
     # The catalog keeps the detector, not the array's window: the label gives it.
     product = read_image_product(Path(image.label_path))
     camera = Camera(width=inst.width_px, height=inst.height_px, fx=inst.fx_px, fy=inst.fy_px,

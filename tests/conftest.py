@@ -223,3 +223,16 @@ def open_catalog_at() -> Iterator[Callable[[str], sessionmaker[Session]]]:
     yield open_at
     for engine in engines:
         engine.dispose()
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark the tests that need a server, by the fixtures they use, so that `-m "not postgres and
+    not redis"` runs the rest on its own."""
+    for item in items:
+        names = set(getattr(item, "fixturenames", ()))
+        callspec = getattr(item, "callspec", None)
+        params = callspec.params if callspec is not None else {}
+        if "postgres_server" in names or params.get("db_url") == "postgres":
+            item.add_marker(pytest.mark.postgres)
+        if "redis_url" in names:
+            item.add_marker(pytest.mark.redis)

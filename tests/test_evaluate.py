@@ -272,7 +272,7 @@ def test_boulder_height_ratio_of_scaled_bumps():
     heights = np.array([0.002, 0.0015, 0.003, 0.001])
     recovered = np.array([0.7, 1.0, 0.5, 0.7])
     truth, model = ground.copy(), ground.copy()
-    for (cx, cy), d, h, f in zip(centres, diameters, heights, recovered):
+    for (cx, cy), d, h, f in zip(centres, diameters, heights, recovered, strict=True):
         r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / (0.5 * d) ** 2
         bump = h * np.sqrt(np.clip(1 - r2, 0, None))  # a half-ellipsoid
         truth += bump

@@ -115,9 +115,46 @@ def test_dsk_intercepts_match_the_mesh(tmp_path, bennu, subdivisions):
         from_dskxv = _dskxv("BENNU", "IAU_BENNU", origins, directions)
         from_sincpt = np.array([
             sp.sincpt("DSK/UNPRIORITIZED", "BENNU", et, "IAU_BENNU", "NONE", str(OBSERVER),
-                      "IAU_BENNU", d)[0] for et, d in zip(epochs, directions)])
+                      "IAU_BENNU", d)[0] for et, d in zip(epochs, directions, strict=True)])
     assert np.abs(from_dskxv - expected).max() < MM_KM
     assert np.abs(from_sincpt - expected).max() < MM_KM
+
+
+def _dense_site(mesh: Mesh, times: int) -> Mesh:
+    """`mesh` with its first plate subdivided `times` times: 4^times small plates on a body of
+    large ones (the midpoints lie on the edges they split, so the surface stays closed)."""
+    corners = mesh.vertices[mesh.faces[0]]
+    centre, reach = corners.mean(axis=0), np.linalg.norm(corners - corners.mean(axis=0), axis=1)
+    vertices, faces = mesh.vertices, mesh.faces
+    for _ in range(times):
+        inside = np.linalg.norm(vertices[faces].mean(axis=1) - centre, axis=1) < reach.max()
+        vertices, faces = trimesh.remesh.subdivide(vertices, faces,
+                                                   face_index=np.flatnonzero(inside))
+    return Mesh(vertices, faces)
+
+
+def test_dsk_size_follows_the_plates_of_an_uneven_mesh(tmp_path, bennu):
+    # a dense site on a coarse body: the mean plate extent is a tenth of the body's plates',
+    # which a spatial index sized from it alone spends voxels on by the cube (24 MB, 2 kB a plate)
+    mesh = _dense_site(decimate(bennu, 60), 6)
+    assert len(mesh.faces) > 4000
+    dsk = tmp_path / "site.bds"
+    with kernel_pool(bundled_kernels().values()):
+        write_dsk(dsk, mesh, body=BENNU, frame="IAU_BENNU", comment="dense site")
+    # an even mesh of 4000 plates takes 180 bytes a plate
+    assert dsk.stat().st_size < 400 * len(mesh.faces)
+
+    site = mesh.vertices[mesh.faces[-1]].mean(axis=0)
+    origins, directions = _rays(500, 1.0, 0.1, seed=11)
+    rng = np.random.default_rng(12)
+    towards = site + rng.uniform(-0.003, 0.003, (500, 3))
+    above = np.tile(3 * site, (500, 1))
+    origins = np.vstack([origins, above])
+    aimed = towards - above
+    directions = np.vstack([directions, aimed / np.linalg.norm(aimed, axis=1, keepdims=True)])
+    expected = _mesh_intercepts(mesh, origins, directions)
+    with kernel_pool([*bundled_kernels().values(), dsk]):
+        assert np.abs(_dskxv("BENNU", "IAU_BENNU", origins, directions) - expected).max() < MM_KM
 
 
 def test_dsk_with_an_unknown_frame_leaves_no_file(tmp_path, bennu):

@@ -9,8 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pwm.io.labels import (exposure_times, frame_of, instrument_code, instrument_named, known_instruments,
-                           name_variants, observer_code, target_frame)
+from pwm.io.labels import (
+    exposure_times,
+    frame_of,
+    instrument_code,
+    instrument_named,
+    known_instruments,
+    name_variants,
+    observer_code,
+    target_frame,
+)
 from pwm.io.pds4 import ImageProduct, ProductError
 from pwm.io.spice_kernels import bundled_kernels, kernel_pool
 from pwm.simulate.missions import MISSIONS
@@ -54,7 +62,8 @@ def test_name_variants_cover_how_labels_write_names():
     ("AMICA", "HAYABUSA2", None, None),  # another mission's camera
 ])
 def test_instrument_names_resolve_in_their_spellings(pool, instrument, host, fits, expected):
-    product = label(instrument_name=instrument, host_name=host, fits_header=None if fits is None else {"INSTRUME": fits})
+    header = None if fits is None else {"INSTRUME": fits}
+    product = label(instrument_name=instrument, host_name=host, fits_header=header)
     assert instrument_code(product, observer_code(host)) == expected
 
 
@@ -78,7 +87,8 @@ def test_instruments_given_by_a_person_resolve_or_list_what_the_kernels_define(p
     assert instrument_named("hayabusa2_onc-t") == -37100
     assert instrument_named("ORX_OCAMS_MAPCAM") == -64361
     defined = dict(known_instruments())
-    assert {-37100: "HAYABUSA2_ONC-T", -37110: "HAYABUSA2_ONC-W1", -64361: "ORX_OCAMS_MAPCAM"}.items() <= defined.items()
+    expected = {-37100: "HAYABUSA2_ONC-T", -37110: "HAYABUSA2_ONC-W1", -64361: "ORX_OCAMS_MAPCAM"}
+    assert expected.items() <= defined.items()
     with pytest.raises(ValueError, match=r"AMICA.*HAYABUSA2_ONC-T \(-37100\)"):
         instrument_named("AMICA")
     with pytest.raises(ValueError, match="not a NAIF instrument"):

@@ -9,8 +9,15 @@ import pds4_tools
 import pytest
 from astropy.io import fits
 
-from pwm.io.pds4 import (MISSING_DN, PDS_NS, ProductError, checksum_md5, file_sha256,
-                         read_image_product, write_image_product)
+from pwm.io.pds4 import (
+    MISSING_DN,
+    PDS_NS,
+    ProductError,
+    checksum_md5,
+    file_sha256,
+    read_image_product,
+    write_image_product,
+)
 
 PDS4_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "pds4"
 SCALE, OFFSET = 2.0e-5, 0.1

@@ -22,8 +22,19 @@ from pwm.camera import Camera, Pose, look_at, project
 from pwm.frames import latlon_to_unit, local_frame
 from pwm.maplets import Maplet
 from pwm.mesh import Mesh
-from pwm.photoclinometry import (MapletImages, Refinement, _Geometry, _Problem, _shading, bilinear, cubic_gradient, extract, refine,
-                                 slopes)
+from pwm.photoclinometry import (
+    MapletImages,
+    Refinement,
+    Solver,
+    _Geometry,
+    _Problem,
+    _shading,
+    bilinear,
+    cubic_gradient,
+    extract,
+    refine,
+    slopes,
+)
 from pwm.raytrace import RayTracer
 from pwm.render import render
 
@@ -89,7 +100,7 @@ def _scene(suns: tuple[tuple[float, float], ...], seed: int = 0) -> Scene:
     nodes = truth.nodes_body().reshape(-1, 3)
     lift = 3 * tracer.offset * frame.normal
     images, poses, sun_dirs, visible, lit = [], [], [], [], []
-    for k, ((emission, azimuth), (incidence, sun_azimuth)) in enumerate(zip(VIEWS, suns)):
+    for k, ((emission, azimuth), (incidence, sun_azimuth)) in enumerate(zip(VIEWS, suns, strict=True)):
         pose = look_at(frame.to_body(distance * _direction(emission, azimuth)[None])[0], centre, frame.rotation[1])
         if k == 1:
             pose = Pose(pose.position, np.diag([-1.0, 1.0, 1.0]) @ pose.rotation)   # a mirrored image frame
@@ -179,12 +190,14 @@ def test_cubic_sampling_is_exact_on_quadratics_and_sharper_than_bilinear() -> No
     lines, samples = np.mgrid[0:40, 0:50].astype(float)
     image = 0.3 + 0.02 * samples - 0.01 * lines + 1e-3 * samples * lines - 2e-4 * samples**2 + 3e-4 * lines**2
     at = np.random.default_rng(3).uniform(0.0, [49.0, 39.0], (500, 2))
-    s, l = at[:, 0], at[:, 1]
+    s, ln = at[:, 0], at[:, 1]
     values, gradient = cubic_gradient(image, at)
-    inner = (s >= 1) & (s <= 48) & (l >= 1) & (l <= 38)  # the clamped border is not exact
-    np.testing.assert_allclose(values[inner], (0.3 + 0.02 * s - 0.01 * l + 1e-3 * s * l - 2e-4 * s**2 + 3e-4 * l**2)[inner], atol=1e-12)
-    np.testing.assert_allclose(gradient[inner, 0], (0.02 + 1e-3 * l - 4e-4 * s)[inner], atol=1e-12)
-    np.testing.assert_allclose(gradient[inner, 1], (-0.01 + 1e-3 * s + 6e-4 * l)[inner], atol=1e-12)
+    inner = (s >= 1) & (s <= 48) & (ln >= 1) & (ln <= 38)  # the clamped border is not exact
+    np.testing.assert_allclose(values[inner],
+                               (0.3 + 0.02 * s - 0.01 * ln + 1e-3 * s * ln - 2e-4 * s**2 + 3e-4 * ln**2)[inner],
+                               atol=1e-12)
+    np.testing.assert_allclose(gradient[inner, 0], (0.02 + 1e-3 * ln - 4e-4 * s)[inner], atol=1e-12)
+    np.testing.assert_allclose(gradient[inner, 1], (-0.01 + 1e-3 * s + 6e-4 * ln)[inner], atol=1e-12)
     assert np.isnan(cubic_gradient(image, np.array([[-0.01, 5.0], [5.0, 39.01]]))[0]).all()
     # detail at six pixels a period, between the pixel centres
     wave = np.sin(2 * np.pi * samples / 6.0)
@@ -227,13 +240,14 @@ def test_nodes_without_data_keep_the_starting_shape(scene: Scene) -> None:
 def test_stopping_on_a_small_decrease_of_the_objective_costs_no_accuracy(scene: Scene, refined: Refinement) -> None:
     # Iterating until the steps themselves vanish (no objective stop, a tolerance of 1e-4
     # spacings) takes more iterations and ends within a fiftieth of a spacing of the default.
-    longer = refine(scene.start, scene.data, cost_tolerance=0.0, tolerance=1e-4)
+    longer = refine(scene.start, scene.data, solver=Solver(cost_tolerance=0.0, tolerance=1e-4))
     assert refined.iterations < longer.iterations
     assert np.sqrt(np.mean((refined.heights - longer.heights) ** 2)) < 0.02 * SPACING_KM
 
 
 def test_parallax_is_the_change_of_the_samples_as_the_nodes_rise(scene: Scene) -> None:
-    problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0, offsets=np.zeros((scene.data.count, 2)),
+    problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0,
+                       offsets=np.zeros((scene.data.count, 2)),
                        solve_offsets=True, slope_weight=0.02, slope_scale=0.17, height_weight=1e-3, albedo_weight=1e-3,
                        offset_weight=1e-3)
     state, ev = problem.start()
@@ -257,9 +271,11 @@ def test_a_maplet_too_high_keeps_its_mean_height_and_the_offsets_take_the_parall
     assert float(np.mean(result.heights - start.heights)) == pytest.approx(0.0, abs=1e-6 * SPACING_KM)
     rise = start.frame.rotation[2] * (lift - float(np.mean(scene.truth.heights)))
     centre = scene.truth.nodes_body()[N_NODES // 2, N_NODES // 2]
-    parallax = np.array([project(centre, c, p) - project(centre + rise, c, p) for c, p in zip(scene.data.cameras, scene.data.poses)])
+    parallax = np.array([project(centre, c, p) - project(centre + rise, c, p)
+                         for c, p in zip(scene.data.cameras, scene.data.poses, strict=True)])
     assert np.abs(parallax).max() > 0.5
-    np.testing.assert_allclose(_datum_free(result.offsets, start, scene.data), _datum_free(parallax, start, scene.data), atol=0.05)
+    np.testing.assert_allclose(_datum_free(result.offsets, start, scene.data), _datum_free(parallax, start, scene.data),
+                               atol=0.05)
     assert _bump_height(result.heights) == pytest.approx(BUMP_KM, rel=0.10)
 
 
@@ -272,11 +288,12 @@ def test_the_slope_tie_holds_relief_the_start_lacks_less_than_noise(scene: Scene
     # Held tight to the flat start, a quadratic tie (slope_scale far above any slope) flattens
     # the bump more than the pseudo-Huber tie, which grows only linearly beyond slope_scale.
     tight = dataclasses.replace(scene.data, region_weight=0.02)
-    quadratic = refine(scene.start, tight, slope_scale=1e3)
-    robust = refine(scene.start, tight, slope_scale=0.1)
+    quadratic = refine(scene.start, tight, solver=Solver(slope_scale=1e3))
+    robust = refine(scene.start, tight, solver=Solver(slope_scale=0.1))
     assert _bump_height(robust.heights) > 1.15 * _bump_height(quadratic.heights)
     # and the tie's Gauss-Newton matrix is its gradient: finite differences of its cost
-    problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0, offsets=np.zeros((scene.data.count, 2)),
+    problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0,
+                       offsets=np.zeros((scene.data.count, 2)),
                        solve_offsets=False, slope_weight=0.02, slope_scale=0.1, height_weight=1e-3, albedo_weight=1e-3,
                        offset_weight=1e-3)
     du = (robust.heights - scene.start.heights).ravel() / SPACING_KM
@@ -310,7 +327,7 @@ def _true_offsets(truth: Maplet, good: MapletImages, bad: MapletImages) -> np.nd
     """Where the maplet centre really is minus where the mispointed poses put it (px)."""
     centre = truth.nodes_body()[N_NODES // 2, N_NODES // 2]
     return np.array([project(centre, camera, right) - project(centre, camera, wrong)
-                     for camera, right, wrong in zip(good.cameras, good.poses, bad.poses)])
+                     for camera, right, wrong in zip(good.cameras, good.poses, bad.poses, strict=True)])
 
 
 def test_align_recovers_pointing_errors(scene: Scene) -> None:
@@ -332,7 +349,7 @@ def test_refine_solves_pointing_up_to_the_maplet_datum(scene: Scene) -> None:
     step = SPACING_KM
     shift = np.column_stack([
         np.concatenate([(project(centre + step * axis, c, p) - project(centre - step * axis, c, p)) / (2 * step)
-                        for c, p in zip(bad.cameras, bad.poses)])
+                        for c, p in zip(bad.cameras, bad.poses, strict=True)])
         for axis in scene.start.frame.rotation
     ])
     miss = (result.offsets - expected).ravel()
@@ -340,15 +357,16 @@ def test_refine_solves_pointing_up_to_the_maplet_datum(scene: Scene) -> None:
     assert np.abs(miss).max() > 0.1   # the datum part is really there
     assert np.abs(miss - common).max() < 0.05
     assert _bump_height(result.heights) == pytest.approx(BUMP_KM, rel=0.10)
-    assert np.all(refine(scene.start, bad, solve_offsets=False).rms > 2 * result.rms)
+    assert np.all(refine(scene.start, bad, solver=Solver(solve_offsets=False)).rms > 2 * result.rms)
 
 
 def _datum_free(offsets: np.ndarray, maplet: Maplet, data: MapletImages) -> np.ndarray:
     """Offsets (K, 2) less the best-fitting common shift of the maplet along its x and y."""
     centre = maplet.nodes_body()[N_NODES // 2, N_NODES // 2]
     shift = np.column_stack([
-        np.concatenate([(project(centre + SPACING_KM * axis, c, p) - project(centre - SPACING_KM * axis, c, p)) / (2 * SPACING_KM)
-                        for c, p in zip(data.cameras, data.poses)])
+        np.concatenate([(project(centre + SPACING_KM * axis, c, p) - project(centre - SPACING_KM * axis, c,
+                                                                             p)) / (2 * SPACING_KM)
+                        for c, p in zip(data.cameras, data.poses, strict=True)])
         for axis in maplet.frame.rotation[:2]
     ])
     flat = offsets.ravel()
@@ -370,4 +388,5 @@ def test_register_recovers_offsets_of_many_pixels_without_albedo(scene: Scene) -
     assert _bump_height(refined.heights) == pytest.approx(BUMP_KM, rel=0.10)
     unregistered = refine(start, bad)
     assert np.abs(_datum_free(unregistered.offsets - expected, start, bad)).max() > 2.0
-    assert _shape_error(refined.heights, scene.truth.heights) < 0.5 * _shape_error(unregistered.heights, scene.truth.heights)
+    assert (_shape_error(refined.heights, scene.truth.heights)
+            < 0.5 * _shape_error(unregistered.heights, scene.truth.heights))

@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from pwm.config import RefinementConfig
 from pwm.io.downlink import read_downlink
 from pwm.io.meshio import read_mesh
 from pwm.pipeline import fuse, imaged_region, refine_maplets, refine_region
@@ -24,10 +25,10 @@ def test_refined_maplets_beat_the_start_and_fuse(tiny_sim):
     assert abs(region.spacing_km - 5e-5) < 2e-6  # the tiny scenario's 5 cm GSD
     maplets = tile(start, spacing_km=region.spacing_km, nodes=48, overlap=0.25, centre_lat_deg=region.lat_deg,
                    centre_lon_deg=region.lon_deg, radius_km=0.0015)
-    results = refine_maplets(maplets, views, start, mode="pwm")
+    results = refine_maplets(maplets, views, start)
     truth_tracer = RayTracer(truth.mesh)
     start_err, refined_err = [], []
-    for original, result in zip(maplets, results):
+    for original, result in zip(maplets, results, strict=True):
         assert len(result.images) >= 3 and 0 < result.region_weight <= 1
         true_h = sample_heights(truth_tracer, original)
         # heights are compared after removing the mean: photometry does not see a common offset
@@ -51,9 +52,9 @@ def test_a_second_pass_refines_the_first_pass_model(tiny_sim):
     truth_tracer = RayTracer(load_truth(tiny_sim / "truth").mesh)
     region = dataclasses.replace(imaged_region(views, start), radius_km=0.0015)
     with pytest.raises(ValueError, match="one pass"):
-        refine_region(start, views, region, nodes=48, overlap=0.25, passes=0)
-    first, _ = refine_region(start, views, region, nodes=48, overlap=0.25, passes=1)
-    second, results = refine_region(start, views, region, nodes=48, overlap=0.25, passes=2)
+        refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=0))
+    first, _ = refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=1))
+    second, results = refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=2))
     assert second.albedo is not None
     # on the second pass's maplets: its refined heights, the first pass's model and the start
     first_tracer, start_tracer = RayTracer(first), RayTracer(start)
@@ -66,3 +67,18 @@ def test_a_second_pass_refines_the_first_pass_model(tiny_sim):
         err["second"].append(np.std(m.heights - true_h))
     mean = {k: float(np.mean(v)) for k, v in err.items()}
     assert mean["first"] < 0.8 * mean["start"] and mean["second"] < 1.05 * mean["first"], mean
+
+
+def test_maplets_refined_in_processes_match_those_refined_here(tiny_sim):
+    views = read_downlink(tiny_sim / "downlink").views
+    start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
+    region = imaged_region(views, start)
+    maplets = tile(start, spacing_km=region.spacing_km, nodes=24, overlap=0.25, centre_lat_deg=region.lat_deg,
+                   centre_lon_deg=region.lon_deg, radius_km=0.0008)[:3]
+    assert len(maplets) == 3
+    here = refine_maplets(maplets, views, start, workers=1)
+    spawned = refine_maplets(maplets, views, start, workers=2)
+    assert [r.maplet.name for r in spawned] == [m.name for m in maplets]
+    for a, b in zip(here, spawned, strict=True):
+        assert a.images == b.images and a.iterations == b.iterations
+        np.testing.assert_allclose(b.maplet.heights, a.maplet.heights, rtol=0, atol=1e-12)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from sqlalchemy import select
+from test_downlink import add_bad_products, copy_downlink
 from typer.testing import CliRunner
 
 from pwm.io.meshio import read_mesh
@@ -23,7 +24,6 @@ from service.catalog import open_catalog
 from service.cli import app
 from service.models import Image, ImageStatus
 from service.settings import get_settings
-from test_downlink import add_bad_products, copy_downlink
 
 # one pass over a small region keeps the refinement to seconds
 NODES, RADIUS_KM = 64, 0.002

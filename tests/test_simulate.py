@@ -94,7 +94,8 @@ def _project_with_kernels(point: np.ndarray, et: float, first_line: int, first_s
     cx, cy = sp.gdpool("INS-64361_CCD_CENTER", 0, 2)
     naxis1, naxis2 = sp.gdpool("INS-64361_SPOC_FITS_NAXIS1", 0, 3), sp.gdpool("INS-64361_SPOC_FITS_NAXIS2", 0, 3)
     p = rotation @ (point - position)
-    return np.array([focal_px * (naxis1 @ p) / p[2] + cx - first_sample, focal_px * (naxis2 @ p) / p[2] + cy - first_line])
+    return np.array([focal_px * (naxis1 @ p) / p[2] + cx - first_sample,
+                     focal_px * (naxis2 @ p) / p[2] + cy - first_line])
 
 
 def test_a_truth_point_lands_where_the_renderer_drew_a_marker(tiny_sim):
@@ -124,7 +125,8 @@ def test_a_truth_point_lands_where_the_renderer_drew_a_marker(tiny_sim):
             signal = np.where(lit, marked.reflectance / np.where(lit, plain.reflectance, 1.0) - 1.0, 0.0)
             if signal.max() < 0.5:
                 continue  # the spot is in shadow or hidden in this view
-            expected = _project_with_kernels(point, image["et"], m["subframe"]["first_line"], m["subframe"]["first_sample"])
+            expected = _project_with_kernels(point, image["et"], m["subframe"]["first_line"],
+                                             m["subframe"]["first_sample"])
             near = np.hypot(samples - expected[0], lines - expected[1]) < 8.0
             w = signal * near
             drawn = np.array([np.sum(w * samples), np.sum(w * lines)]) / w.sum()

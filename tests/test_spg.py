@@ -8,11 +8,10 @@ import json
 import numpy as np
 from typer.testing import CliRunner
 
-from pwm.camera import Camera, look_at, project
+from pwm.camera import Camera, corrected_pose, look_at, project
 from pwm.io.downlink import read_downlink
 from pwm.mesh import Mesh
 from pwm.spg import PoseCorrection
-from pwm.camera import corrected_pose
 from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.features import fundamental
 from pwm.spg.surface import fit_surface, subdivide
@@ -25,7 +24,8 @@ CAMERA = Camera(width=1024, height=1024, fx=14729.4, fy=14729.4, cx=511.5, cy=51
 
 def _sphere(levels: int) -> Mesh:
     octahedron = Mesh(np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float),
-                      np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]))
+                      np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4],
+                                [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]))
     for _ in range(levels):
         octahedron = subdivide(octahedron)
     return Mesh(octahedron.vertices / np.linalg.norm(octahedron.vertices, axis=1, keepdims=True), octahedron.faces)
@@ -41,7 +41,8 @@ def _scene(rng: np.random.Generator) -> tuple[np.ndarray, list]:
     """Points on a rough 50 m patch 1.5 km from eight cameras looking at it from a ring."""
     xy = rng.uniform(-0.025, 0.025, (400, 2))
     points = np.column_stack([xy, 0.002 * rng.standard_normal(400)])
-    poses = [look_at(np.array([1.47 * np.sin(e) * np.cos(a), 1.47 * np.sin(e) * np.sin(a), 1.47 * np.cos(e)]), np.zeros(3), np.array([0, 1.0, 0]))
+    poses = [look_at(np.array([1.47 * np.sin(e) * np.cos(a), 1.47 * np.sin(e) * np.sin(a), 1.47 * np.cos(e)]),
+                     np.zeros(3), np.array([0, 1.0, 0]))
              for e, a in [(0.05, 0.0)] + [(np.radians(30), k * np.pi / 3.5) for k in range(7)]]
     return points, poses
 
@@ -69,13 +70,15 @@ def test_fundamental_matrix_holds_for_projected_points():
 
 def test_tracks_join_matches_and_drop_conflicts():
     keypoints = [np.arange(8.0).reshape(4, 2) + 10 * i for i in range(3)]
-    matches = {(0, 1): np.array([[0, 0], [1, 1], [2, 2]]), (1, 2): np.array([[0, 3], [2, 1]]), (0, 2): np.array([[2, 2]])}
+    matches = {(0, 1): np.array([[0, 0], [1, 1], [2, 2]]), (1, 2): np.array([[0, 3], [2, 1]]),
+               (0, 2): np.array([[2, 2]])}
     tracks = build_tracks(matches, keypoints)
     # point 0 spans three images; keypoint 2 of image 0 reaches keypoints 1 and 2 of image 2: dropped
     assert tracks.n_points == 2
     sizes = sorted(np.bincount(tracks.point))
     assert sizes == [2, 3]
-    assert all(len(np.unique(tracks.image[tracks.point == p])) == n for p, n in zip(range(2), np.bincount(tracks.point)))
+    assert all(len(np.unique(tracks.image[tracks.point == p])) == n
+               for p, n in zip(range(2), np.bincount(tracks.point), strict=True))
 
 
 def _observed(rng: np.random.Generator) -> tuple[Tracks, list]:
@@ -94,15 +97,18 @@ def test_bundle_adjustment_removes_line_of_sight_errors():
     cameras = [CAMERA] * len(truth)
     start, _ = triangulate(tracks, cameras, noisy)
     result = bundle_adjust(start, tracks, cameras, noisy, sigma_position_km=1e-3, sigma_pointing_rad=1e-4)
-    fixed = [corrected_pose(p, result.position_corrections[i], result.rotation_corrections[i]) for i, p in enumerate(noisy)]
+    fixed = [corrected_pose(p, result.position_corrections[i],
+                            result.rotation_corrections[i]) for i, p in enumerate(noisy)]
 
     def los_px(poses):
         # a shift common to all images moves the whole block: only the priors see it
-        d = np.array([project(np.zeros(3), CAMERA, p) - project(np.zeros(3), CAMERA, t) for p, t in zip(poses, truth)])
+        d = np.array([project(np.zeros(3), CAMERA, p) - project(np.zeros(3), CAMERA, t)
+                      for p, t in zip(poses, truth, strict=True)])
         return np.sqrt(np.mean(np.sum((d - d.mean(axis=0)) ** 2, axis=1)))
 
     def position_m(poses):
-        return np.sqrt(np.mean([np.sum((p.position - t.position) ** 2) for p, t in zip(poses, truth)])) * 1e3
+        return np.sqrt(np.mean([np.sum((p.position - t.position) ** 2)
+                                for p, t in zip(poses, truth, strict=True)])) * 1e3
 
     assert np.sqrt(np.mean(result.residuals_px**2)) < 0.4
     assert los_px(noisy) > 3.0
@@ -113,7 +119,8 @@ def test_bundle_adjustment_removes_line_of_sight_errors():
 def test_narrow_field_fixes_the_line_of_sight_not_the_pointing():
     tracks, truth = _observed(np.random.default_rng(3))
     cameras = [CAMERA] * len(truth)
-    result = bundle_adjust(triangulate(tracks, cameras, truth)[0], tracks, cameras, truth, sigma_position_km=1e-3, sigma_pointing_rad=1e-4)
+    result = bundle_adjust(triangulate(tracks, cameras, truth)[0], tracks, cameras, truth, sigma_position_km=1e-3,
+                           sigma_pointing_rad=1e-4)
     u = pose_uncertainty(result, cameras, truth, np.full(len(truth), 1.47), noise_px=0.2)
     assert np.isclose(u["pointing_urad_prior"], np.sqrt(2) * 100) and np.isclose(u["lateral_m_prior"], np.sqrt(2))
     # the images pin an image's line of sight to a fraction of a pixel ...
@@ -140,15 +147,17 @@ def test_surface_follows_points_and_keeps_the_model_elsewhere():
 def test_spg_command_on_the_tiny_downlink(tiny_sim, tmp_path):
     downlink = tiny_sim / "downlink"
     out = tmp_path / "spg"
-    result = CliRunner().invoke(app, ["spg", str(downlink), "--start", str(downlink / "start_model.obj"), "--out", str(out)])
+    result = CliRunner().invoke(app,
+                                ["spg", str(downlink), "--start", str(downlink / "start_model.obj"), "--out", str(out)])
     assert result.exit_code == 0, result.output
     stats = json.loads((out / "spg.json").read_text())
     assert stats["points"] >= 30 and stats["residual_rms_px"] < 1.5
-    corrections = {k: PoseCorrection(**v) for k, v in json.loads((out / "corrections.json").read_text())["images"].items()}
+    written = json.loads((out / "corrections.json").read_text())["images"]
+    corrections = {k: PoseCorrection(**v) for k, v in written.items()}
     plain = read_downlink(downlink).views
     assert set(corrections) == {v.name for v in plain}
     moved = read_downlink(downlink, corrections=corrections).views
-    for a, b in zip(plain, moved):
+    for a, b in zip(plain, moved, strict=True):
         c = corrections[a.name]
         assert np.allclose(b.pose.position, a.pose.position + np.array(c.position_km))
         assert np.allclose(b.pose.rotation, corrected_pose(a.pose, np.zeros(3), np.array(c.rotation_rad)).rotation)

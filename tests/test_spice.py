@@ -10,10 +10,25 @@ import spiceypy as sp
 
 from pwm.camera import look_at
 from pwm.io.spice_geometry import (
-    camera_from_kernel, camera_pose, coverage_ck, coverage_spk, spacecraft_of, sun_direction)
+    camera_from_kernel,
+    camera_pose,
+    coverage_ck,
+    coverage_spk,
+    spacecraft_of,
+    sun_direction,
+)
 from pwm.io.spice_kernels import (
-    CkSegment, KernelError, SpkSegment, bundled_kernels, kernel_pool, load_metakernel,
-    metakernel_files, write_ck, write_metakernel, write_spk)
+    CkSegment,
+    KernelError,
+    SpkSegment,
+    bundled_kernels,
+    kernel_pool,
+    load_metakernel,
+    metakernel_files,
+    write_ck,
+    write_metakernel,
+    write_spk,
+)
 
 SHARED = Path("/work/shared/data/spice")
 BENNU, SC, MAPCAM, SC_BUS = 2101955, -64, -64361, -64000
@@ -40,12 +55,12 @@ def scenario(tmp_path_factory):
         epochs = np.concatenate(windows)
         bf = _body_fixed_states(epochs - et0)
         to_j2000 = [sp.sxform("IAU_BENNU", "J2000", et) for et in epochs]
-        sc_j2000 = np.array([m @ s for m, s in zip(to_j2000, bf)])
+        sc_j2000 = np.array([m @ s for m, s in zip(to_j2000, bf, strict=True)])
         body_to_cam = np.array([look_at(s[:3], np.zeros(3), np.array([0.0, 0, 1])).rotation
                                 for s in bf])
         struct = sp.eul2m(np.pi / 2, 0.01, -0.02, 3, 2, 1)  # ORX_SPACECRAFT -> MapCam, constant
         sc_att = np.array([struct.T @ r @ sp.pxform("J2000", "IAU_BENNU", et)
-                           for r, et in zip(body_to_cam, epochs)])
+                           for r, et in zip(body_to_cam, epochs, strict=True)])
         split = len(windows[0])
         write_spk(deep / "sc.bsp", segments=[
             SpkSegment(SC, BENNU, epochs[:split], sc_j2000[:split]),
@@ -75,7 +90,7 @@ def scenario(tmp_path_factory):
 def test_pose_and_sun_round_trip(scenario):
     with kernel_pool([scenario["mk"]]):
         for et, state, rot in zip(scenario["epochs"], scenario["body_fixed"],
-                                  scenario["body_to_cam"]):
+                                  scenario["body_to_cam"], strict=True):
             pose = camera_pose(et=et, instrument_id=MAPCAM, target="BENNU", body_frame="IAU_BENNU")
             assert np.abs(pose.position - state[:3]).max() < 1e-9
             # the image frame swaps the instrument's X and Y (MapCam samples run along +Y)
@@ -171,7 +186,7 @@ def test_ck_quaternions_and_angular_velocity_follow_spice(tmp_path):
         write_ck(tmp_path / "spin.bc", segments=[CkSegment(
             MAPCAM, SC, et0 + t, spin, np.tile([0.0, 0.0, rate], (len(t), 1)), [et0])])
         sp.furnsh(str(tmp_path / "spin.bc"))
-        for x, c in zip(t, spin):
+        for x, c in zip(t, spin, strict=True):
             assert np.abs(sp.pxform("J2000", "ORX_OCAMS_MAPCAM", et0 + x) - c).max() < 1e-12
         mid = et0 + dt / 2  # between records; SCLK ticks round the time by ~1e-7 s
         assert np.abs(sp.pxform("J2000", "ORX_OCAMS_MAPCAM", mid)

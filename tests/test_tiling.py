@@ -80,7 +80,7 @@ def test_retiling_is_deterministic_and_names_are_unique(sphere):
     assert [m.name for m in a] == [m.name for m in b]
     assert len({m.name for m in a}) == len(a)
     assert all(np.array_equal(p.heights, q.heights) and np.array_equal(p.frame.rotation, q.frame.rotation)
-               for p, q in zip(a, b))
+               for p, q in zip(a, b, strict=True))
     lat = float(a[0].name[1:9])
     assert lat < -15.0 and a[0].name[9] == "E"
 

@@ -102,7 +102,8 @@ def test_patch_has_no_holes_overhangs_or_seams(truth):
 
     # oblique views from 40 degrees off the normal, four azimuths, all see the surface
     frame = truth.site_frame
-    targets = frame.to_body(np.column_stack([x[:4000], y[:4000], grid_height(truth, truth.height_km, x[:4000], y[:4000])]))
+    targets = frame.to_body(np.column_stack([x[:4000], y[:4000],
+                                             grid_height(truth, truth.height_km, x[:4000], y[:4000])]))
     for az in np.radians([0.0, 90.0, 180.0, 270.0]):
         look = np.array([np.sin(0.7) * np.cos(az), np.sin(0.7) * np.sin(az), np.cos(0.7)]) @ frame.rotation
         eye = targets.mean(axis=0) + 0.2 * look

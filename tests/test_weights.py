@@ -11,8 +11,20 @@ from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.visibility import Visibility, node_visibility
 from pwm.weights import (
-    RULES, MapletGeometry, Rules, azimuth_spread_deg, dark_nodes, five_views, maplet_geometry, image_weights,
-    node_factors, region_weight, select_images, slope_spread_deg, weigh_maplet, without_dark,
+    RULES,
+    MapletGeometry,
+    Rules,
+    azimuth_spread_deg,
+    dark_nodes,
+    five_views,
+    image_weights,
+    maplet_geometry,
+    node_factors,
+    region_weight,
+    select_images,
+    slope_spread_deg,
+    weigh_maplet,
+    without_dark,
 )
 
 
@@ -54,7 +66,7 @@ def test_image_weight_favours_moderate_incidence_low_emission_and_fine_pixels():
     assert w.tolist() == pytest.approx([1.0, 0.45])
 
 
-def test_image_geometry_in_the_maplet_frame():
+def test_maplet_geometry_in_the_maplet_frame():
     frame = local_frame(0.25 * latlon_to_unit(20.0, 100.0), latlon_to_unit(20.0, 100.0))
     views = [(0.0, 0.0), (30.0, 90.0), (40.0, 200.0)]
     cams = frame.origin + 2.0 * directions(frame, views)
@@ -164,7 +176,7 @@ def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():
     weights[1, 0, 0] = 0.0    # not weighed: never dark, and not counted in the median
     values[1, 0, 0] = 0.0
     dark = dark_nodes(values, weights)
-    assert sorted(zip(*np.nonzero(dark))) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
+    assert sorted(zip(*np.nonzero(dark), strict=True)) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
 
     out = without_dark(weights, dark)
     assert (out[dark] == 0).all()

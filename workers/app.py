@@ -34,7 +34,6 @@ from sqlalchemy.orm import Session
 
 from pwm.io.spice_kernels import KernelError
 from pwm.parallel import share_cores
-from pwm.photoclinometry import Mode
 from service.db import make_engine, make_sessionmaker
 from service.kernels import accepted_kernels
 from service.models import JobKind
@@ -58,18 +57,12 @@ class WorkerSettings(Settings):
     task_retries: PWM_TASK_RETRIES, how many times a failed job is tried again.
     retry_backoff_s: PWM_RETRY_BACKOFF_S, the wait before the first retry, doubled for each
         further one.
-    refine_mode: PWM_REFINE_MODE, pwm or standard (service.refinement).
-    maplet_nodes, tile_radius_km: PWM_MAPLET_NODES and PWM_TILE_RADIUS_KM, of the maplets an
-        ingest tiles where the images look and none is catalogued (service.run.ingest_and_plan).
     """
 
     job_time_limit_s: float = Field(6600.0, gt=0)
     visibility_timeout_s: float = Field(7200.0, gt=0)
     task_retries: int = Field(3, ge=0)
     retry_backoff_s: float = Field(30.0, ge=0)
-    refine_mode: Mode = "pwm"
-    maplet_nodes: int = Field(100, ge=8)
-    tile_radius_km: float | None = Field(None, gt=0)
 
     @model_validator(mode="after")
     def _check_limits(self) -> WorkerSettings:

@@ -35,7 +35,7 @@ from service.db import session_scope
 from service.jobs import JobBusy, claim_job, fail_job, finish_job, report_progress, submit_job
 from service.models import Job, JobKind, JobStatus, Maplet
 from service.publish import fuse_and_publish
-from service.refinement import MIN_IMAGES, MapletWork, refine_catalog_maplet, stale_maplets
+from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
 from service.run import ingest_and_plan
 from workers.app import ProcessState, app, get_worker_settings, process_state
 
@@ -65,8 +65,8 @@ def refine_key(downlink_id: int | None, maplet_id: int, input_hash: str) -> str:
     return f"refine:{REQUESTED if downlink_id is None else downlink_id}:{maplet_id}:{input_hash}"
 
 
-def fuse_key(downlink_id: int) -> str:
-    """The key of fusing a downlink's refinements into a new version."""
+def fuse_key(downlink_id: int | None) -> str:
+    """The key of fusing a downlink's refinements (None: the catalog's) into a new version."""
     return f"fuse:{downlink_id}"
 
 
@@ -88,13 +88,14 @@ def submit_refinement(session: Session, *, maplet_id: int) -> str:
     enqueue it (with its fusion to follow) once that transaction commits; its job key.
 
     Raises LookupError for an unknown maplet, ValueError when its current revision is already
-    of its current input or it has fewer than MIN_IMAGES usable images."""
+    of its current input or it has fewer than the configured minimum of usable images."""
     if session.get(Maplet, maplet_id) is None:
         raise LookupError(f"no maplet {maplet_id}")
-    stale = stale_maplets(session, mode=get_worker_settings().refine_mode, maplet_ids=[maplet_id])
+    config = get_worker_settings().refinement()
+    stale = stale_maplets(session, config=config, maplet_ids=[maplet_id])
     if not stale:
         raise ValueError(f"maplet {maplet_id} has nothing new to refine: its current revision is "
-                         f"of its current input, or it has fewer than {MIN_IMAGES} images")
+                         f"of its current input, or it has fewer than {config.min_images} images")
     if _submit_refine(session, None, stale[0]) is not None:
         event.listen(session, "after_commit", lambda _: _enqueue_refine(None, stale[0]),
                      once=True)
@@ -113,8 +114,7 @@ def ingest_downlink(self: Task, directory: str, key: str | None = None) -> dict[
         with session_scope(state.sessions) as session:
             report_progress(session, job, 0.0, f"ingesting {path}")
         plan = ingest_and_plan(state.sessions, path, data_dir=settings.data_dir,
-                               mode=settings.refine_mode, maplet_nodes=settings.maplet_nodes,
-                               tile_radius_km=settings.tile_radius_km)
+                               config=settings.refinement())
         with session_scope(state.sessions) as session:
             pending = [w for w in plan.work if _submit_refine(session, plan.downlink_id, w)]
         # Enqueued once their jobs are committed, so that the fan-in sees every sibling.
@@ -143,7 +143,7 @@ def refine_maplet(self: Task, maplet_id: int, input_hash: str,
 
         revision = refine_catalog_maplet(state.sessions, data_dir=settings.data_dir,
                                          maplet_id=maplet_id, input_hash=input_hash,
-                                         mode=settings.refine_mode, progress=progress)
+                                         config=settings.refinement(), progress=progress)
         return Outcome(f"maplet {maplet_id}: revision {revision}", downlink_id=downlink_id,
                        maplet_id=maplet_id)
 
@@ -162,8 +162,10 @@ def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
     def work(state: ProcessState, job: Job) -> Outcome:
         with session_scope(state.sessions) as session:
             report_progress(session, job, 0.0, "fusing")
-        version = fuse_and_publish(state.sessions, data_dir=get_worker_settings().data_dir,
-                                   downlink_ids=[] if downlink_id is None else [downlink_id])
+        settings = get_worker_settings()
+        version = fuse_and_publish(state.sessions, data_dir=settings.data_dir,
+                                   downlink_ids=[] if downlink_id is None else [downlink_id],
+                                   config=settings.refinement())
         message = ("no maplet changed: no new version" if version is None
                    else f"published version {version}")
         return Outcome(message, downlink_id=downlink_id)

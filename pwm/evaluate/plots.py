@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -83,7 +84,7 @@ def image_comparison(
     limit = float(np.percentile(finite_diff, 99)) if finite_diff.size else 1.0
     limit = limit if limit > 0 else 1.0
     fig = _figure(13.0, 4.5)
-    panels = [
+    panels: list[tuple[str, np.ndarray, dict[str, Any]]] = [
         ("truth", truth, {"cmap": "gray", "vmin": low, "vmax": high}),
         ("model", model, {"cmap": "gray", "vmin": low, "vmax": high}),
         ("model - truth", difference, {"cmap": "RdBu_r", "vmin": -limit, "vmax": limit}),

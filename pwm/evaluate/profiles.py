@@ -36,7 +36,7 @@ def boulder_height_ratio(
     diameters = np.asarray(diameters_km, float).reshape(-1)
     outer = annulus_diameters[1] * diameters
     ratios = np.full(len(centres), np.nan)
-    for i, ((cx, cy), diameter, reach) in enumerate(zip(centres, diameters, outer)):
+    for i, ((cx, cy), diameter, reach) in enumerate(zip(centres, diameters, outer, strict=True)):
         # Only the window around the boulder is searched: the grid is sorted in x and y.
         cols = slice(np.searchsorted(x, cx - reach), np.searchsorted(x, cx + reach, side="right"))
         rows = slice(np.searchsorted(y, cy - reach), np.searchsorted(y, cy + reach, side="right"))

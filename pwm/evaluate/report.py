@@ -63,7 +63,8 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
         "region": "whole body" if whole_body else f"site disc of radius {truth.eval_radius_km * 1e3:g} m",
         "vertices_evaluated": int(region.sum()),
         # the shift of the evaluated vertices, not the translation about the body centre
-        "icp": {"rotation_rad": float(np.linalg.norm(_rotvec(transform.rotation))), "shift_m": float(np.mean(moved) * 1e3)},
+        "icp": {"rotation_rad": float(np.linalg.norm(_rotvec(transform.rotation))),
+                "shift_m": float(np.mean(moved) * 1e3)},
         "rms_m": float(np.sqrt(np.mean(distance**2)) * 1e3),
         "median_m": float(np.median(distance) * 1e3),
     }
@@ -129,14 +130,16 @@ def _heights(truth: Truth, tracer: RayTracer, *, gsd_km: float, plots_dir: Path 
         ratios = boulder_height_ratio(x, y, truth_h, model_h, centres_km=np.array([[b.x_km, b.y_km] for b in boulders]),
                                       diameters_km=np.array([b.diameter_km for b in boulders]))
         steep = np.array([b.steep for b in boulders])
-        out["boulders"] = [{"x_m": b.x_km * 1e3, "y_m": b.y_km * 1e3, "diameter_m": b.diameter_km * 1e3, "height_m": b.height_km * 1e3,
-                            "steep": b.steep, "height_ratio": float(r)} for b, r in zip(boulders, ratios)]
+        out["boulders"] = [{"x_m": b.x_km * 1e3, "y_m": b.y_km * 1e3, "diameter_m": b.diameter_km * 1e3,
+                            "height_m": b.height_km * 1e3, "steep": b.steep, "height_ratio": float(r)}
+                           for b, r in zip(boulders, ratios, strict=True)]
         out["boulder_height_ratio_median"] = float(np.nanmedian(ratios))
         out["steep_boulder_height_ratio_median"] = float(np.nanmedian(ratios[steep])) if steep.any() else None
     if plots_dir is not None:
         plots.height_error_map(plots_dir / "height_error.png", x, y, error * 1e3, title="model - truth height (m)")
         if boulders:
-            plots.profiles(plots_dir / "boulder_profiles.png", [_profile(b, x, y, truth_h, model_h) for b in boulders[:6]])
+            plots.profiles(plots_dir / "boulder_profiles.png",
+                           [_profile(b, x, y, truth_h, model_h) for b in boulders[:6]])
     return out
 
 
@@ -168,11 +171,13 @@ def _views(manifest: dict, truth_dir: Path, tracer: RayTracer, *, plots_dir: Pat
         scores.append({"view": view["name"], "pixels": int(mask.sum()), "ncc": ncc(truth_img, m, mask),
                        "ssim": ssim(truth_img, scale * m, mask), "brightness_scale": scale})
         if plots_dir is not None:
-            plots.image_comparison(plots_dir / f"view_{view['name']}.png", np.where(mask, truth_img, 0.0), np.where(mask, scale * m, 0.0),
+            plots.image_comparison(plots_dir / f"view_{view['name']}.png", np.where(mask, truth_img, 0.0),
+                                   np.where(mask, scale * m, 0.0),
                                    title=f"held-out view {view['name']}: truth | model | difference")
     if not scores:
         return {"views": []}
-    return {"views": scores, "ncc": float(np.mean([s["ncc"] for s in scores])), "ssim": float(np.mean([s["ssim"] for s in scores]))}
+    return {"views": scores, "ncc": float(np.mean([s["ncc"] for s in scores])),
+            "ssim": float(np.mean([s["ssim"] for s in scores]))}
 
 
 def _rotvec(rotation: np.ndarray) -> np.ndarray:

@@ -19,9 +19,21 @@ from pathlib import Path
 import spiceypy as sp
 
 from pwm.camera import Camera, PoseCorrection
-from pwm.io.labels import (COVERAGE_ERRORS, body_code, body_name, exposure_et, exposure_times, find_labels,
-                           frame_of, instrument_code, instrument_named, known_instruments, name_variants,
-                           observer_code, target_frame)
+from pwm.io.labels import (
+    COVERAGE_ERRORS,
+    body_code,
+    body_name,
+    exposure_et,
+    exposure_times,
+    find_labels,
+    frame_of,
+    instrument_code,
+    instrument_named,
+    known_instruments,
+    name_variants,
+    observer_code,
+    target_frame,
+)
 from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
 from pwm.io.spice_geometry import camera_from_kernel, camera_pose, spacecraft_of, sun_direction
 from pwm.io.spice_kernels import KernelError, kernel_pool, spice_message
@@ -96,14 +108,17 @@ def read_downlink(directory: str | Path, *, instrument: str | None = None, targe
         chosen = None if instrument is None else instrument_named(instrument)
         forced = None if target is None else _target_override(target, body_frame)
         cameras: dict[int, Camera | str] = {}
-        resolved, skipped, named = [], [], set()
+        resolved: list[_Image] = []
+        skipped: list[Skipped] = []
+        named: set[str] = set()
         for label in find_labels(directory):
             try:
                 resolved.append(_resolve(label, chosen=chosen, target=forced, body_frame=body_frame,
                                          cameras=cameras))
             except _Skip as exc:
                 skipped.append(Skipped(str(label), exc.code, str(exc)))
-                named |= {exc.named} - {None}
+                if exc.named is not None:
+                    named.add(exc.named)
         if not resolved:
             raise NoUsableImages(_nothing_usable(directory, skipped, named))
         (main_target, frame), _ = Counter((r.target, r.body_frame) for r in resolved).most_common(1)[0]
@@ -152,10 +167,11 @@ def _resolve(label: Path, *, chosen: int | None, target: tuple[int, str] | None,
     camera = _camera(instrument_id, cameras)
     if target is None:
         code, frame = target_frame(product.target_name)
-        if code is None or (frame is None and body_frame is None):
+        frame = body_frame or frame
+        if code is None or frame is None:
             raise _Skip("unknown_target", f"target {product.target_name!r} is " + (
                 "not a body SPICE knows" if code is None else f"{code}, which has no body-fixed frame in the kernels"))
-        target = code, body_frame or frame
+        target = code, frame
     try:
         camera = camera.subframe(first_sample=product.first_sample, first_line=product.first_line,
                                  samples=product.samples, lines=product.lines)

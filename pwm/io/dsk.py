@@ -20,6 +20,10 @@ GENERAL_CLASS = 2  # SPICE_DSK_GENCLS: no claim that the surface is single-value
 PLATE_MODEL = 2  # DSK data type 2
 MAX_COARSE_VOXELS = 100_000  # SPICE_DSK02_MAXCGR
 INDEX_FIXED_INTS = MAX_COARSE_VOXELS + 7  # SPICE_DSK02_IXIFIX
+# The spatial index's integers (voxel pointers and plate lists) allowed per plate: uniform meshes
+# need 20-60 at dskmi2's documented fine scale, which is then kept.
+INDEX_INTS_PER_PLATE = 64
+_FINE_SCALE_STEP = 1.25
 _VOXEL_TOLERANCE = 0.01  # > dskmi2's plate-box padding (1e-3 voxel) in voxel units
 _COMMENT_WIDTH = 80  # NAIF's line length for kernel comments
 
@@ -62,7 +66,9 @@ def read_dsk(path: str | Path) -> Mesh:
     segments must share body and frame."""
     handle = sp.dasopr(str(path))
     try:
-        vertices, faces, owners = [], [], set()
+        vertices: list[np.ndarray] = []
+        faces: list[np.ndarray] = []
+        owners: set[tuple[int, int]] = set()
         found = True
         descriptor = sp.dlabfs(handle)
         while found:
@@ -87,29 +93,47 @@ def _index_parameters(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, i
     """Voxel scales and array sizes for dskmi2: (finscl, corscl, (worksz, voxpsz, voxlsz,
     makvtl, spxisz)).
 
-    The fine scale is dskmi2's documented starting value max(1, np^(1/4) / 8); the coarse scale
-    is the smallest that keeps the padded coarse grid within SPICE's limit. Sizes are upper
-    bounds counted from each plate's bounding box, as dskmi2 assigns plates to voxels.
+    The fine scale starts at dskmi2's documented value max(1, np^(1/4) / 8) and grows until the
+    index fits INDEX_INTS_PER_PLATE per plate: dskmi2 sizes the voxels from the mean plate
+    extent, so on a mesh of many small plates and some large ones (a dense site on a coarse
+    body) the large plates' bounding boxes would span thousands of voxels each, and the index,
+    the file and dskmi2's time would grow with the body's volume in voxels, not with the plates.
+    The coarse scale is the smallest that keeps the padded coarse grid within SPICE's limit.
+    Sizes are upper bounds counted from each plate's bounding box, as dskmi2 assigns plates to
+    voxels.
     """
     n_vertices, n_plates = len(vertices), len(faces)
     extents = np.ptp(vertices[faces], axis=1)
-    finscl = max(1.0, n_plates ** 0.25 / 8)
-    voxel = finscl * extents.mean()
     box = np.ptp(vertices, axis=0)
-    corscl = 1
-    # the coarse grid is padded by up to 1.5 coarse voxels at each end
-    while np.prod(np.ceil(box / (voxel * corscl)) + 3) > MAX_COARSE_VOXELS:
-        corscl += 1
-    coarse_voxels = int(np.prod(np.ceil(box / (voxel * corscl)) + 3))
-    per_plate = np.prod(np.floor(extents / voxel + _VOXEL_TOLERANCE) + 2, axis=1)
-    cells = int(per_plate.sum())
+    mean_extent = extents.mean()
+    budget = INDEX_INTS_PER_PLATE * n_plates + MAX_COARSE_VOXELS
+    finscl = max(1.0, n_plates ** 0.25 / 8)
+    corscl, voxpsz, cells = _index_counts(extents, box, finscl * mean_extent)
+    # once a voxel spans the whole box, a plate meets at most 3 per axis: the budget is met
+    while voxpsz + 2 * cells > budget and finscl * mean_extent < box.max():
+        finscl *= _FINE_SCALE_STEP
+        corscl, voxpsz, cells = _index_counts(extents, box, finscl * mean_extent)
     vertex_plate_list = n_vertices + 3 * n_plates
-    voxpsz = corscl ** 3 * min(coarse_voxels, cells)
     voxlsz = 2 * cells
     spxisz = INDEX_FIXED_INTS + voxpsz + voxlsz + n_vertices + vertex_plate_list
     # dskmi2 also keeps a pointer per voxel (voxpsz of them) in the work array
     worksz = max(cells, vertex_plate_list, voxpsz)
     return finscl, corscl, (worksz, voxpsz, voxlsz, True, spxisz)
+
+
+def _index_counts(extents: np.ndarray, box: np.ndarray, voxel: float) -> tuple[int, int, int]:
+    """For fine voxels of edge `voxel` (km): the coarse scale, an upper bound on the fine voxel
+    pointers (corscl^3 per non-empty coarse voxel) and one on the plate-voxel pairs."""
+    corscl = 1
+    # the coarse grid is padded by up to 1.5 coarse voxels at each end
+    while np.prod(np.ceil(box / (voxel * corscl)) + 3) > MAX_COARSE_VOXELS:
+        corscl += 1
+    coarse_voxels = int(np.prod(np.ceil(box / (voxel * corscl)) + 3))
+    # a box spanning s voxels along an axis meets at most floor(s) + 2 of them
+    cells = int(np.prod(np.floor(extents / voxel + _VOXEL_TOLERANCE) + 2, axis=1).sum())
+    coarse_cells = int(np.prod(np.floor(extents / (voxel * corscl) + _VOXEL_TOLERANCE) + 2,
+                               axis=1).sum())
+    return corscl, corscl ** 3 * min(coarse_voxels, coarse_cells), cells
 
 
 def _coverage(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, float, float]:

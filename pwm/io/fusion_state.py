@@ -24,7 +24,7 @@ def write_maplet(path: str | Path, maplet: Maplet) -> None:
     if maplet.albedo is not None:
         arrays["albedo"] = maplet.albedo
     with open(path, "wb") as stream:
-        np.savez(stream, **arrays)
+        np.savez(stream, **arrays)  # type: ignore[arg-type]  # numpy's stub checks **arrays against allow_pickle
 
 
 def read_maplet(path: str | Path) -> Maplet:

@@ -91,7 +91,7 @@ def _pool_bodies() -> list[tuple[int, str]]:
         return []
     names = sp.gcpool("NAIF_BODY_NAME", 0, count)
     codes = sp.gipool("NAIF_BODY_CODE", 0, count)
-    return [(int(c), n) for n, c in zip(names, codes)]
+    return [(int(c), n) for n, c in zip(names, codes, strict=True)]
 
 
 def target_frame(name: str | None) -> tuple[int | None, str | None]:

@@ -15,7 +15,7 @@ def read_obj(path: str | Path) -> Mesh:
     verts: list[list[float]] = []
     faces: list[list[int]] = []
     albedo: list[float] = []
-    with open(path, "r", encoding="ascii", errors="replace") as fh:
+    with open(path, encoding="ascii", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             parts = line.split()
             if not parts:
@@ -109,7 +109,7 @@ def read_ply(path: str | Path) -> Mesh:
                 dt = np.dtype([(p, "<" + _PLY_TYPES[t]) for p, t in props])
                 data = np.frombuffer(fh.read(dt.itemsize * count), dtype=dt, count=count)
                 verts = np.column_stack([data["x"], data["y"], data["z"]]).astype(np.float64)
-                if "albedo" in data.dtype.names:
+                if "albedo" in (data.dtype.names or ()):
                     albedo = data["albedo"].astype(np.float64)
             elif name == "face":
                 (pname, ptype), = props

@@ -11,9 +11,9 @@ import hashlib
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 import pds4_tools
@@ -110,9 +110,9 @@ def label_text(body: list[tuple]) -> str:
         "xsi:schemaLocation": " ".join(f"{ns} {base}.xsd" for ns, base in _SCHEMAS.items())})
     _build(root, body)
     ET.indent(root, space="    ")
-    models = [ET.ProcessingInstruction("xml-model", f'href="{base}.sch" '
-                                       'schematypens="http://purl.oclc.org/dsdl/schematron"')
-              for base in _SCHEMAS.values()]
+    models: list[ET.Element[Any]] = [
+        ET.ProcessingInstruction("xml-model", f'href="{base}.sch" schematypens="http://purl.oclc.org/dsdl/schematron"')
+        for base in _SCHEMAS.values()]
     return "\n".join(['<?xml version="1.0" encoding="UTF-8"?>',
                       *(ET.tostring(e, encoding="unicode") for e in [*models, root]), ""])
 
@@ -160,10 +160,10 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
         if path.exists():
             raise FileExistsError(f"{path} exists; a product is written once")
 
-    cards = {"DATE-OBS": start[:-1], "DATE-END": stop[:-1], "TELESCOP": host_name,
-             "INSTRUME": instrument_name, "TARGET": target_name}
+    cards: dict[str, Any] = {"DATE-OBS": start[:-1], "DATE-END": stop[:-1], "TELESCOP": host_name,
+                             "INSTRUME": instrument_name, "TARGET": target_name}
     lines, samples = dn.shape
-    imaging = []
+    imaging: list[tuple[str, list[tuple]]] = []
     if exposure_s is not None:
         cards["EXPTIME"] = float(exposure_s)
         imaging.append(("img:Exposure", [("img:exposure_duration", repr(float(exposure_s)), "s")]))
@@ -193,7 +193,7 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
             ("File", [
                 ("file_name", data_path.name),
                 ("creation_date_time",
-                 datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")),
+                 datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")),
                 ("file_size", data_path.stat().st_size, "byte"),
                 ("md5_checksum", checksum_md5(data_path))]),
             ("Header", [("offset", 0, "byte"), ("object_length", header_bytes, "byte"),
@@ -214,6 +214,10 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
     return label_path, data_path
 
 
+@overload
+def _text(node: ET.Element, path: str, required: Literal[True] = True) -> str: ...
+@overload
+def _text(node: ET.Element, path: str, required: bool) -> str | None: ...
 def _text(node: ET.Element, path: str, required: bool = True) -> str | None:
     found = node.find(path, _NS)
     if found is None or found.text is None:
@@ -223,6 +227,10 @@ def _text(node: ET.Element, path: str, required: bool = True) -> str | None:
     return found.text.strip()
 
 
+@overload
+def _int(node: ET.Element, path: str, required: Literal[True] = True) -> int: ...
+@overload
+def _int(node: ET.Element, path: str, required: bool) -> int | None: ...
 def _int(node: ET.Element, path: str, required: bool = True) -> int | None:
     text = _text(node, path, required)
     try:
@@ -252,6 +260,8 @@ def _check_file(data_path: Path, size: int | None, md5: str | None) -> None:
 def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int) -> dict | None:
     """Check the array fits in the data file and agrees with a FITS header; return that header."""
     image = area.find("pds:Array_2D_Image", _NS)
+    if image is None:
+        raise ProductError("missing_element", f"{data_path.name}: the file area lacks Array_2D_Image")
     data_type = _text(image, "pds:Element_Array/pds:data_type")
     dtype = pds_to_numpy_type(data_type)  # unknown names come back as a zero-length string type
     if dtype.kind not in "iufc":
@@ -283,7 +293,7 @@ def _read_array(label: Path, lines: int, samples: int) -> np.ndarray:
         structures = pds4_tools.read(str(label), lazy_load=True, quiet=True)
         image = next(s for s in structures if s.type == "Array_2D_Image")
         # a plain ndarray: pds4_tools' subclass makes every indexing call several times slower
-        data = np.asarray(np.ma.asarray(image.as_masked().data).astype(np.float64).filled(np.nan))
+        data = np.asarray(np.ma.filled(np.ma.asarray(image.as_masked().data).astype(np.float64), np.nan))
     except Exception as exc:  # pds4_tools has no exception hierarchy of its own to catch
         raise ProductError("unreadable", f"pds4_tools could not read {label.name}: {exc}") from exc
     finally:
@@ -334,8 +344,13 @@ def read_image_product(label: Path) -> ImageProduct:
     if obs is None:
         raise ProductError("missing_element", f"{label.name} lacks Observation_Area")
     exposure = obs.find(".//img:exposure_duration", _NS)
-    if exposure is not None and (unit := exposure.get("unit")) not in _SECONDS:
-        raise ProductError("unsupported", f"exposure_duration unit {unit!r}")
+    exposure_s = None
+    if exposure is not None:
+        if (unit := exposure.get("unit")) is None or unit not in _SECONDS:
+            raise ProductError("unsupported", f"exposure_duration unit {unit!r}")
+        if exposure.text is None:
+            raise ProductError("bad_value", "img:exposure_duration is empty")
+        exposure_s = float(exposure.text) * _SECONDS[unit]
     return ImageProduct(
         lid=_text(root, "pds:Identification_Area/pds:logical_identifier"),
         vid=_text(root, "pds:Identification_Area/pds:version_id"),
@@ -348,7 +363,7 @@ def read_image_product(label: Path) -> ImageProduct:
         instrument_name=_component(obs, ("Instrument",)),
         target_name=_text(obs, "pds:Target_Identification/pds:name", False),
         target_type=_text(obs, "pds:Target_Identification/pds:type", False),
-        exposure_s=None if exposure is None else float(exposure.text) * _SECONDS[unit],
+        exposure_s=exposure_s,
         first_line=_subframe_start(obs, "first_line"), first_sample=_subframe_start(obs, "first_sample"),
         data_path=data_path, file_size=size, md5=md5,
         lines=lines, samples=samples, data=data, fits_header=fits_header)

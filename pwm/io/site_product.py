@@ -8,7 +8,7 @@ data (NaN) are stored as MISSING and declared as the missing_constant.
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import NamedTuple
 
@@ -92,7 +92,7 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
         ("File_Area_Observational", [
             ("File", [
                 ("file_name", files.data.name),
-                ("creation_date_time", datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")),
+                ("creation_date_time", datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")),
                 ("file_size", files.data.stat().st_size, "byte"),
                 ("md5_checksum", checksum_md5(files.data))]),
             *images])])
@@ -115,7 +115,7 @@ def _frame_text(frame: LocalFrame, body_frame: str, x: np.ndarray, y: np.ndarray
     def vector(v: np.ndarray) -> str:
         return "(" + ", ".join(f"{c:.12g}" for c in v) + ")"
 
-    rows = ", ".join(f"{axis} axis {vector(v)}" for axis, v in zip("xyz", frame.rotation))
+    rows = ", ".join(f"{axis} axis {vector(v)}" for axis, v in zip("xyz", frame.rotation, strict=True))
     return (f"Site frame in {body_frame} (km): origin {vector(frame.origin)}, {rows}. "
             f"Node (line i, sample j), both from 0, lies at origin + x_j x + y_i y + h z with "
             f"x_j = {x[0]:.12g} + j * {x[1] - x[0]:.12g} km and "
@@ -147,7 +147,7 @@ def _preview(path: Path, x: np.ndarray, y: np.ndarray, height_m: np.ndarray,
                                                          dy=step_m)
     relief[missing] = np.nan
     half = step_m / 2
-    extent = [x[0] * 1e3 - half, x[-1] * 1e3 + half, y[0] * 1e3 - half, y[-1] * 1e3 + half]
+    extent = (x[0] * 1e3 - half, x[-1] * 1e3 + half, y[0] * 1e3 - half, y[-1] * 1e3 + half)
     fig = Figure(figsize=(10.0, 4.5), layout="constrained")
     FigureCanvasAgg(fig)
     for k, (image, label) in enumerate([(relief, "shaded relief"), (albedo, "normal albedo")]):

@@ -196,7 +196,7 @@ def metakernel_files(path: str | Path) -> list[Path]:
         for name in _MK_VARIABLES:
             if sp.expool(name):
                 sp.dvpool(name)
-    dirs = {sym: os.path.join(mk.parent, val) for sym, val in zip(values[1], values[0])}
+    dirs = {sym: os.path.join(mk.parent, val) for sym, val in zip(values[1], values[0], strict=False)}
 
     def substitute(match: re.Match) -> str:
         if match.group(1) not in dirs:
@@ -209,7 +209,7 @@ def metakernel_files(path: str | Path) -> list[Path]:
 
 def _pool_string(name: str) -> list[str]:
     """The strings of a pool variable, continued pieces joined (SPICE's stpool)."""
-    strings = []
+    strings: list[str] = []
     with sp.no_found_check():
         while (found := sp.stpool(name, len(strings), "+"))[2]:
             strings.append(found[0])

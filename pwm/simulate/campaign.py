@@ -12,6 +12,7 @@ import logging
 import shutil
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import spiceypy as sp
@@ -21,11 +22,19 @@ from pwm.frames import local_sun
 from pwm.io.meshio import read_obj, write_obj
 from pwm.io.pds4 import file_sha256, write_image_product
 from pwm.io.spice_geometry import camera_from_kernel, camera_pose, instrument_frame, spacecraft_of, sun_direction
-from pwm.io.spice_kernels import CkSegment, SpkSegment, bundled_kernels, kernel_pool, write_ck, write_metakernel, write_spk
-from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
+from pwm.io.spice_kernels import (
+    CkSegment,
+    SpkSegment,
+    bundled_kernels,
+    kernel_pool,
+    write_ck,
+    write_metakernel,
+    write_spk,
+)
 from pwm.raytrace import RayTracer
 from pwm.render import render
 from pwm.simulate.detector import choose_exposure, to_dn
+from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
 from pwm.simulate.plan import Observation, plan_global, plan_site, sun_states
 from pwm.simulate.scenarios import Scenario
 from pwm.simulate.truth import Truth, build_truth, low_pass, save as save_truth
@@ -38,7 +47,8 @@ WINDOW_S = 60.0  # each image sits in the middle of a short observation window o
 EXPOSURE_S = 0.004  # labels carry start and stop; the geometry is at mid-exposure
 
 
-def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_error_m: float = 0.0, pointing_error_rad: float = 0.0) -> dict:
+def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_error_m: float = 0.0,
+             pointing_error_rad: float = 0.0) -> dict:
     """Write OUT/downlink and OUT/truth for `scenario`; returns the truth manifest."""
     out = Path(out)
     downlink, truth_dir = out / "downlink", out / "truth"
@@ -61,7 +71,8 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
         n_craters=scenario.n_craters, n_boulders=scenario.n_boulders, steep_boulders=scenario.steep_boulders,
         cobble_cover=scenario.cobble_cover,
     )
-    log.info("truth: %d vertices, %d faces (%.1f s)", len(truth.mesh.vertices), len(truth.mesh.faces), time.perf_counter() - clock)
+    log.info("truth: %d vertices, %d faces (%.1f s)", len(truth.mesh.vertices), len(truth.mesh.faces),
+             time.perf_counter() - clock)
 
     with kernel_pool(fixed):
         detector = camera_from_kernel(scenario.instrument_id)
@@ -71,14 +82,18 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
         sun_spk = downlink / "kernels" / "spk" / f"pwm_{scenario.name}_sun.bsp"
         _write_sun(sun_spk, scenario=scenario, start_et=start_et, campaign_s=campaign_s)
         sp.furnsh(str(sun_spk))
-        observations, validation = _plan(scenario, truth=truth, camera=detector, start_et=start_et, campaign_s=campaign_s, rng=rng)
+        observations, validation = _plan(scenario, truth=truth, camera=detector, start_et=start_et,
+                                         campaign_s=campaign_s, rng=rng)
         for obs in observations + validation:
             # on the millisecond grid of the labels' UTC times, so that mid-exposure is exact
             obs.et = sp.utc2et(sp.et2utc(obs.et, "ISOC", 3))
 
-        true_kernels = _write_pose_kernels(truth_dir / "kernels", scenario=scenario, mission=mission, observations=observations + validation)
-        noisy = _perturb(observations, position_error_m=position_error_m, pointing_error_rad=pointing_error_rad, rng=rng)
-        downlink_kernels = _write_pose_kernels(downlink / "kernels", scenario=scenario, mission=mission, observations=noisy)
+        true_kernels = _write_pose_kernels(truth_dir / "kernels", scenario=scenario, mission=mission,
+                                           observations=observations + validation)
+        noisy = _perturb(observations, position_error_m=position_error_m, pointing_error_rad=pointing_error_rad,
+                         rng=rng)
+        downlink_kernels = _write_pose_kernels(downlink / "kernels", scenario=scenario, mission=mission,
+                                               observations=noisy)
 
     all_fixed = fixed + [sun_spk]
     (downlink / "kernels" / "mk").mkdir(parents=True, exist_ok=True)
@@ -93,8 +108,8 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
         for k, obs in enumerate(observations):
             pose, sun = _geometry(obs.et, scenario)
             view = render(tracer, camera=camera, pose=pose, sun_direction=sun)
-            images.append(_write_product(downlink / "images", obs=obs, view=view.reflectance, scenario=scenario, mission=mission,
-                                         window=window, rng=rng))
+            images.append(_write_product(downlink / "images", obs=obs, view=view.reflectance, scenario=scenario,
+                                         mission=mission, window=window, rng=rng))
             images[-1].update(_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera))
             log.info("image %d/%d %s rendered", k + 1, len(observations), obs.name)
         held_out = []
@@ -104,13 +119,16 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
             path = truth_dir / "validation" / f"{obs.name}.npz"
             path.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(path, reflectance=view.reflectance.astype(np.float32), hit=view.hit, shadow=view.shadow,
-                                in_site=_in_site(view.points, truth), position=pose.position, rotation=pose.rotation, sun=sun)
-            held_out.append({"name": obs.name, "file": f"validation/{obs.name}.npz", **_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera)})
+                                in_site=_in_site(view.points, truth), position=pose.position, rotation=pose.rotation,
+                                sun=sun)
+            held_out.append({"name": obs.name, "file": f"validation/{obs.name}.npz",
+                             **_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera)})
 
     # "Low-passed to ten GSD": vertices every 10 GSD, and an anti-aliasing filter that keeps
     # half the amplitude at 30 GSD, so little remains at the 20 GSD Nyquist wavelength.
     wavelength_km = 30.0 * scenario.gsd_km
-    write_obj(downlink / "start_model.obj", low_pass(truth, wavelength_km=wavelength_km, spacing_km=10.0 * scenario.gsd_km))
+    write_obj(downlink / "start_model.obj",
+              low_pass(truth, wavelength_km=wavelength_km, spacing_km=10.0 * scenario.gsd_km))
     save_truth(truth, truth_dir)
 
     manifest = {
@@ -141,7 +159,8 @@ def _readout(detector: Camera, scenario: Scenario) -> tuple[Camera, tuple[int, i
         return detector, None
     n = scenario.subframe_px
     first_sample, first_line = int(round(detector.cx + 0.5 - n / 2)), int(round(detector.cy + 0.5 - n / 2))
-    return detector.subframe(first_sample=first_sample, first_line=first_line, samples=n, lines=n), (first_line, first_sample)
+    camera = detector.subframe(first_sample=first_sample, first_line=first_line, samples=n, lines=n)
+    return camera, (first_line, first_sample)
 
 
 def _copy_fixed_kernels(kernel_dir: Path, mission: Mission) -> list[Path]:
@@ -166,25 +185,31 @@ def _write_sun(path: Path, *, scenario: Scenario, start_et: float, campaign_s: f
                               SpkSegment(body=SUN, center=SSB, epochs=epochs, states=np.zeros_like(sun))])
 
 
-def _plan(scenario: Scenario, *, truth: Truth, camera: Camera, start_et: float, campaign_s: float, rng: np.random.Generator) -> tuple[list[Observation], list[Observation]]:
+def _plan(scenario: Scenario, *, truth: Truth, camera: Camera, start_et: float, campaign_s: float,
+          rng: np.random.Generator) -> tuple[list[Observation], list[Observation]]:
     def sun(ets: np.ndarray) -> np.ndarray:
-        return np.array([sun_direction(et=float(t), target=scenario.target, body_frame=scenario.body_frame) for t in ets])
+        return np.array([sun_direction(et=float(t), target=scenario.target,
+                                       body_frame=scenario.body_frame) for t in ets])
 
     range_km = scenario.gsd_km * camera.fx
     if scenario.global_views:
         radius = float(np.linalg.norm(truth.mesh.vertices, axis=1).mean())
-        kw = dict(sun=sun, campaign_s=campaign_s, range_km=range_km + radius, phases_deg=scenario.incidences_deg, rng=rng)
+        kw: dict[str, Any] = dict(sun=sun, campaign_s=campaign_s, range_km=range_km + radius,
+                                  phases_deg=scenario.incidences_deg, rng=rng)
         return (plan_global(start_et=start_et, n=scenario.n_azimuths, prefix="img", **kw),
                 plan_global(start_et=start_et + 0.37 * 86400.0, n=scenario.n_validation, prefix="val", **kw))
     views = [(0.0, 0.0)] * scenario.n_nadir + scenario.off_nadir_views()
-    kw = dict(frame=truth.site_frame, sun=sun, campaign_s=campaign_s, range_km=range_km, aim_scatter_km=scenario.pointing_scatter_km, rng=rng)
+    kw = dict(frame=truth.site_frame, sun=sun, campaign_s=campaign_s, range_km=range_km,
+              aim_scatter_km=scenario.pointing_scatter_km, rng=rng)
     val_views = [(25.0, 45.0 + 360.0 * k / max(scenario.n_validation, 1)) for k in range(scenario.n_validation)]
-    val_inc = tuple(np.linspace(min(scenario.incidences_deg) + 5, max(scenario.incidences_deg) - 5, max(scenario.n_validation, 1)))
+    val_inc = tuple(np.linspace(min(scenario.incidences_deg) + 5, max(scenario.incidences_deg) - 5,
+                                max(scenario.n_validation, 1)))
     return (plan_site(start_et=start_et, views=views, incidences_deg=scenario.incidences_deg, prefix="img", **kw),
             plan_site(start_et=start_et + 0.41 * 86400.0, views=val_views, incidences_deg=val_inc, prefix="val", **kw))
 
 
-def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Mission, observations: list[Observation]) -> list[Path]:
+def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Mission,
+                        observations: list[Observation]) -> list[Path]:
     """SPK of the spacecraft and CKs of the spacecraft and, where a CK gives the camera frame
     (its mount), of the camera, one window per image.
 
@@ -193,11 +218,11 @@ def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Missio
     spacecraft by the FK (a TK frame) turns the spacecraft's attitude by its mount; one a CK
     gives is mounted with the identity.
     """
-    frame_id = sp.namfrm(instrument_frame(scenario.instrument_id))
-    spacecraft_frame = sp.namfrm(mission.spacecraft_frame)
+    camera_frame = instrument_frame(scenario.instrument_id)
+    frame_id, spacecraft_frame = sp.namfrm(camera_frame), sp.namfrm(mission.spacecraft_frame)
     ck_mounted = sp.frinfo(frame_id)[1] == CK_FRAME_CLASS
     # spacecraft -> camera; constant for a TK frame, so any epoch gives it
-    mount = np.eye(3) if ck_mounted else sp.pxform(mission.spacecraft_frame, instrument_frame(scenario.instrument_id), 0.0)
+    mount = np.eye(3) if ck_mounted else sp.pxform(mission.spacecraft_frame, camera_frame, 0.0)
     sc = spacecraft_of(scenario.instrument_id)
     body = sp.bodn2c(scenario.target)
     order = sorted(observations, key=lambda o: o.et)
@@ -224,17 +249,20 @@ def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Missio
     write_spk(spk, segments=spk_segments)
     # the spacecraft clock carries the spacecraft's own NAIF id
     write_ck(ck_sc, segments=[CkSegment(frame_id=spacecraft_frame, sclk_id=sc, epochs=epochs_a, rotations=rot_a,
-                                        angular_velocities=np.zeros((len(epochs_a), 3)), interval_starts=[e[0] for e in epochs])])
+                                        angular_velocities=np.zeros((len(epochs_a), 3)),
+                                        interval_starts=[e[0] for e in epochs])])
     if not ck_mounted:
         return [spk, ck_sc]
     span = np.array([epochs_a[0], epochs_a[-1]])
-    write_ck(ck_mount, segments=[CkSegment(frame_id=frame_id, sclk_id=sc, epochs=span, rotations=np.repeat(np.eye(3)[None], 2, axis=0),
+    write_ck(ck_mount, segments=[CkSegment(frame_id=frame_id, sclk_id=sc, epochs=span,
+                                           rotations=np.repeat(np.eye(3)[None], 2, axis=0),
                                            angular_velocities=np.zeros((2, 3)), interval_starts=[span[0]],
                                            reference=mission.spacecraft_frame)])
     return [spk, ck_sc, ck_mount]
 
 
-def _perturb(observations: list[Observation], *, position_error_m: float, pointing_error_rad: float, rng: np.random.Generator) -> list[Observation]:
+def _perturb(observations: list[Observation], *, position_error_m: float, pointing_error_rad: float,
+             rng: np.random.Generator) -> list[Observation]:
     """Navigation knowledge: the true poses with Gaussian position (per axis) and pointing errors."""
     from scipy.spatial.transform import Rotation
 
@@ -248,15 +276,18 @@ def _perturb(observations: list[Observation], *, position_error_m: float, pointi
 
 
 def _geometry(et: float, scenario: Scenario) -> tuple[Pose, np.ndarray]:
-    pose = camera_pose(et=et, instrument_id=scenario.instrument_id, target=scenario.target, body_frame=scenario.body_frame)
+    pose = camera_pose(et=et, instrument_id=scenario.instrument_id, target=scenario.target,
+                       body_frame=scenario.body_frame)
     return pose, sun_direction(et=et, target=scenario.target, body_frame=scenario.body_frame)
 
 
 def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scenario: Scenario, mission: Mission,
                    window: tuple[int, int] | None, rng: np.random.Generator) -> dict:
     expected_max = max(float(np.percentile(view[view > 0], 99.9)) if (view > 0).any() else 0.05, 1e-4)
-    exposure = choose_exposure(expected_max, full_well_dn=scenario.full_well_dn, fill=scenario.exposure_fill, error=scenario.exposure_error, rng=rng)
-    dn = to_dn(view, exposure, full_well_dn=scenario.full_well_dn, gain_e_per_dn=scenario.gain_e_per_dn, read_noise_dn=scenario.read_noise_dn, rng=rng)
+    exposure = choose_exposure(expected_max, full_well_dn=scenario.full_well_dn, fill=scenario.exposure_fill,
+                               error=scenario.exposure_error, rng=rng)
+    dn = to_dn(view, exposure, full_well_dn=scenario.full_well_dn, gain_e_per_dn=scenario.gain_e_per_dn,
+               read_noise_dn=scenario.read_noise_dn, rng=rng)
     utc = sp.et2utc(obs.et - EXPOSURE_S / 2, "ISOC", 3) + "Z"
     stop = sp.et2utc(obs.et + EXPOSURE_S / 2, "ISOC", 3) + "Z"
     basename = f"pwm_{scenario.name}_{obs.name}"
@@ -266,10 +297,11 @@ def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scena
         lid=f"urn:nasa:pds:pwm_sim:{scenario.name.replace('-', '_')}:{basename}", start_utc=utc, stop_utc=stop,
         mission=mission.name, host_name=mission.host,
         instrument_name=mission.instrument_label or instrument_frame(scenario.instrument_id),
-        target_name=mission.target_label, title=f"Simulated {scenario.name} image {obs.name}", exposure_s=EXPOSURE_S, subframe=window,
+        target_name=mission.target_label, title=f"Simulated {scenario.name} image {obs.name}", exposure_s=EXPOSURE_S,
+        subframe=window,
     )
-    return {"name": obs.name, "label": f"images/{label.name}", "data": f"images/{data.name}", "start_utc": utc, "et": obs.et,
-            "scaling": exposure.scaling, "true_gain": exposure.true_gain}
+    return {"name": obs.name, "label": f"images/{label.name}", "data": f"images/{data.name}", "start_utc": utc,
+            "et": obs.et, "scaling": exposure.scaling, "true_gain": exposure.true_gain}
 
 
 def _true_geometry(obs: Observation, *, pose: Pose, sun: np.ndarray, truth: Truth, camera: Camera) -> dict:
@@ -281,7 +313,8 @@ def _true_geometry(obs: Observation, *, pose: Pose, sun: np.ndarray, truth: Trut
     emission = float(np.degrees(np.arccos(np.clip(to_cam @ frame.normal / rng_km, -1, 1))))
     phase = float(np.degrees(np.arccos(np.clip(to_cam @ sun / rng_km, -1, 1))))
     return {"position_km": pose.position.tolist(), "rotation": pose.rotation.tolist(), "sun_direction": sun.tolist(),
-            "site_incidence_deg": float(incidence), "site_sun_azimuth_deg": float(sun_az), "site_emission_deg": emission,
+            "site_incidence_deg": float(incidence), "site_sun_azimuth_deg": float(sun_az),
+            "site_emission_deg": emission,
             "site_phase_deg": phase, "site_range_km": rng_km, "site_gsd_m": rng_km / camera.fx * 1e3}
 
 
@@ -298,5 +331,6 @@ def _in_site(points: np.ndarray, truth: Truth) -> np.ndarray:
 def _write_downlink_manifest(downlink: Path, *, scenario: Scenario) -> None:
     """List every file with its checksum; written last, so its presence marks the downlink complete."""
     files = sorted(p for p in downlink.rglob("*") if p.is_file())
-    entries = [{"path": p.relative_to(downlink).as_posix(), "bytes": p.stat().st_size, "sha256": file_sha256(p)} for p in files]
+    entries = [{"path": p.relative_to(downlink).as_posix(), "bytes": p.stat().st_size,
+                "sha256": file_sha256(p)} for p in files]
     (downlink / "manifest.json").write_text(json.dumps({"scenario": scenario.name, "files": entries}, indent=1))

@@ -6,8 +6,8 @@ follows the same ephemeris and rotation model that the written kernels carry.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -32,7 +32,8 @@ class Observation:
     target_incidence_deg: float
 
 
-def sun_states(epochs: np.ndarray, *, pole: np.ndarray, subsolar_lat_deg: tuple[float, float], distance_km: float = 1.2 * AU_KM) -> np.ndarray:
+def sun_states(epochs: np.ndarray, *, pole: np.ndarray, subsolar_lat_deg: tuple[float, float],
+               distance_km: float = 1.2 * AU_KM) -> np.ndarray:
     """States (n, 6) of the Sun relative to the body in the pole's (inertial) frame, km and km/s.
 
     The subsolar latitude drifts linearly between the two values over the epochs, as the body's
@@ -51,7 +52,8 @@ def sun_states(epochs: np.ndarray, *, pole: np.ndarray, subsolar_lat_deg: tuple[
     return np.hstack([pos, vel])
 
 
-def time_for_incidence(sun: SunFunction, frame: LocalFrame, *, day_start_et: float, incidence_deg: float, morning: bool, search_s: float = 6 * 3600.0, step_s: float = 20.0) -> float:
+def time_for_incidence(sun: SunFunction, frame: LocalFrame, *, day_start_et: float, incidence_deg: float, morning: bool,
+                       search_s: float = 6 * 3600.0, step_s: float = 20.0) -> float:
     """The epoch within one search window when the Sun stands at `incidence_deg` over the site,
     in the morning (Sun in the east) or afternoon; the closest feasible incidence if unreachable."""
     ets = day_start_et + np.arange(0.0, search_s, step_s)
@@ -74,7 +76,9 @@ def view_direction(frame: LocalFrame, emission_deg: float, azimuth_deg: float) -
     return local @ frame.rotation
 
 
-def plan_site(*, frame: LocalFrame, sun: SunFunction, start_et: float, campaign_s: float, range_km: float, views: list[tuple[float, float]], incidences_deg: tuple[float, ...], aim_scatter_km: float, rng: np.random.Generator, prefix: str) -> list[Observation]:
+def plan_site(*, frame: LocalFrame, sun: SunFunction, start_et: float, campaign_s: float, range_km: float,
+              views: list[tuple[float, float]], incidences_deg: tuple[float, ...], aim_scatter_km: float,
+              rng: np.random.Generator, prefix: str) -> list[Observation]:
     """Images of a site: one per (emission, azimuth) view, at incidences cycling through the list,
     alternating morning and afternoon so the Sun's azimuth varies across the set."""
     obs = []
@@ -83,14 +87,16 @@ def plan_site(*, frame: LocalFrame, sun: SunFunction, start_et: float, campaign_
         incidence = incidences_deg[k % len(incidences_deg)]
         day = start_et + campaign_s * k / max(n, 1)
         et = time_for_incidence(sun, frame, day_start_et=day, incidence_deg=incidence, morning=(k % 2 == 0))
-        aim = frame.to_body(np.array([*rng.normal(0.0, aim_scatter_km, 2), 0.0])) if aim_scatter_km > 0 else frame.origin
+        aim = (frame.to_body(np.array([*rng.normal(0.0, aim_scatter_km, 2), 0.0])) if aim_scatter_km > 0
+               else frame.origin)
         position = aim + range_km * view_direction(frame, emission, azimuth)
         pose = look_at(position, aim, up=frame.rotation[1])
         obs.append(Observation(f"{prefix}{k:03d}", et, pose.position, pose.rotation, emission, azimuth, incidence))
     return obs
 
 
-def plan_global(*, sun: SunFunction, start_et: float, campaign_s: float, range_km: float, n: int, phases_deg: tuple[float, ...], rng: np.random.Generator, prefix: str) -> list[Observation]:
+def plan_global(*, sun: SunFunction, start_et: float, campaign_s: float, range_km: float, n: int,
+                phases_deg: tuple[float, ...], rng: np.random.Generator, prefix: str) -> list[Observation]:
     """Whole-body images: the camera looks at the body centre from a direction at a given phase
     angle from the Sun, rotated about the Sun direction so sub-spacecraft latitudes vary."""
     obs = []

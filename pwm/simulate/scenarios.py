@@ -13,7 +13,7 @@ class Scenario(BaseModel):
 
     name: str
     description: str
-    mission: str = Field("osiris-rex", description="a key of pwm.simulate.missions.MISSIONS: labels, kernels, base shape")
+    mission: str = Field("osiris-rex", description="a key of pwm.simulate.missions.MISSIONS: labels, kernels, shape")
     instrument_id: int = MAPCAM
     target: str = "BENNU"
     body_frame: str = "IAU_BENNU"
@@ -44,7 +44,8 @@ class Scenario(BaseModel):
     subframe_px: int | None = Field(None, description="read out a centred square detector window of this size")
     full_well_dn: float = 16383.0
     exposure_fill: float = Field(0.7, description="fraction of full scale the brightest expected pixel reaches")
-    exposure_error: float = Field(0.03, description="1-sigma relative brightness error per image, unknown to processing")
+    exposure_error: float = Field(0.03,
+                                  description="1-sigma relative brightness error per image, unknown to processing")
     read_noise_dn: float = 2.0
     gain_e_per_dn: float = 4.0
 
@@ -72,7 +73,7 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         Scenario(
             name="ryugu-tiny",
-            description="tiny's design on Ryugu with Hayabusa2's ONC-T (1024 px, 13 um pixels): a second mission for tests",
+            description="tiny's design on Ryugu with Hayabusa2's ONC-T (1024 px, 13 um pixels): a second mission",
             mission="hayabusa2", instrument_id=ONC_T, target="RYUGU", body_frame="RYUGU_FIXED",
             start_utc="2018-10-01T00:00:00",
             site_lat_deg=10.0, site_lon_deg=40.0, site_size_km=0.010,

@@ -125,7 +125,8 @@ def gaussian_sigma_km(cutoff_km: float) -> float:
     return cutoff_km * np.sqrt(2 * np.log(2.0)) / (2 * np.pi)
 
 
-def _power_law(rng: np.random.Generator, n: int, lo: float, hi: float, slope: float) -> np.ndarray:
+def _power_law(rng: np.random.Generator, n: int, lo: float | np.ndarray, hi: float | np.ndarray,
+               slope: float) -> np.ndarray:
     """Sizes between lo and hi with a cumulative distribution N(>D) ~ D**-slope."""
     u = rng.uniform(0.0, 1.0, n)
     return (lo**-slope - u * (lo**-slope - hi**-slope)) ** (-1.0 / slope)
@@ -140,7 +141,7 @@ def sample_craters(rng: np.random.Generator, *, n: int, site_size_km: float, res
     centre = rng.uniform(-site_size_km / 2, site_size_km / 2, (n, 2))
     depth = diameter * rng.uniform(0.1, 0.2, n)
     return [Crater(x_km=float(c[0]), y_km=float(c[1]), diameter_km=float(d), depth_km=float(h),
-                   rim_height_km=float(0.25 * h)) for c, d, h in zip(centre, diameter, depth)]
+                   rim_height_km=float(0.25 * h)) for c, d, h in zip(centre, diameter, depth, strict=True)]
 
 
 def sample_boulders(
@@ -176,7 +177,7 @@ def sample_boulders(
             raise ValueError(f"cannot place {n} non-overlapping boulders in a {site_size_km * 1e3:g} m site")
         centre[m] = c
     return [Boulder(x_km=float(c[0]), y_km=float(c[1]), diameter_km=float(diameter[k]), height_km=float(height[k]),
-                    steep=bool(steep[k]), albedo_factor=float(albedo[k])) for c, k in zip(centre, order)]
+                    steep=bool(steep[k]), albedo_factor=float(albedo[k])) for c, k in zip(centre, order, strict=True)]
 
 
 def crater_profile(crater: Crater, r_km: np.ndarray) -> np.ndarray:
@@ -242,13 +243,14 @@ def albedo_patches(rng: np.random.Generator, x_km: np.ndarray, y_km: np.ndarray,
     sigma = rng.uniform(0.5e-3, min(4e-3, site_size_km / 4), n)
     amplitude = rng.choice([-1.0, 1.0], n) * rng.uniform(0.1, 0.3, n)
     out = np.zeros((len(y_km), len(x_km)))
-    for (cx, cy), s, a in zip(centre, sigma, amplitude):
+    for (cx, cy), s, a in zip(centre, sigma, amplitude, strict=True):
         win, r = _window(x_km, y_km, cx, cy, 3 * s)
         out[win] += a * np.exp(-0.5 * (r / s) ** 2)
     return out
 
 
-def cobble_relief(rng: np.random.Generator, x_km: np.ndarray, y_km: np.ndarray, *, cover: float, site_size_km: float, resolution_km: float) -> np.ndarray:
+def cobble_relief(rng: np.random.Generator, x_km: np.ndarray, y_km: np.ndarray, *, cover: float, site_size_km: float,
+                  resolution_km: float) -> np.ndarray:
     """Relief (km) of a regolith of cobbles: rounded rocks 0.3-3 m across (at least 12 grid
     spacings), cumulative size slope 2.5 as on Bennu, covering about `cover` of the site square.
 
@@ -263,7 +265,7 @@ def cobble_relief(rng: np.random.Generator, x_km: np.ndarray, y_km: np.ndarray, 
     height = diameter / 2 * rng.uniform(0.6, 1.0, n)
     centre = rng.uniform(-site_size_km / 2, site_size_km / 2, (n, 2))
     relief = np.zeros((len(y_km), len(x_km)))
-    for (cx, cy), d, h in zip(centre, diameter, height):
+    for (cx, cy), d, h in zip(centre, diameter, height, strict=True):
         win, r = _window(x_km, y_km, cx, cy, d / 2)
         rock = Boulder(x_km=cx, y_km=cy, diameter_km=d, height_km=h, steep=False, albedo_factor=1.0)
         relief[win] = np.maximum(relief[win], np.where(r < d / 2, boulder_profile(rock, r), 0.0))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -22,8 +23,17 @@ from pwm.io.meshio import read_ply, write_ply
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.terrain import (
-    Boulder, Crater, albedo_patches, boulder_relief, cobble_relief, crater_relief, fractal_grid, gaussian_sigma_km,
-    plane_waves, sample_boulders, sample_craters,
+    Boulder,
+    Crater,
+    albedo_patches,
+    boulder_relief,
+    cobble_relief,
+    crater_relief,
+    fractal_grid,
+    gaussian_sigma_km,
+    plane_waves,
+    sample_boulders,
+    sample_craters,
 )
 
 BENNU_ALBEDO = 0.044
@@ -88,7 +98,7 @@ class Truth:
     @property
     def albedo_grid(self) -> np.ndarray:
         """Patch albedo per grid node, (len(y), len(x)) (a view into the mesh albedo)."""
-        return self.mesh.albedo[self.n_base_vertices :].reshape(self.height_km.shape)
+        return self.mesh.require_albedo()[self.n_base_vertices :].reshape(self.height_km.shape)
 
     def blend_weight(self) -> np.ndarray:
         """Weight of the detail per grid node: 0 in the zero band, 1 in the site square."""
@@ -97,7 +107,7 @@ class Truth:
     def base_mesh(self) -> Mesh:
         """The base body with the hole under the patch (km, with albedo)."""
         return Mesh(self.mesh.vertices[: self.n_base_vertices], self.mesh.faces[: self.n_base_faces],
-                    self.mesh.albedo[: self.n_base_vertices])
+                    self.mesh.require_albedo()[: self.n_base_vertices])
 
 
 def build_base(
@@ -270,7 +280,7 @@ def _drape(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray, *,
         if not hits.hit.all():
             raise ValueError("the site patch overhangs the edge of the body: choose a smaller site")
         height[i0 : i0 + len(ys)] = (top - hits.t).reshape(len(ys), -1)
-        albedo[i0 : i0 + len(ys)] = tracer.interpolate(mesh.albedo, hits).reshape(len(ys), -1)
+        albedo[i0 : i0 + len(ys)] = tracer.interpolate(mesh.require_albedo(), hits).reshape(len(ys), -1)
     return height, albedo
 
 
@@ -289,7 +299,7 @@ def _cut(base: Mesh, frame: LocalFrame, half_km: float) -> tuple[Mesh, float]:
     used = np.zeros(len(base.vertices), dtype=bool)
     used[faces] = True
     new_id = np.cumsum(used) - 1
-    return Mesh(base.vertices[used], new_id[faces], base.albedo[used]), reach
+    return Mesh(base.vertices[used], new_id[faces], base.require_albedo()[used]), reach
 
 
 def _site_detail(seed: int, axis_km: np.ndarray, site_size_km: float, craters: list[Crater],
@@ -297,8 +307,8 @@ def _site_detail(seed: int, axis_km: np.ndarray, site_size_km: float, craters: l
     """Relief along z (km) and log-albedo of the site on the square grid with this axis."""
     shape = (len(axis_km), len(axis_km))
     spacing = float(axis_km[1] - axis_km[0])
-    band = dict(shape=shape, spacing_km=spacing, wavelength_min_km=RESOLVED_NODES * spacing,
-                wavelength_max_km=site_size_km)
+    band: dict[str, Any] = dict(shape=shape, spacing_km=spacing, wavelength_min_km=RESOLVED_NODES * spacing,
+                                wavelength_max_km=site_size_km)
     relief, log_albedo = boulder_relief(axis_km, axis_km, boulders)
     relief += crater_relief(axis_km, axis_km, craters)
     if cobble_cover > 0:

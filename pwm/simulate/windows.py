@@ -34,20 +34,26 @@ def window_downlink(source: Path, out: Path, *, size_px: int, first_px: tuple[in
     shutil.copytree(source / "kernels", out / "kernels")
     written = []
     for k in range(count):
-        product = read_image_product(labels[k % len(labels)])
+        source_label = labels[k % len(labels)]
+        product = read_image_product(source_label)
         window = product.data[line:line + size_px, sample:sample + size_px]
         if window.shape != (size_px, size_px):
             raise ValueError(f"the window {size_px} px at {first_px} leaves the "
                              f"{product.data.shape} array")
+        if product.fits_header is None:
+            raise ValueError(f"{source_label.name} has no FITS header to take BSCALE from")
         scale = product.fits_header["BSCALE"]
-        name = f"{labels[k % len(labels)].stem}_{tag}{k:03d}"
+        mission, host, instrument, target = (product.mission, product.host_name, product.instrument_name,
+                                             product.target_name)
+        if mission is None or host is None or instrument is None or target is None:
+            raise ValueError(f"{source_label.name} does not name its mission, host, instrument and target")
+        name = f"{source_label.stem}_{tag}{k:03d}"
         label, _ = write_image_product(
             directory=out / "images", basename=name,
             dn=np.round(np.nan_to_num(window) / scale).astype(np.int16), scaling_factor=scale,
             value_offset=0.0, lid=f"{product.lid}_{tag}{k:03d}", start_utc=product.start_utc,
-            stop_utc=product.stop_utc, mission=product.mission, host_name=product.host_name,
-            instrument_name=product.instrument_name, target_name=product.target_name,
-            title=name, exposure_s=product.exposure_s,
+            stop_utc=product.stop_utc, mission=mission, host_name=host, instrument_name=instrument,
+            target_name=target, title=name, exposure_s=product.exposure_s,
             subframe=(product.first_line + line, product.first_sample + sample))
         written.append(label)
     files = sorted(p for p in out.rglob("*") if p.is_file())

@@ -54,8 +54,9 @@ def _project(points: np.ndarray, position: np.ndarray, rotation: np.ndarray, cam
     return np.column_stack([cam[:, 0] * c[:, 0] / c[:, 2] + cam[:, 2], cam[:, 1] * c[:, 1] / c[:, 2] + cam[:, 3]])
 
 
-def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], poses: list[Pose], *, sigma_position_km: float,
-                  sigma_pointing_rad: float, huber_px: float = 2.0, max_iterations: int = 20, tolerance: float = 1e-6) -> Adjustment:
+def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], poses: list[Pose], *,
+                  sigma_position_km: float, sigma_pointing_rad: float, huber_px: float = 2.0, max_iterations: int = 20,
+                  tolerance: float = 1e-6) -> Adjustment:
     """Adjust `points` and the poses' corrections to the observations in `tracks`.
 
     Parameters are scaled so that the point unknowns are in metres and the pose unknowns in
@@ -85,7 +86,7 @@ def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], pos
     current = cost(r, x_pose)
     damping = 1e-3
     iterations = 0
-    for iterations in range(1, max_iterations + 1):
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 (the count done is returned)
         jp, jc = _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays)
         w = np.minimum(1.0, huber_px / np.maximum(np.abs(r), 1e-12)).reshape(-1, 2)  # IRLS Huber weights
         eq = _normal(jp, jc, w, r.reshape(-1, 2), obs_pt, obs_img, n_pt, n_img)
@@ -125,14 +126,16 @@ def _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays) -> tuple[np.nda
     for k in range(3):
         e = np.zeros(3)
         e[k] = h * 1e-3
-        jp[:, :, k] = (_project(p + e, pos[obs_img], rot[obs_img], cam) - _project(p - e, pos[obs_img], rot[obs_img], cam)) / (2 * h)
+        jp[:, :, k] = (_project(p + e, pos[obs_img], rot[obs_img], cam)
+                       - _project(p - e, pos[obs_img], rot[obs_img], cam)) / (2 * h)
     jc = np.empty((n, 2, 6))
     h = 1e-3  # sigma units
     for k in range(6):
         e = np.zeros_like(x_pose)
         e[:, k] = h
         plus, minus = pose_arrays(x_pose + e), pose_arrays(x_pose - e)
-        jc[:, :, k] = (_project(p, plus[0][obs_img], plus[1][obs_img], cam) - _project(p, minus[0][obs_img], minus[1][obs_img], cam)) / (2 * h)
+        jc[:, :, k] = (_project(p, plus[0][obs_img], plus[1][obs_img], cam)
+                       - _project(p, minus[0][obs_img], minus[1][obs_img], cam)) / (2 * h)
     return jp, jc
 
 

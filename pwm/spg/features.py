@@ -40,8 +40,9 @@ def normalise(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(out, dtype=np.float32)
 
 
-def extract(images: list[np.ndarray], *, max_features: int = 8192, first_octave: int | Sequence[int] = 0, peak_threshold: float = 0.002,
-            windows: Sequence[tuple[slice, slice]] | None = None, threads: int = 2) -> list[Features]:
+def extract(images: list[np.ndarray], *, max_features: int = 8192, first_octave: int | Sequence[int] = 0,
+            peak_threshold: float = 0.002, windows: Sequence[tuple[slice, slice]] | None = None,
+            threads: int = 2) -> list[Features]:
     """SIFT features of each image (reflectance-like values, NaN where missing), in full-frame
     pixels. first_octave (one, or one per image) -1 doubles the image first: more, finer
     features at about three times the cost per pixel. windows: per image the (lines, samples)
@@ -77,7 +78,8 @@ def fundamental(camera_a: Camera, pose_a: Pose, camera_b: Camera, pose_b: Pose) 
 
 
 def _intrinsics(camera: Camera) -> np.ndarray:
-    return np.array([[camera.fx, 0.0, camera.cx + COLMAP_OFFSET], [0.0, camera.fy, camera.cy + COLMAP_OFFSET], [0.0, 0.0, 1.0]])
+    return np.array([[camera.fx, 0.0, camera.cx + COLMAP_OFFSET], [0.0, camera.fy, camera.cy + COLMAP_OFFSET],
+                     [0.0, 0.0, 1.0]])
 
 
 def _colmap_camera(camera: Camera) -> pycolmap.Camera:

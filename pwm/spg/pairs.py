@@ -9,8 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pwm.camera import Camera, project
-from pwm.views import View
 from pwm.raytrace import RayTracer
+from pwm.views import View
 
 
 @dataclass(frozen=True)
@@ -49,13 +49,13 @@ def footprints(views: list[View], tracer: RayTracer, *, grid: int = 32) -> list[
     """Where a `grid` x `grid` lattice of each view's pixels meets the model."""
     out = []
     for v in views:
-        s, l = np.meshgrid(np.linspace(0, v.camera.width - 1, grid), np.linspace(0, v.camera.height - 1, grid))
-        dirs = v.pose.to_body_directions(v.camera.pixel_directions(s.ravel(), l.ravel()))
+        s, line = np.meshgrid(np.linspace(0, v.camera.width - 1, grid), np.linspace(0, v.camera.height - 1, grid))
+        dirs = v.pose.to_body_directions(v.camera.pixel_directions(s.ravel(), line.ravel()))
         origins = np.broadcast_to(v.pose.position, dirs.shape)
         hits = tracer.intersect(origins, dirs)
         points = tracer.hit_points(origins, dirs, hits)[hits.hit]
         out.append(Footprint(points=points, normals=tracer.face_normals[hits.face[hits.hit]],
-                             pixels=np.column_stack([s.ravel(), l.ravel()])[hits.hit]))
+                             pixels=np.column_stack([s.ravel(), line.ravel()])[hits.hit]))
     return out
 
 
@@ -65,7 +65,8 @@ def _seen_by(footprint: Footprint, view: View) -> np.ndarray:
     facing = np.einsum("ij,ij->i", to_camera, footprint.normals) > 0
     in_front = view.pose.to_camera(footprint.points)[:, 2] > 0
     px = project(footprint.points, view.camera, view.pose)
-    inside = (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1)
+    inside = ((px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1)
+              & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
     return facing & in_front & inside
 
 
@@ -74,8 +75,9 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def choose_pairs(views: list[View], prints: list[Footprint], *, min_overlap: float = 0.2, stereo_deg: tuple[float, float] = (2.0, 50.0),
-                 max_sun_deg: float = 25.0, per_image: int = 6) -> list[Pair]:
+def choose_pairs(views: list[View], prints: list[Footprint], *, min_overlap: float = 0.2,
+                 stereo_deg: tuple[float, float] = (2.0, 50.0), max_sun_deg: float = 25.0,
+                 per_image: int = 6) -> list[Pair]:
     """Pairs (first < second) that overlap by at least `min_overlap` (of either footprint), see
     the common ground at a stereo angle within `stereo_deg` (deg) and under Suns at most
     `max_sun_deg` apart. Each image keeps its `per_image` best partners (by overlap over the

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pwm.camera import PoseCorrection, corrected_pose
-from pwm.views import View
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.spg.adjustment import bundle_adjust
@@ -23,6 +22,7 @@ from pwm.spg.pairs import Pair, choose_pairs, footprints
 from pwm.spg.surface import at_resolution, fit_surface, point_spacing
 from pwm.spg.triangulation import Tracks, build_tracks, rays, reprojection_errors, triangulate
 from pwm.spg.uncertainty import pose_uncertainty
+from pwm.views import View
 
 log = logging.getLogger(__name__)
 
@@ -55,9 +55,10 @@ class Matching:
     match_s: float
 
 
-def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
-                max_features: int = 8192, first_octave: int | None = None, peak_threshold: float = 0.002, per_image: int = 6,
-                max_sun_deg: float = 25.0, double_below: float = 0.25, threads: int = 2) -> Matching:
+def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: float = 1e-3,
+                sigma_pointing_rad: float = 1e-4, max_features: int = 8192, first_octave: int | None = None,
+                peak_threshold: float = 0.002, per_image: int = 6, max_sun_deg: float = 25.0,
+                double_below: float = 0.25, threads: int = 2) -> Matching:
     """Choose pairs on the model (`tracer`), extract SIFT features where each view sees the model
     and match them along the epipolar band the pose knowledge allows.
 
@@ -71,29 +72,33 @@ def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: floa
     if not pairs:
         raise ValueError("no image pair overlaps with a usable stereo angle and illumination")
     ranges = _ranges(views, tracer)
-    windows = [p.window(v.camera, margin_px=max(v.camera.width, v.camera.height) / (FOOTPRINT_GRID - 1)) for p, v in zip(prints, views)]
+    windows = [p.window(v.camera, margin_px=max(v.camera.width, v.camera.height) / (FOOTPRINT_GRID - 1))
+               for p, v in zip(prints, views, strict=True)]
     if first_octave is None:
-        octaves = [-1 if (w[0].stop - w[0].start) * (w[1].stop - w[1].start) < double_below * v.camera.width * v.camera.height else 0
-                   for w, v in zip(windows, views)]
+        octaves = [-1 if (w[0].stop - w[0].start) * (w[1].stop - w[1].start)
+                   < double_below * v.camera.width * v.camera.height else 0
+                   for w, v in zip(windows, views, strict=True)]
     else:
         octaves = [first_octave] * len(views)
-    features = extract([v.image for v in views], max_features=max_features, first_octave=octaves, peak_threshold=peak_threshold,
-                       windows=windows, threads=threads)
+    features = extract([v.image for v in views], max_features=max_features, first_octave=octaves,
+                       peak_threshold=peak_threshold, windows=windows, threads=threads)
     extract_s = time.perf_counter() - clock
     matches = {}
     for p in pairs:
         a, b = views[p.first], views[p.second]
-        band = _band_px(a, ranges[p.first], sigma_position_km, sigma_pointing_rad) + _band_px(b, ranges[p.second], sigma_position_km, sigma_pointing_rad)
-        matches[(p.first, p.second)] = match_guided(features[p.first], features[p.second], camera_a=a.camera, pose_a=a.pose,
-                                                    camera_b=b.camera, pose_b=b.pose, max_error_px=band, threads=threads)
+        band = (_band_px(a, ranges[p.first], sigma_position_km, sigma_pointing_rad)
+                + _band_px(b, ranges[p.second], sigma_position_km, sigma_pointing_rad))
+        matches[(p.first, p.second)] = match_guided(features[p.first], features[p.second], camera_a=a.camera,
+                                                    pose_a=a.pose, camera_b=b.camera, pose_b=b.pose,
+                                                    max_error_px=band, threads=threads)
     return Matching(pairs=pairs, features=features, matches=matches, ranges=ranges, extract_s=extract_s,
                     match_s=time.perf_counter() - clock - extract_s)
 
 
-def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
-                          max_features: int = 8192, first_octave: int | None = None, per_image: int = 6, max_sun_deg: float = 25.0,
-                          model_tolerance_px: float = 30.0, min_angle_deg: float = 2.0, max_residual_px: float = 3.0,
-                          threads: int = 2) -> SpgResult:
+def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_km: float = 1e-3,
+                          sigma_pointing_rad: float = 1e-4, max_features: int = 8192, first_octave: int | None = None,
+                          per_image: int = 6, max_sun_deg: float = 25.0, model_tolerance_px: float = 30.0,
+                          min_angle_deg: float = 2.0, max_residual_px: float = 3.0, threads: int = 2) -> SpgResult:
     """The photogrammetric model and pose corrections from `views`, starting from `previous`.
 
     sigma_position_km, sigma_pointing_rad: 1-sigma navigation knowledge (per axis), the priors
@@ -103,40 +108,53 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_k
     """
     clock = time.perf_counter()
     tracer = RayTracer(previous)
-    m = match_views(views, tracer, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad, max_features=max_features,
-                    first_octave=first_octave, per_image=per_image, max_sun_deg=max_sun_deg, threads=threads)
+    m = match_views(views, tracer, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad,
+                    max_features=max_features, first_octave=first_octave, per_image=per_image,
+                    max_sun_deg=max_sun_deg, threads=threads)
     pairs, features, matches, ranges = m.pairs, m.features, m.matches, m.ranges
     stats: dict = {"extract_s": m.extract_s, "match_s": m.match_s, "features": int(sum(len(f.xy) for f in features)),
                    "matches": int(sum(len(x) for x in matches.values()))}
-    log.info("%d pairs, %d features, %d matches (%.1f s)", len(pairs), stats["features"], stats["matches"], time.perf_counter() - clock)
+    log.info("%d pairs, %d features, %d matches (%.1f s)", len(pairs), stats["features"], stats["matches"],
+             time.perf_counter() - clock)
 
     cameras, poses = [v.camera for v in views], [v.pose for v in views]
     tracks = build_tracks(matches, [f.xy for f in features])
-    tracks = _consistent(tracks, cameras, poses, tracer, views, ranges, sigma_position_km, sigma_pointing_rad, model_tolerance_px)
+    tracks = _consistent(tracks, cameras, poses, tracer, views, ranges, sigma_position_km, sigma_pointing_rad,
+                         model_tolerance_px)
     points, _ = triangulate(tracks, cameras, poses)
-    adjusted = bundle_adjust(points, tracks, cameras, poses, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
+    adjusted = bundle_adjust(points, tracks, cameras, poses, sigma_position_km=sigma_position_km,
+                             sigma_pointing_rad=sigma_pointing_rad)
     keep = adjusted.residuals_px <= max_residual_px
     if not keep.all():
         # once more without the mismatches, which the Huber weights only damped
         tracks = tracks.subset(keep)
         points, _ = triangulate(tracks, cameras, poses)
-        adjusted = bundle_adjust(points, tracks, cameras, poses, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
-    final = [corrected_pose(p, adjusted.position_corrections[i], adjusted.rotation_corrections[i]) for i, p in enumerate(poses)]
+        adjusted = bundle_adjust(points, tracks, cameras, poses, sigma_position_km=sigma_position_km,
+                                 sigma_pointing_rad=sigma_pointing_rad)
+    final = [corrected_pose(p, adjusted.position_corrections[i], adjusted.rotation_corrections[i])
+             for i, p in enumerate(poses)]
     points, angle = triangulate(tracks, cameras, final)
     residual = reprojection_errors(points, tracks, cameras, final)
     good_point = angle >= np.radians(min_angle_deg) / 2
     stats.update(pairs=len(pairs), tracks=tracks.n_points, observations=len(tracks.image), points=int(good_point.sum()),
                  residual_rms_px=float(np.sqrt(np.mean(residual**2))), iterations=adjusted.iterations)
-    stats["uncertainty"] = pose_uncertainty(adjusted, cameras, poses, ranges, noise_px=max(stats["residual_rms_px"], 0.1) / np.sqrt(2))
+    stats["uncertainty"] = pose_uncertainty(adjusted, cameras, poses, ranges,
+                                            noise_px=max(stats["residual_rms_px"], 0.1) / np.sqrt(2))
     points = points[good_point]
     spacing = point_spacing(points)
     surface = fit_surface(at_resolution(previous, 2.0 * spacing, points), points, radius_km=2.0 * spacing)
     stats.update(point_spacing_km=spacing, surface_vertices=len(surface.vertices), seconds=time.perf_counter() - clock)
-    corrections = {v.name: PoseCorrection(tuple(map(float, adjusted.position_corrections[i])), tuple(map(float, adjusted.rotation_corrections[i])))
+    corrections = {v.name: PoseCorrection(_triple(adjusted.position_corrections[i]),
+                                          _triple(adjusted.rotation_corrections[i]))
                    for i, v in enumerate(views)}
     log.info("SPG: %d points at %.2f m spacing, residual %.2f px RMS, %d vertices (%.1f s)", len(points), spacing * 1e3,
              stats["residual_rms_px"], len(surface.vertices), stats["seconds"])
     return SpgResult(mesh=surface, corrections=corrections, points=points, pairs=pairs, stats=stats)
+
+
+def _triple(values: np.ndarray) -> tuple[float, float, float]:
+    x, y, z = (float(v) for v in values)
+    return x, y, z
 
 
 def _ranges(views: list[View], tracer: RayTracer) -> np.ndarray:
@@ -152,12 +170,12 @@ def _band_px(view: View, range_km: float, sigma_position_km: float, sigma_pointi
     return 1.0 + 3.0 * view.camera.fx * float(np.hypot(sigma_position_km / range_km, sigma_pointing_rad))
 
 
-def _consistent(tracks: Tracks, cameras, poses, tracer: RayTracer, views: list[View], ranges: np.ndarray, sigma_position_km: float,
-                sigma_pointing_rad: float, model_tolerance_px: float) -> Tracks:
+def _consistent(tracks: Tracks, cameras, poses, tracer: RayTracer, views: list[View], ranges: np.ndarray,
+                sigma_position_km: float, sigma_pointing_rad: float, model_tolerance_px: float) -> Tracks:
     """Tracks whose rays meet within the navigation band and whose points lie near the previous
     model along the first observation's line of sight."""
     points, _ = triangulate(tracks, cameras, poses)
-    band = np.array([_band_px(v, r, sigma_position_km, sigma_pointing_rad) for v, r in zip(views, ranges)])
+    band = np.array([_band_px(v, r, sigma_position_km, sigma_pointing_rad) for v, r in zip(views, ranges, strict=True)])
     tracks = tracks.subset(reprojection_errors(points, tracks, cameras, poses) <= band[tracks.image])
     points, _ = triangulate(tracks, cameras, poses)
     origins, dirs = rays(tracks, cameras, poses)

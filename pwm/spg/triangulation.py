@@ -24,7 +24,7 @@ class Tracks:
     def n_points(self) -> int:
         return int(self.point.max()) + 1 if len(self.point) else 0
 
-    def subset(self, keep: np.ndarray) -> "Tracks":
+    def subset(self, keep: np.ndarray) -> Tracks:
         """The observations where `keep`, dropping points left with fewer than two, renumbered."""
         point, image, xy = self.point[keep], self.image[keep], self.xy[keep]
         count = np.bincount(point, minlength=self.n_points)

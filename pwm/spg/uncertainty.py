@@ -36,20 +36,22 @@ def pose_uncertainty(adjusted: Adjustment, cameras: list[Camera], poses: list[Po
                                    for which in ("prior", "posterior")}
     for k in ("los_one_image_px", "pointing_one_image_urad", "pointing_alone_urad", "lateral_pointing_correlation"):
         out[k] = []
-    jac = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km)]
+    jac = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km, strict=True)]
     for which, cov in (("prior", prior), ("posterior", posterior)):
         for i, pose in enumerate(poses):
-            c = _to_camera(cov[6 * i:6 * i + 6, 6 * i:6 * i + 6], pose)
+            own = cov[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+            c = _to_camera(own, pose)
             out[f"lateral_m_{which}"].append(float(np.sqrt(c[0, 0] + c[1, 1])) * 1e3)
             out[f"along_m_{which}"].append(float(np.sqrt(c[2, 2])) * 1e3)
             out[f"pointing_urad_{which}"].append(float(np.sqrt(c[3, 3] + c[4, 4])) * 1e6)
-            out[f"los_px_{which}"].append(float(np.sqrt(np.trace(jac[i] @ cov[6 * i:6 * i + 6, 6 * i:6 * i + 6] @ jac[i].T))))
+            out[f"los_px_{which}"].append(float(np.sqrt(np.trace(jac[i] @ own @ jac[i].T))))
     for i, pose in enumerate(poses):
         block = adjusted.information[6 * i:6 * i + 6, 6 * i:6 * i + 6] / noise_px**2 + np.eye(6)  # sigma units
         one_body = np.linalg.inv(block) * np.outer(adjusted.sigma, adjusted.sigma)
         one = _to_camera(one_body, pose)
         out["los_one_image_px"].append(float(np.sqrt(np.trace(jac[i] @ one_body @ jac[i].T))))
-        alone = _to_camera(np.pad(np.linalg.inv(block[3:, 3:]), ((3, 0), (3, 0))) * np.outer(adjusted.sigma, adjusted.sigma), pose)
+        alone_body = np.pad(np.linalg.inv(block[3:, 3:]), ((3, 0), (3, 0))) * np.outer(adjusted.sigma, adjusted.sigma)
+        alone = _to_camera(alone_body, pose)
         corr = one / np.sqrt(np.outer(np.diag(one), np.diag(one)))
         out["pointing_one_image_urad"].append(float(np.sqrt(one[3, 3] + one[4, 4])) * 1e6)
         out["pointing_alone_urad"].append(float(np.sqrt(alone[3, 3] + alone[4, 4])) * 1e6)

@@ -7,9 +7,9 @@ import hmac
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Path, Query, Request, status
+from fastapi import Depends, Header, HTTPException, Path, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, SecretStr
 from sqlalchemy.orm import Session
 
 from service.api.schemas import VERSION_REF_PATTERN
@@ -54,9 +54,22 @@ def require_token(request: Request, credentials: Annotated[
     if expected is None:
         raise HTTPException(status.HTTP_403_FORBIDDEN,
                             "changing calls are disabled: the service has no PWM_API_TOKEN")
-    if not hmac.compare_digest(credentials.credentials.encode(),
-                               expected.get_secret_value().encode()):
+    if not _token_matches(credentials.credentials, expected):
         raise HTTPException(status.HTTP_403_FORBIDDEN, "wrong bearer token")
+
+
+def has_token(request: Request, authorization: Annotated[
+        str | None, Header(include_in_schema=False)] = None) -> bool:
+    """Whether a read carries the service's bearer token, for what only operators may see (a
+    read without it, or with a wrong one, is still answered)."""
+    expected = get_settings(request).api_token
+    scheme, _, token = (authorization or "").partition(" ")
+    return (expected is not None and scheme.lower() == "bearer"
+            and _token_matches(token, expected))
+
+
+def _token_matches(given: str, expected: SecretStr) -> bool:
+    return hmac.compare_digest(given.encode(), expected.get_secret_value().encode())
 
 
 def resolve_version(session: Session, ref: str) -> ModelVersion:
@@ -75,3 +88,4 @@ VersionRef = Annotated[str, Path(pattern=VERSION_REF_PATTERN,
                                              "or `released` (newest released)")]
 Id = Annotated[int, Path(ge=1, le=MAX_ID)]
 Authorized = Depends(require_token)
+TokenGiven = Annotated[bool, Depends(has_token)]

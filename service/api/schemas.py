@@ -9,10 +9,9 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from service.models import (DownlinkStatus, GeometryStatus, ImageStatus, JobKind, JobStatus,
-                            ModelKind)
-from service.queries import (CoverageSummary, MapletCoverage, MapletImage, MapletInfo,
-                             RevisionInfo)
+from service.jobs import error_reason
+from service.models import DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, JobStatus, ModelKind
+from service.queries import CoverageSummary, MapletCoverage, MapletImage, MapletInfo, RevisionInfo
 
 Item = TypeVar("Item")
 
@@ -153,6 +152,9 @@ class DownlinkOut(_Out):
 
 
 class JobOut(_Out):
+    """A job; `error` is why its latest attempt failed, the full `traceback` goes only to
+    callers with the API token (it names the server's files)."""
+
     id: int
     kind: JobKind
     key: str
@@ -160,12 +162,23 @@ class JobOut(_Out):
     attempts: int
     progress: float
     message: str | None
-    error: str | None
+    error: str | None = Field(description="why the latest attempt failed: the exception's last "
+                              "line, with paths reduced to file names")
+    traceback: str | None = Field(None, description="the failed attempt's full traceback; only "
+                                  "with the API token")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
     downlink_id: int | None
     maplet_id: int | None
+
+    @classmethod
+    def shown(cls, job: Job, *, with_traceback: bool) -> JobOut:
+        """The job as shown to a caller: the reason for anyone, the traceback only
+        `with_traceback` (a caller with the token)."""
+        return cls.model_validate(job).model_copy(update={
+            "error": error_reason(job.error),
+            "traceback": job.error if with_traceback else None})
 
 
 class MapletDetail(_Out):

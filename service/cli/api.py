@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -29,16 +28,16 @@ def export(
     version: str = typer.Argument(..., help="version number, release tag, latest or released"),
     format: str = typer.Option(..., "--format", help="obj | ply | icq | dsk | site"),
     out: Path = typer.Option(..., "--out", dir_okay=False, help="file to write"),
-    faces: Optional[int] = typer.Option(None, min=4, help="decimate to about this many faces first"),
-    lat: Optional[float] = typer.Option(None, min=-90.0, max=90.0, help="site latitude, deg (site)"),
-    lon: Optional[float] = typer.Option(None, help="site east longitude, deg (site)"),
-    radius: Optional[float] = typer.Option(None, min=0.0, help="site half-width, km (site)"),
-    body: Optional[str] = typer.Option(None, help="NAIF body name or ID (dsk, site; default: the catalog's)"),
-    frame: Optional[str] = typer.Option(None, help="body-fixed frame (dsk, site; default: the catalog's)"),
+    faces: int | None = typer.Option(None, min=4, help="decimate to about this many faces first"),
+    lat: float | None = typer.Option(None, min=-90.0, max=90.0, help="site latitude, deg (site)"),
+    lon: float | None = typer.Option(None, help="site east longitude, deg (site)"),
+    radius: float | None = typer.Option(None, min=0.0, help="site half-width, km (site)"),
+    body: str | None = typer.Option(None, help="NAIF body name or ID (dsk, site; default: the catalog's)"),
+    frame: str | None = typer.Option(None, help="body-fixed frame (dsk, site; default: the catalog's)"),
 ) -> None:
     """Export a model version; a site product is a zip of its PDS4 label, data file and PNG preview."""
     from service.catalog import open_catalog
-    from service.exports import ExportError, ExportFormat, Site, export_version
+    from service.exports import ExportError, ExportFormat, Site, make_export, plan_export
     from service.settings import get_settings
     from service.versions import get_version
 
@@ -53,9 +52,12 @@ def export(
     settings = get_settings()
     with open_catalog(settings)() as session:
         try:
-            made = export_version(session, data_dir=settings.data_dir, version=get_version(session, version),
-                                  fmt=fmt, faces=faces, body=body, frame=frame,
-                                  site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius) if fmt is ExportFormat.SITE else None)
+            plan = plan_export(session, data_dir=settings.data_dir, version=get_version(session, version),
+                               fmt=fmt, faces=faces, body=body, frame=frame,
+                               site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius)
+                               if lat is not None and lon is not None and radius is not None else None)
+            session.close()
+            made = make_export(plan, cache_bytes=settings.export_cache_bytes)
         except (LookupError, ExportError) as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
@@ -71,10 +73,10 @@ def release(
     """Mark a model version released under a tag; a release is never changed or undone."""
     from pydantic import ValidationError
 
-    from service.releases import ReleaseConflict, release_version
     from service.api.schemas import ReleaseRequest
     from service.catalog import open_catalog
     from service.db import session_scope
+    from service.releases import ReleaseConflict, release_version
 
     try:
         ReleaseRequest(tag=tag)

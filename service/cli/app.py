@@ -7,9 +7,11 @@ import json
 import logging
 from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING, Any
 
 import typer
+
+from pwm.config import DEFAULTS, RefinementConfig
 
 if TYPE_CHECKING:
     from pwm.camera import PoseCorrection
@@ -29,7 +31,8 @@ BODY_FRAME = typer.Option(None, help="body-fixed frame in place of the target's"
 
 def setup_logging(verbose: bool) -> None:
     """Log to stderr: INFO, or DEBUG with --verbose."""
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
 
 
 def echo_json(value: object) -> None:
@@ -37,7 +40,15 @@ def echo_json(value: object) -> None:
     typer.echo(json.dumps(value, indent=2))
 
 
-def downlink_views(downlink: Path, *, instrument: Optional[str], target: Optional[str], body_frame: Optional[str],
+def refinement_config(base: RefinementConfig = DEFAULTS, **changes: Any) -> RefinementConfig:
+    """`base` with the options given (None: keep base's), or a usage error naming what is wrong."""
+    try:
+        return dataclasses.replace(base, **{k: v for k, v in changes.items() if v is not None})
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
+
+
+def downlink_views(downlink: Path, *, instrument: str | None, target: str | None, body_frame: str | None,
                    corrections: dict[str, PoseCorrection] | None = None) -> DownlinkViews:
     """The downlink's views (pwm.io.downlink.read_downlink), each skipped product reported on
     stderr; a clear message and exit status 1 when nothing usable is left."""

@@ -3,19 +3,24 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Literal, cast
 
 import typer
 
-from service.cli.app import app, echo_json, echo_rejected, setup_logging
+from service.cli.app import app, echo_json, echo_rejected, refinement_config, setup_logging
 
 
 @app.command()
 def ingest(
-    directory: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 labels, SPICE kernels)"),
-    shape: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="current shape model for boresight intercepts and maplet coverage (.obj/.ply, km); default: the PCK ellipsoid, no coverage"),
-    name: Optional[str] = typer.Option(None, help="downlink name (default: the directory name)"),
-    maplet_nodes: int = typer.Option(100, min=8, help="nodes per side of maplets tiled where the images look and no maplet is catalogued yet (with --shape)"),
+    directory: Path = typer.Argument(..., exists=True, file_okay=False,
+                                     help="a downlink directory (PDS4 labels, SPICE kernels)"),
+    shape: Path | None = typer.Option(None, exists=True, dir_okay=False,
+                                      help="current shape model for boresight intercepts and maplet coverage "
+                                           "(.obj/.ply, km); default: the PCK ellipsoid, no coverage"),
+    name: str | None = typer.Option(None, help="downlink name (default: the directory name)"),
+    maplet_nodes: int | None = typer.Option(None,
+                                            help="nodes per side of maplets tiled where the images look and no maplet "
+                                                 "is catalogued yet (with --shape); default PWM_MAPLET_NODES"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Catalogue a downlink: kernels first, then every PDS4 product, accepted or rejected with a reason.
@@ -25,10 +30,13 @@ def ingest(
     from pwm.io.meshio import read_mesh
     from service.catalog import open_catalog
     from service.ingest import ingest_directory
+    from service.settings import get_settings
 
     setup_logging(verbose)
-    report = ingest_directory(open_catalog(), directory, downlink_name=name, shape=read_mesh(shape) if shape else None,
-                              maplet_nodes=maplet_nodes)
+    settings = get_settings()
+    config = refinement_config(settings.refinement(), nodes=maplet_nodes)
+    report = ingest_directory(open_catalog(settings), directory, downlink_name=name,
+                              shape=read_mesh(shape) if shape else None, config=config)
     echo_rejected(report.failures)
     typer.echo(report.summary())
     raise typer.Exit(min(report.failed, 100))
@@ -36,7 +44,7 @@ def ingest(
 
 @app.command()
 def images(
-    status: Optional[str] = typer.Option(None, help="accepted | rejected | conflict"),
+    status: str | None = typer.Option(None, help="accepted | rejected | conflict"),
     limit: int = typer.Option(50, min=1, help="at most this many rows"),
 ) -> None:
     """List catalogued images: LIDVID, status, time, range and angles at the boresight intercept."""
@@ -51,8 +59,10 @@ def images(
             query = query.where(Image.status == status)
         for image in session.scalars(query):
             g = image.geometry
-            where = (f"range {g.range_km:.3f} km  inc {g.incidence_deg:.1f}  emi {g.emission_deg:.1f}  pha {g.phase_deg:.1f}"
-                     if g is not None and g.incidence_deg is not None else (image.rejection_reason or image.geometry_unavailable_reason or ""))
+            where = (f"range {g.range_km:.3f} km  inc {g.incidence_deg:.1f}  emi {g.emission_deg:.1f}  "
+                     f"pha {g.phase_deg:.1f}"
+                     if g is not None and g.incidence_deg is not None
+                     else (image.rejection_reason or image.geometry_unavailable_reason or ""))
             typer.echo(f"{image.lidvid}  {image.status}  {image.start_utc}  {where}")
 
 
@@ -72,28 +82,32 @@ def images_near(
     if order not in ("weight", "time"):
         raise typer.BadParameter("expected weight or time", param_hint="--order")
     with open_catalog()() as session:
-        hits = images_covering(session, lat_deg=lat, lon_deg=lon, radius_km=radius, order=order, limit=limit)
+        hits = images_covering(session, lat_deg=lat, lon_deg=lon, radius_km=radius,
+                               order=cast(Literal["weight", "time"], order), limit=limit)
     if json_out:
         echo_json([h.model_dump(mode="json") for h in hits])
         return
-    typer.echo(f"{'LIDVID':<60} {'start (UTC)':<23} {'maplet':<20} {'weight':>6} {'inc':>5} {'emi':>5} {'pha':>5} {'vis':>5} {'m/px':>6}  role")
+    typer.echo(f"{'LIDVID':<60} {'start (UTC)':<23} {'maplet':<20} {'weight':>6} {'inc':>5} {'emi':>5} {'pha':>5} "
+               f"{'vis':>5} {'m/px':>6}  role")
     for h in hits:
         start = h.start_utc.strftime("%Y-%m-%dT%H:%M:%S.%f")[:23] if h.start_utc else "-"
-        typer.echo(f"{h.lidvid:<60} {start:<23} {h.maplet:<20} {h.weight:>6.3f} {h.incidence_deg:>5.1f} {h.emission_deg:>5.1f} "
+        typer.echo(f"{h.lidvid:<60} {start:<23} {h.maplet:<20} {h.weight:>6.3f} {h.incidence_deg:>5.1f} "
+                   f"{h.emission_deg:>5.1f} "
                    f"{h.phase_deg:>5.1f} {h.visible_fraction:>5.2f} {h.resolution_m_per_px:>6.3f}  {h.role or '-'}")
     typer.echo(f"{len(hits)} images")
 
 
 @app.command()
 def maplets(
-    lat: Optional[float] = typer.Option(None, min=-90.0, max=90.0, help="only maplets holding this latitude (deg) ..."),
-    lon: Optional[float] = typer.Option(None, help="... and east longitude (deg), nearest first"),
+    lat: float | None = typer.Option(None, min=-90.0, max=90.0, help="only maplets holding this latitude (deg) ..."),
+    lon: float | None = typer.Option(None, help="... and east longitude (deg), nearest first"),
     radius: float = typer.Option(0.0, min=0.0, help="or within this distance of that point, km"),
     limit: int = typer.Option(50, min=1, help="at most this many rows"),
     offset: int = typer.Option(0, min=0, help="skip this many rows first"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
-    """List maplets by name, or those at a surface point: centre, size, region weight, revision, images that see them."""
+    """List maplets by name, or those at a surface point: centre, size, region weight, revision, images that
+    see them."""
     from service.catalog import open_catalog
     from service.queries import list_maplets
 
@@ -104,11 +118,14 @@ def maplets(
     if json_out:
         echo_json([m.model_dump(mode="json") for m in rows])
         return
-    typer.echo(f"{'maplet':<20} {'lat':>8} {'lon':>8} {'size m':>7} {'gsd m':>6} {'nodes':>5} {'w_PWM':>6} {'rev':>4} {'images':>6} {'dist m':>7}")
+    typer.echo(f"{'maplet':<20} {'lat':>8} {'lon':>8} {'size m':>7} {'gsd m':>6} {'nodes':>5} {'w_PWM':>6} {'rev':>4} "
+               f"{'images':>6} {'dist m':>7}")
     for m in rows:
         distance = "-" if m.distance_km is None else f"{m.distance_km * 1e3:.2f}"
-        typer.echo(f"{m.name:<20} {m.center_lat_deg:>8.3f} {m.center_lon_deg:>8.3f} {m.size_km * 1e3:>7.2f} {m.gsd_m:>6.3f} {m.nodes_per_side:>5} "
-                   f"{m.region_weight:>6.3f} {m.current_revision if m.current_revision is not None else '-':>4} {m.image_count:>6} {distance:>7}")
+        typer.echo(f"{m.name:<20} {m.center_lat_deg:>8.3f} {m.center_lon_deg:>8.3f} {m.size_km * 1e3:>7.2f} "
+                   f"{m.gsd_m:>6.3f} {m.nodes_per_side:>5} "
+                   f"{m.region_weight:>6.3f} {m.current_revision if m.current_revision is not None else '-':>4} "
+                   f"{m.image_count:>6} {distance:>7}")
 
 
 @app.command()
@@ -116,7 +133,8 @@ def coverage(
     maplet: str = typer.Argument(..., help="maplet name, or its id (all digits)"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
-    """How well a maplet's images cover it: counts, incidence and emission ranges, Sun azimuth spread, the five views."""
+    """How well a maplet's images cover it: counts, incidence and emission ranges, Sun azimuth spread, the five
+    views."""
     from service.catalog import open_catalog
     from service.queries import maplet_coverage
 
@@ -131,7 +149,7 @@ def coverage(
         echo_json(summary.model_dump(mode="json"))
         return
 
-    def extent(values: Optional[tuple[float, float]]) -> str:
+    def extent(values: tuple[float, float] | None) -> str:
         return "-" if values is None else f"{values[0]:.1f} to {values[1]:.1f} deg"
 
     spread = "-" if summary.sun_azimuth_spread_deg is None else f"{summary.sun_azimuth_spread_deg:.1f} deg"

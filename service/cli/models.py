@@ -4,11 +4,10 @@ compare versions."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
-from service.cli.app import app, echo_json, echo_rejected, setup_logging
+from service.cli.app import app, echo_json, echo_rejected, refinement_config, setup_logging
 
 version_app = typer.Typer(help="One model version.", no_args_is_help=True)
 app.add_typer(version_app, name="version")
@@ -16,12 +15,21 @@ app.add_typer(version_app, name="version")
 
 @app.command()
 def run(
-    directory: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 labels, SPICE kernels)"),
-    start: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="start model (.obj/.ply/.bds, km) when the catalog has no version yet; default DIR/start_model.obj"),
-    mode: str = typer.Option("pwm", help="pwm (pixel and region weights) | standard (weights off)"),
+    directory: Path = typer.Argument(..., exists=True, file_okay=False,
+                                     help="a downlink directory (PDS4 labels, SPICE kernels)"),
+    start: Path | None = typer.Option(None, exists=True, dir_okay=False,
+                                      help="start model (.obj/.ply/.bds, km) when the catalog has no version yet; "
+                                           "default DIR/start_model.obj"),
+    mode: str | None = typer.Option(None,
+                                    help="pwm (pixel and region weights) | standard (weights off); default "
+                                         "PWM_REFINE_MODE"),
     workers: int = typer.Option(1, min=1, help="processes refining maplets in parallel"),
-    maplet_nodes: int = typer.Option(100, min=8, help="nodes per side of maplets tiled where the images look and none is catalogued"),
-    tile_radius: Optional[float] = typer.Option(None, min=0.0, help="radius (km) of the region tiled about where the images look (default: from their footprints)"),
+    maplet_nodes: int | None = typer.Option(None,
+                                            help="nodes per side of maplets tiled where the images look and none is "
+                                                 "catalogued; default PWM_MAPLET_NODES"),
+    tile_radius: float | None = typer.Option(None,
+                                             help="radius (km) of the region tiled about where the images look; "
+                                                  "default PWM_TILE_RADIUS_KM, else from their footprints"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Ingest a downlink, refine the maplets whose images changed, and publish a new model version, in this process."""
@@ -30,12 +38,11 @@ def run(
     from service.settings import get_settings
 
     setup_logging(verbose)
-    if mode not in ("pwm", "standard"):
-        raise typer.BadParameter("mode is pwm or standard", param_hint="--mode")
     settings = get_settings()
+    config = refinement_config(settings.refinement(), mode=mode, nodes=maplet_nodes, tile_radius_km=tile_radius)
     try:
         report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,
-                               mode=mode, workers=workers, maplet_nodes=maplet_nodes, tile_radius_km=tile_radius)
+                               config=config, workers=workers)
     except FileNotFoundError as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(1) from None
@@ -45,7 +52,8 @@ def run(
 
 @app.command(name="import")
 def import_(
-    model: Path = typer.Argument(..., exists=True, dir_okay=False, help="shape model: .obj or .ply (km, body-fixed) or a SPICE DSK type 2 (.bds)"),
+    model: Path = typer.Argument(..., exists=True, dir_okay=False,
+                                 help="shape model: .obj or .ply (km, body-fixed) or a SPICE DSK type 2 (.bds)"),
     kind: str = typer.Option("imported", help="imported | start | photogrammetric"),
 ) -> None:
     """Publish a shape model file as a new model version."""
@@ -76,15 +84,19 @@ def versions(
     from service.models import ModelVersion
 
     with open_catalog()() as session:
-        rows = [_summary(v) for v in session.scalars(select(ModelVersion).order_by(ModelVersion.version.desc()).limit(limit))]
+        latest = select(ModelVersion).order_by(ModelVersion.version.desc()).limit(limit)
+        rows = [_summary(v) for v in session.scalars(latest)]
     if json_out:
         echo_json(rows)
         return
-    typer.echo(f"{'version':>7} {'kind':<15} {'parent':>6} {'created (UTC)':<19} {'faces':>8} {'maplets':>7} {'changed':>7}  downlinks  release")
+    typer.echo(f"{'version':>7} {'kind':<15} {'parent':>6} {'created (UTC)':<19} {'faces':>8} {'maplets':>7} "
+               f"{'changed':>7}  downlinks  release")
     for r in rows:
         s = r["statistics"]
-        typer.echo(f"{r['version']:>7} {r['kind']:<15} {r['parent'] or '-':>6} {r['created_at'][:19]:<19} {s.get('faces', 0):>8} "
-                   f"{len(r['maplet_revisions']):>7} {s.get('maplets_changed', '-'):>7}  {','.join(r['downlinks']) or '-'}  {r['release_tag'] or '-'}")
+        typer.echo(f"{r['version']:>7} {r['kind']:<15} {r['parent'] or '-':>6} {r['created_at'][:19]:<19} "
+                   f"{s.get('faces', 0):>8} "
+                   f"{len(r['maplet_revisions']):>7} {s.get('maplets_changed', '-'):>7}  "
+                   f"{','.join(r['downlinks']) or '-'}  {r['release_tag'] or '-'}")
 
 
 @version_app.command("show")
@@ -107,11 +119,12 @@ def version_show(
 def diff(
     old: str = typer.Argument(..., help="the earlier version (number, tag, latest or released)"),
     new: str = typer.Argument(..., help="the later version"),
-    png: Optional[Path] = typer.Option(None, dir_okay=False, help="write a latitude/longitude map of the change here"),
+    png: Path | None = typer.Option(None, dir_okay=False, help="write a latitude/longitude map of the change here"),
     threshold: float = typer.Option(0.01, min=0.0, help="height change (m) above which the surface counts as changed"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
-    """Height change from one version to another along the new model's outward normal (m): mean, RMS, max, area changed."""
+    """Height change from one version to another along the new model's outward normal (m): mean, RMS, max, area
+    changed."""
     from service.catalog import open_catalog
     from service.diff import diff_versions
     from service.settings import get_settings
@@ -119,7 +132,8 @@ def diff(
     settings = get_settings()
     with open_catalog(settings)() as session:
         try:
-            result = diff_versions(session, data_dir=settings.data_dir, old=old, new=new, png=png, threshold_m=threshold)
+            result = diff_versions(session, data_dir=settings.data_dir, old=old, new=new, png=png,
+                                   threshold_m=threshold)
         except LookupError as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
@@ -129,8 +143,10 @@ def diff(
     rows = [("versions", f"{result.old} -> {result.new}"),
             ("vertices compared", f"{result.vertices_compared} of {result.vertices_total}"),
             *(((name, "-" if value is None else f"{value:{spec}} m") for name, value, spec in
-               (("mean", result.mean_m, "+.4f"), ("RMS", result.rms_m, ".4f"), ("max |change|", result.max_abs_m, ".4f")))),
-            (f"changed > {result.threshold_m:g} m", f"{result.area_changed_m2:.2f} m^2 ({result.vertices_changed} vertices)"),
+               (("mean", result.mean_m, "+.4f"), ("RMS", result.rms_m, ".4f"),
+                ("max |change|", result.max_abs_m, ".4f")))),
+            (f"changed > {result.threshold_m:g} m",
+             f"{result.area_changed_m2:.2f} m^2 ({result.vertices_changed} vertices)"),
             *((("map", result.png),) if result.png else ())]
     for name, value in rows:
         typer.echo(f"{name:<20}{value}")

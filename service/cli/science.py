@@ -5,14 +5,23 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Optional
 
 import typer
 
-from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, downlink_report, downlink_views, setup_logging
+from pwm.config import DEFAULTS
+from service.cli.app import (
+    BODY_FRAME,
+    INSTRUMENT,
+    TARGET,
+    app,
+    downlink_report,
+    downlink_views,
+    refinement_config,
+    setup_logging,
+)
 
 
-def _knowledge_error(value: Optional[str]) -> tuple[float, float]:
+def _knowledge_error(value: str | None) -> tuple[float, float]:
     if value is None:
         return 0.0, 0.0
     try:
@@ -29,7 +38,9 @@ def simulate(
     out: Path = typer.Argument(..., help="output directory (downlink/ and truth/ are written in it)"),
     scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-polar | global-coarse"),
     seed: int = typer.Option(0, help="random seed: the same seed gives the same products"),
-    knowledge_error: Optional[str] = typer.Option(None, help="POS_M,POINT_RAD: 1-sigma position (m) and pointing (rad) errors in the kernels"),
+    knowledge_error: str | None = typer.Option(None,
+                                               help="POS_M,POINT_RAD: 1-sigma position (m) and pointing (rad) errors "
+                                                    "in the kernels"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Simulate a mission downlink (PDS4 images, SPICE kernels, start model) from a truth asteroid."""
@@ -50,8 +61,8 @@ def simulate(
 def evaluate(
     model: Path = typer.Argument(..., exists=True, dir_okay=False, help="model mesh (.obj or .ply, km, body-fixed)"),
     truth: Path = typer.Option(..., exists=True, file_okay=False, help="the simulation's truth/ directory"),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="write the figures as JSON here"),
-    plots: Optional[Path] = typer.Option(None, help="write PNG plots (height error, profiles, views) here"),
+    json_out: Path | None = typer.Option(None, "--json", help="write the figures as JSON here"),
+    plots: Path | None = typer.Option(None, help="write PNG plots (height error, profiles, views) here"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Measure a model against the truth: ICP, RMS and median error, NCC/SSIM, boulder heights."""
@@ -67,23 +78,28 @@ def evaluate(
 
 @app.command()
 def refine(
-    downlink: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 images, kernels with one meta-kernel)"),
-    start: Path = typer.Option(..., exists=True, dir_okay=False, help="starting shape model (.obj/.ply, km, body-fixed)"),
+    downlink: Path = typer.Argument(..., exists=True, file_okay=False,
+                                    help="a downlink directory (PDS4 images, kernels with one meta-kernel)"),
+    start: Path = typer.Option(..., exists=True, dir_okay=False,
+                               help="starting shape model (.obj/.ply, km, body-fixed)"),
     out: Path = typer.Option(..., help="output directory: refined.ply (with albedo), refined.obj, maplets.json"),
-    mode: str = typer.Option("pwm", help="pwm (pixel and region weights) | standard (weights off)"),
-    lat: Optional[float] = typer.Option(None, help="region centre latitude, deg (default: where the images look)"),
-    lon: Optional[float] = typer.Option(None, help="region centre east longitude, deg"),
-    radius: Optional[float] = typer.Option(None, min=0.0, help="region radius, km"),
-    nodes: int = typer.Option(100, min=8, help="maplet nodes per side"),
-    spacing_gsd: float = typer.Option(1.0, min=0.25, max=2.0, help="node spacing in image GSDs (median pixel scale)"),
-    overlap: float = typer.Option(0.25, min=0.0, max=0.75, help="fraction of a maplet shared with each neighbour"),
+    mode: str = typer.Option(DEFAULTS.mode, help="pwm (pixel and region weights) | standard (weights off)"),
+    lat: float | None = typer.Option(None, help="region centre latitude, deg (default: where the images look)"),
+    lon: float | None = typer.Option(None, help="region centre east longitude, deg"),
+    radius: float | None = typer.Option(None, min=0.0, help="region radius, km"),
+    nodes: int = typer.Option(DEFAULTS.nodes, help="maplet nodes per side"),
+    spacing_gsd: float = typer.Option(DEFAULTS.spacing_gsd, help="node spacing in image GSDs (median pixel scale)"),
+    overlap: float = typer.Option(DEFAULTS.overlap, help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
-    passes: int = typer.Option(2, min=1, help="refinement passes; each later one re-tiles the previous pass's fused model"),
-    search_px: float = typer.Option(1.0, min=0.0, help="how far images may be off the maplets (px), from the pose knowledge"),
-    corrections: Optional[Path] = typer.Option(None, exists=True, dir_okay=False, help="pose corrections to apply (corrections.json of pwm spg)"),
-    instrument: Optional[str] = INSTRUMENT,
-    target: Optional[str] = TARGET,
-    body_frame: Optional[str] = BODY_FRAME,
+    passes: int = typer.Option(DEFAULTS.passes,
+                               help="refinement passes; each later one re-tiles the previous pass's fused model"),
+    search_px: float = typer.Option(DEFAULTS.search_px,
+                                    help="how far images may be off the maplets (px), from the pose knowledge"),
+    corrections: Path | None = typer.Option(None, exists=True, dir_okay=False,
+                                            help="pose corrections to apply (corrections.json of pwm spg)"),
+    instrument: str | None = INSTRUMENT,
+    target: str | None = TARGET,
+    body_frame: str | None = BODY_FRAME,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Refine a start model with a downlink's images: tile, weigh, photoclinometry, fuse."""
@@ -95,8 +111,8 @@ def refine(
     from service.cli.spg import read_corrections
 
     setup_logging(verbose)
-    if mode not in ("pwm", "standard"):
-        raise typer.BadParameter("mode is pwm or standard")
+    config = refinement_config(mode=mode, nodes=nodes, spacing_gsd=spacing_gsd, overlap=overlap, passes=passes,
+                               search_px=search_px)
     clock = time.perf_counter()
     read = downlink_views(downlink, instrument=instrument, target=target, body_frame=body_frame,
                           corrections=None if corrections is None else read_corrections(corrections))
@@ -107,17 +123,17 @@ def refine(
         region = dataclasses.replace(region, lat_deg=lat, lon_deg=lon)
     if radius is not None:
         region = dataclasses.replace(region, radius_km=radius)
-    region = dataclasses.replace(region, spacing_km=spacing_gsd * region.spacing_km)
+    region = dataclasses.replace(region, spacing_km=config.spacing_gsd * region.spacing_km)
     logging.getLogger("pwm").info("%d images, maplets at %.3f m around (%.3f, %.3f) within %.1f m", len(views),
                                   region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
-    model, results = refine_region(start_model, views, region, nodes=nodes, overlap=overlap, passes=passes, mode=mode,
-                                   workers=workers, search_px=search_px)
+    model, results = refine_region(start_model, views, region, config=config, workers=workers)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "refined.ply", model)
     write_obj(out / "refined.obj", model)
     report = {"mode": mode, "passes": passes, "region": dataclasses.asdict(region), "images": len(views),
               **downlink_report(read), "seconds": time.perf_counter() - clock,
-              "maplets": [{"name": r.maplet.name, "images": r.images, "region_weight": r.region_weight, "five_views": r.five_views,
+              "maplets": [{"name": r.maplet.name, "images": r.images, "region_weight": r.region_weight,
+                           "five_views": r.five_views,
                            "dropped": r.dropped, "iterations": r.iterations, "converged": r.converged,
                            "residual_rms": r.residual_rms, "seconds": r.seconds} for r in results]}
     (out / "maplets.json").write_text(json.dumps(report, indent=1))

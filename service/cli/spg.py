@@ -6,18 +6,18 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Optional
 
 import typer
 
 from pwm.camera import PoseCorrection
 from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, downlink_report, downlink_views, setup_logging
 
-
 # options both commands take
 SIGMA_POINTING = typer.Option(1e-4, min=0.0, help="pointing knowledge, 1 sigma per axis, rad")
 MAX_FEATURES = typer.Option(8192, min=64, help="SIFT features per image at most")
-FIRST_OCTAVE = typer.Option(None, min=-1, max=1, help="SIFT first octave: -1 doubles the images (more features, ~3x slower); default -1 where the target fills under a quarter of the frame, else 0")
+FIRST_OCTAVE = typer.Option(None, min=-1, max=1,
+                            help="SIFT first octave: -1 doubles the images (more features, ~3x slower); "
+                                 "default -1 where the target fills under a quarter of the frame, else 0")
 PER_IMAGE = typer.Option(6, min=1, help="stereo partners matched per image")
 THREADS = typer.Option(2, min=1, help="threads for extraction and matching")
 
@@ -25,7 +25,8 @@ THREADS = typer.Option(2, min=1, help="threads for extraction and matching")
 def write_corrections(path: Path, corrections: dict[str, PoseCorrection], *, body_frame: str) -> None:
     """Per-image pose corrections (by view name; km and rad, body-fixed) as JSON."""
     images = {name: dataclasses.asdict(c) for name, c in corrections.items()}
-    path.write_text(json.dumps({"frame": body_frame, "units": {"position": "km", "rotation": "rad"}, "images": images}, indent=1))
+    path.write_text(json.dumps({"frame": body_frame, "units": {"position": "km", "rotation": "rad"}, "images": images},
+                               indent=1))
 
 
 def read_corrections(path: Path) -> dict[str, PoseCorrection]:
@@ -36,18 +37,20 @@ def read_corrections(path: Path) -> dict[str, PoseCorrection]:
 
 @app.command()
 def spg(
-    downlink: Path = typer.Argument(..., exists=True, file_okay=False, help="a downlink directory (PDS4 images, kernels with one meta-kernel)"),
-    start: Path = typer.Option(..., exists=True, dir_okay=False, help="previous shape model (.obj/.ply, km, body-fixed): fills where points are missing"),
+    downlink: Path = typer.Argument(..., exists=True, file_okay=False,
+                                    help="a downlink directory (PDS4 images, kernels with one meta-kernel)"),
+    start: Path = typer.Option(..., exists=True, dir_okay=False,
+                               help="previous shape model (.obj/.ply, km, body-fixed): fills where points are missing"),
     out: Path = typer.Option(..., help="output directory: spg.ply, spg.obj, corrections.json, spg.json"),
     sigma_position: float = typer.Option(1.0, min=0.0, help="navigation position knowledge, 1 sigma per axis, m"),
     sigma_pointing: float = SIGMA_POINTING,
     max_features: int = MAX_FEATURES,
-    first_octave: Optional[int] = FIRST_OCTAVE,
+    first_octave: int | None = FIRST_OCTAVE,
     per_image: int = PER_IMAGE,
     threads: int = THREADS,
-    instrument: Optional[str] = INSTRUMENT,
-    target: Optional[str] = TARGET,
-    body_frame: Optional[str] = BODY_FRAME,
+    instrument: str | None = INSTRUMENT,
+    target: str | None = TARGET,
+    body_frame: str | None = BODY_FRAME,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Photogrammetric model and per-image pose corrections from a downlink's images."""
@@ -57,29 +60,35 @@ def spg(
     setup_logging(verbose)
     read = downlink_views(downlink, instrument=instrument, target=target, body_frame=body_frame)
     views = read.views
-    result = stereo_photogrammetry(views, read_mesh(start), sigma_position_km=sigma_position * 1e-3, sigma_pointing_rad=sigma_pointing,
-                                   max_features=max_features, first_octave=first_octave, per_image=per_image, threads=threads)
+    result = stereo_photogrammetry(views, read_mesh(start), sigma_position_km=sigma_position * 1e-3,
+                                   sigma_pointing_rad=sigma_pointing,
+                                   max_features=max_features, first_octave=first_octave, per_image=per_image,
+                                   threads=threads)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "spg.ply", result.mesh)
     write_obj(out / "spg.obj", result.mesh)
     write_corrections(out / "corrections.json", result.corrections, body_frame=read.body_frame)
-    (out / "spg.json").write_text(json.dumps({**result.stats, **downlink_report(read), "pairs": [dataclasses.asdict(p) for p in result.pairs]}, indent=1))
-    typer.echo(f"{result.stats['points']} points from {len(views)} images, residual {result.stats['residual_rms_px']:.2f} px RMS, "
+    (out / "spg.json").write_text(json.dumps({**result.stats, **downlink_report(read),
+                                              "pairs": [dataclasses.asdict(p) for p in result.pairs]}, indent=1))
+    typer.echo(f"{result.stats['points']} points from {len(views)} images, "
+               f"residual {result.stats['residual_rms_px']:.2f} px RMS, "
                f"{result.stats['seconds']:.1f} s -> {out}")
 
 
 @app.command(name="spg-catalog")
 def spg_catalog(
-    sigma_position: float = typer.Option(1.0, min=0.0, help="pose knowledge about the images' current poses, 1 sigma per axis, m"),
+    sigma_position: float = typer.Option(1.0, min=0.0,
+                                         help="pose knowledge about the images' current poses, 1 sigma per axis, m"),
     sigma_pointing: float = SIGMA_POINTING,
     max_features: int = MAX_FEATURES,
-    first_octave: Optional[int] = FIRST_OCTAVE,
+    first_octave: int | None = FIRST_OCTAVE,
     per_image: int = PER_IMAGE,
     threads: int = THREADS,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
-    """Stereo photogrammetry on the catalogued images from the latest version: publish a photogrammetric version and store each
-    image's pose correction (its maplets then become stale; the next ingest re-weighs its coverage)."""
+    """Stereo photogrammetry on the catalogued images from the latest version: publish a photogrammetric version
+    and store each image's pose correction (its maplets then become stale; the next ingest re-weighs its
+    coverage)."""
     from service.catalog import open_catalog
     from service.settings import get_settings
     from service.spg import photogrammetry_version
@@ -87,8 +96,10 @@ def spg_catalog(
     setup_logging(verbose)
     settings = get_settings()
     try:
-        number = photogrammetry_version(open_catalog(settings), data_dir=settings.data_dir, sigma_position_km=sigma_position * 1e-3,
-                                        sigma_pointing_rad=sigma_pointing, max_features=max_features, first_octave=first_octave,
+        number = photogrammetry_version(open_catalog(settings), data_dir=settings.data_dir,
+                                        sigma_position_km=sigma_position * 1e-3,
+                                        sigma_pointing_rad=sigma_pointing, max_features=max_features,
+                                        first_octave=first_octave,
                                         per_image=per_image, threads=threads)
     except (LookupError, ValueError) as exc:
         typer.echo(str(exc), err=True)

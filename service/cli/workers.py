@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -12,8 +11,11 @@ from service.cli.app import app, setup_logging
 
 @app.command()
 def watch(
-    directory: Path = typer.Argument(..., exists=True, file_okay=False, help="folder where downlink directories arrive"),
-    quiet_seconds: float = typer.Option(60.0, min=0.0, help="a directory without manifest.json is complete once unchanged this long, s"),
+    directory: Path = typer.Argument(..., exists=True, file_okay=False,
+                                     help="folder where downlink directories arrive"),
+    quiet_seconds: float = typer.Option(60.0, min=0.0,
+                                        help="a directory without manifest.json is complete once unchanged this "
+                                             "long, s"),
     poll_seconds: float = typer.Option(5.0, min=0.01, help="look for new directories this often, s"),
     once: bool = typer.Option(False, "--once", help="look once and exit"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
@@ -33,8 +35,8 @@ def watch(
 @app.command()
 def worker(
     queues: str = typer.Option("ingest,refine,fuse", help="comma-separated queues to consume"),
-    concurrency: Optional[int] = typer.Option(None, min=1, help="worker processes (default: one per CPU)"),
-    name: Optional[str] = typer.Option(None, help="worker node name (default celery@HOSTNAME)"),
+    concurrency: int | None = typer.Option(None, min=1, help="worker processes (default: one per CPU)"),
+    name: str | None = typer.Option(None, help="worker node name (default celery@HOSTNAME)"),
     loglevel: str = typer.Option("INFO", help="DEBUG | INFO | WARNING | ERROR"),
 ) -> None:
     """Run a Celery worker (prefork pool) on PWM_BROKER_URL, writing to PWM_DATABASE_URL."""

@@ -1,15 +1,20 @@
 """Security: every changing call needs the bearer token, request paths stay inside the incoming
-area, oversized and malformed requests get a 4xx with a message, releases never change."""
+area, oversized and malformed requests get a 4xx with a message, releases never change, job
+tracebacks only with the token, security headers on every response, CORS only when configured."""
 
 from __future__ import annotations
 
 import re
+import traceback
 
 import pytest
 from fastapi.routing import iter_route_contexts
 from fastapi.testclient import TestClient
 
 from service.api import create_app
+from service.db import session_scope
+from service.jobs import claim_job, fail_job
+from service.models import JobKind
 from service.settings import Settings
 from workers.tasks import ingest_key
 
@@ -137,3 +142,80 @@ def test_requeue_a_maplet(client, populated, broker, auth):
     assert (job["kind"], job["maplet_id"]) == ("refine", populated.maplet_id)
     assert broker.llen("refine") == 1
     assert client.post("/maplets/999999/requeue", headers=auth).status_code == 404
+
+
+def _failed_job(populated) -> tuple[int, str]:
+    """A job whose attempt failed with a real traceback naming server paths: its id and the
+    traceback."""
+    missing = populated.data_dir / "incoming" / "no such dir" / "image 1.xml"
+    try:
+        missing.read_text()
+    except OSError:
+        error = traceback.format_exc()
+    with session_scope(populated.app.state.sessions) as session:
+        job = claim_job(session, kind=JobKind.INGEST, key="ingest:fails", lease_s=60)
+        fail_job(session, job, error=error)
+        return job.id, error
+
+
+def test_job_errors_show_a_reason_and_the_traceback_only_with_the_token(client, populated,
+                                                                         auth):
+    job_id, error = _failed_job(populated)
+    assert str(populated.data_dir) in error and "Traceback" in error
+    reason = "FileNotFoundError: [Errno 2] No such file or directory: 'image 1.xml'"
+    for headers in ({}, {"Authorization": "Bearer wrong"}):
+        listed = client.get("/jobs", params={"key": "ingest:fails"}, headers=headers).json()
+        for shown in (listed["items"][0], client.get(f"/jobs/{job_id}", headers=headers).json()):
+            assert shown["status"] == "failed"
+            assert shown["error"] == reason and shown["traceback"] is None
+        for item in client.get("/jobs", headers=headers).json()["items"]:
+            assert item["traceback"] is None
+            assert "/" not in (item["error"] or ""), item
+    for shown in (client.get("/jobs", params={"key": "ingest:fails"}, headers=auth)
+                  .json()["items"][0], client.get(f"/jobs/{job_id}", headers=auth).json()):
+        assert shown["error"] == reason and shown["traceback"] == error
+    schema = client.get("/openapi.json").json()["components"]["schemas"]["JobOut"]
+    assert {"error", "traceback"} <= set(schema["properties"])
+
+
+def test_every_response_carries_the_security_headers(client, populated, auth):
+    responses = [client.get("/versions"), client.get("/versions/999"),
+                 client.get("/versions/1/export", params={"format": "ply"}),
+                 client.get("/jobs", params={"limit": 0}), client.post("/ingests", json={}),
+                 client.post("/ingests", content=b"{" + b" " * 70_000 + b"}",
+                             headers={**auth, "Content-Type": "application/json"}),
+                 client.get("/openapi.json"), client.get("/no/such/route")]
+    assert [r.status_code for r in responses] == [200, 404, 200, 422, 401, 413, 200, 404]
+    for response in responses:
+        headers = response.headers
+        assert headers["x-content-type-options"] == "nosniff"
+        assert headers["x-frame-options"] == "DENY"
+        assert headers["referrer-policy"] == "no-referrer"
+        policy = dict(part.strip().split(" ", 1)
+                      for part in headers["content-security-policy"].split(";"))
+        assert policy["default-src"] == "'self'" and policy["script-src"] == "'self'"
+        assert policy["frame-ancestors"] == "'none'" and policy["object-src"] == "'none'"
+    # the interactive docs still load their scripts
+    docs = client.get("/docs")
+    assert docs.status_code == 200 and "cdn.jsdelivr.net" in docs.headers[
+        "content-security-policy"]
+
+
+def test_cors_is_off_unless_origins_are_configured(client, populated, tmp_path):
+    preflight = {"Origin": "https://console.example", "Access-Control-Request-Method": "GET"}
+    assert "access-control-allow-origin" not in client.get(
+        "/versions", headers={"Origin": "https://console.example"}).headers
+    assert "access-control-allow-origin" not in client.options("/versions",
+                                                               headers=preflight).headers
+    settings = populated.app.state.settings
+    app = create_app(Settings(data_dir=tmp_path, database_url=settings.database_url,
+                              cors_origins=["https://console.example"]))
+    with TestClient(app) as allowed:
+        answer = allowed.options("/versions", headers=preflight)
+        assert answer.status_code == 200
+        assert answer.headers["access-control-allow-origin"] == "https://console.example"
+        assert answer.headers["x-content-type-options"] == "nosniff"
+        read = allowed.get("/versions", headers={"Origin": "https://console.example"})
+        assert read.headers["access-control-allow-origin"] == "https://console.example"
+        other = allowed.get("/versions", headers={"Origin": "https://elsewhere.example"})
+        assert "access-control-allow-origin" not in other.headers

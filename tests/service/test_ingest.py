@@ -15,12 +15,21 @@ from sqlalchemy.orm import Session, sessionmaker
 from pwm.camera import look_at
 from pwm.io.meshio import read_obj
 from pwm.io.pds4 import write_image_product
-from pwm.io.spice_kernels import (CkSegment, SpkSegment, bundled_kernels, kernel_pool,
-                                  write_ck, write_spk)
+from pwm.io.spice_kernels import CkSegment, SpkSegment, bundled_kernels, kernel_pool, write_ck, write_spk
 from service.db import make_engine, make_sessionmaker, upgrade
 from service.ingest import ingest_directory
-from service.models import (Acceptance, Downlink, DownlinkStatus, Image, ImageGeometry,
-                            ImageStatus, Instrument, Kernel, KernelCoverage, KernelKind)
+from service.models import (
+    Acceptance,
+    Downlink,
+    DownlinkStatus,
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Instrument,
+    Kernel,
+    KernelCoverage,
+    KernelKind,
+)
 
 SHARED = Path("/work/shared/data")
 BENNU, SC, MAPCAM, SC_BUS = 2101955, -64, -64361, -64000
@@ -57,7 +66,7 @@ def kernels(tmp_path_factory: pytest.TempPathFactory) -> dict:
         et0 = sp.utc2et(START_UTC)
         epochs = et0 + np.arange(0.0, SPK_SPAN_S + 1, 60.0)
         bf = _sc_states(epochs - et0)
-        sc_j2000 = np.array([sp.sxform("IAU_BENNU", "J2000", et) @ s for et, s in zip(epochs, bf)])
+        sc_j2000 = np.array([sp.sxform("IAU_BENNU", "J2000", et) @ s for et, s in zip(epochs, bf, strict=True)])
         write_spk(out / "orx_sc.bsp", segments=[SpkSegment(SC, BENNU, epochs, sc_j2000)])
         sun_epochs = et0 + np.arange(-600.0, SPK_SPAN_S + 601, 600.0)
         direction = np.array([1.0, 0.3, 0.1]) / np.linalg.norm([1.0, 0.3, 0.1])
@@ -72,7 +81,7 @@ def kernels(tmp_path_factory: pytest.TempPathFactory) -> dict:
         ck_bf = _sc_states(ck_epochs - et0)
         attitude = np.array([
             struct.T @ look_at(s[:3], np.zeros(3), np.array([0.0, 0, 1])).rotation
-            @ sp.pxform("J2000", "IAU_BENNU", et) for s, et in zip(ck_bf, ck_epochs)])
+            @ sp.pxform("J2000", "IAU_BENNU", et) for s, et in zip(ck_bf, ck_epochs, strict=True)])
         write_ck(out / "orx_sc.bc", segments=[CkSegment(
             SC_BUS, SC, ck_epochs, attitude, np.zeros((len(ck_epochs), 3)),
             [et0 + a for a, _ in CK_WINDOWS_S])])
@@ -212,7 +221,8 @@ def test_downlink_is_catalogued_with_geometry_and_rerun_changes_nothing(
             assert g.pixel_scale_m == pytest.approx(g.intercept_range_km * 1e3 / instrument.fx_px)
             rotation = np.array(g.camera_rotation)
             # stored in the image frame: rows are the IK's sample and line directions, then boresight
-            axes = np.vstack([sp.gdpool("INS-64361_SPOC_FITS_NAXIS1", 0, 3), sp.gdpool("INS-64361_SPOC_FITS_NAXIS2", 0, 3), [0, 0, 1]])
+            axes = np.vstack([sp.gdpool("INS-64361_SPOC_FITS_NAXIS1", 0, 3),
+                              sp.gdpool("INS-64361_SPOC_FITS_NAXIS2", 0, 3), [0, 0, 1]])
             assert np.allclose(rotation, axes @ sp.pxform("IAU_BENNU", "ORX_OCAMS_MAPCAM", et), atol=1e-9)
             corners = [_corner_point(et, d) for d in _mapcam_corner_rays(instrument, WINDOW)]
             assert all(c is not None for c in corners)
@@ -248,7 +258,7 @@ def _corner_point(et: float, ray: list[float]) -> np.ndarray | None:
 
 def _assert_footprint(footprint: list, corners: list[np.ndarray | None]) -> None:
     assert [c is None for c in footprint] == [c is None for c in corners]
-    for corner, expected in zip(footprint, corners):
+    for corner, expected in zip(footprint, corners, strict=True):
         if expected is not None:
             _, lon, lat = sp.reclat(expected)
             assert corner == pytest.approx([np.degrees(lat), np.degrees(lon) % 360], abs=1e-6)

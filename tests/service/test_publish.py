@@ -8,6 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from sqlalchemy import func, select
 
+from pwm.config import RefinementConfig
 from pwm.io.meshio import write_ply
 from service.db import session_scope
 from service.models import ModelKind, ModelVersion
@@ -19,8 +20,8 @@ from service.versions import get_version, import_model, version_mesh
 
 def test_fusions_publish_changes_once(tiny_sim, catalog, tmp_path):
     data = tmp_path / "data"
-    plan = ingest_and_plan(catalog, tiny_sim / "downlink", data_dir=data, maplet_nodes=40,
-                           tile_radius_km=0.0003)
+    plan = ingest_and_plan(catalog, tiny_sim / "downlink", data_dir=data,
+                           config=RefinementConfig(nodes=40, tile_radius_km=0.0003))
     assert fuse_and_publish(catalog, data_dir=data) is None  # no revision yet
     [work] = plan.work
     revision = refine_catalog_maplet(catalog, data_dir=data, maplet_id=work.maplet_id,

@@ -16,13 +16,11 @@ from sqlalchemy import event, select
 from sqlalchemy.orm import Session, sessionmaker
 from typer.testing import CliRunner
 
-from service.cli import app
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame, unit_to_latlon
+from service.cli import app
 from service.db import make_engine, make_sessionmaker, session_scope, upgrade
-from service.models import (Coverage, CoverageRole, Image, ImageGeometry, ImageStatus, Maplet,
-                            MapletRevision)
-from service.queries import (distance_to_square_km, images_covering, list_maplets,
-                             maplet_coverage, maplets_seen_by)
+from service.models import Coverage, CoverageRole, Image, ImageGeometry, ImageStatus, Maplet, MapletRevision
+from service.queries import distance_to_square_km, images_covering, list_maplets, maplet_coverage, maplets_seen_by
 from service.settings import get_settings
 
 RADIUS_KM = 0.25
@@ -272,7 +270,7 @@ def test_prefilter_keeps_every_maplet_near_a_point(db_url: str) -> None:
     lat = np.degrees(np.arcsin(rng.uniform(-1.0, 1.0, 300)))
     lon = rng.uniform(0.0, 360.0, 300)
     frames, sizes = [], rng.uniform(0.01, 0.08, 300)
-    for a, b in zip(lat, lon):
+    for a, b in zip(lat, lon, strict=True):
         origin = rng.uniform(0.2, 0.3) * latlon_to_unit(a, b)
         frames.append(local_frame(origin, _unit(origin) + rng.normal(0.0, 0.3, 3)))
     # The largest maplet, nearest the centre, turned 45 deg about its normal: its corners lie
@@ -292,11 +290,11 @@ def test_prefilter_keeps_every_maplet_near_a_point(db_url: str) -> None:
             origin_x_km=f.origin[0], origin_y_km=f.origin[1], origin_z_km=f.origin[2],
             rotation=f.rotation.tolist(), size_km=sizes[k], gsd_m=0.1, nodes_per_side=101)
             for k, f in enumerate(frames))
-    anywhere = zip(np.degrees(np.arcsin(rng.uniform(-1.0, 1.0, 40))), rng.uniform(-180, 360, 40))
+    anywhere = zip(np.degrees(np.arcsin(rng.uniform(-1.0, 1.0, 40))), rng.uniform(-180, 360, 40), strict=True)
     points = [(90.0, 0.0), (-90.0, 123.0), (89.9, 10.0), (0.0, 0.0), (0.0, 359.99), (10.0, -0.5),
               *corners, *anywhere]
     with sessions() as session:
-        for (a, b), radius_km in zip(points, rng.choice([0.0, 0.005, 0.03], len(points))):
+        for (a, b), radius_km in zip(points, rng.choice([0.0, 0.005, 0.03], len(points)), strict=True):
             found = {m.name for m in list_maplets(
                 session, lat_deg=float(a), lon_deg=float(b), radius_km=float(radius_km))}
             every = {f"M{k:03d}" for k, f in enumerate(frames) if distance_to_square_km(

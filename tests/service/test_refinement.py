@@ -10,8 +10,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from sqlalchemy import func, select
 
+from pwm.config import RefinementConfig
 from pwm.frames import LocalFrame
 from pwm.maplets import Maplet as MapletGrid
+from pwm.photoclinometry import Solver
 from pwm.tiling import sample_heights
 from service.db import session_scope
 from service.models import Coverage, Image, Maplet, MapletRevision
@@ -20,7 +22,7 @@ from service.run import ingest_and_plan
 from service.versions import get_version, version_mesh
 from service.views import image_view
 
-SITE = {"maplet_nodes": 40, "tile_radius_km": 0.0003}  # one maplet on the site's centre
+SITE = {"config": RefinementConfig(nodes=40, tile_radius_km=0.0003)}  # one maplet on the site's centre
 
 
 def _correct_pose_of_an_input(catalog, maplet_id: int) -> int:
@@ -38,8 +40,13 @@ def test_revisions_are_keyed_by_input(tiny_sim, catalog, tmp_path):
     with catalog() as session:
         assert stale_maplets(session) == plan.work
         assert stale_maplets(session, maplet_ids=[work.maplet_id + 1]) == []
-        standard = stale_maplets(session, mode="standard")
-    assert standard[0].input_hash != work.input_hash  # the mode is part of the input
+        standard = stale_maplets(session, config=RefinementConfig(mode="standard"))
+        looser = stale_maplets(session, config=RefinementConfig(solver=Solver(cost_tolerance=0.05)))
+        retiled = stale_maplets(session, config=RefinementConfig(nodes=64))
+    # the refinement's settings are part of the input, the tiling's are not (the grid is)
+    assert standard[0].input_hash != work.input_hash
+    assert looser[0].input_hash not in (work.input_hash, standard[0].input_hash)
+    assert retiled == plan.work
 
     def refine() -> int:
         return refine_catalog_maplet(catalog, data_dir=tmp_path, maplet_id=work.maplet_id,

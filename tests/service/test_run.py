@@ -12,17 +12,16 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy import func, select
 
+from pwm.config import RefinementConfig
 from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_grid
 from pwm.io.pds4 import MISSING_DN, read_image_product, write_image_product
-from service.coverage import OVERLAP
 from service.models import Coverage, Maplet, MapletRevision, ModelKind
-from service.refinement import MIN_IMAGES, load_revision_maplet
+from service.refinement import load_revision_maplet
 from service.run import run_directory
 from service.versions import artifact_path, get_version, version_mesh
 
-NODES = 40
-RADIUS_KM = 0.0008  # a few maplets about the site's centre: seconds, not minutes
+CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008)  # a few maplets about the site's centre: seconds
 
 
 def _second_downlink(sim: Path, out: Path) -> Path:
@@ -59,8 +58,7 @@ def _inputs(session) -> dict[int, set[int]]:
 def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
     data = tmp_path / "data"
     first = shutil.copytree(tiny_sim / "downlink", tmp_path / "first")
-    run = run_directory(catalog, first, data_dir=data, maplet_nodes=NODES,
-                        tile_radius_km=RADIUS_KM)
+    run = run_directory(catalog, first, data_dir=data, config=CONFIG)
     assert (run.plan.base_version, run.version) == (1, 2)
     assert len(run.plan.work) >= 2 and len(run.revisions) == len(run.plan.work)
     with catalog() as session:
@@ -73,12 +71,11 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
         assert v2.statistics["images"] == 6 and v2.statistics["base_version"] == 1
         inputs = _inputs(session)
         maplets = session.scalar(select(func.count()).select_from(Maplet))
-        assert len(run.plan.work) == sum(len(images) >= MIN_IMAGES for images in inputs.values())
+        assert len(run.plan.work) == sum(len(images) >= CONFIG.min_images for images in inputs.values())
     start_mesh, refined = version_mesh(data, start), version_mesh(data, v2)
     assert refined.albedo is not None and len(refined.faces) > len(start_mesh.faces)
 
-    again = run_directory(catalog, first, data_dir=data, maplet_nodes=NODES,
-                          tile_radius_km=RADIUS_KM)
+    again = run_directory(catalog, first, data_dir=data, config=CONFIG)
     assert again.plan.work == [] and again.version is None
     with catalog() as session:
         assert session.scalar(select(func.count()).select_from(MapletRevision)) == len(
@@ -86,11 +83,10 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
         assert _inputs(session) == inputs
 
     second = _second_downlink(tiny_sim, tmp_path / "second")
-    later = run_directory(catalog, second, data_dir=data, maplet_nodes=NODES,
-                          tile_radius_km=RADIUS_KM)
+    later = run_directory(catalog, second, data_dir=data, config=CONFIG)
     with catalog() as session:
         after = _inputs(session)
-        changed = {m for m in after if after[m] != inputs.get(m) and len(after[m]) >= MIN_IMAGES}
+        changed = {m for m in after if after[m] != inputs.get(m) and len(after[m]) >= CONFIG.min_images}
         assert 0 < len(changed) < maplets
         assert {w.maplet_id for w in later.plan.work} == changed
         assert later.version == 3
@@ -107,7 +103,7 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
         kept = {r.maplet_id: r.id for r in v2.maplet_revisions if r.maplet_id not in changed}
         assert kept and all(current[m].id == r for m, r in kept.items())
         incremental = read_grid(artifact_path(data, v3.artifacts["grid"], verify=True))
-        scratch = VoxelGrid(voxel_km=incremental.voxel_km, taper_fraction=OVERLAP)
+        scratch = VoxelGrid(voxel_km=incremental.voxel_km, taper_fraction=CONFIG.overlap)
         for revision in sorted(current.values(), key=lambda r: r.maplet_id):
             scratch.add(load_revision_maplet(data, revision))
         # Version 1 is as it was published, and still readable.

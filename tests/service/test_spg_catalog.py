@@ -9,6 +9,7 @@ from sqlalchemy import select
 from typer.testing import CliRunner
 
 from pwm.camera import Pose, PoseCorrection
+from pwm.config import RefinementConfig
 from service.cli import app
 from service.models import Image, ImageGeometry, ModelKind
 from service.refinement import refine_catalog_maplet, stale_maplets
@@ -18,12 +19,13 @@ from service.spg import _store_correction, photogrammetry_version
 from service.versions import get_version, latest_version, version_mesh
 from service.views import catalog_views, image_pose
 
-SITE = {"maplet_nodes": 40, "tile_radius_km": 0.0003}  # one maplet on the site's centre
+SITE = {"config": RefinementConfig(nodes=40, tile_radius_km=0.0003)}  # one maplet on the site's centre
 
 
 def _geometry_pose(image: Image) -> Pose:
     g = image.geometry
-    return Pose(np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]), np.asarray(g.camera_rotation, float).reshape(3, 3))
+    return Pose(np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
+                np.asarray(g.camera_rotation, float).reshape(3, 3))
 
 
 def test_photogrammetric_version_corrects_poses_and_stales_maplets(tiny_sim, catalog, tmp_path):

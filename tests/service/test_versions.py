@@ -15,9 +15,16 @@ from pwm.io.meshio import write_obj
 from pwm.mesh import Mesh
 from service.db import session_scope
 from service.models import ModelKind
-from service.versions import (ArtifactError, artifact_path, get_version, import_model,
-                              latest_version, mesh_statistics, publish_version, version_mesh)
-
+from service.versions import (
+    ArtifactError,
+    artifact_path,
+    get_version,
+    import_model,
+    latest_version,
+    mesh_statistics,
+    publish_version,
+    version_mesh,
+)
 
 
 def _sphere(radius_km: float = 0.25, subdivisions: int = 3) -> Mesh:

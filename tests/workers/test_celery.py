@@ -24,11 +24,21 @@ from pwm.io.spice_kernels import kernel_pool
 from pwm.simulate.windows import window_downlink
 from service.db import make_engine, make_sessionmaker, session_scope, upgrade
 from service.ingest import COMMIT_EVERY, ingest_directory
-from service.jobs import (JobBusy, JobLost, claim_job, fail_job, finish_job, report_progress,
-                          submit_job)
+from service.jobs import JobBusy, JobLost, claim_job, fail_job, finish_job, report_progress, submit_job
 from service.kernels import accepted_kernels
-from service.models import (Base, Downlink, DownlinkStatus, GeometryStatus, Image, ImageStatus,
-                            Job, JobKind, JobStatus, Kernel, ModelKind)
+from service.models import (
+    Base,
+    Downlink,
+    DownlinkStatus,
+    GeometryStatus,
+    Image,
+    ImageStatus,
+    Job,
+    JobKind,
+    JobStatus,
+    Kernel,
+    ModelKind,
+)
 from service.run import START_MODEL_NAME
 from service.versions import import_model
 from workers.app import QUEUES, ProcessState, WorkerSettings, make_app

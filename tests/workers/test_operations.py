@@ -20,11 +20,10 @@ from harness import PWM, REPO, Worker, pwm_worker_command, result_of, wait_for
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
+from pwm.config import DEFAULTS
 from pwm.simulate.windows import window_downlink
-from service.models import (Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision,
-                            ModelKind, ModelVersion)
 from service.db import session_scope
-from service.refinement import MIN_IMAGES
+from service.models import Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision, ModelKind, ModelVersion
 from service.versions import artifact_path, version_mesh
 from workers.app import WorkerSettings
 from workers.tasks import fuse_key, ingest_downlink, ingest_key
@@ -116,14 +115,14 @@ def _submit_refinement(env: dict[str, str], maplet_id: int) -> subprocess.Comple
 
 
 def _image_sets(sessions: sessionmaker[Session]) -> dict[int, frozenset[int]]:
-    """The images each maplet's coverage weighs above zero, for the maplets with MIN_IMAGES or
+    """The images each maplet's coverage weighs above zero, for the maplets with DEFAULTS.min_images or
     more (those that can be refined)."""
     sets: dict[int, set[int]] = {}
     with sessions() as session:
         for maplet_id, image_id in session.execute(
                 select(Coverage.maplet_id, Coverage.image_id).where(Coverage.weight > 0)):
             sets.setdefault(maplet_id, set()).add(image_id)
-    return {m: frozenset(images) for m, images in sets.items() if len(images) >= MIN_IMAGES}
+    return {m: frozenset(images) for m, images in sets.items() if len(images) >= DEFAULTS.min_images}
 
 
 def _downlink_id(sessions: sessionmaker[Session], name: str) -> int:

@@ -38,7 +38,7 @@ def diff(session: SessionDep, settings: SettingsDep, old: VersionRef, new: Versi
 
 @router.get("/{old}/{new}/map.png", response_class=FileResponse,
             responses={200: {"content": {"image/png": {}}}, 404: {"model": Problem},
-                       410: {"model": Problem}})
+                       410: {"model": Problem}, 503: {"model": Problem}})
 def diff_map(session: SessionDep, settings: SettingsDep, old: VersionRef, new: VersionRef,
              threshold_m: Threshold = THRESHOLD_M, max_distance_km: Reach = 0.01
              ) -> FileResponse:
@@ -52,8 +52,12 @@ def diff_map(session: SessionDep, settings: SettingsDep, old: VersionRef, new: V
                       new=versions[1].version, png=path, threshold_m=threshold_m,
                       max_distance_km=max_distance_km)
 
+    # No connection held while the map waits for the making lock (making it reads the catalog
+    # again).
+    session.rollback()
     try:
-        record = cached_artifact(settings.data_dir, key, suffix=".png", make=make)
+        record = cached_artifact(settings.data_dir, key, suffix=".png", make=make,
+                                 cache_bytes=settings.export_cache_bytes)
         path = artifact_path(settings.data_dir, record)
     except ArtifactError as exc:
         raise HTTPException(status.HTTP_410_GONE, str(exc)) from None

@@ -45,7 +45,7 @@ def _downlinks(session: Session, ids: list[int]) -> list[DownlinkOut]:
     kernels = dict(session.execute(select(Kernel.downlink_id, func.count())
                                    .where(Kernel.downlink_id.in_(ids))
                                    .group_by(Kernel.downlink_id)).all())
-    images: dict[int, dict[ImageStatus, int]] = {}
+    images: dict[int | None, dict[ImageStatus, int]] = {}
     for downlink_id, image_status, n in session.execute(
             select(Image.downlink_id, Image.status, func.count())
             .where(Image.downlink_id.in_(ids)).group_by(Image.downlink_id, Image.status)):
@@ -63,7 +63,7 @@ def list_downlinks(session: SessionDep, paging: PagingDep,
     query = select(Downlink.id)
     if status_ is not None:
         query = query.where(Downlink.status == status_)
-    total = session.scalar(select(func.count()).select_from(query.subquery()))
+    total = session.execute(select(func.count()).select_from(query.subquery())).scalar_one()
     ids = list(session.scalars(query.order_by(Downlink.received_at.desc(), Downlink.id.desc())
                                .limit(paging.limit).offset(paging.offset)))
     return Page(items=_downlinks(session, ids), total=total, **paging.model_dump())

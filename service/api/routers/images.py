@@ -67,7 +67,7 @@ def list_images(
         query = query.where(Image.start_utc >= start_after)
     if start_before is not None:
         query = query.where(Image.start_utc < start_before)
-    total = session.scalar(select(func.count()).select_from(query.subquery()))
+    total = session.execute(select(func.count()).select_from(query.subquery())).scalar_one()
     rows = session.scalars(query.options(selectinload(Image.geometry),
                                          selectinload(Image.instrument))
                            .order_by(Image.start_utc.asc().nulls_last(), Image.id)

@@ -10,8 +10,7 @@ from fastapi import APIRouter, HTTPException, Query, status
 from service.api.deps import Authorized, Id, PagingDep, SessionDep
 from service.api.schemas import JobSubmitted, MapletDetail, Page, Problem
 from service.models import Maplet
-from service.queries import (MapletInfo, count_maplets, list_maplets, maplet_coverage,
-                             maplet_images, maplet_revisions)
+from service.queries import MapletInfo, count_maplets, list_maplets, maplet_coverage, maplet_images, maplet_revisions
 from workers.tasks import submit_refinement
 
 router = APIRouter(prefix="/maplets", tags=["maplets"])

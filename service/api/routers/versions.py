@@ -8,13 +8,20 @@ from fastapi import APIRouter, HTTPException, Path, Query, status
 from fastapi.responses import FileResponse
 from sqlalchemy import func, select
 
-from service.api.deps import (Authorized, PagingDep, SessionDep, SettingsDep, VersionRef,
-                              resolve_version)
-from service.releases import ReleaseConflict, release_version
-from service.api.schemas import (ArtifactOut, DownlinkRef, Lineage, Page, Problem,
-                                 ReleaseRequest, VersionDetail, VersionSummary)
-from service.exports import ExportError, ExportFormat, Site, export_version
+from service.api.deps import Authorized, PagingDep, SessionDep, SettingsDep, VersionRef, resolve_version
+from service.api.schemas import (
+    ArtifactOut,
+    DownlinkRef,
+    Lineage,
+    Page,
+    Problem,
+    ReleaseRequest,
+    VersionDetail,
+    VersionSummary,
+)
+from service.exports import ExportError, ExportFormat, Site, make_export, plan_export
 from service.models import ModelKind, ModelVersion
+from service.releases import ReleaseConflict, release_version
 from service.versions import ArtifactError, artifact_path
 
 router = APIRouter(prefix="/versions", tags=["versions"])
@@ -59,7 +66,7 @@ def list_versions(session: SessionDep, paging: PagingDep,
         query = query.where(ModelVersion.kind == kind)
     if released is not None:
         query = query.where(ModelVersion.released.is_(released))
-    total = session.scalar(select(func.count()).select_from(query.subquery()))
+    total = session.execute(select(func.count()).select_from(query.subquery())).scalar_one()
     rows = session.scalars(query.order_by(ModelVersion.version.desc())
                            .limit(paging.limit).offset(paging.offset))
     return Page(items=[summary(v) for v in rows], total=total, **paging.model_dump())
@@ -94,7 +101,7 @@ def download_artifact(session: SessionDep, settings: SettingsDep, ref: VersionRe
 
 @router.get("/{ref}/export", response_class=FileResponse,
             responses={200: {"content": {"application/octet-stream": {}}},
-                       404: {"model": Problem}})
+                       404: {"model": Problem}, 503: {"model": Problem}})
 def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
            format: ExportFormat,
            faces: Annotated[int | None, Query(ge=4, le=100_000_000,
@@ -113,7 +120,8 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
            ) -> FileResponse:
     """The version as OBJ, PLY (albedo per vertex), ICQ, SPICE DSK type 2 (km, body-fixed), or
     the terrain product of a site (format `site` with lat, lon and radius_km: a zip of the PDS4
-    label, its data file and a PNG preview). Body and frame default to the catalog's."""
+    label, its data file and a PNG preview). Body and frame default to the catalog's. While
+    too many exports are being made, one not made yet is refused with 503 and Retry-After."""
     version = resolve_version(session, ref)
     site_args = (lat, lon, radius_km)
     if format is ExportFormat.SITE and None in site_args:
@@ -123,10 +131,13 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             "lat, lon and radius_km go with format=site only")
     site = (Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
-            if format is ExportFormat.SITE else None)
+            if lat is not None and lon is not None and radius_km is not None else None)  # site format only
     try:
-        made = export_version(session, data_dir=settings.data_dir, version=version, fmt=format,
-                              faces=faces, site=site, body=body, frame=frame)
+        plan = plan_export(session, data_dir=settings.data_dir, version=version, fmt=format,
+                           faces=faces, site=site, body=body, frame=frame)
+        # The connection goes back to the pool before the export waits for its turn.
+        session.close()
+        made = make_export(plan, cache_bytes=settings.export_cache_bytes)
     except ExportError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
     except ArtifactError as exc:
