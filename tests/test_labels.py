@@ -20,7 +20,7 @@ from pwm.io.labels import (
     target_frame,
 )
 from pwm.io.pds4 import ImageProduct, ProductError
-from pwm.io.spice_kernels import bundled_kernels, kernel_pool
+from pwm.io.spice_kernels import BUNDLED_DIR, kernel_pool
 from pwm.simulate.missions import MISSIONS
 
 PRODUCT = ImageProduct(
@@ -38,10 +38,9 @@ def label(**fields) -> ImageProduct:
 def pool(tmp_path_factory):
     """The bundled OSIRIS-REx and Hayabusa2 kernels together, with the Ryugu constants and frame
     the simulator writes."""
-    bundled = bundled_kernels()
     written = MISSIONS["hayabusa2"].write_kernels(tmp_path_factory.mktemp("kernels"))
     names = dict.fromkeys([*MISSIONS["osiris-rex"].kernels, *MISSIONS["hayabusa2"].kernels])
-    with kernel_pool([bundled[n] for n in names] + written):
+    with kernel_pool([BUNDLED_DIR / n for n in names] + written):
         yield
 
 

@@ -23,9 +23,9 @@ from pwm.io.meshio import read_obj, write_obj
 from pwm.io.pds4 import file_sha256, write_image_product
 from pwm.io.spice_geometry import camera_from_kernel, camera_pose, instrument_frame, spacecraft_of, sun_direction
 from pwm.io.spice_kernels import (
+    BUNDLED_DIR,
     CkSegment,
     SpkSegment,
-    bundled_kernels,
     kernel_pool,
     write_ck,
     write_metakernel,
@@ -164,12 +164,11 @@ def _readout(detector: Camera, scenario: Scenario) -> tuple[Camera, tuple[int, i
 
 
 def _copy_fixed_kernels(kernel_dir: Path, mission: Mission) -> list[Path]:
-    bundled = bundled_kernels()
     paths = []
     for name, kind in mission.kernels.items():
-        dest = kernel_dir / kind / name
+        dest = kernel_dir / kind / Path(name).name
         dest.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(bundled[name], dest)
+        shutil.copyfile(BUNDLED_DIR / name, dest)
         paths.append(dest)
     return paths
 

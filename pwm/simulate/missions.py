@@ -21,7 +21,7 @@ SHAPES_DIR = BUNDLED_DIR.parent / "shapes"
 class Mission:
     """name, host, target_label: as the labels give them; instrument_label: the labels'
     instrument name (None: the name of the instrument's SPICE frame). kernels: bundled kernel
-    file -> folder of the downlink it goes in; shape: bundled base shape (km); spacecraft_frame:
+    (path under pwm/data/spice) -> folder of the downlink it goes in; shape: bundled base shape (km); spacecraft_frame:
     the frame the spacecraft attitude CK gives; write_kernels: writes the kernels the simulator
     makes up into a kernel directory, before the others are used, and returns their paths."""
 
@@ -79,7 +79,7 @@ MISSIONS: dict[str, Mission] = {
         shape="bennu_radar_nolan2013_sbgat.obj", spacecraft_frame="ORX_SPACECRAFT"),
     "hayabusa2": Mission(
         name="Hayabusa2", host="HAYABUSA2", target_label="(162173) Ryugu", instrument_label="ONC-T",
-        kernels={"naif0012.tls": "lsk", "hyb2_v10.tf": "fk", "hyb2_onc_v00.ti": "ik"},
+        kernels={"naif0012.tls": "lsk", "hyb2/hyb2_v10.tf": "fk", "hyb2/hyb2_onc_v00.ti": "ik"},
         shape="ryugu_test.obj", spacecraft_frame="HAYABUSA2_SC_BUS_PRIME",
         write_kernels=_hayabusa2_kernels),
 }
