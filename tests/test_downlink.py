@@ -52,6 +52,7 @@ def test_the_labels_and_kernels_say_what_each_image_is(ryugu_sim):
     read = read_downlink(ryugu_sim / "downlink")
     assert len(read.views) == 6 and read.skipped == []
     assert read.body_frame == "RYUGU_FIXED" and read.instruments == {ONC_T: "HAYABUSA2_ONC-T"}
+    assert (read.target, read.target_id) == ("(162173) Ryugu", 2162173)
     with kernel_pool(sorted((ryugu_sim / "truth" / "kernels").glob("*.tm"))):
         for view in read.views:  # the kernels of a downlink without knowledge errors are the truth's
             truth = camera_pose(et=view.et, instrument_id=ONC_T, target="RYUGU", body_frame="RYUGU_FIXED")

@@ -55,13 +55,14 @@ class Skipped:
 
 @dataclass
 class DownlinkViews:
-    """The views of a downlink (in label order), the products skipped, and the target and
-    body-fixed frame the views' poses and Sun directions are in; instruments: NAIF id -> name of
-    the cameras the views come from."""
+    """The views of a downlink (in label order), the products skipped, and the target (as its
+    labels name it, and its NAIF id) and body-fixed frame the views' poses and Sun directions are
+    in; instruments: NAIF id -> name of the cameras the views come from."""
 
     views: list[View]
     skipped: list[Skipped]
     target: str
+    target_id: int
     body_frame: str
     instruments: dict[int, str] = field(default_factory=dict)
 
@@ -136,8 +137,10 @@ def read_downlink(directory: str | Path, *, instrument: str | None = None, targe
         skipped.sort(key=lambda s: s.path)
         if not views:
             raise NoUsableImages(_nothing_usable(directory, skipped, named))
-        return DownlinkViews(views=views, skipped=skipped, target=body_name(main_target), body_frame=frame,
-                             instruments=instruments)
+        # SPICE's name for a body is the last the kernels gave it (Ryugu's FK ends with 1999JU3)
+        named_as = next(r.product.target_name for r in resolved if r.target == main_target)
+        return DownlinkViews(views=views, skipped=skipped, target=named_as or body_name(main_target),
+                             target_id=main_target, body_frame=frame, instruments=instruments)
 
 
 def _target_override(target: str, body_frame: str | None) -> tuple[int, str]:

@@ -75,6 +75,6 @@ def echo_rejected(failures: Iterable[Failure]) -> None:
 def downlink_report(read: DownlinkViews) -> dict:
     """What a downlink read gave, for a command's JSON report: target, frame, cameras and the
     products skipped (file, code, reason)."""
-    return {"target": read.target, "body_frame": read.body_frame,
+    return {"target": read.target, "target_id": read.target_id, "body_frame": read.body_frame,
             "instruments": {str(k): v for k, v in read.instruments.items()},
             "skipped": [dataclasses.asdict(s) for s in read.skipped]}
