@@ -42,7 +42,7 @@ from pwm.config import DEFAULTS  # noqa: E402
 from pwm.frames import latlon_to_unit, unit_to_latlon  # noqa: E402
 from pwm.io.meshio import read_obj  # noqa: E402
 from pwm.io.spice_kernels import bundled_kernels, kernel_pool  # noqa: E402
-from pwm.maplets import Maplet  # noqa: E402
+from pwm.maplets import MapletGrid  # noqa: E402
 from pwm.tiling import tile  # noqa: E402
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
 from service.ingest import ingest_directory  # noqa: E402
@@ -104,7 +104,7 @@ def _copy_numbers(connection: psycopg.Connection, table: str, columns: dict[str,
         copy.write(b"\xff\xff")
 
 
-def bennu_maplets(n: int) -> list[Maplet]:
+def bennu_maplets(n: int) -> list[MapletGrid]:
     """About n maplets of 5 x 5 nodes tiling the Bennu radar shape. The side that n squares
     need, less the overlap, is corrected once for the maplets the tiler adds to close gaps."""
     mesh = read_obj(BENNU_OBJ)

@@ -23,7 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from pwm.camera import project
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.photoclinometry import MapletImages, bilinear, bilinear_gradient, datum_complement, node_pixels, predict
 
 
@@ -37,7 +37,7 @@ class Alignment:
 
 
 def align(
-    maplet: Maplet,
+    maplet: MapletGrid,
     data: MapletImages,
     *,
     heights: np.ndarray | None = None,
@@ -137,7 +137,7 @@ def _peak(score: np.ndarray, i: int, j: int) -> np.ndarray:
 
 
 def register(
-    maplet: Maplet,
+    maplet: MapletGrid,
     data: MapletImages,
     *,
     offsets: np.ndarray | None = None,
@@ -206,7 +206,7 @@ def register(
     return Alignment(offsets=out, correlation=correlation)
 
 
-def _full_scores(maplet: Maplet, data: MapletImages, offsets: np.ndarray) -> np.ndarray:
+def _full_scores(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray) -> np.ndarray:
     """(K,) NCC of each image at the offsets with its leave-one-out albedo times the shading, over
     the maplet's nodes (-inf where too few)."""
     shading = predict(maplet, data, albedo=1.0).reshape(data.count, -1)
@@ -223,13 +223,13 @@ def _full_scores(maplet: Maplet, data: MapletImages, offsets: np.ndarray) -> np.
     return scores
 
 
-def _pixels_per_spacing(maplet: Maplet, camera, pose) -> float:
+def _pixels_per_spacing(maplet: MapletGrid, camera, pose) -> float:
     """Pixels between neighbouring nodes at the maplet's centre in one image."""
     ends = maplet.frame.to_body(np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]) * maplet.spacing_km)
     return float(np.linalg.norm(np.diff(project(ends, camera, pose), axis=0)))
 
 
-def _resample(maplet: Maplet, weights: np.ndarray, factor: int) -> tuple[Maplet, np.ndarray]:
+def _resample(maplet: MapletGrid, weights: np.ndarray, factor: int) -> tuple[MapletGrid, np.ndarray]:
     """The maplet with every `factor`-th spacing over the same square (heights smoothed to that
     spacing and interpolated) and per-node weights (K, m*m) that are positive where the fine
     weights are positive all around."""

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, cKDTree
 
 from pwm.frames import LocalFrame, local_frame
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.weights import raised_cosine
 
@@ -83,7 +83,7 @@ class VoxelGrid:
     sums: np.ndarray = field(default_factory=lambda: np.empty((0, _COLUMNS)))
     count: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
 
-    def add(self, maplet: Maplet, weight_sign: int = +1) -> None:
+    def add(self, maplet: MapletGrid, weight_sign: int = +1) -> None:
         """Add the maplet's nodes (weight_sign=-1: remove them, see `subtract`)."""
         if weight_sign not in (1, -1):
             raise ValueError("weight_sign must be +1 or -1")
@@ -105,11 +105,11 @@ class VoxelGrid:
         if not live.all():
             self.keys, self.sums, self.count = self.keys[live], self.sums[live], self.count[live]
 
-    def subtract(self, maplet: Maplet) -> None:
+    def subtract(self, maplet: MapletGrid) -> None:
         """Remove a maplet added earlier: the same revision (heights, albedo, weight) must be given."""
         self.add(maplet, weight_sign=-1)
 
-    def _contribution(self, maplet: Maplet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _contribution(self, maplet: MapletGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Voxel keys (sorted, unique), sums and node counts of one maplet."""
         p = maplet.nodes_body().reshape(-1, 3)
         w = maplet.weight * edge_taper(maplet.n, maplet.spacing_km, self.taper_fraction).ravel()

@@ -15,7 +15,7 @@ from pwm.frames import LocalFrame
 
 
 @dataclass
-class Maplet:
+class MapletGrid:
     """One maplet. heights, albedo: (n, n) arrays indexed [i (y), j (x)]; weight: region weight
     w_PWM of the latest refinement (1 before any)."""
 

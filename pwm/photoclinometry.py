@@ -47,7 +47,7 @@ from scipy.linalg import block_diag
 from scipy.sparse.linalg import splu
 
 from pwm.camera import Camera, Pose, project
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.photometry import lunar_lambert, mcewen_l
 
 Mode = Literal["pwm", "standard"]
@@ -118,7 +118,7 @@ class Refinement:
     converged: bool
 
 
-def node_pixels(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | None = None,
+def node_pixels(maplet: MapletGrid, data: MapletImages, *, heights: np.ndarray | None = None,
                 offsets: np.ndarray | None = None) -> np.ndarray:
     """(K, n, n, 2) pixel coordinates (sample, line) of the nodes in each image, plus the per-image
     offsets (K, 2) (pointing corrections from `pwm.alignment.align`); NaN behind the camera."""
@@ -200,7 +200,7 @@ def cubic_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, n
     return value + nan, np.stack([ds, dl], axis=-1) + nan[..., None]
 
 
-def extract(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | None = None,
+def extract(maplet: MapletGrid, data: MapletImages, *, heights: np.ndarray | None = None,
             offsets: np.ndarray | None = None) -> np.ndarray:
     """(K, n, n) image values at the nodes (bilinear), NaN outside the frames or behind a camera."""
     pixels = node_pixels(maplet, data, heights=heights, offsets=offsets)
@@ -246,7 +246,7 @@ class _Geometry:
     phase: np.ndarray
 
 
-def _geometry(maplet: Maplet, data: MapletImages, heights: np.ndarray) -> _Geometry:
+def _geometry(maplet: MapletGrid, data: MapletImages, heights: np.ndarray) -> _Geometry:
     frame = maplet.frame
     sun = data.sun_directions @ frame.rotation.T
     nodes = maplet.nodes_local(heights).reshape(-1, 3)
@@ -279,7 +279,7 @@ def _shading(p: np.ndarray, q: np.ndarray, geo: _Geometry) -> tuple[np.ndarray, 
     return G, np.where(lit, gp, 0.0), np.where(lit, gq, 0.0)
 
 
-def predict(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | None = None,
+def predict(maplet: MapletGrid, data: MapletImages, *, heights: np.ndarray | None = None,
             albedo: np.ndarray | float | None = None) -> np.ndarray:
     """(K, n, n) brightness A * G predicted at the nodes from the maplet's shape (render by formula,
     no cast shadows). albedo: per node or scalar; the maplet's own, or 1, if None."""
@@ -290,7 +290,7 @@ def predict(maplet: Maplet, data: MapletImages, *, heights: np.ndarray | None = 
     return (np.broadcast_to(a, h.shape).ravel() * G).reshape(data.count, maplet.n, maplet.n)
 
 
-def _initial_albedo_and_scales(maplet: Maplet, values: np.ndarray, rows: np.ndarray,
+def _initial_albedo_and_scales(maplet: MapletGrid, values: np.ndarray, rows: np.ndarray,
                                G: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Albedo per node (N,), scales (K,) and albedo prior (N,), gauged to unit geometric-mean scale.
 
@@ -351,7 +351,7 @@ class _Evaluation:
 class _Problem:
     """One maplet's refinement: data, operators on the node grid (units of one spacing), priors."""
 
-    def __init__(self, maplet: Maplet, data: MapletImages, *, weights: np.ndarray, region: float,
+    def __init__(self, maplet: MapletGrid, data: MapletImages, *, weights: np.ndarray, region: float,
                  offsets: np.ndarray, solve_offsets: bool, slope_weight: float, slope_scale: float,
                  height_weight: float, albedo_weight: float, offset_weight: float) -> None:
         n = maplet.n
@@ -509,7 +509,7 @@ class _Problem:
         return _State(u=du, albedo=da, scales=dt, offsets=np.zeros((k_images, 2)))
 
 
-def datum_complement(maplet: Maplet, data: MapletImages) -> np.ndarray:
+def datum_complement(maplet: MapletGrid, data: MapletImages) -> np.ndarray:
     """(2K, m) orthonormal basis of the image offsets (sample, line per image) orthogonal to those
     a shift of the maplet along its local x and y would cause (m = 2K - 2 in general). A shift
     along z stays free: `refine` holds the mean height, and the offsets absorb its parallax."""
@@ -580,7 +580,7 @@ SOLVER = Solver()
 
 
 def refine(
-    maplet: Maplet,
+    maplet: MapletGrid,
     data: MapletImages,
     *,
     mode: Mode = "pwm",

@@ -18,7 +18,7 @@ from pwm.alignment import register
 from pwm.camera import project
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.fusion import VoxelGrid
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.parallel import map_processes
 from pwm.photoclinometry import MapletImages, extract, refine
@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 class MapletResult:
     """A refined maplet and how it was made: the images used (names), weights, solver outcome."""
 
-    maplet: Maplet
+    maplet: MapletGrid
     images: list[str]
     region_weight: float
     five_views: dict
@@ -55,7 +55,7 @@ class MapletResult:
     seconds: float
 
 
-def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer, *,
+def maplet_images(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                   rules: Rules = RULES) -> tuple[MapletImages, MapletWeights, list[int]]:
     """The images of `views` that the weighting rules keep for `maplet`, with visibility against
     the tracer's shape, per-node weights and the region weight; and their indices in `views`."""
@@ -73,7 +73,7 @@ def maplet_images(maplet: Maplet, views: list[View], tracer: RayTracer, *,
     return data, weights, keep.tolist()
 
 
-def views_over_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *,
+def views_over_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                       spacing_km: float | None = None) -> tuple[Visibility, np.ndarray, MapletGeometry]:
     """Visibility of the maplet's nodes in `views` against the tracer's shape, which nodes fall
     in each image's frame (K, n*n), and the images' geometry over the maplet. Only the views'
@@ -100,7 +100,7 @@ def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
             & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
 
 
-def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *,
+def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                   config: RefinementConfig = DEFAULTS) -> MapletResult:
     """Weigh and refine one maplet; with fewer than config.min_images usable images it keeps its
     start.
@@ -113,9 +113,10 @@ def refine_maplet(maplet: Maplet, views: list[View], tracer: RayTracer, *,
     data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)
     views_found = {role: views[i].name for role, i in vars(weights.views).items() if i is not None}
     dropped = {views[k].name: reasons for k, reasons in enumerate(weights.reasons) if reasons}
-    refined = Maplet(name=maplet.name, frame=maplet.frame, spacing_km=maplet.spacing_km, heights=maplet.heights.copy(),
-                     albedo=None if maplet.albedo is None else maplet.albedo.copy(),
-                     weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
+    refined = MapletGrid(name=maplet.name, frame=maplet.frame, spacing_km=maplet.spacing_km,
+                         heights=maplet.heights.copy(),
+                         albedo=None if maplet.albedo is None else maplet.albedo.copy(),
+                         weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
     iterations, converged, rms = 0, False, []
     if data.count >= config.min_images:
         # navigation knowledge errors move images by many pixels: register them before the joint
@@ -153,11 +154,11 @@ def _init_worker(start: Mesh, views: list[View], config: RefinementConfig) -> No
     _WORKER.update(tracer=RayTracer(start), views=views, config=config)
 
 
-def _refine_in_worker(maplet: Maplet) -> MapletResult:
+def _refine_in_worker(maplet: MapletGrid) -> MapletResult:
     return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], config=_WORKER["config"])
 
 
-def refine_maplets(maplets: list[Maplet], views: list[View], start: Mesh, *, config: RefinementConfig = DEFAULTS,
+def refine_maplets(maplets: list[MapletGrid], views: list[View], start: Mesh, *, config: RefinementConfig = DEFAULTS,
                    workers: int = 1) -> list[MapletResult]:
     """Refine every maplet against `start` (in `workers` processes, pwm.parallel.map_processes),
     logging progress; results in input order."""
@@ -221,7 +222,7 @@ def refine_region(start: Mesh, views: list[View], region: Region, *, config: Ref
     return model, results
 
 
-def fuse(maplets: list[Maplet], base: Mesh, *, overlap: float) -> tuple[Mesh, VoxelGrid]:
+def fuse(maplets: list[MapletGrid], base: Mesh, *, overlap: float) -> tuple[Mesh, VoxelGrid]:
     """Fuse refined maplets (voxels of one node spacing) and stitch them into `base`."""
     grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=overlap)
     for m in maplets:

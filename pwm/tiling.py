@@ -30,7 +30,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame, unit_to_latlon
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import Hits, RayTracer
 
@@ -46,7 +46,7 @@ _NEAR = 2.0 * np.sqrt(3.0)
 def tile(
     mesh: Mesh, *, spacing_km: float, nodes: int, overlap: float = 0.25, centre_lat_deg: float | None = None,
     centre_lon_deg: float | None = None, radius_km: float | None = None,
-) -> list[Maplet]:
+) -> list[MapletGrid]:
     """Square maplets of nodes x nodes heights every spacing_km covering the whole body, or the
     disc of radius_km about (centre_lat_deg, centre_lon_deg) when all three are given.
 
@@ -74,20 +74,20 @@ def tile(
     for frame in frames:
         lat, lon = unit_to_latlon(frame.origin)
         heights, albedo, filled = _drop(surface.tracer, frame, axis, surface.near_vertices(frame.origin, half), half)
-        maplets.append(Maplet(name=f"M{lat:+08.4f}E{lon:08.4f}", frame=frame, spacing_km=spacing_km,
-                              heights=heights, albedo=albedo, meta={"filled_nodes": filled}))
+        maplets.append(MapletGrid(name=f"M{lat:+08.4f}E{lon:08.4f}", frame=frame, spacing_km=spacing_km,
+                                  heights=heights, albedo=albedo, meta={"filled_nodes": filled}))
     if len({m.name for m in maplets}) != len(maplets):
         raise ValueError("two maplet origins share a name: spacing too fine for the name's 1e-4 degree grid")
     return maplets
 
 
-def sample_heights(model: Mesh | RayTracer, maplet: Maplet) -> np.ndarray:
+def sample_heights(model: Mesh | RayTracer, maplet: MapletGrid) -> np.ndarray:
     """Heights (n, n) along the maplet's z (km) of the first surface of `model` under each node,
     seen from above; nodes whose ray misses take the height of the nearest node that hits."""
     return sample_surface(model, maplet)[0]
 
 
-def sample_surface(model: Mesh | RayTracer, maplet: Maplet) -> tuple[np.ndarray, np.ndarray | None]:
+def sample_surface(model: Mesh | RayTracer, maplet: MapletGrid) -> tuple[np.ndarray, np.ndarray | None]:
     """Heights (n, n, km) and interpolated albedo (n, n, or None if the model has none) of `model`
     under the maplet's nodes, as in `sample_heights`."""
     tracer = model if isinstance(model, RayTracer) else RayTracer(model)
@@ -144,7 +144,7 @@ def _latitude_rows(step_rad: float) -> np.ndarray:
 
 
 def _body_centres(surface: _Surface, step: float, fine: float) -> tuple[np.ndarray, np.ndarray]:
-    """Maplet centres over the whole body, and samples every `fine` km to check their coverage."""
+    """MapletGrid centres over the whole body, and samples every `fine` km to check their coverage."""
     radius = np.sqrt(surface.mesh.face_areas().sum() / (4.0 * np.pi))
     centres = surface.outer_points(_latitude_rows(step / radius))
     samples = surface.outer_points(_latitude_rows(fine / radius))

@@ -35,7 +35,7 @@ import numpy as np
 from scipy import ndimage
 
 from pwm.frames import LocalFrame, local_sun
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.visibility import Visibility
 
 DIRECTIONS = {"east": 90.0, "west": 270.0, "north": 0.0, "south": 180.0}
@@ -292,7 +292,7 @@ def region_weight(geom: MapletGeometry, image_weight: np.ndarray, keep: np.ndarr
     return max(rules.min_region_weight, float(np.prod(list(factors.values())))), factors
 
 
-def weigh_maplet(maplet: Maplet, vis: Visibility, geom: MapletGeometry, *, in_frame: np.ndarray | None = None,
+def weigh_maplet(maplet: MapletGrid, vis: Visibility, geom: MapletGeometry, *, in_frame: np.ndarray | None = None,
                  rules: Rules = RULES) -> MapletWeights:
     """All the weights of one maplet seen in K images. vis: visibility of its nodes in row-major
     order (maplet.nodes_body().reshape(-1, 3)); geom: from `maplet_geometry`; in_frame (K, n*n)."""

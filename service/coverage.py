@@ -28,7 +28,7 @@ from sqlalchemy.orm import Session
 from pwm.camera import project
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.frames import LocalFrame, unit_to_latlon
-from pwm.maplets import Maplet as MapletGrid
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.pipeline import imaged_region, views_over_maplet
 from pwm.raytrace import RayTracer

@@ -13,6 +13,10 @@ row while it is running for the attempt that calls them (JobLost otherwise), so 
 presumed dead cannot overwrite the outcome of the attempt that took over; they write to the
 table and leave the Job object passed as it was claimed. Each function works in the caller's
 transaction: commit promptly so that the API sees progress.
+
+Work is handed to whoever runs it through a JobQueue: the workers implement it
+(workers.tasks.CeleryQueue) and the command line, which wires the parts together, gives it to
+the API and the watcher; nothing else in `service` knows who runs the jobs.
 """
 
 from __future__ import annotations
@@ -20,11 +24,12 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from datetime import datetime, timedelta
-from typing import Any, cast
+from pathlib import Path
+from typing import Any, Protocol, cast
 
 from sqlalchemy import CursorResult, select, update
 from sqlalchemy.dialects import postgresql, sqlite
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from service.models import Job, JobKind, JobStatus, utcnow
 
@@ -48,6 +53,21 @@ class JobBusy(Exception):
 
 class JobLost(Exception):
     """The attempt no longer holds its job: it finished, or a later attempt took it over."""
+
+
+class JobQueue(Protocol):
+    """Where jobs are submitted to be run; each call returns the job's idempotency key."""
+
+    def submit_ingest(self, directory: Path, *, sessions: sessionmaker[Session]) -> str:
+        """Submit the ingest of the downlink in `directory` (and what follows from it) unless it
+        is done."""
+        ...
+
+    def submit_refinement(self, session: Session, *, maplet_id: int) -> str:
+        """Submit the refinement of a maplet's current input in the caller's transaction, run
+        once it commits. Raises LookupError for an unknown maplet, ValueError when there is
+        nothing new to refine."""
+        ...
 
 
 def submit_job(session: Session, *, kind: JobKind, key: str, downlink_id: int | None = None,

@@ -29,7 +29,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.frames import LocalFrame
 from pwm.io.fusion_state import read_maplet, write_maplet
-from pwm.maplets import Maplet as MapletGrid
+from pwm.maplets import MapletGrid
 from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface

@@ -24,8 +24,6 @@ from pwm.raytrace import RayTracer
 
 BENNU_OBJ = (Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes"
              / "bennu_radar_nolan2013_sbgat.obj")
-SPICE_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "spice"
-DEIMOS_DSK = SPICE_DATA / "dsk" / "DEIMOS_K005_THO_V01.BDS"
 BENNU, OBSERVER = 2101955, -999
 MM_KM = 1e-6
 
@@ -164,11 +162,12 @@ def test_dsk_with_an_unknown_frame_leaves_no_file(tmp_path, bennu):
     assert not dsk.exists()
 
 
-def test_real_dsk_reads_and_round_trips(tmp_path):
-    deimos = read_dsk(DEIMOS_DSK)
-    original, _ = _descriptor(DEIMOS_DSK)
+def test_real_dsk_reads_and_round_trips(tmp_path, shared_data):
+    deimos_dsk = shared_data / "spice" / "dsk" / "DEIMOS_K005_THO_V01.BDS"
+    deimos = read_dsk(deimos_dsk)
+    original, _ = _descriptor(deimos_dsk)
     assert np.array_equal(np.unique(deimos.faces), np.arange(len(deimos.vertices)))
-    with kernel_pool([SPICE_DATA / "generic" / "pck00010.tpc"]):
+    with kernel_pool([shared_data / "spice" / "generic" / "pck00010.tpc"]):
         a, b, c = sp.bodvrd("DEIMOS", "RADII", 3)[1]
     # a lat/lon grid model (degenerate plates at the poles): closed and outward, not manifold
     volume = trimesh.Trimesh(deimos.vertices, deimos.faces, process=False).volume
@@ -186,8 +185,8 @@ def test_real_dsk_reads_and_round_trips(tmp_path):
     origins, directions = _rays(1000, 20.0, 2.0, seed=7)
     expected = _mesh_intercepts(deimos, origins, directions)
     intercepts = []
-    for path in (DEIMOS_DSK, copy):
-        with kernel_pool([SPICE_DATA / "generic" / "pck00010.tpc", path]):
+    for path in (deimos_dsk, copy):
+        with kernel_pool([shared_data / "spice" / "generic" / "pck00010.tpc", path]):
             intercepts.append(_dskxv("DEIMOS", "IAU_DEIMOS", origins, directions))
         assert np.abs(intercepts[-1] - expected).max() < MM_KM, path.name
     # same plates, different spatial index: the same answers to rounding

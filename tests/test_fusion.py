@@ -12,7 +12,7 @@ import pwm
 from pwm.frames import LocalFrame, latlon_to_unit
 from pwm.fusion import VoxelGrid, edge_taper
 from pwm.io.meshio import read_obj
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
@@ -30,11 +30,11 @@ def bennu() -> Mesh:
     return Mesh(v, f, np.full(len(v), 0.044))
 
 
-def flat(name: str, x0: float, height: float, albedo: float, weight: float, n: int = 21) -> Maplet:
+def flat(name: str, x0: float, height: float, albedo: float, weight: float, n: int = 21) -> MapletGrid:
     """A maplet on the plane z = Z0 + height, axes along the body axes, its nodes at voxel centres."""
     frame = LocalFrame(origin=np.array([x0 + S / 2, S / 2, Z0]), rotation=np.eye(3))
-    return Maplet(name=name, frame=frame, spacing_km=S, heights=np.full((n, n), height),
-                  albedo=np.full((n, n), albedo), weight=weight)
+    return MapletGrid(name=name, frame=frame, spacing_km=S, heights=np.full((n, n), height),
+                      albedo=np.full((n, n), albedo), weight=weight)
 
 
 def test_taper_cross_fades_maplets_that_overlap_by_the_fraction():

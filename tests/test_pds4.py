@@ -19,7 +19,6 @@ from pwm.io.pds4 import (
     write_image_product,
 )
 
-PDS4_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "pds4"
 SCALE, OFFSET = 2.0e-5, 0.1
 META = dict(lid="urn:nasa:pds:orex.ocams:data_raw:20190303t105940s279_map_panl0", vid="2.0",
             start_utc="2019-03-03T10:59:40.279", stop_utc="2019-03-03T10:59:40.289Z",
@@ -146,9 +145,8 @@ def test_md5_checked_before_array(product):
 
 
 @pytest.fixture(scope="module")
-def pds4_data() -> Path:
-    assert PDS4_DATA.is_dir(), f"shared PDS4 test data missing at {PDS4_DATA}"
-    return PDS4_DATA
+def pds4_data(shared_data) -> Path:
+    return shared_data / "pds4"
 
 
 def test_real_dart_mro_image(pds4_data):

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from pwm.alignment import align, register
 from pwm.camera import Camera, Pose, look_at, project
 from pwm.frames import latlon_to_unit, local_frame
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.photoclinometry import (
     MapletImages,
@@ -51,8 +51,8 @@ NOISE = 0.01
 
 @dataclass
 class Scene:
-    start: Maplet          # flat heights, no albedo
-    truth: Maplet          # the true heights and albedo on the maplet's nodes
+    start: MapletGrid          # flat heights, no albedo
+    truth: MapletGrid          # the true heights and albedo on the maplet's nodes
     data: MapletImages
     scales: np.ndarray     # true brightness scales, geometric mean 1
 
@@ -71,7 +71,7 @@ def _albedo(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return 0.045 * (1 + 0.15 * np.sin(2 * np.pi * x / 8e-4) * np.cos(2 * np.pi * y / 1.1e-3 + 0.3))
 
 
-def _grid_mesh(maplet: Maplet, axis: np.ndarray) -> Mesh:
+def _grid_mesh(maplet: MapletGrid, axis: np.ndarray) -> Mesh:
     """The true surface as a grid mesh on `axis` (km) in the maplet's frame, two faces a cell."""
     x, y = np.meshgrid(axis, axis)
     m = len(axis)
@@ -86,7 +86,7 @@ def _scene(suns: tuple[tuple[float, float], ...], seed: int = 0) -> Scene:
     rng = np.random.default_rng(seed)
     centre = 0.25 * latlon_to_unit(10.0, 30.0)
     frame = local_frame(centre, centre)
-    start = Maplet(name="bump", frame=frame, spacing_km=SPACING_KM, heights=np.zeros((N_NODES, N_NODES)))
+    start = MapletGrid(name="bump", frame=frame, spacing_km=SPACING_KM, heights=np.zeros((N_NODES, N_NODES)))
     x, y = np.meshgrid(start.axis_km, start.axis_km)
     truth = dataclasses.replace(start, heights=_heights(x, y), albedo=_albedo(x, y))
     half = start.axis_km[-1] + 1e-3
@@ -323,7 +323,7 @@ def _mispointed(data: MapletImages, seed: int, angle_rad: float = 1e-4) -> Maple
     return dataclasses.replace(data, poses=poses)
 
 
-def _true_offsets(truth: Maplet, good: MapletImages, bad: MapletImages) -> np.ndarray:
+def _true_offsets(truth: MapletGrid, good: MapletImages, bad: MapletImages) -> np.ndarray:
     """Where the maplet centre really is minus where the mispointed poses put it (px)."""
     centre = truth.nodes_body()[N_NODES // 2, N_NODES // 2]
     return np.array([project(centre, camera, right) - project(centre, camera, wrong)
@@ -360,7 +360,7 @@ def test_refine_solves_pointing_up_to_the_maplet_datum(scene: Scene) -> None:
     assert np.all(refine(scene.start, bad, solver=Solver(solve_offsets=False)).rms > 2 * result.rms)
 
 
-def _datum_free(offsets: np.ndarray, maplet: Maplet, data: MapletImages) -> np.ndarray:
+def _datum_free(offsets: np.ndarray, maplet: MapletGrid, data: MapletImages) -> np.ndarray:
     """Offsets (K, 2) less the best-fitting common shift of the maplet along its x and y."""
     centre = maplet.nodes_body()[N_NODES // 2, N_NODES // 2]
     shift = np.column_stack([

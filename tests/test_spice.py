@@ -2,7 +2,6 @@
 
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,7 +29,6 @@ from pwm.io.spice_kernels import (
     write_spk,
 )
 
-SHARED = Path("/work/shared/data/spice")
 BENNU, SC, MAPCAM, SC_BUS = 2101955, -64, -64361, -64000
 C_KM_S = 299792.458
 
@@ -161,8 +159,8 @@ def test_relative_path_values_resolve_against_the_metakernel(tmp_path, monkeypat
         assert sp.deltet(0.0, "ET") == pytest.approx(64.184, abs=1e-3)  # the LSK is usable
 
 
-def test_missing_kernels_are_listed_before_anything_loads():
-    mk = SHARED / "mk" / "orx_2020_v05.tm"
+def test_missing_kernels_are_listed_before_anything_loads(shared_data):
+    mk = shared_data / "spice" / "mk" / "orx_2020_v05.tm"
     named = mk.read_text().count("'$KERNELS/")
     with kernel_pool([]):
         with pytest.raises(KernelError) as err:
@@ -170,8 +168,8 @@ def test_missing_kernels_are_listed_before_anything_loads():
         assert sp.ktotal("ALL") == 0
         assert not sp.expool("KERNELS_TO_LOAD")
     assert len(err.value.missing) == named
-    assert err.value.missing[0] == SHARED / "lsk" / "naif0012.tls"
-    assert str(SHARED / "fk" / "orx_v14.tf") in str(err.value)
+    assert err.value.missing[0] == shared_data / "spice" / "lsk" / "naif0012.tls"
+    assert str(shared_data / "spice" / "fk" / "orx_v14.tf") in str(err.value)
 
 
 def test_ck_quaternions_and_angular_velocity_follow_spice(tmp_path):
@@ -204,8 +202,8 @@ def test_ck_quaternions_and_angular_velocity_follow_spice(tmp_path):
     # Hayabusa2 ONC-T: both in mm.
     ("hyb2/hyb2_onc_v00.ti", -37100, 121.1 / 0.013, None),
 ])
-def test_camera_focal_length_units_are_inferred(kernel, instrument, focal_px, fov_half_tan):
-    path = bundled_kernels()[kernel[8:]] if kernel.startswith("bundled:") else SHARED / kernel
+def test_camera_focal_length_units_are_inferred(kernel, instrument, focal_px, fov_half_tan, shared_data):
+    path = bundled_kernels()[kernel[8:]] if kernel.startswith("bundled:") else shared_data / "spice" / kernel
     with kernel_pool([path]):
         camera = camera_from_kernel(instrument)
     assert (camera.width, camera.height) == (1024, 1024)
@@ -231,9 +229,9 @@ def test_spacecraft_of():
         spacecraft_of(BENNU)
 
 
-def test_real_mapcam_kernels_give_the_observed_range():
+def test_real_mapcam_kernels_give_the_observed_range(shared_data):
     """A real MapCam image of 2019-03-03: about 6.6 km from Bennu, boresight on the body."""
-    directory = SHARED / "orex_mapcam_20190303"
+    directory = shared_data / "spice" / "orex_mapcam_20190303"
     kernels = [bundled_kernels()["naif0012.tls"],
                *(p for p in sorted(directory.iterdir()) if p.suffix != ".lbl")]
     with kernel_pool(kernels):

@@ -11,7 +11,7 @@ import trimesh
 import pwm
 from pwm.frames import LocalFrame, latlon_to_unit
 from pwm.io.meshio import read_obj
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_heights, sample_surface, tile
@@ -37,7 +37,7 @@ def sag(mesh: Mesh) -> float:
     return edge**2 / (8 * R) + edge**2 / (6 * R)
 
 
-def covered(maplets: list[Maplet], points: np.ndarray) -> np.ndarray:
+def covered(maplets: list[MapletGrid], points: np.ndarray) -> np.ndarray:
     """Points over some maplet's square, within its half-size of its plane."""
     out = np.zeros(len(points), dtype=bool)
     for m in maplets:
@@ -113,7 +113,7 @@ def test_sample_heights_fills_misses_and_follows_the_model():
     plane = Mesh(np.column_stack([x.ravel(), y.ravel(), 0.25 + 0.1 * x.ravel()]),
                  np.vstack([np.column_stack([c, c + 1, c + n + 1]), np.column_stack([c, c + n + 1, c + n])]))
     frame = LocalFrame(origin=np.array([0.00325, 0.0, 0.2503]), rotation=np.eye(3))
-    maplet = Maplet(name="edge", frame=frame, spacing_km=0.0005, heights=np.zeros((17, 17)))
+    maplet = MapletGrid(name="edge", frame=frame, spacing_km=0.0005, heights=np.zeros((17, 17)))
     h = sample_heights(plane, maplet)
     xs = maplet.axis_km + 0.00325
     on = xs < 0.005

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame, unit_to_latlon
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.visibility import Visibility, node_visibility
@@ -157,7 +157,7 @@ def test_node_factors_exclude_occluded_and_shadow_and_soften_shadow_edges():
     assert np.all(node_factors(vis, rough, spacing, in_frame=in_frame)[0][:2] == 0.0)
 
 
-def grid_mesh(maplet: Maplet) -> Mesh:
+def grid_mesh(maplet: MapletGrid) -> Mesh:
     """The maplet's nodes as a mesh, two triangles per cell, outward along its z."""
     n = maplet.n
     c = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
@@ -195,7 +195,7 @@ def test_weigh_maplet_on_real_shadows_and_occlusion():
     axis = (np.arange(n) - 20) * spacing
     r2 = axis[None, :] ** 2 + axis[:, None] ** 2
     heights = 4e-3 * np.exp(-r2 / (2 * 1e-3**2))
-    maplet = Maplet(name="boulder", frame=frame, spacing_km=spacing, heights=heights)
+    maplet = MapletGrid(name="boulder", frame=frame, spacing_km=spacing, heights=heights)
     tracer = RayTracer(grid_mesh(maplet))
     gy, gx = np.gradient(heights, spacing)
     normals = frame.to_body(np.column_stack([-gx.ravel(), -gy.ravel(), np.ones(n * n)])) - frame.origin

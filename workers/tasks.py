@@ -8,12 +8,12 @@ attempt is tried again after a backoff, up to task_retries times (workers.app.Wo
 
 The flow of a downlink: ingest_downlink catalogues it against the current model
 (service.run.ingest_and_plan) and submits one refine job per maplet whose input changed;
-refine_maplet refines one (service.refinement); fusion fans in through the jobs table rather than
-a chord: after every delivery of a refine task, once no refine job of its downlink is left
-unfinished, the downlink's fuse job is submitted and fuse_downlink publishes the new version
-(service.publish). The check runs after the refine job's outcome is committed, so of refinements
-finishing together the last to commit sees all done; fan-ins that both see it submit the same
-fuse key, and the claim makes the second delivery a no-op.
+refine_revision makes the maplet's revision of that input (service.refinement); fusion fans in
+through the jobs table rather than a chord: after every delivery of a refine task, once no
+refine job of its downlink is left unfinished, the downlink's fuse job is submitted and
+fuse_downlink publishes the new version (service.publish). The check runs after the refine
+job's outcome is committed, so of refinements finishing together the last to commit sees all
+done; fan-ins that both see it submit the same fuse key, and the claim makes the second delivery a no-op.
 
 Task names decide the queue (workers.app.TASK_ROUTES): ingest_* tasks go to `ingest`, refine_*
 to `refine`, fuse_* to `fuse`.
@@ -68,6 +68,17 @@ def refine_key(downlink_id: int | None, maplet_id: int, input_hash: str) -> str:
 def fuse_key(downlink_id: int | None) -> str:
     """The key of fusing a downlink's refinements (None: the catalog's) into a new version."""
     return f"fuse:{downlink_id}"
+
+
+class CeleryQueue:
+    """The service's job queue (service.jobs.JobQueue) run by these tasks: on the workers with
+    a broker, else in the calling process."""
+
+    def submit_ingest(self, directory: Path, *, sessions: sessionmaker[Session]) -> str:
+        return submit_ingest(directory, sessions=sessions)
+
+    def submit_refinement(self, session: Session, *, maplet_id: int) -> str:
+        return submit_refinement(session, maplet_id=maplet_id)
 
 
 def submit_ingest(directory: Path, *, sessions: sessionmaker[Session] | None = None) -> str:
@@ -127,7 +138,7 @@ def ingest_downlink(self: Task, directory: str, key: str | None = None) -> dict[
 
 
 @app.task(bind=True, max_retries=None)
-def refine_maplet(self: Task, maplet_id: int, input_hash: str,
+def refine_revision(self: Task, maplet_id: int, input_hash: str,
                   downlink_id: int | None = None) -> dict[str, Any]:
     """Refine the maplet's input `input_hash` (service.refinement.refine_catalog_maplet) as the
     job refine_key(downlink_id, maplet_id, input_hash), then fan in: submit and enqueue the
@@ -182,7 +193,7 @@ def _submit_refine(session: Session, downlink_id: int | None, work: MapletWork) 
 
 
 def _enqueue_refine(downlink_id: int | None, work: MapletWork) -> None:
-    refine_maplet.apply_async(kwargs={"maplet_id": work.maplet_id,
+    refine_revision.apply_async(kwargs={"maplet_id": work.maplet_id,
                                       "input_hash": work.input_hash,
                                       "downlink_id": downlink_id})
 

@@ -13,10 +13,10 @@ import numpy as np
 
 from pwm.frames import LocalFrame
 from pwm.fusion import VoxelGrid
-from pwm.maplets import Maplet
+from pwm.maplets import MapletGrid
 
 
-def write_maplet(path: str | Path, maplet: Maplet) -> None:
+def write_maplet(path: str | Path, maplet: MapletGrid) -> None:
     """Save a maplet's state (its meta is not kept)."""
     arrays = {"name": np.array(maplet.name), "origin_km": maplet.frame.origin,
               "rotation": maplet.frame.rotation, "spacing_km": np.array(maplet.spacing_km),
@@ -27,14 +27,14 @@ def write_maplet(path: str | Path, maplet: Maplet) -> None:
         np.savez(stream, **arrays)  # type: ignore[arg-type]  # numpy's stub checks **arrays against allow_pickle
 
 
-def read_maplet(path: str | Path) -> Maplet:
+def read_maplet(path: str | Path) -> MapletGrid:
     """A maplet saved by `write_maplet`."""
     with np.load(path, allow_pickle=False) as data:
-        return Maplet(name=str(data["name"]),
-                      frame=LocalFrame(origin=data["origin_km"], rotation=data["rotation"]),
-                      spacing_km=float(data["spacing_km"]), heights=data["heights_km"],
-                      albedo=data["albedo"] if "albedo" in data else None,
-                      weight=float(data["weight"]))
+        return MapletGrid(name=str(data["name"]),
+                          frame=LocalFrame(origin=data["origin_km"], rotation=data["rotation"]),
+                          spacing_km=float(data["spacing_km"]), heights=data["heights_km"],
+                          albedo=data["albedo"] if "albedo" in data else None,
+                          weight=float(data["weight"]))
 
 
 def write_grid(path: str | Path, grid: VoxelGrid) -> None:

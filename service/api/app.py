@@ -19,6 +19,7 @@ import pwm
 from service.api.routers import diffs, downlinks, images, jobs, maplets, versions
 from service.catalog import open_catalog
 from service.exports import RETRY_AFTER_S, ExportBusy
+from service.jobs import JobQueue
 from service.settings import Settings, get_settings
 
 # Request bodies are small JSON documents; anything larger is refused with 413.
@@ -43,8 +44,9 @@ DOCS_CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline' https://cdn.j
 DOCS_PATHS = frozenset({"/docs", "/docs/oauth2-redirect", "/redoc"})
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """The API over the catalog of `settings` (default: from the environment), migrated first.
+def create_app(settings: Settings | None = None, *, job_queue: JobQueue | None = None) -> FastAPI:
+    """The API over the catalog of `settings` (default: from the environment), migrated first,
+    submitting work to `job_queue` (without one, the calls that submit work answer 503).
     Reads are open; changing calls need `Authorization: Bearer <PWM_API_TOKEN>` and are refused
     when no token is configured. Browsers may call it from the origins of PWM_CORS_ORIGINS only
     (none by default)."""
@@ -61,6 +63,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                               "jobs of the pwm catalog. Body-fixed frame, km.")
     app.state.settings = settings
     app.state.sessions = sessions
+    app.state.job_queue = job_queue
     for module in (versions, diffs, maplets, images, downlinks, jobs):
         app.include_router(module.router)
     app.add_exception_handler(ExportBusy, _busy_exports)

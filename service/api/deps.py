@@ -1,5 +1,5 @@
-"""What the routes share: the settings, a catalog session per request, the bearer token check
-for changing calls, pagination, and version references."""
+"""What the routes share: the settings, a catalog session per request, the job queue, the bearer
+token check for changing calls, pagination, and version references."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from pydantic import BaseModel, Field, SecretStr
 from sqlalchemy.orm import Session
 
 from service.api.schemas import VERSION_REF_PATTERN
+from service.jobs import JobQueue
 from service.models import ModelVersion
 from service.settings import Settings
 from service.versions import get_version
@@ -41,6 +42,15 @@ def get_session(request: Request) -> Iterator[Session]:
     """A session for one request; changing routes commit it themselves."""
     with request.app.state.sessions() as session:
         yield session
+
+
+def get_jobs(request: Request) -> JobQueue:
+    """The queue jobs are submitted to (given to create_app), or 503 when this server has none."""
+    jobs: JobQueue | None = request.app.state.job_queue
+    if jobs is None:
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE,
+                            "this server runs no jobs: it was started without a job queue")
+    return jobs
 
 
 def require_token(request: Request, credentials: Annotated[
@@ -82,6 +92,7 @@ def resolve_version(session: Session, ref: str) -> ModelVersion:
 
 SessionDep = Annotated[Session, Depends(get_session)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
+JobsDep = Annotated[JobQueue, Depends(get_jobs)]
 PagingDep = Annotated[Paging, Query()]
 VersionRef = Annotated[str, Path(pattern=VERSION_REF_PATTERN,
                                  description="version number, release tag, `latest` (newest) "

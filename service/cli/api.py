@@ -19,8 +19,9 @@ def serve(
     import uvicorn
 
     from service.api import create_app
+    from workers.tasks import CeleryQueue
 
-    uvicorn.run(create_app(), host=host, port=port)
+    uvicorn.run(create_app(job_queue=CeleryQueue()), host=host, port=port)
 
 
 @app.command()

@@ -27,6 +27,7 @@ from service.models import Downlink, JobKind, Maplet, MapletRevision, ModelKind
 from service.settings import Settings
 from service.versions import import_model, publish_version
 from workers.app import app as celery_app
+from workers.tasks import CeleryQueue
 
 TOKEN = "test-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -67,7 +68,7 @@ def refined_bennu() -> Mesh:
 def populated(module_postgres_url, tiny_sim, tmp_path_factory) -> Catalog:
     data_dir = tmp_path_factory.mktemp("pwm-data")
     app = create_app(Settings(data_dir=data_dir, database_url=module_postgres_url,
-                              api_token=TOKEN))
+                              api_token=TOKEN), job_queue=CeleryQueue())
     sessions = app.state.sessions
     downlink = tiny_sim / "downlink"
     ingest_directory(sessions, downlink, shape=read_mesh(downlink / "start_model.obj"))

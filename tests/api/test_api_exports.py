@@ -23,8 +23,6 @@ from service.db import session_scope
 from service.exports import icq_size
 from service.versions import import_model
 
-DEIMOS_DSK = (Path(__file__).resolve().parents[3] / "shared" / "data" / "spice" / "dsk"
-              / "DEIMOS_K005_THO_V01.BDS")
 MM_KM = 1e-6
 
 
@@ -59,17 +57,18 @@ def test_dsk_intercepts_agree_with_the_mesh(client, populated, tmp_path):
     assert np.abs(np.asarray(points) - expected).max() < MM_KM
 
 
-def test_the_real_deimos_dsk_imports_and_round_trips(client, populated, tmp_path):
+def test_the_real_deimos_dsk_imports_and_round_trips(client, populated, tmp_path, shared_data):
+    deimos = shared_data / "spice" / "dsk" / "DEIMOS_K005_THO_V01.BDS"
     with session_scope(populated.app.state.sessions) as session:
-        number = import_model(session, data_dir=populated.data_dir, path=DEIMOS_DSK).version
+        number = import_model(session, data_dir=populated.data_dir, path=deimos).version
     detail = client.get(f"/versions/{number}").json()
     assert detail["kind"] == "imported"
     assert detail["statistics"]["source_sha256"] == hashlib.sha256(
-        DEIMOS_DSK.read_bytes()).hexdigest()
+        deimos.read_bytes()).hexdigest()
     # the catalog's frame is Bennu's: the body and frame are given
     exported = _download(client, number, tmp_path, "deimos.bds", format="dsk", body="DEIMOS",
                          frame="IAU_DEIMOS")
-    original, again = read_dsk(DEIMOS_DSK), read_dsk(exported)
+    original, again = read_dsk(deimos), read_dsk(exported)
     np.testing.assert_array_equal(again.vertices, original.vertices)
     np.testing.assert_array_equal(again.faces, original.faces)
     handle = sp.dasopr(str(exported))

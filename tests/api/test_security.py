@@ -51,6 +51,21 @@ def test_without_a_configured_token_changing_calls_are_refused(populated, auth, 
             assert client.request(method, path, json={}).status_code == 401
 
 
+def test_a_server_without_a_job_queue_submits_nothing(populated, auth, tmp_path):
+    settings = populated.app.state.settings
+    (tmp_path / "incoming" / "dl-1").mkdir(parents=True)
+    app = create_app(Settings(data_dir=tmp_path, database_url=settings.database_url,
+                              api_token=settings.api_token))
+    with TestClient(app) as client:
+        for path, body in (("/ingests", {"path": "dl-1"}),
+                           (f"/maplets/{populated.maplet_id}/requeue", {})):
+            response = client.post(path, json=body, headers=auth)
+            assert response.status_code == 503, (path, response.text)
+            assert "job queue" in response.json()["detail"]
+        assert client.get("/jobs", params={"key": ingest_key(tmp_path / "incoming" / "dl-1")}
+                          ).json()["total"] == 0
+
+
 def test_the_token_is_declared_in_the_openapi_schema(client, populated):
     operations = client.get("/openapi.json").json()["paths"]
     changing = {(method.lower(), path) for method, path in changing_calls(populated.app)}

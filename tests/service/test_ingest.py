@@ -31,7 +31,6 @@ from service.models import (
     KernelKind,
 )
 
-SHARED = Path("/work/shared/data")
 BENNU, SC, MAPCAM, SC_BUS = 2101955, -64, -64361, -64000
 RANGE_KM = 2.0  # from Bennu's centre
 START_UTC = "2019-03-03T10:00:00"
@@ -321,9 +320,9 @@ def test_checksum_mismatch_is_rejected(catalog, downlink, kernels) -> None:
     assert "md5" in bad.rejection_reason
 
 
-def test_real_non_image_products_are_rejected(catalog, downlink) -> None:
+def test_real_non_image_products_are_rejected(catalog, downlink, shared_data) -> None:
     for folder in ("orex_tagcams_stowcam", "sbn_litcomp_comets"):
-        shutil.copytree(SHARED / "pds4" / folder, downlink / folder)
+        shutil.copytree(shared_data / "pds4" / folder, downlink / folder)
     report = ingest_directory(catalog, downlink)
     assert (report.images.accepted, report.images.rejected, report.failed) == (3, 2, 2)
     assert {f.code for f in report.failures} == {"not_image"}
@@ -417,9 +416,9 @@ def test_same_lidvid_twice(catalog, downlink, kernels, tmp_path) -> None:
 # Real data
 
 
-def test_real_pds4_products_of_other_missions(catalog, tmp_path) -> None:
+def test_real_pds4_products_of_other_missions(catalog, tmp_path, shared_data) -> None:
     """No kernels for their observers: the two image arrays are accepted without geometry."""
-    shutil.copytree(SHARED / "pds4", tmp_path / "pds4")
+    shutil.copytree(shared_data / "pds4", tmp_path / "pds4")
     report = ingest_directory(catalog, tmp_path / "pds4", downlink_name="archive-samples")
     counts = report.images
     assert (counts.accepted, counts.rejected, report.geometry_unavailable) == (2, 2, 2)
@@ -438,10 +437,10 @@ def test_real_pds4_products_of_other_missions(catalog, tmp_path) -> None:
         assert session.scalars(select(Downlink.name)).one() == "archive-samples"
 
 
-def _real_mapcam_downlink(root: Path) -> Path:
+def _real_mapcam_downlink(root: Path, shared_data: Path) -> Path:
     kernels = root / "kernels"
-    shutil.copytree(SHARED / "spice" / "orex_mapcam_20190303", kernels)
-    shutil.copy(SHARED / "spice" / "generic" / "naif0012.tls", kernels)
+    shutil.copytree(shared_data / "spice" / "orex_mapcam_20190303", kernels)
+    shutil.copy(shared_data / "spice" / "generic" / "naif0012.tls", kernels)
     with kernel_pool([kernels / "naif0012.tls"]):
         # As OCAMS labels name them: the camera and the spacecraft, not SPICE's names.
         _product(root / "images", "mapcam", sp.str2et(REAL_MAPCAM_UTC), host_name="OSIRIS-REx",
@@ -449,8 +448,8 @@ def _real_mapcam_downlink(root: Path) -> Path:
     return root
 
 
-def test_real_mapcam_geometry_matches_spice(catalog, tmp_path) -> None:
-    root = _real_mapcam_downlink(tmp_path / "orex")
+def test_real_mapcam_geometry_matches_spice(catalog, tmp_path, shared_data) -> None:
+    root = _real_mapcam_downlink(tmp_path / "orex", shared_data)
     report = ingest_directory(catalog, root)
     assert (report.images.accepted, report.failed) == (1, 0), report.failures
     image = _images(catalog)["mapcam"]
@@ -481,14 +480,14 @@ def test_real_mapcam_geometry_matches_spice(catalog, tmp_path) -> None:
     assert sorted(c is None for c in corners) == [False, False, True, True]
 
 
-def test_shape_model_intercept(sqlite_url: str, tmp_path: Path) -> None:
+def test_shape_model_intercept(sqlite_url: str, tmp_path: Path, shared_data: Path) -> None:
     """The boresight meets the radar shape model 23 m before the ellipsoid (PROVENANCE.md:
     6.361 km vs 6.338 km)."""
     upgrade(sqlite_url)
     sessions = make_sessionmaker(make_engine(sqlite_url))
     shape = read_obj(Path(__file__).resolve().parents[2] / "pwm" / "data" / "shapes"
                      / "bennu_radar_nolan2013_sbgat.obj")
-    ingest_directory(sessions, _real_mapcam_downlink(tmp_path / "orex"), shape=shape)
+    ingest_directory(sessions, _real_mapcam_downlink(tmp_path / "orex", shared_data), shape=shape)
     g = _images(sessions)["mapcam"].geometry
     assert g.intercept_range_km == pytest.approx(6.361, abs=6e-4)
     assert 0 < g.emission_deg < 90 and 0 < g.incidence_deg < 90
@@ -518,7 +517,7 @@ def test_images_before_their_kernels_are_taken_up_later(sqlite_url, kernels, tmp
     assert image.geometry.range_km == pytest.approx(RANGE_KM, abs=1e-9)
 
 
-def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_path) -> None:
+def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_path, shared_data) -> None:
     """PATH_VALUES relative to the meta-kernel reach kernels outside the ingested directory; a
     meta-kernel naming missing files is rejected with the list."""
     upgrade(sqlite_url)
@@ -530,7 +529,7 @@ def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_pat
     (archive / "mk" / "set.tm").write_text(
         "KPL/MK\n\\begindata\n PATH_VALUES = ( '..' )\n PATH_SYMBOLS = ( 'K' )\n"
         " KERNELS_TO_LOAD = ( '$K/lsk/naif0012.tls' )\n\\begintext\n")
-    shutil.copy(SHARED / "spice" / "mk" / "orx_2020_v05.tm", archive / "mk")
+    shutil.copy(shared_data / "spice" / "mk" / "orx_2020_v05.tm", archive / "mk")
     report = ingest_directory(sessions, archive / "mk")
     with sessions() as session:
         rows = {Path(k.path).name: k for k in session.scalars(select(Kernel))}

@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 
 from pwm.config import RefinementConfig
 from pwm.frames import LocalFrame
-from pwm.maplets import Maplet as MapletGrid
+from pwm.maplets import MapletGrid
 from pwm.photoclinometry import Solver
 from pwm.tiling import sample_heights
 from service.db import session_scope

@@ -9,10 +9,9 @@ from fastapi import APIRouter, HTTPException, Query, Request, status
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from service.api.deps import Authorized, Id, PagingDep, SessionDep, SettingsDep
+from service.api.deps import Authorized, Id, JobsDep, PagingDep, SessionDep, SettingsDep
 from service.api.schemas import DownlinkOut, IngestRequest, JobSubmitted, Page, Problem
 from service.models import Downlink, DownlinkStatus, Image, ImageStatus, Kernel
-from workers.tasks import submit_ingest
 
 router = APIRouter(tags=["downlinks"])
 
@@ -81,8 +80,9 @@ def get_downlink(session: SessionDep, downlink_id: Id) -> DownlinkOut:
 @router.post("/ingests", response_model=JobSubmitted, dependencies=[Authorized],
              status_code=status.HTTP_202_ACCEPTED,
              responses={400: {"model": Problem}, 401: {"model": Problem},
-                        403: {"model": Problem}, 404: {"model": Problem}})
-def start_ingest(request: Request, settings: SettingsDep, body: IngestRequest) -> JobSubmitted:
+                        403: {"model": Problem}, 404: {"model": Problem},
+                        503: {"model": Problem}})
+def start_ingest(request: Request, settings: SettingsDep, jobs: JobsDep, body: IngestRequest) -> JobSubmitted:
     """Queue the ingest of a downlink directory in the data directory's incoming area (its job
     key comes back; submitting the same directory again gives the same job)."""
     try:
@@ -91,4 +91,4 @@ def start_ingest(request: Request, settings: SettingsDep, body: IngestRequest) -
         raise HTTPException(status.HTTP_400_BAD_REQUEST, str(exc)) from None
     except FileNotFoundError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
-    return JobSubmitted(key=submit_ingest(directory, sessions=request.app.state.sessions))
+    return JobSubmitted(key=jobs.submit_ingest(directory, sessions=request.app.state.sessions))

@@ -7,11 +7,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, status
 
-from service.api.deps import Authorized, Id, PagingDep, SessionDep
+from service.api.deps import Authorized, Id, JobsDep, PagingDep, SessionDep
 from service.api.schemas import JobSubmitted, MapletDetail, Page, Problem
 from service.models import Maplet
 from service.queries import MapletInfo, count_maplets, list_maplets, maplet_coverage, maplet_images, maplet_revisions
-from workers.tasks import submit_refinement
 
 router = APIRouter(prefix="/maplets", tags=["maplets"])
 
@@ -61,13 +60,14 @@ def get_maplet(session: SessionDep, maplet_id: Id) -> MapletDetail:
 @router.post("/{maplet_id}/requeue", response_model=JobSubmitted, dependencies=[Authorized],
              status_code=status.HTTP_202_ACCEPTED,
              responses={401: {"model": Problem}, 403: {"model": Problem},
-                        404: {"model": Problem}, 409: {"model": Problem}})
-def requeue(session: SessionDep, maplet_id: Id) -> JobSubmitted:
+                        404: {"model": Problem}, 409: {"model": Problem},
+                        503: {"model": Problem}})
+def requeue(session: SessionDep, jobs: JobsDep, maplet_id: Id) -> JobSubmitted:
     """Queue the refinement of a maplet's current input (its job key comes back); 409 when its
     current revision is of that input already, or too few images see it."""
     try:
         with session.begin():
-            key = submit_refinement(session, maplet_id=maplet_id)
+            key = jobs.submit_refinement(session, maplet_id=maplet_id)
     except LookupError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
     except ValueError as exc:
