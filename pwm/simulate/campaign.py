@@ -31,13 +31,15 @@ from pwm.io.spice_kernels import (
     write_metakernel,
     write_spk,
 )
+from pwm.photometry import PHOTOMETRY
 from pwm.raytrace import RayTracer
-from pwm.render import render
+from pwm.render import render_supersampled
 from pwm.simulate.detector import choose_exposure, to_dn
 from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
+from pwm.simulate.optics import blur, flat_field
 from pwm.simulate.plan import Observation, plan_global, plan_site, sun_states
 from pwm.simulate.scenarios import Scenario
-from pwm.simulate.truth import Truth, build_truth, low_pass, save as save_truth
+from pwm.simulate.truth import Truth, build_truth, low_pass, save as save_truth, undulations
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +47,7 @@ SUN, SSB = 10, 0
 CK_FRAME_CLASS = 3  # SPICE frame class of frames whose attitude a CK gives
 WINDOW_S = 60.0  # each image sits in the middle of a short observation window of the kernels
 EXPOSURE_S = 0.004  # labels carry start and stop; the geometry is at mid-exposure
+OPTICS_STREAM = 21  # the random stream of the camera's flat field
 
 
 def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_error_m: float = 0.0,
@@ -102,20 +105,28 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
     write_metakernel(truth_mk, kernels=all_fixed + true_kernels)
 
     tracer = RayTracer(truth.mesh)
+    photometry = PHOTOMETRY[scenario.photometry]
+    # Its own random stream, so that scenarios with a perfect camera draw what they always drew.
+    flat = flat_field((camera.height, camera.width), scenario.optics.flat_field_rms,
+                      np.random.default_rng([seed, OPTICS_STREAM]))
     images = []
     with kernel_pool([truth_mk]):
         # Render from the pose read back through SPICE, so products and kernels agree.
         for k, obs in enumerate(observations):
             pose, sun = _geometry(obs.et, scenario)
-            view = render(tracer, camera=camera, pose=pose, sun_direction=sun)
-            images.append(_write_product(downlink / "images", obs=obs, view=view.reflectance, scenario=scenario,
+            view = render_supersampled(tracer, camera=camera, pose=pose, sun_direction=sun,
+                                       factor=scenario.supersample, photometry=photometry)
+            seen = view.reflectance if scenario.optics.perfect else blur(view.reflectance, scenario.optics) * flat
+            images.append(_write_product(downlink / "images", obs=obs, view=seen, scenario=scenario,
                                          mission=mission, window=window, rng=rng))
             images[-1].update(_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera))
             log.info("image %d/%d %s rendered", k + 1, len(observations), obs.name)
         held_out = []
         for obs in validation:
+            # What the surface looks like, through no camera: the held-out truth is not blurred.
             pose, sun = _geometry(obs.et, scenario)
-            view = render(tracer, camera=camera, pose=pose, sun_direction=sun)
+            view = render_supersampled(tracer, camera=camera, pose=pose, sun_direction=sun,
+                                       factor=scenario.supersample, photometry=photometry)
             path = truth_dir / "validation" / f"{obs.name}.npz"
             path.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(path, reflectance=view.reflectance.astype(np.float32), hit=view.hit, shadow=view.shadow,
@@ -127,8 +138,11 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
     # "Low-passed to ten GSD": vertices every 10 GSD, and an anti-aliasing filter that keeps
     # half the amplitude at 30 GSD, so little remains at the 20 GSD Nyquist wavelength.
     wavelength_km = 30.0 * scenario.gsd_km
+    shortest_m, longest_m = scenario.start_error_band_m
+    error = (undulations(truth, rms_km=scenario.start_error_rms_gsd * scenario.gsd_km, shortest_km=shortest_m * 1e-3,
+                         longest_km=longest_m * 1e-3, seed=seed) if scenario.start_error_rms_gsd > 0 else None)
     write_obj(downlink / "start_model.obj",
-              low_pass(truth, wavelength_km=wavelength_km, spacing_km=10.0 * scenario.gsd_km))
+              low_pass(truth, wavelength_km=wavelength_km, spacing_km=10.0 * scenario.gsd_km, error_km=error))
     save_truth(truth, truth_dir)
 
     manifest = {
@@ -141,7 +155,9 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
         "camera": {"instrument_id": scenario.instrument_id, "width": camera.width, "height": camera.height,
                    "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy},
         "start_model": {"file": "downlink/start_model.obj", "low_pass_wavelength_m": wavelength_km * 1e3,
-                        "vertex_spacing_m": 10.0 * scenario.gsd_km * 1e3},
+                        "vertex_spacing_m": 10.0 * scenario.gsd_km * 1e3,
+                        "undulation_rms_m": scenario.start_error_rms_gsd * scenario.gsd_km * 1e3,
+                        "undulation_band_m": list(scenario.start_error_band_m)},
         "images": images,
         "validation": held_out,
         "truth_kernels": "kernels/truth.tm",

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator, model_validator
+
+from pwm.photometry import PHOTOMETRY
+from pwm.simulate.optics import Optics
 
 MAPCAM = -64361
 ONC_T = -37100  # Hayabusa2's telescopic optical navigation camera
@@ -49,6 +52,29 @@ class Scenario(BaseModel):
     read_noise_dn: float = 2.0
     gain_e_per_dn: float = 4.0
 
+    # How far the proving ground departs from what the solver assumes (none by default).
+    photometry: str = Field("mcewen", description="the truth's reflectance law: a key of pwm.photometry.PHOTOMETRY")
+    supersample: int = Field(1, ge=1, le=4, description="rays per pixel along each axis, averaged")
+    optics: Optics = Field(default_factory=Optics, description="blur, smear and flat-field residual of the camera")
+    start_error_rms_gsd: float = Field(0.0, ge=0.0, le=20.0,
+                                       description="RMS of smooth undulations added to the start model, in GSD")
+    start_error_band_m: tuple[float, float] = Field((10.0, 40.0),
+                                                    description="shortest and longest wavelength of those, m")
+
+    @field_validator("photometry")
+    @classmethod
+    def _known_photometry(cls, name: str) -> str:
+        if name not in PHOTOMETRY:
+            raise ValueError(f"unknown photometry {name!r}; choose one of {', '.join(PHOTOMETRY)}")
+        return name
+
+    @model_validator(mode="after")
+    def _ordered_band(self) -> Scenario:
+        shortest, longest = self.start_error_band_m
+        if not 0 < shortest < longest:
+            raise ValueError(f"start_error_band_m must be 0 < shortest < longest, not {self.start_error_band_m}")
+        return self
+
     @property
     def n_images(self) -> int:
         return self.n_nadir + len(self.off_nadir_views())
@@ -91,6 +117,18 @@ SCENARIOS: dict[str, Scenario] = {
             site_lat_deg=12.0, site_lon_deg=60.0, site_size_km=0.05,
             gsd_km=1.0e-4, truth_resolution_km=2.5e-5, n_boulders=100, steep_boulders=25,
             pointing_scatter_km=0.008,
+        ),
+        Scenario(
+            name="site-hard",
+            description="site's design with what the solver does not assume: Hapke photometry with roughness and "
+                        "an opposition surge, 2x2 sub-pixel sampling, blur, smear, a flat-field residual, and a "
+                        "start model with 1 GSD RMS of 10-40 m undulations",
+            site_lat_deg=12.0, site_lon_deg=60.0, site_size_km=0.05,
+            gsd_km=1.0e-4, truth_resolution_km=2.5e-5, n_boulders=100, steep_boulders=25,
+            pointing_scatter_km=0.008,
+            photometry="hapke", supersample=2,
+            optics=Optics(psf_sigma_px=0.6, smear_px=0.8, flat_field_rms=0.01),
+            start_error_rms_gsd=1.0, start_error_band_m=(10.0, 40.0),
         ),
         Scenario(
             name="site-polar",

@@ -52,7 +52,7 @@ RESOLVED_NODES = 4
 """Shortest wavelength of any fractal detail, in grid spacings or mean base edges."""
 
 _STREAMS = {"roughness": 1, "albedo": 2, "site_roughness": 3, "site_albedo": 4, "craters": 5,
-            "boulders": 6, "patches": 7, "cobbles": 8}
+            "boulders": 6, "patches": 7, "cobbles": 8, "start_error": 9}
 
 
 def _rng(seed: int, stream: str) -> np.random.Generator:
@@ -384,15 +384,40 @@ def low_pass_heights(truth: Truth, *, wavelength_km: float) -> np.ndarray:
     return truth.height_km + truth.blend_weight() * (smooth - truth.height_km)
 
 
-def low_pass(truth: Truth, *, wavelength_km: float, spacing_km: float | None = None) -> Mesh:
-    """A starting shape model: the truth low-passed to wavelength_km over the patch, remeshed on
-    a grid of spacing about spacing_km (default wavelength_km / 2), and the truth's base
-    elsewhere (km, no albedo).
+def undulations(truth: Truth, *, rms_km: float, shortest_km: float, longest_km: float, seed: int) -> np.ndarray:
+    """A smooth random height error on the patch grid (km, (len(y), len(x))): a Gaussian field
+    whose wavelengths all lie between shortest_km and longest_km, of RMS rms_km over the site
+    square, faded out over the border like the detail (zero in the zero band), as an earlier,
+    coarser campaign leaves its model wrong at long wavelengths."""
+    if not 0 < shortest_km < longest_km:
+        raise ValueError(f"need 0 < shortest < longest wavelength, not {shortest_km} and {longest_km} km")
+    ny, nx = truth.height_km.shape
+    ky = np.fft.fftfreq(ny, truth.resolution_km)[:, None]
+    kx = np.fft.rfftfreq(nx, truth.resolution_km)[None, :]
+    k = np.hypot(kx, ky)
+    band = (k >= 1 / longest_km) & (k <= 1 / shortest_km)
+    if not band.any():
+        raise ValueError(f"no wavelength between {shortest_km} and {longest_km} km fits the {nx}-node patch")
+    spectrum = np.fft.rfft2(_rng(seed, "start_error").normal(size=(ny, nx))) * band
+    field = np.fft.irfft2(spectrum, s=(ny, nx))
+    weight = truth.blend_weight()
+    full = weight >= 1.0
+    field *= rms_km / max(float(np.sqrt(np.mean(field[full] ** 2))), 1e-300)
+    return field * weight
+
+
+def low_pass(truth: Truth, *, wavelength_km: float, spacing_km: float | None = None,
+             error_km: np.ndarray | None = None) -> Mesh:
+    """A starting shape model: the truth low-passed to wavelength_km over the patch, plus
+    error_km (heights on the patch grid, e.g. `undulations`), remeshed on a grid of spacing
+    about spacing_km (default wavelength_km / 2), and the truth's base elsewhere (km, no albedo).
 
     Over the border band the coarse patch lies on the base faces only within the error of linear
     interpolation at that spacing (about a centimetre for 1 m): overlapping, never leaving a gap.
     """
     smooth = low_pass_heights(truth, wavelength_km=wavelength_km)
+    if error_km is not None:
+        smooth = smooth + error_km
     half = float(truth.x_km[-1])
     m = int(np.ceil(2 * half / (spacing_km or wavelength_km / 2))) + 1
     axis = np.linspace(-half, half, m)

@@ -33,25 +33,60 @@ def _knowledge_error(value: str | None) -> tuple[float, float]:
     return pos_m, point_rad
 
 
+def _start_error(value: str) -> dict:
+    """RMS_GSD[,SHORTEST_M,LONGEST_M] as the scenario's start-error fields."""
+    try:
+        numbers = [float(x) for x in value.split(",")]
+    except ValueError:
+        raise typer.BadParameter("expected RMS_GSD or RMS_GSD,SHORTEST_M,LONGEST_M, e.g. 1.0,10,40") from None
+    if len(numbers) not in (1, 3):
+        raise typer.BadParameter("expected RMS_GSD or RMS_GSD,SHORTEST_M,LONGEST_M, e.g. 1.0,10,40")
+    fields: dict = {"start_error_rms_gsd": numbers[0]}
+    if len(numbers) == 3:
+        fields["start_error_band_m"] = (numbers[1], numbers[2])
+    return fields
+
+
 @app.command()
 def simulate(
     out: Path = typer.Argument(..., help="output directory (downlink/ and truth/ are written in it)"),
-    scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-polar | global-coarse"),
+    scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-hard | site-polar | global-coarse"),
     seed: int = typer.Option(0, help="random seed: the same seed gives the same products"),
     knowledge_error: str | None = typer.Option(None,
                                                help="POS_M,POINT_RAD: 1-sigma position (m) and pointing (rad) errors "
                                                     "in the kernels"),
+    photometry: str | None = typer.Option(None, help="the truth's reflectance law: mcewen (the solver's), "
+                                                     "lunar-lambert-slow or hapke (default: the scenario's)"),
+    supersample: int | None = typer.Option(None, help="rays per pixel along each axis, averaged"),
+    psf_px: float | None = typer.Option(None, help="Gaussian point-spread function sigma, pixels"),
+    smear_px: float | None = typer.Option(None, help="motion smear length, pixels"),
+    flat_field: float | None = typer.Option(None, help="relative RMS of the flat-field residual, e.g. 0.01"),
+    start_error: str | None = typer.Option(None, help="RMS_GSD[,SHORTEST_M,LONGEST_M]: smooth undulations added "
+                                                      "to the start model (default band 10-40 m)"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
-    """Simulate a mission downlink (PDS4 images, SPICE kernels, start model) from a truth asteroid."""
+    """Simulate a mission downlink (PDS4 images, SPICE kernels, start model) from a truth asteroid;
+    the options change the scenario's photometry, camera and start-model error."""
+    from pydantic import ValidationError
+
     from pwm.simulate.campaign import simulate as run_simulation
-    from pwm.simulate.scenarios import get_scenario
+    from pwm.simulate.scenarios import Scenario, get_scenario
 
     setup_logging(verbose)
     try:
         sc = get_scenario(scenario)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
+    changes: dict = {"photometry": photometry, "supersample": supersample}
+    optics = {"psf_sigma_px": psf_px, "smear_px": smear_px, "flat_field_rms": flat_field}
+    changes["optics"] = {**sc.optics.model_dump(), **{k: v for k, v in optics.items() if v is not None}}
+    if start_error is not None:
+        changes |= _start_error(start_error)
+    try:
+        sc = Scenario.model_validate({**sc.model_dump(), **{k: v for k, v in changes.items() if v is not None}})
+    except ValidationError as exc:
+        raise typer.BadParameter("; ".join(": ".join(filter(None, (".".join(map(str, e["loc"])), e["msg"])))
+                                           for e in exc.errors())) from None
     pos_m, point_rad = _knowledge_error(knowledge_error)
     manifest = run_simulation(out, scenario=sc, seed=seed, position_error_m=pos_m, pointing_error_rad=point_rad)
     typer.echo(f"{manifest['image_count']} images, GSD {manifest['gsd_m']:.3f} m -> {out}")
