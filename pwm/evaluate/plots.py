@@ -44,6 +44,45 @@ def height_error_map(
     fig.savefig(path, dpi=120)
 
 
+def class_map(
+    path: str | os.PathLike[str],
+    x_km: np.ndarray,
+    y_km: np.ndarray,
+    masks: dict[str, np.ndarray],
+    error_m: np.ndarray,
+    *,
+    title: str,
+) -> None:
+    """Where each class lies (left; a node in several shows the first named) beside |error| (m,
+    right), on a site-frame grid as height_error_map's; nan error is left blank on both."""
+    from matplotlib.colors import ListedColormap
+
+    names = list(masks)
+    label = np.full(np.shape(error_m), len(names), float)
+    for k in reversed(range(len(names))):
+        label[masks[names[k]]] = k
+    label[~np.isfinite(error_m)] = np.nan
+    colours = ListedColormap(["#d62728", "#ff7f0e", "#9467bd", "#1f77b4", "#e0e0e0"][: len(names)] + ["#e0e0e0"])
+    fig = _figure(12.0, 5.0)
+    x_m, y_m = np.asarray(x_km) * 1e3, np.asarray(y_km) * 1e3
+    ax = fig.add_subplot(1, 2, 1)
+    mesh = ax.pcolormesh(x_m, y_m, np.ma.masked_invalid(label), cmap=colours, vmin=-0.5, vmax=len(names) + 0.5,
+                         shading="auto")
+    bar = fig.colorbar(mesh, ax=ax, ticks=range(len(names) + 1))
+    bar.ax.set_yticklabels([*names, "elsewhere"])
+    ax.set_title(title)
+    ax2 = fig.add_subplot(1, 2, 2)
+    magnitude = np.ma.masked_invalid(np.abs(np.asarray(error_m, float)))
+    top = float(np.percentile(magnitude.compressed(), 99)) if magnitude.count() else 1.0
+    shown = ax2.pcolormesh(x_m, y_m, magnitude, cmap="magma", vmin=0, vmax=top if top > 0 else 1.0, shading="auto")
+    fig.colorbar(shown, ax=ax2, label="|model - truth| height (m)", extend="max")
+    for a in (ax, ax2):
+        a.set_aspect("equal")
+        a.set_xlabel("x, site frame (m)")
+        a.set_ylabel("y, site frame (m)")
+    fig.savefig(path, dpi=120)
+
+
 def profiles(
     path: str | os.PathLike[str],
     profiles: list[tuple[np.ndarray, np.ndarray, np.ndarray, str]],

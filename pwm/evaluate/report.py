@@ -2,7 +2,9 @@
 
 ICP registration (point-to-plane) of the model's vertices in the evaluation region, then the
 distance of each to the truth surface; images rendered from the model with its albedo against
-the held-out truth views; boulder heights along the site frame's z; PNG maps and profiles.
+the held-out truth views; boulder heights along the site frame's z; the height error by
+wavelength band (pwm.evaluate.bands) and by where it lies (pwm.evaluate.classes); PNG maps and
+profiles.
 This module reads the truth directory and writes plots: it is the evaluation's I/O edge.
 """
 
@@ -16,15 +18,28 @@ import numpy as np
 
 from pwm.camera import Camera, Pose
 from pwm.evaluate import plots
+from pwm.evaluate.bands import BOUNDARIES_GSD, band_rms
+from pwm.evaluate.classes import (
+    EDGE_BAND_GSD,
+    SHADOW_SHARE,
+    WALL_SLOPE_DEG,
+    MapletFootprint,
+    edge_mask,
+    error_by_class,
+    rim_mask,
+    shadow_share,
+    slope_deg,
+)
 from pwm.evaluate.distance import ClosestPoint
 from pwm.evaluate.icp import register
 from pwm.evaluate.images import ncc, ssim
 from pwm.evaluate.profiles import boulder_height_ratio
+from pwm.frames import LocalFrame
 from pwm.io.meshio import read_mesh
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.render import render
-from pwm.simulate.truth import Truth, load as load_truth
+from pwm.simulate.truth import Truth, load as load_truth, sampled
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +51,10 @@ ICP_REACH_GSD = 20.0
 """Point pairs farther apart than this many GSD are left out of the ICP steps."""
 
 
-def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | Path | None = None) -> dict:
-    """Figures of merit of the model at `model_path` against the truth in `truth_dir`."""
+def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | Path | None = None,
+             maplets: list[MapletFootprint] | None = None) -> dict:
+    """Figures of merit of the model at `model_path` against the truth in `truth_dir`; with the
+    maplets the model was made of, the error at their edges too."""
     truth_dir = Path(truth_dir)
     truth = load_truth(truth_dir)
     manifest = json.loads((truth_dir / "manifest.json").read_text())
@@ -75,10 +92,19 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     if plots_dir is not None:
         plots_dir.mkdir(parents=True, exist_ok=True)
     tracer = RayTracer(registered)
-    result.update(_heights(truth, tracer, gsd_km=gsd_km, plots_dir=plots_dir))
+    suns = np.array([image["sun_direction"] for image in manifest["images"]], float)
+    result.update(_heights(truth, tracer, gsd_km=gsd_km, plots_dir=plots_dir, suns_body=suns, maplets=maplets))
     if model.albedo is not None:
         result.update(_views(manifest, truth_dir, tracer, plots_dir=plots_dir))
     return result
+
+
+def maplet_footprints(report: dict) -> list[MapletFootprint]:
+    """The maplets' squares from a `pwm refine` report (maplets.json): each entry's origin_km,
+    rotation and half_km."""
+    return [MapletFootprint(frame=LocalFrame(origin=np.asarray(m["origin_km"], float),
+                                             rotation=np.asarray(m["rotation"], float)),
+                            half_km=float(m["half_km"])) for m in report["maplets"]]
 
 
 def in_site(points_body: np.ndarray, truth: Truth) -> np.ndarray:
@@ -116,16 +142,25 @@ def sample_heights(tracer: RayTracer, truth: Truth, x_km: np.ndarray, y_km: np.n
     return np.where(hits.hit, top - hits.t, np.nan).reshape(gx.shape)
 
 
-def _heights(truth: Truth, tracer: RayTracer, *, gsd_km: float, plots_dir: Path | None) -> dict:
-    """Boulder height ratios and the height-error map on the truth grid (thinned to GSD/2)."""
+def _heights(truth: Truth, tracer: RayTracer, *, gsd_km: float, plots_dir: Path | None, suns_body: np.ndarray,
+             maplets: list[MapletFootprint] | None) -> dict:
+    """Boulder height ratios, the height-error map on the truth grid (thinned to GSD/2), and
+    that error by wavelength band and by class."""
     stride = max(1, int(round(0.5 * gsd_km / truth.resolution_km)))
+    spacing_km = stride * truth.resolution_km
     x, y = truth.x_km[::stride], truth.y_km[::stride]
     truth_h = truth.height_km[::stride, ::stride]
     model_h = sample_heights(tracer, truth, x, y)
     inside = np.hypot(*np.meshgrid(x, y)) <= truth.eval_radius_km
     error = np.where(inside, model_h - truth_h, np.nan)
     boulders = [b for b in truth.boulders if np.hypot(b.x_km, b.y_km) + b.diameter_km < truth.eval_radius_km]
-    out: dict = {"height_error_rms_m": float(np.sqrt(np.nanmean(error**2)) * 1e3)}
+    out: dict = {"height_error_rms_m": float(np.sqrt(np.nanmean(error**2)) * 1e3),
+                 "bands_rms_m": {name: rms * 1e3 for name, rms in band_rms(
+                     error, spacing_km=spacing_km, boundaries_km=tuple(b * gsd_km for b in BOUNDARIES_GSD)).items()}}
+    masks = _classes(truth, x, y, truth_h, spacing_km=spacing_km, gsd_km=gsd_km, suns_body=suns_body,
+                     maplets=maplets)
+    out["classes_m"] = {name: {k: v * 1e3 if k != "nodes" else v for k, v in figures.items()}
+                        for name, figures in error_by_class(error, masks).items()}
     if boulders:
         ratios = boulder_height_ratio(x, y, truth_h, model_h, centres_km=np.array([[b.x_km, b.y_km] for b in boulders]),
                                       diameters_km=np.array([b.diameter_km for b in boulders]))
@@ -137,10 +172,32 @@ def _heights(truth: Truth, tracer: RayTracer, *, gsd_km: float, plots_dir: Path 
         out["steep_boulder_height_ratio_median"] = float(np.nanmedian(ratios[steep])) if steep.any() else None
     if plots_dir is not None:
         plots.height_error_map(plots_dir / "height_error.png", x, y, error * 1e3, title="model - truth height (m)")
+        plots.class_map(plots_dir / "error_classes.png", x, y, masks, error * 1e3,
+                        title="where the error lies")
         if boulders:
             plots.profiles(plots_dir / "boulder_profiles.png",
                            [_profile(b, x, y, truth_h, model_h) for b in boulders[:6]])
     return out
+
+
+def _classes(truth: Truth, x: np.ndarray, y: np.ndarray, truth_h: np.ndarray, *, spacing_km: float, gsd_km: float,
+             suns_body: np.ndarray, maplets: list[MapletFootprint] | None) -> dict[str, np.ndarray]:
+    """The class masks on the evaluation grid: walls and rims from the truth, shadow from the
+    images' Suns over the truth at the grid's resolution, maplet edges when the maplets are known."""
+    frame = truth.site_frame
+    gx, gy = np.meshgrid(x, y)
+    points = frame.to_body(np.stack([gx, gy, truth_h], axis=-1).reshape(-1, 3)).reshape(gx.shape + (3,))
+    dz_dy, dz_dx = np.gradient(truth_h, spacing_km)
+    local_normals = np.stack([-dz_dx, -dz_dy, np.ones_like(truth_h)], axis=-1)
+    local_normals /= np.linalg.norm(local_normals, axis=-1, keepdims=True)
+    # shadows cast by the truth as the grid holds it, without the averaging of a coarser model
+    coarse = RayTracer(sampled(truth, spacing_km=spacing_km, average_km=truth.resolution_km))
+    masks = {"walls": slope_deg(truth_h, spacing_km) > WALL_SLOPE_DEG,
+             "rims": rim_mask(x, y, truth.craters)}
+    if maplets:
+        masks["maplet edges"] = edge_mask(points, maplets, EDGE_BAND_GSD * gsd_km)
+    masks["shadow"] = shadow_share(coarse, points, local_normals @ frame.rotation, suns_body) >= SHADOW_SHARE
+    return masks
 
 
 def _profile(boulder, x: np.ndarray, y: np.ndarray, truth_h: np.ndarray, model_h: np.ndarray) -> tuple:
@@ -199,5 +256,8 @@ def format_table(result: dict) -> str:
         rows.append(("boulder height ratio", f"{result['boulder_height_ratio_median']:.3f} (median)"))
     if result.get("steep_boulder_height_ratio_median") is not None:
         rows.append(("steep boulders", f"{result['steep_boulder_height_ratio_median']:.3f} (median)"))
+    rows += [(f"band {name}", f"{rms:.4f} m") for name, rms in result.get("bands_rms_m", {}).items()]
+    rows += [(f"{name}", f"RMS {c['rms']:.4f} m, p95 {c['p95']:.4f} m over {c['nodes']} nodes")
+             for name, c in result.get("classes_m", {}).items()]
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

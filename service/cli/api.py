@@ -62,6 +62,7 @@ def export(
         except (LookupError, ExportError) as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
+    out.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(made.path, out)
     typer.echo(f"{out} ({made.path.stat().st_size} bytes, sha256 {made.sha256})")
 

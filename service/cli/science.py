@@ -97,14 +97,25 @@ def evaluate(
     model: Path = typer.Argument(..., exists=True, dir_okay=False, help="model mesh (.obj or .ply, km, body-fixed)"),
     truth: Path = typer.Option(..., exists=True, file_okay=False, help="the simulation's truth/ directory"),
     json_out: Path | None = typer.Option(None, "--json", help="write the figures as JSON here"),
-    plots: Path | None = typer.Option(None, help="write PNG plots (height error, profiles, views) here"),
+    plots: Path | None = typer.Option(None, help="write PNG plots (height error, classes, profiles, views) here"),
+    maplets: Path | None = typer.Option(None, exists=True, dir_okay=False,
+                                        help="maplets.json of the `pwm refine` that made MODEL: the error at "
+                                             "maplet edges too"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
-    """Measure a model against the truth: ICP, RMS and median error, NCC/SSIM, boulder heights."""
-    from pwm.evaluate.report import evaluate as run_evaluation, format_table
+    """Measure a model against the truth: ICP, RMS and median error, NCC/SSIM, boulder heights, the
+    error by wavelength band and where it lies (walls, rims, maplet edges, shadow, elsewhere)."""
+    from pwm.evaluate.report import evaluate as run_evaluation, format_table, maplet_footprints
 
     setup_logging(verbose)
-    result = run_evaluation(model, truth_dir=truth, plots_dir=plots)
+    footprints = None
+    if maplets is not None:
+        try:
+            footprints = maplet_footprints(json.loads(maplets.read_text()))
+        except (ValueError, KeyError, TypeError) as exc:
+            raise typer.BadParameter(f"{maplets}: not a maplets.json of pwm refine ({exc})",
+                                     param_hint="--maplets") from None
+    result = run_evaluation(model, truth_dir=truth, plots_dir=plots, maplets=footprints)
     typer.echo(format_table(result))
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
@@ -167,7 +178,9 @@ def refine(
     write_obj(out / "refined.obj", model)
     report = {"mode": mode, "passes": passes, "region": dataclasses.asdict(region), "images": len(views),
               **downlink_report(read), "seconds": time.perf_counter() - clock,
-              "maplets": [{"name": r.maplet.name, "images": r.images, "region_weight": r.region_weight,
+              "maplets": [{"name": r.maplet.name, "origin_km": r.maplet.frame.origin.tolist(),
+                           "rotation": r.maplet.frame.rotation.tolist(), "half_km": float(r.maplet.axis_km[-1]),
+                           "images": r.images, "region_weight": r.region_weight,
                            "five_views": r.five_views,
                            "dropped": r.dropped, "iterations": r.iterations, "converged": r.converged,
                            "residual_rms": r.residual_rms, "seconds": r.seconds} for r in results]}
