@@ -10,10 +10,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from pwm.evaluate.distance import ClosestPoint
 from pwm.io.meshio import read_obj
 from pwm.io.pds4 import read_image_product
+from pwm.simulate.campaign import start_model
+from pwm.simulate.missions import MISSIONS, SHAPES_DIR
 from pwm.simulate.scenarios import SCENARIOS, Scenario
-from pwm.simulate.truth import load as load_truth, low_pass, undulations
+from pwm.simulate.truth import build_base, load as load_truth, low_pass, undulations
 from service.cli import app
 
 HARD = ["--photometry", "hapke", "--supersample", "2", "--psf-px", "0.6", "--smear-px", "0.8",
@@ -85,3 +88,21 @@ def test_site_hard_departs_from_site_only_in_what_the_solver_does_not_assume():
     assert differing == {"name", "description", "photometry", "supersample", "optics", "start_error_rms_gsd"}
     assert Scenario.model_validate(hard).optics.perfect is False
     assert SCENARIOS["site"].optics.perfect and SCENARIOS["site-polar"].photometry == "mcewen"
+
+
+def test_a_global_start_model_is_the_body_smoothed_not_the_truth(tiny_sim):
+    """global-coarse's start scored 0.00 GSD: it was the truth's own base wherever the images
+    look. Now it is the body rebuilt with its roughness low-passed at 30 GSD."""
+
+    # global-coarse at a coarser base, so that the truth's body builds in a second
+    scenario = Scenario.model_validate({**SCENARIOS["global-coarse"].model_dump(), "base_edge_km": 0.004,
+                                        "global_roughness_km": 0.002, "gsd_km": 0.004})
+    shape = read_obj(SHAPES_DIR / MISSIONS[scenario.mission].shape)
+    truth_body = build_base(shape, base_edge_km=scenario.base_edge_km, seed=3,
+                            global_roughness_km=scenario.global_roughness_km)
+    start = start_model(load_truth(tiny_sim / "truth"), scenario=scenario, base=shape, seed=3)
+    assert start.mean_edge_length() <= 10 * scenario.gsd_km
+    # radial distance from the truth's body to the start, sampled at the truth's vertices
+    distance, _, _ = ClosestPoint(start).query(truth_body.vertices[::50])
+    rms_gsd = np.sqrt(np.mean(distance**2)) / scenario.gsd_km
+    assert 0.05 < rms_gsd < 2.0, rms_gsd

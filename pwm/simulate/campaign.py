@@ -31,6 +31,7 @@ from pwm.io.spice_kernels import (
     write_metakernel,
     write_spk,
 )
+from pwm.mesh import Mesh
 from pwm.photometry import PHOTOMETRY
 from pwm.raytrace import RayTracer
 from pwm.render import render_supersampled
@@ -39,7 +40,7 @@ from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
 from pwm.simulate.optics import blur, flat_field
 from pwm.simulate.plan import Observation, plan_global, plan_site, sun_states
 from pwm.simulate.scenarios import Scenario
-from pwm.simulate.truth import Truth, build_truth, low_pass, save as save_truth, undulations
+from pwm.simulate.truth import Truth, build_base, build_truth, low_pass, save as save_truth, undulations
 
 log = logging.getLogger(__name__)
 
@@ -135,14 +136,8 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
             held_out.append({"name": obs.name, "file": f"validation/{obs.name}.npz",
                              **_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera)})
 
-    # "Low-passed to ten GSD": vertices every 10 GSD, and an anti-aliasing filter that keeps
-    # half the amplitude at 30 GSD, so little remains at the 20 GSD Nyquist wavelength.
     wavelength_km = 30.0 * scenario.gsd_km
-    shortest_m, longest_m = scenario.start_error_band_m
-    error = (undulations(truth, rms_km=scenario.start_error_rms_gsd * scenario.gsd_km, shortest_km=shortest_m * 1e-3,
-                         longest_km=longest_m * 1e-3, seed=seed) if scenario.start_error_rms_gsd > 0 else None)
-    write_obj(downlink / "start_model.obj",
-              low_pass(truth, wavelength_km=wavelength_km, spacing_km=10.0 * scenario.gsd_km, error_km=error))
+    write_obj(downlink / "start_model.obj", start_model(truth, scenario=scenario, base=base, seed=seed))
     save_truth(truth, truth_dir)
 
     manifest = {
@@ -167,6 +162,23 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
     _write_downlink_manifest(downlink, scenario=scenario)
     log.info("simulated %d images in %.1f s", len(images), time.perf_counter() - clock)
     return manifest
+
+
+def start_model(truth: Truth, *, scenario: Scenario, base: Mesh, seed: int) -> Mesh:
+    """The shape model the downlink starts from, "low-passed to ten GSD": vertices every 10 GSD,
+    and an anti-aliasing filter that keeps half the amplitude at 30 GSD, so little remains at the
+    20 GSD Nyquist wavelength; plus the scenario's smooth undulations. A site scenario's start is
+    the truth's site patch so smoothed on the truth's base; a global one's is the whole body
+    rebuilt from `base` with its roughness so smoothed (the truth's base would be the truth
+    itself wherever the images look)."""
+    wavelength_km, spacing_km = 30.0 * scenario.gsd_km, 10.0 * scenario.gsd_km
+    if scenario.global_views:
+        return build_base(base, base_edge_km=spacing_km, seed=seed, global_roughness_km=scenario.global_roughness_km,
+                          low_pass_km=wavelength_km)
+    shortest_m, longest_m = scenario.start_error_band_m
+    error = (undulations(truth, rms_km=scenario.start_error_rms_gsd * scenario.gsd_km, shortest_km=shortest_m * 1e-3,
+                         longest_km=longest_m * 1e-3, seed=seed) if scenario.start_error_rms_gsd > 0 else None)
+    return low_pass(truth, wavelength_km=wavelength_km, spacing_km=spacing_km, error_km=error)
 
 
 def _readout(detector: Camera, scenario: Scenario) -> tuple[Camera, tuple[int, int] | None]:
