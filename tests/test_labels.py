@@ -27,7 +27,7 @@ PRODUCT = ImageProduct(
     lid="urn:test:x", vid="1.0", title="t", start_utc="2018-10-01T00:00:00.000Z", stop_utc="2018-10-01T00:00:00.004Z",
     mission=None, host_name=None, instrument_name=None, target_name=None, target_type=None, exposure_s=0.004,
     first_line=0, first_sample=0, data_path=Path("x.fits"), file_size=None, md5=None, lines=1, samples=1,
-    data=np.zeros((1, 1)), fits_header=None)
+    data=np.zeros((1, 1)), fits_header=None, label_path=Path("x.xml"))
 
 
 def label(**fields) -> ImageProduct:

@@ -21,6 +21,7 @@ from service.ingest import ingest_directory
 from service.models import (
     Acceptance,
     Downlink,
+    DownlinkFile,
     DownlinkStatus,
     Image,
     ImageGeometry,
@@ -30,6 +31,7 @@ from service.models import (
     KernelCoverage,
     KernelKind,
 )
+from service.settings import IngestLimits
 
 BENNU, SC, MAPCAM, SC_BUS = 2101955, -64, -64361, -64000
 RANGE_KM = 2.0  # from Bennu's centre
@@ -268,11 +270,13 @@ def _assert_footprint(footprint: list, corners: list[np.ndarray | None]) -> None
 
 
 def _ingest_with_bad_product(catalog: sessionmaker[Session], downlink: Path, name: str,
-                             code: str) -> Image:
+                             code: str, *, orphans: int = 0) -> Image:
+    """orphans: data files no readable label names, reported as unknown files."""
     report = ingest_directory(catalog, downlink)
-    assert (report.images.accepted, report.images.rejected, report.failed) == (3, 1, 1)
+    assert (report.images.accepted, report.images.rejected, report.failed) == (3, 1, 1 + orphans)
     assert report.failures[0].code == code and name in report.failures[0].path
-    assert "1 rejected" in report.summary() and "1 failed" in report.summary()
+    assert [f.code for f in report.failures[1:]] == ["unknown_type"] * orphans
+    assert "1 rejected" in report.summary() and f"{1 + orphans} failed" in report.summary()
     images = _images(catalog)
     _assert_good_images_accepted(images)
     bad = images[name]
@@ -293,7 +297,7 @@ def _bad_product(downlink: Path, kernels: dict) -> tuple[Path, Path]:
 def test_malformed_xml_is_rejected(catalog, downlink, kernels) -> None:
     label, _ = _bad_product(downlink, kernels)
     label.write_text(label.read_text()[:700])
-    bad = _ingest_with_bad_product(catalog, downlink, "bad", "malformed_xml")
+    bad = _ingest_with_bad_product(catalog, downlink, "bad", "malformed_xml", orphans=1)
     assert "not well-formed" in bad.rejection_reason and bad.lid.startswith("unidentified:")
 
 
@@ -451,7 +455,9 @@ def _real_mapcam_downlink(root: Path, shared_data: Path) -> Path:
 def test_real_mapcam_geometry_matches_spice(catalog, tmp_path, shared_data) -> None:
     root = _real_mapcam_downlink(tmp_path / "orex", shared_data)
     report = ingest_directory(catalog, root)
-    assert (report.images.accepted, report.failed) == (1, 0), report.failures
+    assert report.images.accepted == 1 and report.images.rejected == 0, report.failures
+    # the archive's PDS3 (ISIS) label is no kernel or PDS4 label: recorded, with why
+    assert [(Path(f.path).suffix, f.code) for f in report.failures] == [(".lbl", "unknown_type")]
     image = _images(catalog)["mapcam"]
     g = image.geometry
     assert (image.instrument.naif_id, g.body_frame) == (MAPCAM, "IAU_BENNU")
@@ -518,8 +524,9 @@ def test_images_before_their_kernels_are_taken_up_later(sqlite_url, kernels, tmp
 
 
 def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_path, shared_data) -> None:
-    """PATH_VALUES relative to the meta-kernel reach kernels outside the ingested directory; a
-    meta-kernel naming missing files is rejected with the list."""
+    """PATH_VALUES relative to the meta-kernel reach kernels elsewhere in the downlink; a
+    meta-kernel naming missing files is rejected with the list; one naming files outside the
+    downlink has those entries refused, with why, unless they are in the kernel library."""
     upgrade(sqlite_url)
     sessions = make_sessionmaker(make_engine(sqlite_url))
     archive = tmp_path / "archive"
@@ -530,7 +537,7 @@ def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_pat
         "KPL/MK\n\\begindata\n PATH_VALUES = ( '..' )\n PATH_SYMBOLS = ( 'K' )\n"
         " KERNELS_TO_LOAD = ( '$K/lsk/naif0012.tls' )\n\\begintext\n")
     shutil.copy(shared_data / "spice" / "mk" / "orx_2020_v05.tm", archive / "mk")
-    report = ingest_directory(sessions, archive / "mk")
+    report = ingest_directory(sessions, archive, limits=IngestLimits())
     with sessions() as session:
         rows = {Path(k.path).name: k for k in session.scalars(select(Kernel))}
     assert rows["set.tm"].status == "accepted" and rows["set.tm"].kind == "mk"
@@ -541,3 +548,31 @@ def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_pat
     assert reason.startswith("206 kernels it names are missing: ")
     assert str(archive / "fk" / "orx_v14.tf") in reason and "naif0012" not in reason
     assert (report.kernels.accepted, report.kernels.rejected) == (2, 1)
+
+    # another downlink's meta-kernel naming files outside it, by absolute path and by '..'
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.copy(bundled_kernels()["bennu_v16.tpc"], tmp_path / "elsewhere.tpc")
+    (other / "evil.tm").write_text(
+        f"KPL/MK\n\\begindata\n KERNELS_TO_LOAD = ( '{tmp_path / 'elsewhere.tpc'}'\n"
+        "  '../archive/lsk/naif0012.tls' )\n\\begintext\n")
+    evil = ingest_directory(sessions, other, limits=IngestLimits())
+    with sessions() as session:
+        assert "elsewhere.tpc" not in {Path(k.path).name for k in session.scalars(select(Kernel))}
+        refused = {f.path: (f.code, f.reason) for f in session.scalars(select(DownlinkFile))}
+    assert set(refused) == {str(tmp_path / "elsewhere.tpc"), str(archive / "lsk" / "naif0012.tls")}
+    code, reason = refused[str(tmp_path / "elsewhere.tpc")]
+    assert code == "outside_downlink" and reason.startswith("named by evil.tm: ")
+    assert f"outside {other}" in reason
+    assert {(f.code, f.path) for f in evil.failures} == {("outside_downlink", p) for p in refused}
+    again = ingest_directory(sessions, other, limits=IngestLimits())
+    assert again.failed == 0 and again.kernels.unchanged == 3
+
+    # a configured kernel library may be named from outside
+    upgrade(f"sqlite:///{tmp_path / 'library.sqlite'}")
+    library = make_sessionmaker(make_engine(f"sqlite:///{tmp_path / 'library.sqlite'}"))
+    ingest_directory(library, other, limits=IngestLimits(kernel_library=archive / "lsk"))
+    with library() as session:
+        assert session.scalars(select(Kernel.status).where(
+            Kernel.path == str(archive / "lsk" / "naif0012.tls"))).one() == "accepted"
+        assert session.scalars(select(DownlinkFile.path)).all() == [str(tmp_path / "elsewhere.tpc")]
