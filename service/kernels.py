@@ -18,6 +18,7 @@ want of its SCLK is accepted once the SCLK has arrived.
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -37,6 +38,8 @@ from pwm.io.spice_kernels import (
     spice_message,
 )
 from service.models import Acceptance, DownlinkFile, Kernel, KernelCoverage, KernelKind, utcnow
+
+log = logging.getLogger(__name__)
 
 KIND_BY_EXTENSION = {
     ".tls": KernelKind.LSK, ".tsc": KernelKind.SCLK, ".tpc": KernelKind.PCK,
@@ -248,17 +251,29 @@ def register_kernels(session: Session, scope: KernelScope, *, downlink_id: int
                 outcomes.append(KernelOutcome(path, None, "rejected" if new else "unchanged",
                                               reason, "unknown_type"))
                 continue
-            outcome = _judge(session, path, kind, digest, row, downlink_id, scope)
-            if outcome.result == "rejected" and kind in _TEXT_KINDS:
+            try:
+                with session.begin_nested():
+                    outcome = _judge(session, path, kind, digest, row, downlink_id, scope)
+                    session.flush()
+            except Exception as exc:  # one hostile file never stops the rest
+                log.exception("%s: rejected on an unexpected error", path)
+                outcome = KernelOutcome(path, kind, "rejected", f"{type(exc).__name__}: {exc}",
+                                        "unexpected")
+                record_file(session, downlink_id=downlink_id, path=path, code="unexpected",
+                            reason=outcome.reason or "")
+            if outcome.result == "rejected" and kind in _POOL_KINDS:
                 _reload(loaded)
-            elif outcome.result == "accepted" and kind in _TEXT_KINDS:
+            elif outcome.result == "accepted" and kind in _LOADED_KINDS:
                 loaded.append(path)
             outcomes.append(outcome)
     return outcomes
 
 
-_TEXT_KINDS = frozenset({KernelKind.LSK, KernelKind.SCLK, KernelKind.PCK, KernelKind.FK,
-                         KernelKind.IK, KernelKind.MK})
+# Kinds whose check loads the pool (meta-kernels are parsed into it, then taken out again),
+# and of those the kinds left loaded once accepted.
+_LOADED_KINDS = frozenset({KernelKind.LSK, KernelKind.SCLK, KernelKind.PCK, KernelKind.FK,
+                           KernelKind.IK})
+_POOL_KINDS = _LOADED_KINDS | {KernelKind.MK}
 
 
 def _reload(paths: list[Path]) -> None:
@@ -301,7 +316,8 @@ def _judge(session: Session, path: Path, kind: KernelKind, digest: str, row: Ker
                            size_bytes=path.stat().st_size, status=status,
                            rejection_reason=reason, downlink_id=downlink_id, coverage=coverage))
         return KernelOutcome(path, kind, status.value, reason)
-    unchanged = (row.status, row.rejection_reason, row.kind) == (status, reason, kind)
+    # still rejected is no news, though SPICE's message may differ (e.g. where the pool filled)
+    unchanged = (row.status, row.kind) == (status, kind)
     row.path, row.kind, row.status, row.rejection_reason = str(path), kind, status, reason
     row.coverage = coverage
     return KernelOutcome(path, kind, "unchanged" if unchanged else status.value, reason)
