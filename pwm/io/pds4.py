@@ -1,7 +1,7 @@
 """PDS4 image products: a FITS data file (primary header + 2-D array) with its XML label.
 
 Written as OSIRIS-REx OCAMS products are (Product_Observational, Header + Array_2D_Image in one
-FITS file); read back, with the data file checked against its label, through pds4_tools.
+FITS file); read back, with the data file checked against its label before its array is read.
 Arrays are [line, sample]; physical value = dn * scaling_factor + value_offset.
 """
 
@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -17,7 +16,6 @@ from pathlib import Path
 from typing import Any, Literal, overload
 
 import numpy as np
-import pds4_tools
 from astropy.io import fits
 from pds4_tools.reader.data_types import pds_to_numpy_type
 
@@ -33,10 +31,12 @@ _FITS_STRUCTURAL = {"SIMPLE", "BITPIX", "NAXIS", "NAXIS1", "NAXIS2", "EXTEND", "
 _NS = {"pds": PDS_NS, "img": IMG_NS}
 _SECONDS = {"s": 1.0, "ms": 1e-3, "microseconds": 1e-6, "ns": 1e-9, "min": 60.0}  # PDS4 time units
 # Bounds on what one product may make the reader do, before it reads: the label's size (the
-# XML parsers and pds4_tools hold it whole, several times over) and the array's pixel count
-# (read as float64 with a mask: about 17 bytes a pixel). service.settings.Settings overrides.
+# XML parser holds it whole, several times over) and the array's pixel count
+# (4096 x 4096, sixteen times OCAMS, ONC, AMICA or LORRI; read_array holds about 8 bytes
+# a pixel of int16 data at its peak, bench/RESULTS.md). service.settings.Settings
+# overrides both.
 MAX_LABEL_BYTES = 4 * 1024**2
-MAX_PIXELS = 8192 * 8192 // 2
+MAX_PIXELS = 4096 * 4096
 
 
 class ProductError(ValueError):
@@ -74,6 +74,20 @@ class ImageLabel:
     samples: int
     fits_header: dict[str, Any] | None
     label_path: Path
+    layout: ArrayLayout
+
+
+@dataclass(frozen=True)
+class ArrayLayout:
+    """Where and how the array lies in the data file: numpy dtype (with byte order), byte
+    offset, the scaling to physical values and the stored values that flag a pixel (the
+    label's Special_Constants)."""
+
+    dtype: str
+    offset: int
+    scaling_factor: float
+    value_offset: float
+    special_constants: tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -284,15 +298,33 @@ def _float(node: ET.Element, path: str) -> float | None:
                            ) from exc
 
 
-def _check_scaling(image: ET.Element) -> None:
-    """A scaling factor that is NaN, infinite or zero, or an offset that is not finite, would
-    make every pixel NaN, infinite or one value."""
+def _scaling(image: ET.Element) -> tuple[float, float]:
+    """The array's scaling factor and value offset (1 and 0 where the label gives none). A
+    scaling factor that is NaN, infinite or zero, or an offset that is not finite, would make
+    every pixel NaN, infinite or one value."""
     scaling = _float(image, "pds:Element_Array/pds:scaling_factor")
     offset = _float(image, "pds:Element_Array/pds:value_offset")
     if scaling is not None and (not np.isfinite(scaling) or scaling == 0):
         raise ProductError("bad_value", f"scaling_factor {scaling} is not finite and non-zero")
     if offset is not None and not np.isfinite(offset):
         raise ProductError("bad_value", f"value_offset {offset} is not finite")
+    return 1.0 if scaling is None else scaling, 0.0 if offset is None else offset
+
+
+def _special_constants(image: ET.Element) -> tuple[float, ...]:
+    """The stored values the label's Special_Constants flag (decimal, or 0x hexadecimal)."""
+    found = image.find("pds:Special_Constants", _NS)
+    values = []
+    for element in [] if found is None else list(found):
+        name, text = element.tag.rpartition("}")[2], (element.text or "").strip()
+        if name.startswith("valid_"):  # a valid range, not a flagged value
+            continue
+        try:
+            values.append(float(int(text, 0)) if text.lower().startswith("0x") else float(text))
+        except ValueError:
+            raise ProductError("bad_value", f"special constant {name} = {text!r} is not a "
+                               "number") from None
+    return tuple(values)
 
 
 def _fits_bitpix(dtype: np.dtype) -> int:
@@ -301,9 +333,9 @@ def _fits_bitpix(dtype: np.dtype) -> int:
 
 
 def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int, max_pixels: int
-                 ) -> dict | None:
+                 ) -> tuple[ArrayLayout, dict | None]:
     """Check the array's size, that it fits in the data file and agrees with a FITS header
-    (BITPIX, NAXIS and the axes); return that header."""
+    (BITPIX, NAXIS and the axes); return its layout and that header."""
     image = area.find("pds:Array_2D_Image", _NS)
     if image is None:
         raise ProductError("missing_element", f"{data_path.name}: the file area lacks Array_2D_Image")
@@ -316,15 +348,20 @@ def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int, ma
     dtype = pds_to_numpy_type(data_type)  # unknown names come back as a zero-length string type
     if dtype.kind not in "iufc":
         raise ProductError("unsupported", f"array data_type {data_type!r} is not binary numeric")
-    _check_scaling(image)
+    if (order := _text(image, "pds:axis_index_order", False)) not in (None, "Last Index Fastest"):
+        raise ProductError("unsupported", f"axis_index_order {order!r}")
+    array_offset = _int(image, "pds:offset")
+    if array_offset < 0:
+        raise ProductError("bad_dimensions", f"array offset {array_offset} is negative")
+    layout = ArrayLayout(dtype.str, array_offset, *_scaling(image), _special_constants(image))
     file_size = data_path.stat().st_size
-    end = _int(image, "pds:offset") + lines * samples * dtype.itemsize
+    end = array_offset + lines * samples * dtype.itemsize
     if end > file_size:
         raise ProductError("bad_dimensions", f"{lines}x{samples} {data_type} array ends at byte "
                            f"{end}, past the end of {data_path.name}")
     header = area.find("pds:Header", _NS)
     if header is None or "FITS" not in (_text(header, "pds:parsing_standard_id", False) or ""):
-        return None
+        return layout, None
     offset, length = _int(header, "pds:offset"), _int(header, "pds:object_length")
     if offset < 0 or length < 0 or offset + length > file_size:
         # checked before reading: a declared length of 1e20 bytes would be read as asked
@@ -344,29 +381,33 @@ def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int, ma
                            if found[k] != v)
         raise ProductError("bad_dimensions", f"the FITS header of {data_path.name} disagrees "
                            f"with the label's {lines}x{samples} {data_type} array: {differ}")
-    return {c.keyword: c.value for c in cards.cards if c.keyword not in ("", "COMMENT", "HISTORY")}
+    return layout, {c.keyword: c.value for c in cards.cards
+                    if c.keyword not in ("", "COMMENT", "HISTORY")}
 
 
 def read_array(label: ImageLabel) -> ImageProduct:
-    """The product of a checked label with its array read (through pds4_tools)."""
-    hook = sys.excepthook  # pds4_tools.read replaces the process-wide hook; put it back
+    """The product of a checked label with its array read: physical values as float64, NaN
+    where a special constant flags a pixel. Read straight from the data file at the layout the
+    label was checked for (pds4_tools would parse the label again, in time that grows with the
+    square of its size)."""
+    layout = label.layout
+    count = label.lines * label.samples
     try:
-        structures = pds4_tools.read(str(label.label_path), lazy_load=True, quiet=True)
-        image = next(s for s in structures if s.type == "Array_2D_Image")
-        masked = image.as_masked().data
-        # a plain ndarray (pds4_tools' subclass makes every indexing call several times slower),
-        # NaN set in place rather than through a filled copy
-        data = np.array(np.ma.getdata(masked), dtype=np.float64)
-        data[np.ma.getmaskarray(masked)] = np.nan
-        del masked, image, structures
-    except Exception as exc:  # pds4_tools has no exception hierarchy of its own to catch
-        raise ProductError("unreadable", f"pds4_tools could not read {label.label_path.name}: "
-                           f"{exc}") from exc
-    finally:
-        sys.excepthook = hook
-    if data.shape != (label.lines, label.samples):
-        raise ProductError("bad_dimensions", f"array read as {data.shape}, label says "
-                           f"{(label.lines, label.samples)}")
+        with open(label.data_path, "rb") as fh:
+            fh.seek(layout.offset)
+            stored = np.fromfile(fh, dtype=np.dtype(layout.dtype), count=count)
+    except (OSError, ValueError) as exc:
+        raise ProductError("unreadable", f"{label.data_path.name}: {exc}") from exc
+    if stored.size != count:
+        raise ProductError("bad_dimensions", f"{label.data_path.name} holds {stored.size} of the "
+                           f"{count} values its label declares")
+    stored = stored.reshape(label.lines, label.samples)
+    data = stored.astype(np.float64)
+    if (layout.scaling_factor, layout.value_offset) != (1.0, 0.0):
+        data *= layout.scaling_factor
+        data += layout.value_offset
+    if layout.special_constants:
+        data[np.isin(stored, np.asarray(layout.special_constants))] = np.nan
     fields = {f.name: getattr(label, f.name) for f in dataclasses.fields(ImageLabel)}
     return ImageProduct(**fields, data=data)
 
@@ -397,7 +438,8 @@ def read_image_label(label: Path, *, root: Path | None = None,
         raise ProductError("too_large", f"{label.name} is {label_bytes} bytes, more than the "
                            f"{max_label_bytes} a label may have")
     try:
-        root_element = ET.parse(label).getroot()
+        # parsed from one buffer: fed in chunks, expat rescans a long token at every chunk
+        root_element = ET.fromstring(label.read_bytes())
     except ET.ParseError as exc:
         raise ProductError("malformed_xml", f"{label.name} is not well-formed XML: {exc}") from exc
     return _image_label(label, root_element, within, max_pixels)
@@ -431,7 +473,7 @@ def _image_label(label: Path, root: ET.Element, within: Path, max_pixels: int) -
     size = _int(area, "pds:File/pds:file_size", False)
     md5 = _text(area, "pds:File/pds:md5_checksum", False)
     _check_file(data_path, within, size, md5)
-    fits_header = _check_array(area, data_path, lines, samples, max_pixels)
+    layout, fits_header = _check_array(area, data_path, lines, samples, max_pixels)
 
     obs = root.find("pds:Observation_Area", _NS)
     if obs is None:
@@ -451,7 +493,7 @@ def _image_label(label: Path, root: ET.Element, within: Path, max_pixels: int) -
         exposure_s=_exposure_s(obs),
         first_line=_subframe_start(obs, "first_line"), first_sample=_subframe_start(obs, "first_sample"),
         data_path=data_path, file_size=size, md5=md5,
-        lines=lines, samples=samples, fits_header=fits_header, label_path=label)
+        lines=lines, samples=samples, fits_header=fits_header, label_path=label, layout=layout)
 
 
 def _exposure_s(obs: ET.Element) -> float | None:

@@ -50,6 +50,7 @@ CK_WINDOWS_S = [(0.0, 600.0), (1800.0, 2400.0)]  # attitude only here; the SPK c
 GOOD_OFFSETS_S = [120.0, 240.0, 1860.0]
 WINDOW = (600, 300, 16, 24)  # first line, first sample, lines, samples of the test products
 REAL_MAPCAM_UTC = "2019-03-03T10:59:40.279"
+BUNDLED_SHAPE = Path(__file__).resolve().parents[2] / "pwm" / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
 EXPOSURE_S = 0.01
 
 
@@ -920,3 +921,38 @@ def test_downlinks_command_and_api_show_each_outcome(tmp_path, downlink, kernels
     assert [f["code"] for f in by_cli["all-bad"]["unused_files"]] == ["unknown_type"]  # broken.fits
     table = runner.invoke(app, ["downlinks", "--files"]).output
     assert "rejected" in table and "unused" in table and "broken.fits" in table
+
+
+def test_without_a_broker_an_ingest_runs_after_the_response(tmp_path, downlink, monkeypatch) -> None:
+    """POST /ingests answers at once; the ingest (and what follows) runs in a background
+    process, and its job is done afterwards."""
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.cli.background import BackgroundQueue
+    from service.settings import Settings
+    from workers.tasks import CeleryQueue
+
+    data = tmp_path / "data"
+    shutil.copytree(downlink, data / "incoming" / "dl")
+    shutil.copy(BUNDLED_SHAPE, data / "incoming" / "dl" / "start_model.obj")
+    monkeypatch.setenv("PWM_DATA_DIR", str(data))
+    monkeypatch.setenv("PWM_API_TOKEN", "token-0123456789abcdef")
+    monkeypatch.delenv("PWM_BROKER_URL", raising=False)
+    queue = BackgroundQueue(CeleryQueue())
+    try:
+        with TestClient(create_app(Settings(), job_queue=queue)) as client:
+            clock = time.perf_counter()
+            response = client.post("/ingests", json={"path": "dl"},
+                                   headers={"Authorization": "Bearer token-0123456789abcdef"})
+            answered_s = time.perf_counter() - clock
+            assert response.status_code == 202, response.text
+            key = response.json()["key"]
+            queued = {j["key"]: j["status"] for j in client.get("/jobs").json()["items"]}
+            assert queued[key] in ("queued", "running")
+            queue.close()
+            jobs = {j["key"]: j for j in client.get("/jobs").json()["items"]}
+    finally:
+        queue.close()
+    assert answered_s < 5.0
+    assert jobs[key]["status"] == "done", jobs[key]
