@@ -21,16 +21,22 @@ taken up by a later ingest. One bad file never stops the rest.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
+import os
+import re
+import socket
 import time
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timedelta
 from pathlib import Path
+from typing import Any, cast
 
 import spiceypy as sp
-from sqlalchemy import Engine, select
+from sqlalchemy import CursorResult, Engine, or_, select, update
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import Camera
@@ -40,12 +46,11 @@ from pwm.io.labels import (
     COVERAGE_ERRORS,
     exposure_et,
     exposure_times,
-    find_labels,
     instrument_code,
     observer_code,
     target_frame,
 )
-from pwm.io.pds4 import ImageProduct, ProductError, read_image_product
+from pwm.io.pds4 import ImageLabel, ProductError, read_array, read_image_label
 from pwm.io.spice_geometry import ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, observe, spacecraft_of
 from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
@@ -53,9 +58,11 @@ from service.coverage import CoverageReport, update_coverage
 from service.db import make_sessionmaker, session_scope
 from service.kernels import (
     KernelOutcome,
+    KernelScope,
     accepted_kernels,
     coverage_windows,
     et_to_datetime,
+    record_file,
     register_kernels,
     spice_message,
 )
@@ -68,7 +75,9 @@ from service.models import (
     ImageStatus,
     Instrument,
     KernelKind,
+    utcnow,
 )
+from service.settings import IngestLimits, get_settings
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +87,15 @@ KERNEL_DEPENDENT_CODES = frozenset(
     {"unknown_instrument", "instrument_kernel", "unknown_target", "outside_coverage", "geometry"})
 _UNIDENTIFIED = "unidentified:"
 _HASH_CHUNK = 1 << 20
+# Column sizes of service.models.Image: a LIDVID must leave room for a conflict's suffix.
+_LIDVID_CHARS, _VID_CHARS, _CONFLICT_SUFFIX = 255, 32, 17
+_VID = re.compile(r"\d+\.\d+")
+# Files of a downlink that are neither kernels nor products, and are expected: its manifest
+# and the start model service.run imports (START_MODEL_NAME).
+_DELIVERY_FILES = frozenset({"manifest.json", "start_model.obj"})
+_INSERT_IGNORING_CONFLICT: dict[str, Any] = {"postgresql": postgresql.insert,
+                                             "sqlite": sqlite.insert}
+_WAIT_S = 1.0  # how often an ingest waiting for another's downlink looks again
 
 
 @dataclass
@@ -131,6 +149,8 @@ class _Identity:
     data_path: Path | None
     sha256: str
     size_bytes: int
+    files: frozenset[Path] = frozenset()  # the files the label names
+    problem: str | None = None  # why the label's own LIDVID cannot key it
 
     @property
     def lidvid(self) -> str:
@@ -161,7 +181,7 @@ class _Outcome:
     reason: str | None = None
     geometry_status: GeometryStatus = GeometryStatus.UNAVAILABLE
     geometry_reason: str | None = None
-    product: ImageProduct | None = None
+    product: ImageLabel | None = None
     instrument_id: int | None = None
     times: tuple[datetime, datetime, float | None, float | None] | None = None
     geometry: ImageGeometry | None = None
@@ -179,32 +199,47 @@ class _Rejected(Exception):
 
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
                      downlink_name: str | None = None, shape: Mesh | None = None,
-                     config: RefinementConfig = DEFAULTS) -> IngestReport:
+                     config: RefinementConfig = DEFAULTS,
+                     limits: IngestLimits | None = None) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
-    holds that name). shape: the current shape model of the target (body-fixed, km); boresight
+    holds that name); a directory whose manifest.json is a catalogued downlink's is a repeat
+    delivery of that downlink (its repeat_count and last_seen_at record it). shape: the current
+    shape model of the target (body-fixed, km); boresight
     and corner intercepts use it instead of the PCK ellipsoid, and the catalog's images not
     weighed yet (Image.coverage_computed_at) get their coverage rows against it
-    (service.coverage; maplets tiled there as config says). SPICE's
+    (service.coverage; maplets tiled there as config says). limits: what is accepted (default
+    service.settings); kernels come only from `directory` and limits.kernel_library.
+
+    One ingest of a downlink at a time: another waits while the first's claim is live
+    (Downlink.ingest_owner, renewed at each commit) and takes it over once its owner is gone or
+    stale (limits.stale_s without a commit). Every file under `directory` ends up a kernel, a
+    product's label or data file, or a DownlinkFile with why it is not used. SPICE's
     process-wide kernel pool is cleared on the way in and out (pwm.io.spice_kernels.kernel_pool).
     """
     sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
+    limits = limits or get_settings().ingest_limits()
     directory = Path(directory).resolve()
     if not directory.is_dir():
         raise NotADirectoryError(f"{directory} is not a directory")
     clock = time.perf_counter()
-    with session_scope(sessions) as session:
-        downlink = _downlink(session, directory, downlink_name)
-        downlink.status = DownlinkStatus.INGESTING
-        session.flush()
-        downlink_id, report = downlink.id, IngestReport(downlink=downlink.name)
+    downlink_id, name = _claim(sessions, directory, downlink_name, limits)
+    report = IngestReport(downlink=name)
     try:
+        scope = KernelScope(directory, limits.kernel_library, limits.max_metakernel_entries)
         with session_scope(sessions) as session:
-            outcomes = register_kernels(session, directory, downlink_id=downlink_id)
+            outcomes = register_kernels(session, scope, downlink_id=downlink_id)
         _count_kernels(report, outcomes)
-        _ingest_images(sessions, directory, downlink_id, report,
-                       None if shape is None else MeshSurface(shape))
+        labels, others = _walk(sessions, directory, downlink_id, report)
+        named = _ingest_images(sessions, directory, labels, downlink_id, report,
+                               None if shape is None else MeshSurface(shape), limits)
+        used = {o.path for o in outcomes} | named | set(labels)
+        with session_scope(sessions) as session:
+            for path in others:
+                if path not in used and path.name not in _DELIVERY_FILES:
+                    _unused(session, report, downlink_id, path, "unknown_type",
+                            "neither a SPICE kernel nor a PDS4 label, nor a file a label names")
         if shape is not None:
             with session_scope(sessions) as session:
                 # The images not weighed yet (this downlink's, or earlier ones ingested without
@@ -213,42 +248,144 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                     Image.coverage_computed_at.is_(None))))
                 report.coverage = update_coverage(session, shape, image_ids=unweighed, config=config)
     except BaseException:
-        with session_scope(sessions) as session:
-            session.get_one(Downlink, downlink_id).status = DownlinkStatus.FAILED
+        _release(sessions, downlink_id, DownlinkStatus.FAILED)
         raise
-    with session_scope(sessions) as session:
-        session.get_one(Downlink, downlink_id).status = DownlinkStatus.INGESTED
+    _release(sessions, downlink_id, DownlinkStatus.INGESTED)
     report.elapsed_s = time.perf_counter() - clock
     log.info("%s", report.summary())
     return report
 
 
-def _downlink(session: Session, directory: Path, name: str | None) -> Downlink:
-    """The downlink row for `directory`: found by name if given, else by path, else new."""
+def _owner() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _owner_gone(owner: str | None) -> bool:
+    """True when `owner` ("host:pid") is a process of this host that no longer runs."""
+    host, _, pid = (owner or "").rpartition(":")
+    if host != socket.gethostname() or not pid.isdigit():
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # someone else's process: alive
+        return False
+    return False
+
+
+def _claim(sessions: sessionmaker[Session], directory: Path, name: str | None,
+           limits: IngestLimits) -> tuple[int, str]:
+    """Take the downlink of `directory` for this ingest (status ingesting, owner this
+    process); wait while another ingest holds it, take it over when that one is stale."""
+    owner, waited = _owner(), False
+    while True:
+        with session_scope(sessions) as session:
+            downlink, new = _downlink(session, directory, name)
+            now = utcnow()
+            stale = or_(Downlink.status != DownlinkStatus.INGESTING,
+                        Downlink.ingest_heartbeat_at.is_(None),
+                        Downlink.ingest_heartbeat_at < now - timedelta(seconds=limits.stale_s))
+            if _owner_gone(downlink.ingest_owner):
+                stale = or_(stale, Downlink.ingest_owner == downlink.ingest_owner)
+            taken = cast(CursorResult[Any], session.execute(
+                update(Downlink).where(Downlink.id == downlink.id, stale)
+                .values(status=DownlinkStatus.INGESTING, ingest_owner=owner,
+                        ingest_heartbeat_at=now)
+                .execution_options(synchronize_session=False))).rowcount == 1
+            if taken:
+                if not new:  # delivered (or ingested) again
+                    session.execute(update(Downlink).where(Downlink.id == downlink.id).values(
+                        repeat_count=Downlink.repeat_count + 1, last_seen_at=now)
+                        .execution_options(synchronize_session=False))
+                if downlink.status is DownlinkStatus.INGESTING:
+                    log.warning("%s: taking over the stale ingest of %s", downlink.name,
+                                downlink.ingest_owner)
+                return downlink.id, downlink.name
+            holder = downlink.ingest_owner
+        if not waited:
+            log.info("%s is being ingested by %s: waiting", directory, holder)
+            waited = True
+        time.sleep(_WAIT_S)
+
+
+def _release(sessions: sessionmaker[Session], downlink_id: int, status: DownlinkStatus) -> None:
+    """End this ingest's claim with `status`, unless another ingest has taken it over."""
+    with session_scope(sessions) as session:
+        session.execute(update(Downlink).where(Downlink.id == downlink_id,
+                                               Downlink.ingest_owner == _owner())
+                        .values(status=status, ingest_owner=None, ingest_heartbeat_at=utcnow())
+                        .execution_options(synchronize_session=False))
+
+
+def _heartbeat(session: Session, downlink_id: int) -> None:
+    session.execute(update(Downlink).where(Downlink.id == downlink_id)
+                    .values(ingest_heartbeat_at=utcnow())
+                    .execution_options(synchronize_session=False))
+
+
+def _downlink(session: Session, directory: Path, name: str | None) -> tuple[Downlink, bool]:
+    """The downlink row for `directory`, and whether it is new: found by name if given, else
+    by path, else by its manifest (a repeat delivery), else new."""
     if name is not None:
         found = session.scalars(select(Downlink).filter_by(name=name)).one_or_none()
     else:
-        found = session.scalars(select(Downlink).filter_by(path=str(directory))).first()
-    if found is not None:
+        found = session.scalars(select(Downlink).filter_by(path=str(directory))
+                                .order_by(Downlink.id)).first()
+    manifest = directory / "manifest.json"
+    digest = _sha256([manifest]) if manifest.is_file() and not manifest.is_symlink() else None
+    if found is None and digest is not None:
+        found = session.scalars(select(Downlink).filter_by(manifest_sha256=digest)
+                                .order_by(Downlink.id)).first()
+    elif found is not None and name is not None:
         found.path = str(directory)
-        return found
+    if found is not None:
+        return found, False
     if name is None:
         taken = set(session.scalars(select(Downlink.name).where(
             Downlink.name.startswith(directory.name))))
         name = next(n for n in (directory.name if i == 0 else f"{directory.name}-{i + 1}"
                                 for i in range(len(taken) + 1)) if n not in taken)
-    manifest = directory / "manifest.json"
-    downlink = Downlink(name=name, path=str(directory),
-                        manifest_sha256=_sha256([manifest]) if manifest.is_file() else None)
-    session.add(downlink)
-    return downlink
+    # Inserted unless a concurrent ingest just did: two first ingests share one row.
+    insert = _INSERT_IGNORING_CONFLICT[session.get_bind().dialect.name]
+    session.execute(insert(Downlink).values(
+        name=name, path=str(directory), manifest_sha256=digest, received_at=utcnow(),
+        status=DownlinkStatus.RECEIVED, repeat_count=0, last_seen_at=utcnow())
+        .on_conflict_do_nothing(index_elements=[Downlink.name]))
+    return session.scalars(select(Downlink).filter_by(name=name)
+                           .execution_options(populate_existing=True)).one(), True
+
+
+def _walk(sessions: sessionmaker[Session], directory: Path, downlink_id: int,
+          report: IngestReport) -> tuple[list[Path], list[Path]]:
+    """The labels under `directory` and its other files, in path order; files resolving
+    outside it (symbolic links) are recorded as unused and in neither list."""
+    labels: list[Path] = []
+    others: list[Path] = []
+    with session_scope(sessions) as session:
+        for path in sorted(directory.rglob("*")):
+            if not path.resolve().is_relative_to(directory):
+                _unused(session, report, downlink_id, path, "outside_downlink",
+                        f"{path} resolves to {path.resolve()}, outside {directory}")
+            elif path.is_file():
+                (labels if path.suffix.lower() == ".xml" else others).append(path)
+            elif not path.is_dir():
+                _unused(session, report, downlink_id, path, "unknown_type",
+                        "not a regular file (a device, pipe or socket)")
+    return labels, others
+
+
+def _unused(session: Session, report: IngestReport, downlink_id: int, path: Path, code: str,
+            reason: str) -> None:
+    if record_file(session, downlink_id=downlink_id, path=path, code=code, reason=reason):
+        report.failures.append(Failure(str(path), code, reason))
 
 
 def _count_kernels(report: IngestReport, outcomes: list[KernelOutcome]) -> None:
     for outcome in outcomes:
         setattr(report.kernels, outcome.result, getattr(report.kernels, outcome.result) + 1)
         if outcome.result == "rejected":
-            report.failures.append(Failure(str(outcome.path), "kernel", outcome.reason or ""))
+            report.failures.append(Failure(str(outcome.path), outcome.code, outcome.reason or ""))
 
 
 def _sha256(paths: list[Path]) -> str:
@@ -260,34 +397,58 @@ def _sha256(paths: list[Path]) -> str:
     return digest.hexdigest()
 
 
-def _identify(label: Path) -> _Identity:
-    """The product's LIDVID and content digest, read leniently: a label too broken to name its
-    product is keyed by its own sha256 (lid 'unidentified:<sha256>', vid '0')."""
-    raw = label.read_bytes()
-    try:
-        root = ET.fromstring(raw)
-    except ET.ParseError:
-        root = None
+def _identify(label: Path, directory: Path, limits: IngestLimits) -> _Identity:
+    """The product's LIDVID and content digest, read leniently: a label too broken or too large
+    to name its product, or naming it by an identifier the catalog cannot hold, is keyed by its
+    own sha256 (lid 'unidentified:<sha256>', vid '0'); `problem` says why for the latter."""
+    size = label.stat().st_size
+    raw = label.read_bytes() if size <= limits.max_label_bytes else None
+    root = None
+    if raw is not None:
+        try:
+            root = ET.fromstring(raw)
+        except ET.ParseError:
+            pass
     lid = vid = None
     names: list[str] = []
     if root is not None:
-        lid = root.findtext("{*}Identification_Area/{*}logical_identifier")
-        vid = root.findtext("{*}Identification_Area/{*}version_id")
+        lid = (root.findtext("{*}Identification_Area/{*}logical_identifier") or "").strip()
+        vid = (root.findtext("{*}Identification_Area/{*}version_id") or "").strip()
         names = [e.text.strip() for e in root.iterfind(".//{*}File/{*}file_name") if e.text]
-    files = [label.parent / n for n in names if Path(n).name == n]
-    existing = [f for f in files if f.is_file()]
+    files = [label.parent / n for n in names if n and Path(n).name == n]
+    # only the downlink's own files are read: a link out of it is the product's rejection
+    existing = [f for f in files if f.is_file() and f.resolve().is_relative_to(directory)]
     digest = _sha256([label, *existing])
-    if not lid or not vid:
-        lid, vid = _UNIDENTIFIED + hashlib.sha256(raw).hexdigest(), "0"
-    return _Identity(lid=lid.strip(), vid=vid.strip(), data_path=files[0] if files else None,
-                     sha256=digest, size_bytes=sum(f.stat().st_size for f in existing))
+    problem = None if not lid or not vid else _identifier_problem(lid, vid)
+    if not lid or not vid or problem:
+        lid, vid = _UNIDENTIFIED + _sha256([label]), "0"
+    return _Identity(lid=lid, vid=vid, data_path=files[0] if files else None, sha256=digest,
+                     size_bytes=sum(f.stat().st_size for f in existing), files=frozenset(files),
+                     problem=problem)
+
+
+def _identifier_problem(lid: str, vid: str) -> str | None:
+    """Why a label's LID and VID cannot key a product, None if they can: the LIDVID is
+    LID::VID, so neither may hold '::' (or two products would share one), and both must fit
+    their columns."""
+    if "::" in lid or ":" in vid:
+        return (f"logical_identifier {lid[:80]!r} and version_id {vid[:40]!r} do not make a "
+                "LIDVID: a LID has no '::' and a VID no ':'")
+    if not _VID.fullmatch(vid) or len(vid) > _VID_CHARS:
+        return f"version_id {vid[:40]!r} is not a PDS4 version (major.minor, at most {_VID_CHARS} characters)"
+    if len(lid) + 2 + len(vid) + _CONFLICT_SUFFIX > _LIDVID_CHARS:
+        return (f"LIDVID {lid[:80]!r}... is {len(lid) + 2 + len(vid)} characters, more than the "
+                f"{_LIDVID_CHARS - _CONFLICT_SUFFIX} the catalog keeps")
+    return None
 
 
 class _Catalog:
     """The image pass's view of the catalog and of the loaded kernel pool."""
 
-    def __init__(self, session: Session, downlink_id: int, shape: Surface | None) -> None:
+    def __init__(self, session: Session, downlink_id: int, shape: Surface | None,
+                 directory: Path, limits: IngestLimits) -> None:
         self.session, self.downlink_id, self.shape = session, downlink_id, shape
+        self.directory, self.limits = directory, limits
         self.spk = coverage_windows(session, KernelKind.SPK)
         self.ck = coverage_windows(session, KernelKind.CK)
         self.instruments: dict[int, Instrument | str] = {
@@ -350,48 +511,109 @@ def _focal_source(naif_id: int, fx: float) -> tuple[str, str]:
             f"unit ratio that agrees with the FOV) = {fx:.6g} px")
 
 
-def _ingest_images(sessions: sessionmaker[Session], directory: Path, downlink_id: int,
-                   report: IngestReport, shape: Surface | None) -> None:
-    labels = find_labels(directory)
+def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: list[Path],
+                   downlink_id: int, report: IngestReport, shape: Surface | None,
+                   limits: IngestLimits) -> set[Path]:
+    """Catalogue each label; the files the labels name."""
+    named: set[Path] = set()
     with sessions() as session:
         kernels = accepted_kernels(session)
         missing = [k.path for k in kernels if not Path(k.path).is_file()]
         report.warnings += [f"catalogued kernel {p} is missing on disk" for p in missing]
         with kernel_pool(Path(k.path) for k in kernels if k.path not in missing):
-            catalog = _Catalog(session, downlink_id, shape)
+            catalog = _Catalog(session, downlink_id, shape, directory, limits)
             for n, label in enumerate(labels, 1):
-                _ingest_product(catalog, label, report)
+                named |= _ingest_product(catalog, label, report)
                 if n % COMMIT_EVERY == 0:
+                    _heartbeat(session, downlink_id)
                     session.commit()
+            _heartbeat(session, downlink_id)
             session.commit()
+    return named
 
 
-def _ingest_product(catalog: _Catalog, label: Path, report: IngestReport) -> None:
-    """Catalogue one label and count what it did in `report`."""
+def _ingest_product(catalog: _Catalog, label: Path, report: IngestReport) -> frozenset[Path]:
+    """Catalogue one label and count what it did in `report`; the files it names.
+
+    The product is judged on its own, in a savepoint: any exception in its checks is its
+    rejection (code `unexpected`, with the exception), the products before it stay."""
     try:
-        identity = _identify(label)
+        identity = _identify(label, catalog.directory, catalog.limits)
     except OSError as exc:  # unreadable files cannot be keyed: reported, not catalogued
         report.images.rejected += 1
         report.failures.append(Failure(str(label), "unreadable", str(exc)))
-        return
+        return frozenset()
     versions = catalog.known.setdefault((identity.lid, identity.vid), [])
-    same = next((k for k in versions if k.sha256 == identity.sha256), None)
-    if same is not None and (same.id is None or not same.kernel_dependent):
+    kept = ([(k, k.status, k.code, k.geometry_status) for k in versions], set(catalog.instruments))
+    try:
+        with catalog.session.begin_nested():
+            outcome = _catalogue(catalog, label, identity, versions)
+            catalog.session.flush()
+    except Exception as exc:
+        log.exception("%s: rejected on an unexpected error", label)
+        _restore(catalog, versions, kept)
+        outcome = _store_rejection(catalog, label, identity, _Outcome(
+            ImageStatus.REJECTED, "unexpected", f"{type(exc).__name__}: {exc}"))
+    if outcome is None:
         report.images.unchanged += 1
-        return
-    if same is None and any(k.status is not ImageStatus.CONFLICT for k in versions):
-        outcome = _conflict(catalog, label, identity, versions)
-    else:
-        outcome = _judge(catalog, label)
-        if not _record(catalog, label, identity, same, outcome):
-            report.images.unchanged += 1
-            return
-    if outcome.status is ImageStatus.ACCEPTED:
+    elif outcome.status is ImageStatus.ACCEPTED:
         report.images.accepted += 1
         report.geometry_unavailable += outcome.geometry_status is GeometryStatus.UNAVAILABLE
     else:
         report.images.rejected += 1
         report.failures.append(Failure(str(label), outcome.code or "", outcome.reason or ""))
+    return identity.files
+
+
+def _store_rejection(catalog: _Catalog, label: Path, identity: _Identity, outcome: _Outcome
+                     ) -> _Outcome | None:
+    """Record a product's rejection under its LIDVID, else (that being what failed) under its
+    label's sha256; None when the catalog already says so. If neither can be stored, the
+    rejection is only reported."""
+    unidentified = dataclasses.replace(identity, lid=_UNIDENTIFIED + _sha256([label]), vid="0")
+    for key in (identity, unidentified):
+        versions = catalog.known.setdefault((key.lid, key.vid), [])
+        kept = ([(k, k.status, k.code, k.geometry_status) for k in versions],
+                set(catalog.instruments))
+        same = next((k for k in versions if k.sha256 == key.sha256), None)
+        if same is not None and same.id is None:  # recorded by this ingest already
+            return None
+        try:
+            with catalog.session.begin_nested():
+                stored = _record(catalog, label, key, same, outcome)
+                catalog.session.flush()
+            return outcome if stored else None
+        except Exception:
+            log.exception("%s: its rejection could not be stored as %s", label, key.lidvid)
+            _restore(catalog, versions, kept)
+    return outcome
+
+
+def _restore(catalog: _Catalog, versions: list[_Known],
+             kept: tuple[list[tuple[_Known, ImageStatus, str | None, GeometryStatus]], set[int]]
+             ) -> None:
+    """Put the catalog's in-memory view back as it was before a product rolled back."""
+    known, instruments = kept
+    versions[:] = [k for k, *_ in known]
+    for k, status, code, geometry_status in known:
+        k.status, k.code, k.geometry_status = status, code, geometry_status
+    for naif_id in set(catalog.instruments) - instruments:
+        del catalog.instruments[naif_id]
+
+
+def _catalogue(catalog: _Catalog, label: Path, identity: _Identity, versions: list[_Known]
+               ) -> _Outcome | None:
+    """Judge and record one product; None when the catalog already says what it would."""
+    same = next((k for k in versions if k.sha256 == identity.sha256), None)
+    if same is not None and (same.id is None or not same.kernel_dependent):
+        return None
+    if same is None and any(k.status is not ImageStatus.CONFLICT for k in versions):
+        return _conflict(catalog, label, identity, versions)
+    if identity.problem is not None:
+        outcome = _Outcome(ImageStatus.REJECTED, "bad_identifier", identity.problem)
+    else:
+        outcome = _judge(catalog, label)
+    return outcome if _record(catalog, label, identity, same, outcome) else None
 
 
 def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | None,
@@ -453,9 +675,13 @@ def _apply(image: Image, identity: _Identity, label: Path, outcome: _Outcome) ->
 
 
 def _judge(catalog: _Catalog, label: Path) -> _Outcome:
-    """Read the product and work out its geometry from the loaded kernels."""
+    """Read the product's label, work out its geometry from the loaded kernels, then read its
+    array: the label's declared size is checked against the detector (and the pixel limit)
+    before any array is read."""
     try:
-        product = read_image_product(label)
+        product = read_image_label(label, root=catalog.directory,
+                                   max_label_bytes=catalog.limits.max_label_bytes,
+                                   max_pixels=catalog.limits.max_pixels)
     except ProductError as exc:
         return _Outcome(ImageStatus.REJECTED, exc.code, str(exc))
     except OSError as exc:  # e.g. a file gone since it was hashed
@@ -465,16 +691,22 @@ def _judge(catalog: _Catalog, label: Path) -> _Outcome:
     except _Rejected as exc:
         return _Outcome(ImageStatus.REJECTED, exc.code, str(exc), product=product)
     try:
-        return _geometry(catalog, product, times)
+        outcome = _geometry(catalog, product, times)
     except _Rejected as exc:
         return _Outcome(ImageStatus.REJECTED, exc.code, str(exc), product=product, times=times,
                         instrument_id=exc.instrument_id)
     except sp.utils.exceptions.SpiceyError as exc:  # kernels that resolve names but lack data
         return _Outcome(ImageStatus.REJECTED, "geometry", spice_message(exc), product=product,
                         times=times)
+    try:
+        read_array(product)  # readable, as the refinement will read it
+    except ProductError as exc:
+        return _Outcome(ImageStatus.REJECTED, exc.code, str(exc), product=product, times=times,
+                        instrument_id=outcome.instrument_id)
+    return outcome
 
 
-def _times(product: ImageProduct, has_lsk: bool
+def _times(product: ImageLabel, has_lsk: bool
            ) -> tuple[datetime, datetime, float | None, float | None]:
     try:
         start, stop = exposure_times(product)
@@ -487,7 +719,7 @@ def _covered(windows: list[tuple[float, float]], et: float) -> bool:
     return any(start <= et <= stop for start, stop in windows)
 
 
-def _geometry(catalog: _Catalog, product: ImageProduct,
+def _geometry(catalog: _Catalog, product: ImageLabel,
               times: tuple[datetime, datetime, float | None, float | None]) -> _Outcome:
     host = product.host_name or ""
     observer = observer_code(host)
@@ -542,7 +774,7 @@ def _describe(windows: list[tuple[float, float]]) -> str:
             f"{et_to_datetime(last).isoformat()}")
 
 
-def _image_camera(instrument: Instrument, product: ImageProduct) -> Camera:
+def _image_camera(instrument: Instrument, product: ImageLabel) -> Camera:
     """The camera of the product's array: the detector window it covers (img:Subframe; a
     product without one starts at the detector's first line and sample)."""
     detector = Camera(width=instrument.width_px, height=instrument.height_px,

@@ -181,9 +181,39 @@ class Downlink(Base):
         _enum(DownlinkStatus, "downlink_status"), default=DownlinkStatus.RECEIVED
     )
     manifest_sha256: Mapped[str | None] = mapped_column(String(64))
+    # Deliveries of this downlink after the first (the same path, or the same manifest at
+    # another path), and when it was last delivered.
+    repeat_count: Mapped[int] = mapped_column(default=0, server_default="0")
+    last_seen_at: Mapped[datetime | None]
+    # Who is ingesting it while the status is ingesting ("host:pid"), and when that ingest last
+    # committed: an ingest whose owner died or stopped committing is stale and is taken over.
+    ingest_owner: Mapped[str | None] = mapped_column(String(255))
+    ingest_heartbeat_at: Mapped[datetime | None]
 
     kernels: Mapped[list[Kernel]] = relationship(back_populates="downlink")
     images: Mapped[list[Image]] = relationship(back_populates="downlink")
+    files: Mapped[list[DownlinkFile]] = relationship(back_populates="downlink",
+                                                     cascade="all, delete-orphan")
+
+
+class DownlinkFile(Base):
+    """A file of a downlink that is neither a catalogued kernel nor a product's label or data
+    file, with why it is not used: of no type ingest knows, a symbolic link out of the downlink,
+    a kernel a meta-kernel names outside it, or one refused before it was read. With the kernels
+    and images, every file a downlink offers is accounted for."""
+
+    __tablename__ = "downlink_files"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    downlink_id: Mapped[int] = mapped_column(ForeignKey("downlinks.id", ondelete="CASCADE"))
+    path: Mapped[str] = mapped_column(Text)
+    code: Mapped[str] = mapped_column(String(32))
+    reason: Mapped[str] = mapped_column(Text)
+    seen_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    downlink: Mapped[Downlink] = relationship(back_populates="files")
+
+    __table_args__ = (UniqueConstraint("downlink_id", "path"),)
 
 
 class Kernel(Base):

@@ -10,9 +10,30 @@ from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from pwm.config import DEFAULTS, RefinementConfig
+from pwm.io.pds4 import MAX_LABEL_BYTES, MAX_PIXELS
+from pwm.io.spice_kernels import MAX_METAKERNEL_ENTRIES
 from pwm.photoclinometry import Mode
 
 CATALOG_FILENAME = "catalog.sqlite"
+# An ingest that has not committed for this long (s) is taken for dead and its downlink taken
+# over: well above the time one batch of products takes (service.ingest.COMMIT_EVERY).
+INGEST_STALE_S = 900.0
+
+
+@dataclasses.dataclass(frozen=True)
+class IngestLimits:
+    """What ingest accepts from a downlink (service.ingest): kernel_library, a directory outside
+    the downlinks whose kernels meta-kernels may name too (None: only the downlink's own);
+    max_label_bytes and max_pixels, the largest label and image array read
+    (pwm.io.pds4.read_image_label); max_metakernel_entries, the most kernels one meta-kernel
+    may name (pwm.io.spice_kernels.metakernel_files); stale_s, how long an ingest may go
+    without committing before another takes its downlink over."""
+
+    kernel_library: Path | None = None
+    max_label_bytes: int = MAX_LABEL_BYTES
+    max_pixels: int = MAX_PIXELS
+    max_metakernel_entries: int = MAX_METAKERNEL_ENTRIES
+    stale_s: float = INGEST_STALE_S
 
 
 class Settings(BaseSettings):
@@ -27,6 +48,9 @@ class Settings(BaseSettings):
         recently served go first.
     cors_origins: PWM_CORS_ORIGINS, the origins (a JSON list) whose pages may call the API from
         a browser; empty: none (no CORS headers).
+    kernel_library, max_label_bytes, max_image_pixels, max_metakernel_entries, ingest_stale_s:
+        PWM_KERNEL_LIBRARY, PWM_MAX_LABEL_BYTES, PWM_MAX_IMAGE_PIXELS,
+        PWM_MAX_METAKERNEL_ENTRIES and PWM_INGEST_STALE_S, what ingest accepts (`ingest_limits`).
     refine_mode, maplet_nodes, tile_radius_km: PWM_REFINE_MODE, PWM_MAPLET_NODES and
         PWM_TILE_RADIUS_KM, the catalog's refinement settings (`refinement`); their defaults and
         every other setting are pwm.config.DEFAULTS.
@@ -40,6 +64,11 @@ class Settings(BaseSettings):
     api_token: SecretStr | None = None
     export_cache_bytes: int = Field(2 * 1024**3, ge=0)
     cors_origins: list[str] = []
+    kernel_library: Path | None = None
+    max_label_bytes: int = Field(MAX_LABEL_BYTES, ge=1)
+    max_image_pixels: int = Field(MAX_PIXELS, ge=1)
+    max_metakernel_entries: int = Field(MAX_METAKERNEL_ENTRIES, ge=1)
+    ingest_stale_s: float = Field(INGEST_STALE_S, gt=0)
     refine_mode: Mode = DEFAULTS.mode
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
@@ -48,10 +77,19 @@ class Settings(BaseSettings):
     def _resolve_paths(self) -> Settings:
         # Absolute paths, so a later change of working directory cannot move the catalog.
         self.data_dir = self.data_dir.resolve()
+        if self.kernel_library is not None:
+            self.kernel_library = self.kernel_library.resolve()
         if not self.database_url:
             self.database_url = f"sqlite:///{self.data_dir / CATALOG_FILENAME}"
         self.refinement()  # its checks, at load time
         return self
+
+    def ingest_limits(self) -> IngestLimits:
+        """What ingest accepts from a downlink, as these settings say."""
+        return IngestLimits(kernel_library=self.kernel_library,
+                            max_label_bytes=self.max_label_bytes, max_pixels=self.max_image_pixels,
+                            max_metakernel_entries=self.max_metakernel_entries,
+                            stale_s=self.ingest_stale_s)
 
     def refinement(self) -> RefinementConfig:
         """How the catalog tiles and refines maplets: pwm.config.DEFAULTS with these settings."""

@@ -15,9 +15,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
 from pwm.camera import Camera, Pose, corrected_pose
-from pwm.io.pds4 import read_image_product
+from pwm.io.pds4 import read_array, read_image_label
 from pwm.views import View
 from service.models import GeometryStatus, Image, ImageStatus
+from service.settings import get_settings
 
 
 def image_pose(image: Image) -> Pose:
@@ -53,13 +54,17 @@ def image_view(image: Image, *, pixels: bool = False) -> View:
     g, inst = image.geometry, image.instrument
     if g is None or inst is None or image.start_et is None or image.stop_et is None:
         raise ValueError(f"image {image.lidvid} lacks its geometry, instrument or times")
-    # The catalog keeps the detector, not the array's window: the label gives it.
-    product = read_image_product(Path(image.label_path))
+    # The catalog keeps the detector, not the array's window: the label gives it. Read within
+    # the limits ingest accepted it under; the array only when asked for.
+    limits = get_settings().ingest_limits()
+    label = read_image_label(Path(image.label_path), max_label_bytes=limits.max_label_bytes,
+                             max_pixels=limits.max_pixels)
+    product = read_array(label) if pixels else None
     camera = Camera(width=inst.width_px, height=inst.height_px, fx=inst.fx_px, fy=inst.fy_px,
                     cx=inst.cx_px, cy=inst.cy_px).subframe(
-        first_sample=product.first_sample, first_line=product.first_line,
-        samples=product.samples, lines=product.lines)
+        first_sample=label.first_sample, first_line=label.first_line,
+        samples=label.samples, lines=label.lines)
     sun = np.array([g.sun_x, g.sun_y, g.sun_z])
-    return View(name=image.lidvid, image=product.data if pixels else np.empty((0, 0)),
+    return View(name=image.lidvid, image=np.empty((0, 0)) if product is None else product.data,
                 camera=camera, pose=image_pose(image), sun=sun / np.linalg.norm(sun),
                 et=0.5 * (image.start_et + image.stop_et))

@@ -19,7 +19,7 @@ from pwm.io.labels import (
     observer_code,
     target_frame,
 )
-from pwm.io.pds4 import ImageProduct, ProductError
+from pwm.io.pds4 import ArrayLayout, ImageProduct, ProductError
 from pwm.io.spice_kernels import BUNDLED_DIR, kernel_pool
 from pwm.simulate.missions import MISSIONS
 
@@ -27,7 +27,8 @@ PRODUCT = ImageProduct(
     lid="urn:test:x", vid="1.0", title="t", start_utc="2018-10-01T00:00:00.000Z", stop_utc="2018-10-01T00:00:00.004Z",
     mission=None, host_name=None, instrument_name=None, target_name=None, target_type=None, exposure_s=0.004,
     first_line=0, first_sample=0, data_path=Path("x.fits"), file_size=None, md5=None, lines=1, samples=1,
-    data=np.zeros((1, 1)), fits_header=None)
+    data=np.zeros((1, 1)), fits_header=None, label_path=Path("x.xml"),
+    layout=ArrayLayout(">i2", 0, 1.0, 0.0, ()))
 
 
 def label(**fields) -> ImageProduct:

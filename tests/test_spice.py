@@ -1,5 +1,6 @@
 """SPICE kernels written by pwm read back through the geometry readers, and real kernels read."""
 
+import shutil
 import subprocess
 import sys
 
@@ -131,14 +132,21 @@ def test_coverage_windows_equal_written_windows(scenario):
 
 
 def test_metakernel_loads_from_another_directory(scenario, tmp_path):
+    """pwm reads the relative PATH_VALUES it writes against the meta-kernel from any working
+    directory; SPICE itself, from the meta-kernel's directory."""
     assert len(str(scenario["dir"])) > 80
     assert metakernel_files(scenario["mk"]) == scenario["kernels"]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    moved = elsewhere / "copy"
+    shutil.copytree(scenario["dir"], moved)
+    assert metakernel_files(moved / "pwm.tm")[-1] == moved / "struct.bc"  # a copy names its own
     script = ("import sys, spiceypy as sp; sp.furnsh(sys.argv[1]); "
               "print(sp.ktotal('ALL')); print(*sp.spkpos('-64', float(sys.argv[2]), 'IAU_BENNU', "
               "'NONE', 'BENNU')[0])")
     et = scenario["epochs"][0]
     out = subprocess.run([sys.executable, "-c", script, str(scenario["mk"]), repr(float(et))],
-                         cwd=tmp_path, capture_output=True, text=True, check=True).stdout.split()
+                         cwd=scenario["dir"], capture_output=True, text=True, check=True).stdout.split()
     assert int(out[0]) == len(scenario["kernels"]) + 1  # the meta-kernel counts itself
     assert np.allclose([float(x) for x in out[1:]], scenario["body_fixed"][0, :3], atol=1e-9)
 

@@ -114,7 +114,7 @@ def read_downlink(directory: str | Path, *, instrument: str | None = None, targe
         named: set[str] = set()
         for label in find_labels(directory):
             try:
-                resolved.append(_resolve(label, chosen=chosen, target=forced, body_frame=body_frame,
+                resolved.append(_resolve(label, root=directory, chosen=chosen, target=forced, body_frame=body_frame,
                                          cameras=cameras))
             except _Skip as exc:
                 skipped.append(Skipped(str(label), exc.code, str(exc)))
@@ -153,11 +153,11 @@ def _target_override(target: str, body_frame: str | None) -> tuple[int, str]:
     return code, frame
 
 
-def _resolve(label: Path, *, chosen: int | None, target: tuple[int, str] | None, body_frame: str | None,
+def _resolve(label: Path, *, root: Path, chosen: int | None, target: tuple[int, str] | None, body_frame: str | None,
              cameras: dict[int, Camera | str]) -> _Image:
     """Read a product and resolve what its label names; _Skip with ingest's code otherwise."""
     try:
-        product = read_image_product(label)
+        product = read_image_product(label, root=root)
         exposure_times(product)
         start_et, stop_et = exposure_et(product)
     except ProductError as exc:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import spiceypy as sp
 
-from pwm.io.pds4 import ImageProduct, ProductError
+from pwm.io.pds4 import ImageLabel, ProductError
 from pwm.io.spice_geometry import spacecraft_of
 from pwm.io.spice_kernels import spice_message
 
@@ -59,7 +59,7 @@ def observer_code(host_name: str | None) -> int | None:
     return body_code(name_variants(host_name)) if host_name and host_name.strip() else None
 
 
-def instrument_code(product: ImageProduct, observer: int) -> int | None:
+def instrument_code(product: ImageLabel, observer: int) -> int | None:
     """The NAIF id of the product's instrument on `observer`: bodn2c of the label's (or FITS
     INSTRUME) name in its variants, bare or prefixed with the host's, else the one instrument
     of that spacecraft whose kernel-pool name ends in _<name>."""
@@ -136,9 +136,14 @@ def instrument_named(name: str) -> int:
     return code
 
 
+# SPICE reads years 0 to 99 as abbreviations (0019 as 2019) and Python as written: a time this
+# early is refused, so that the catalog's UTC and its ET never disagree.
+FIRST_YEAR = 1000
+
+
 def parse_utc(stamp: str) -> datetime:
     """A PDS4 date_time (calendar or day-of-year form, UTC) as an aware datetime; ProductError
-    (bad_time) otherwise."""
+    (bad_time) otherwise, and for a year before FIRST_YEAR."""
     text = stamp.strip().removesuffix("Z")
     try:
         if re.fullmatch(r"\d{4}-\d{3}T.*", text):
@@ -150,10 +155,13 @@ def parse_utc(stamp: str) -> datetime:
         raise ProductError("bad_time", f"time {stamp!r} is not a PDS4 UTC date_time") from exc
     if parsed.utcoffset():
         raise ProductError("bad_time", f"time {stamp!r} is not UTC")
+    if parsed.year < FIRST_YEAR:
+        raise ProductError("bad_time", f"time {stamp!r}: year {parsed.year} is before "
+                           f"{FIRST_YEAR} (SPICE would read {parsed.year:04d} as an abbreviated year)")
     return parsed.replace(tzinfo=UTC)
 
 
-def exposure_times(product: ImageProduct) -> tuple[datetime, datetime]:
+def exposure_times(product: ImageLabel) -> tuple[datetime, datetime]:
     """Start and stop of the exposure (UTC); ProductError (bad_time) when unreadable or when
     the stop precedes the start."""
     start, stop = parse_utc(product.start_utc), parse_utc(product.stop_utc)
@@ -162,9 +170,10 @@ def exposure_times(product: ImageProduct) -> tuple[datetime, datetime]:
     return start, stop
 
 
-def exposure_et(product: ImageProduct) -> tuple[float, float]:
+def exposure_et(product: ImageLabel) -> tuple[float, float]:
     """Start and stop of the exposure, ET s, from the pool's leapseconds kernel; ProductError
-    (bad_time) when SPICE cannot read them."""
+    (bad_time) when parse_utc refuses them or SPICE cannot read them."""
+    parse_utc(product.start_utc), parse_utc(product.stop_utc)
     try:
         return sp.str2et(product.start_utc), sp.str2et(product.stop_utc)
     except sp.utils.exceptions.SpiceyError as exc:

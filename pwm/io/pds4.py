@@ -1,14 +1,14 @@
 """PDS4 image products: a FITS data file (primary header + 2-D array) with its XML label.
 
 Written as OSIRIS-REx OCAMS products are (Product_Observational, Header + Array_2D_Image in one
-FITS file); read back, with the data file checked against its label, through pds4_tools.
+FITS file); read back, with the data file checked against its label before its array is read.
 Arrays are [line, sample]; physical value = dn * scaling_factor + value_offset.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
-import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any, Literal, overload
 
 import numpy as np
-import pds4_tools
 from astropy.io import fits
 from pds4_tools.reader.data_types import pds_to_numpy_type
 
@@ -31,6 +30,13 @@ _FITS_STRUCTURAL = {"SIMPLE", "BITPIX", "NAXIS", "NAXIS1", "NAXIS2", "EXTEND", "
                     "BLANK", "END"}
 _NS = {"pds": PDS_NS, "img": IMG_NS}
 _SECONDS = {"s": 1.0, "ms": 1e-3, "microseconds": 1e-6, "ns": 1e-9, "min": 60.0}  # PDS4 time units
+# Bounds on what one product may make the reader do, before it reads: the label's size (the
+# XML parser holds it whole, several times over) and the array's pixel count
+# (4096 x 4096, sixteen times OCAMS, ONC, AMICA or LORRI; read_array holds about 8 bytes
+# a pixel of int16 data at its peak, bench/RESULTS.md). service.settings.Settings
+# overrides both.
+MAX_LABEL_BYTES = 4 * 1024**2
+MAX_PIXELS = 4096 * 4096
 
 
 class ProductError(ValueError):
@@ -42,10 +48,11 @@ class ProductError(ValueError):
 
 
 @dataclass(frozen=True)
-class ImageProduct:
-    """One PDS4 2-D image: label metadata and the scaled array (float64 [line, sample], NaN where
-    the label's special constants flag a pixel). file_size (bytes) and md5 are as the label
-    declares them (None where it does not); they have been checked against the data file."""
+class ImageLabel:
+    """One PDS4 2-D image's label, checked against its data file but with the array not read:
+    file_size (bytes) and md5 are as the label declares them (None where it does not) and agree
+    with the data file; the array fits in it, and agrees with the FITS header's BITPIX and
+    axes; its scaling is finite and non-zero."""
 
     lid: str
     vid: str
@@ -65,8 +72,30 @@ class ImageProduct:
     md5: str | None
     lines: int
     samples: int
-    data: np.ndarray
     fits_header: dict[str, Any] | None
+    label_path: Path
+    layout: ArrayLayout
+
+
+@dataclass(frozen=True)
+class ArrayLayout:
+    """Where and how the array lies in the data file: numpy dtype (with byte order), byte
+    offset, the scaling to physical values and the stored values that flag a pixel (the
+    label's Special_Constants)."""
+
+    dtype: str
+    offset: int
+    scaling_factor: float
+    value_offset: float
+    special_constants: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class ImageProduct(ImageLabel):
+    """One PDS4 2-D image: its label and the scaled array (float64 [line, sample], NaN where the
+    label's special constants flag a pixel)."""
+
+    data: np.ndarray
 
 
 def _digest(path: Path, algorithm: str) -> str:
@@ -246,9 +275,12 @@ def _component(obs: ET.Element, kinds: tuple[str, ...]) -> str | None:
     return None
 
 
-def _check_file(data_path: Path, size: int | None, md5: str | None) -> None:
+def _check_file(data_path: Path, root: Path, size: int | None, md5: str | None) -> None:
     if not data_path.is_file():
         raise ProductError("missing_file", f"data file {data_path} not found")
+    if not data_path.resolve().is_relative_to(root):
+        raise ProductError("outside_downlink", f"data file {data_path.name} resolves to "
+                           f"{data_path.resolve()}, outside {root}")
     actual = data_path.stat().st_size
     if size is not None and actual != size:
         raise ProductError("size_mismatch", f"{data_path.name} is {actual} bytes, label says {size}"
@@ -257,23 +289,84 @@ def _check_file(data_path: Path, size: int | None, md5: str | None) -> None:
         raise ProductError("md5_mismatch", f"{data_path.name} md5 differs from the label's {md5}")
 
 
-def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int) -> dict | None:
-    """Check the array fits in the data file and agrees with a FITS header; return that header."""
+def _float(node: ET.Element, path: str) -> float | None:
+    text = _text(node, path, False)
+    try:
+        return None if text is None else float(text)
+    except ValueError as exc:
+        raise ProductError("bad_value", f"{path.replace('pds:', '')} = {text!r} is not a number"
+                           ) from exc
+
+
+def _scaling(image: ET.Element) -> tuple[float, float]:
+    """The array's scaling factor and value offset (1 and 0 where the label gives none). A
+    scaling factor that is NaN, infinite or zero, or an offset that is not finite, would make
+    every pixel NaN, infinite or one value."""
+    scaling = _float(image, "pds:Element_Array/pds:scaling_factor")
+    offset = _float(image, "pds:Element_Array/pds:value_offset")
+    if scaling is not None and (not np.isfinite(scaling) or scaling == 0):
+        raise ProductError("bad_value", f"scaling_factor {scaling} is not finite and non-zero")
+    if offset is not None and not np.isfinite(offset):
+        raise ProductError("bad_value", f"value_offset {offset} is not finite")
+    return 1.0 if scaling is None else scaling, 0.0 if offset is None else offset
+
+
+def _special_constants(image: ET.Element) -> tuple[float, ...]:
+    """The stored values the label's Special_Constants flag (decimal, or 0x hexadecimal)."""
+    found = image.find("pds:Special_Constants", _NS)
+    values = []
+    for element in [] if found is None else list(found):
+        name, text = element.tag.rpartition("}")[2], (element.text or "").strip()
+        if name.startswith("valid_"):  # a valid range, not a flagged value
+            continue
+        try:
+            values.append(float(int(text, 0)) if text.lower().startswith("0x") else float(text))
+        except ValueError:
+            raise ProductError("bad_value", f"special constant {name} = {text!r} is not a "
+                               "number") from None
+    return tuple(values)
+
+
+def _fits_bitpix(dtype: np.dtype) -> int:
+    """The FITS BITPIX of an array of `dtype`: bits, negative for floating point."""
+    return -8 * dtype.itemsize if dtype.kind == "f" else 8 * dtype.itemsize
+
+
+def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int, max_pixels: int
+                 ) -> tuple[ArrayLayout, dict | None]:
+    """Check the array's size, that it fits in the data file and agrees with a FITS header
+    (BITPIX, NAXIS and the axes); return its layout and that header."""
     image = area.find("pds:Array_2D_Image", _NS)
     if image is None:
         raise ProductError("missing_element", f"{data_path.name}: the file area lacks Array_2D_Image")
+    if lines < 1 or samples < 1:
+        raise ProductError("bad_dimensions", f"label says {lines}x{samples}")
+    if lines * samples > max_pixels:
+        raise ProductError("too_large", f"{lines}x{samples} pixels is more than the "
+                           f"{max_pixels} an image may have")
     data_type = _text(image, "pds:Element_Array/pds:data_type")
     dtype = pds_to_numpy_type(data_type)  # unknown names come back as a zero-length string type
     if dtype.kind not in "iufc":
         raise ProductError("unsupported", f"array data_type {data_type!r} is not binary numeric")
-    end = _int(image, "pds:offset") + lines * samples * dtype.itemsize
-    if end > data_path.stat().st_size:
+    if (order := _text(image, "pds:axis_index_order", False)) not in (None, "Last Index Fastest"):
+        raise ProductError("unsupported", f"axis_index_order {order!r}")
+    array_offset = _int(image, "pds:offset")
+    if array_offset < 0:
+        raise ProductError("bad_dimensions", f"array offset {array_offset} is negative")
+    layout = ArrayLayout(dtype.str, array_offset, *_scaling(image), _special_constants(image))
+    file_size = data_path.stat().st_size
+    end = array_offset + lines * samples * dtype.itemsize
+    if end > file_size:
         raise ProductError("bad_dimensions", f"{lines}x{samples} {data_type} array ends at byte "
                            f"{end}, past the end of {data_path.name}")
     header = area.find("pds:Header", _NS)
     if header is None or "FITS" not in (_text(header, "pds:parsing_standard_id", False) or ""):
-        return None
+        return layout, None
     offset, length = _int(header, "pds:offset"), _int(header, "pds:object_length")
+    if offset < 0 or length < 0 or offset + length > file_size:
+        # checked before reading: a declared length of 1e20 bytes would be read as asked
+        raise ProductError("bad_header", f"Header of {length} bytes at byte {offset} does not "
+                           f"fit in {data_path.name} ({file_size} bytes)")
     with open(data_path, "rb") as fh:
         fh.seek(offset)
         raw = fh.read(length)
@@ -281,37 +374,78 @@ def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int) ->
         cards = fits.Header.fromstring(raw.decode("ascii"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise ProductError("bad_header", f"FITS header of {data_path.name} unreadable") from exc
-    if (cards.get("NAXIS2"), cards.get("NAXIS1")) != (lines, samples):
-        raise ProductError("bad_dimensions", f"label says {lines}x{samples}, FITS header says "
-                           f"{cards.get('NAXIS2')}x{cards.get('NAXIS1')}")
-    return {c.keyword: c.value for c in cards.cards if c.keyword not in ("", "COMMENT", "HISTORY")}
+    declared = {"BITPIX": _fits_bitpix(dtype), "NAXIS": 2, "NAXIS1": samples, "NAXIS2": lines}
+    found = {key: cards.get(key) for key in declared}
+    if found != declared:
+        differ = ", ".join(f"{k} {found[k]} (label: {v})" for k, v in declared.items()
+                           if found[k] != v)
+        raise ProductError("bad_dimensions", f"the FITS header of {data_path.name} disagrees "
+                           f"with the label's {lines}x{samples} {data_type} array: {differ}")
+    return layout, {c.keyword: c.value for c in cards.cards
+                    if c.keyword not in ("", "COMMENT", "HISTORY")}
 
 
-def _read_array(label: Path, lines: int, samples: int) -> np.ndarray:
-    hook = sys.excepthook  # pds4_tools.read replaces the process-wide hook; put it back
+def read_array(label: ImageLabel) -> ImageProduct:
+    """The product of a checked label with its array read: physical values as float64, NaN
+    where a special constant flags a pixel. Read straight from the data file at the layout the
+    label was checked for (pds4_tools would parse the label again, in time that grows with the
+    square of its size)."""
+    layout = label.layout
+    count = label.lines * label.samples
     try:
-        structures = pds4_tools.read(str(label), lazy_load=True, quiet=True)
-        image = next(s for s in structures if s.type == "Array_2D_Image")
-        # a plain ndarray: pds4_tools' subclass makes every indexing call several times slower
-        data = np.asarray(np.ma.filled(np.ma.asarray(image.as_masked().data).astype(np.float64), np.nan))
-    except Exception as exc:  # pds4_tools has no exception hierarchy of its own to catch
-        raise ProductError("unreadable", f"pds4_tools could not read {label.name}: {exc}") from exc
-    finally:
-        sys.excepthook = hook
-    if data.shape != (lines, samples):
-        raise ProductError("bad_dimensions", f"array read as {data.shape}, label says "
-                           f"{(lines, samples)}")
-    return data
+        with open(label.data_path, "rb") as fh:
+            fh.seek(layout.offset)
+            stored = np.fromfile(fh, dtype=np.dtype(layout.dtype), count=count)
+    except (OSError, ValueError) as exc:
+        raise ProductError("unreadable", f"{label.data_path.name}: {exc}") from exc
+    if stored.size != count:
+        raise ProductError("bad_dimensions", f"{label.data_path.name} holds {stored.size} of the "
+                           f"{count} values its label declares")
+    stored = stored.reshape(label.lines, label.samples)
+    data = stored.astype(np.float64)
+    if (layout.scaling_factor, layout.value_offset) != (1.0, 0.0):
+        data *= layout.scaling_factor
+        data += layout.value_offset
+    if layout.special_constants:
+        data[np.isin(stored, np.asarray(layout.special_constants))] = np.nan
+    fields = {f.name: getattr(label, f.name) for f in dataclasses.fields(ImageLabel)}
+    return ImageProduct(**fields, data=data)
 
 
-def read_image_product(label: Path) -> ImageProduct:
-    """Read a Product_Observational with one Array_2D_Image, verifying the data file's size and
-    md5 (where the label declares them) and the array extent before reading the array."""
+def read_image_product(label: Path, *, root: Path | None = None,
+                       max_label_bytes: int = MAX_LABEL_BYTES,
+                       max_pixels: int = MAX_PIXELS) -> ImageProduct:
+    """Read a Product_Observational with one Array_2D_Image: its label (read_image_label), then
+    its array."""
+    return read_array(read_image_label(label, root=root, max_label_bytes=max_label_bytes,
+                                       max_pixels=max_pixels))
+
+
+def read_image_label(label: Path, *, root: Path | None = None,
+                     max_label_bytes: int = MAX_LABEL_BYTES,
+                     max_pixels: int = MAX_PIXELS) -> ImageLabel:
+    """Read and check a Product_Observational with one Array_2D_Image without reading its array:
+    the data file's size and md5 (where the label declares them), the array's extent, type and
+    scaling. Nothing is read past max_label_bytes of label, and an array of more than max_pixels
+    is refused before it is read. The label and its data file must resolve (symbolic links
+    followed) inside `root` (default: the label's directory)."""
     label = Path(label)
+    within = (Path(root) if root is not None else label.parent).resolve()
+    if not label.resolve().is_relative_to(within):
+        raise ProductError("outside_downlink", f"{label.name} resolves to {label.resolve()}, "
+                           f"outside {within}")
+    if (label_bytes := label.stat().st_size) > max_label_bytes:
+        raise ProductError("too_large", f"{label.name} is {label_bytes} bytes, more than the "
+                           f"{max_label_bytes} a label may have")
     try:
-        root = ET.parse(label).getroot()
+        # parsed from one buffer: fed in chunks, expat rescans a long token at every chunk
+        root_element = ET.fromstring(label.read_bytes())
     except ET.ParseError as exc:
         raise ProductError("malformed_xml", f"{label.name} is not well-formed XML: {exc}") from exc
+    return _image_label(label, root_element, within, max_pixels)
+
+
+def _image_label(label: Path, root: ET.Element, within: Path, max_pixels: int) -> ImageLabel:
     kind = root.tag.rpartition("}")[2]
     areas = [a for a in root if a.tag.rpartition("}")[2].startswith("File_Area")]
     objects = sorted({o.tag.rpartition("}")[2] for a in areas for o in a} - {"File"})
@@ -328,6 +462,8 @@ def read_image_product(label: Path) -> ImageProduct:
                   key=lambda a: _int(a, "pds:sequence_number"))
     if [(_text(a, "pds:axis_name") or "").lower() for a in axes] != ["line", "sample"]:
         raise ProductError("unsupported", f"{label.name}: axes are not Line, Sample")
+    if (declared := _int(area, "pds:Array_2D_Image/pds:axes", False)) not in (None, 2):
+        raise ProductError("bad_dimensions", f"{label.name}: an Array_2D_Image of {declared} axes")
     lines, samples = (_int(a, "pds:elements") for a in axes)
 
     file_name = _text(area, "pds:File/pds:file_name")
@@ -336,22 +472,13 @@ def read_image_product(label: Path) -> ImageProduct:
     data_path = label.parent / file_name
     size = _int(area, "pds:File/pds:file_size", False)
     md5 = _text(area, "pds:File/pds:md5_checksum", False)
-    _check_file(data_path, size, md5)
-    fits_header = _check_array(area, data_path, lines, samples)
-    data = _read_array(label, lines, samples)
+    _check_file(data_path, within, size, md5)
+    layout, fits_header = _check_array(area, data_path, lines, samples, max_pixels)
 
     obs = root.find("pds:Observation_Area", _NS)
     if obs is None:
         raise ProductError("missing_element", f"{label.name} lacks Observation_Area")
-    exposure = obs.find(".//img:exposure_duration", _NS)
-    exposure_s = None
-    if exposure is not None:
-        if (unit := exposure.get("unit")) is None or unit not in _SECONDS:
-            raise ProductError("unsupported", f"exposure_duration unit {unit!r}")
-        if exposure.text is None:
-            raise ProductError("bad_value", "img:exposure_duration is empty")
-        exposure_s = float(exposure.text) * _SECONDS[unit]
-    return ImageProduct(
+    return ImageLabel(
         lid=_text(root, "pds:Identification_Area/pds:logical_identifier"),
         vid=_text(root, "pds:Identification_Area/pds:version_id"),
         title=_text(root, "pds:Identification_Area/pds:title"),
@@ -363,10 +490,29 @@ def read_image_product(label: Path) -> ImageProduct:
         instrument_name=_component(obs, ("Instrument",)),
         target_name=_text(obs, "pds:Target_Identification/pds:name", False),
         target_type=_text(obs, "pds:Target_Identification/pds:type", False),
-        exposure_s=exposure_s,
+        exposure_s=_exposure_s(obs),
         first_line=_subframe_start(obs, "first_line"), first_sample=_subframe_start(obs, "first_sample"),
         data_path=data_path, file_size=size, md5=md5,
-        lines=lines, samples=samples, data=data, fits_header=fits_header)
+        lines=lines, samples=samples, fits_header=fits_header, label_path=label, layout=layout)
+
+
+def _exposure_s(obs: ET.Element) -> float | None:
+    """img:exposure_duration in seconds, None without one; ProductError unless a finite,
+    non-negative number in a PDS4 time unit."""
+    exposure = obs.find(".//img:exposure_duration", _NS)
+    if exposure is None:
+        return None
+    if (unit := exposure.get("unit")) is None or unit not in _SECONDS:
+        raise ProductError("unsupported", f"exposure_duration unit {unit!r}")
+    try:
+        value = float(exposure.text or "")
+    except ValueError:
+        raise ProductError("bad_value", f"img:exposure_duration {exposure.text!r} is not a "
+                           "number") from None
+    if not np.isfinite(value) or value < 0:
+        raise ProductError("bad_value", f"img:exposure_duration {value} is not a finite, "
+                           "non-negative duration")
+    return value * _SECONDS[unit]
 
 
 def _subframe_start(obs: ET.Element, name: str) -> int:

@@ -26,6 +26,11 @@ HERMITE_DEGREE = 7  # 4 states per window: smooth trajectories sampled every few
 _COMMENT = f"Written by pwm {pwm.__version__} (pwm.io.spice_kernels)."
 _CHUNK = 60  # kernel-pool strings are cut at 80 characters: longer values use '+' continuation
 _MK_VARIABLES = ("PATH_VALUES", "PATH_SYMBOLS", "KERNELS_TO_LOAD")
+# The most kernels one meta-kernel may name: SPICE's pool holds 15000 string values in all
+# (szpool MAXLIN), which one meta-kernel's list would otherwise fill (KERNELPOOLFULL), leaving
+# no room for the FK and IK. Real ones name hundreds. service.settings.Settings overrides.
+MAX_METAKERNEL_ENTRIES = 5000
+_SCAN_CHUNK = 1 << 20
 
 
 class KernelError(RuntimeError):
@@ -150,7 +155,12 @@ def _epoch_index(epochs: np.ndarray, et: float) -> int:
 
 
 def write_metakernel(path: str | Path, *, kernels: Sequence[str | Path]) -> None:
-    """Write a KPL/MK loading `kernels` in order by absolute directory (any working directory)."""
+    """Write a KPL/MK loading `kernels` in order, by directories relative to the meta-kernel's
+    own, as pwm reads them (metakernel_files): a copied downlink then names its own kernels,
+    not the original's. (SPICE's furnsh reads relative PATH_VALUES against the working
+    directory: load it through kernel_pool, or from the meta-kernel's directory.)"""
+    path = Path(path)
+    here = Path(os.path.abspath(path)).parent
     files = [Path(os.path.abspath(k)) for k in kernels]
     if any("'" in str(f) for f in files):
         raise ValueError("kernel paths with a quote character cannot be written to a meta-kernel")
@@ -158,11 +168,11 @@ def write_metakernel(path: str | Path, *, kernels: Sequence[str | Path]) -> None
     symbols = [f"D{i}" for i in range(len(dirs))]
     names = [f"${symbols[dirs.index(f.parent)]}/{f.name}" for f in files]
     lines = ["KPL/MK", "", _COMMENT, "", "\\begindata", ""]
-    lines += _assignment("PATH_VALUES", [str(d) for d in dirs])
+    lines += _assignment("PATH_VALUES", [os.path.relpath(d, here) for d in dirs])
     lines += _assignment("PATH_SYMBOLS", symbols)
     lines += _assignment("KERNELS_TO_LOAD", names)
     lines += ["\\begintext", ""]
-    Path(path).write_text("\n".join(lines))
+    path.write_text("\n".join(lines))
 
 
 def _assignment(name: str, values: Sequence[str]) -> list[str]:
@@ -182,13 +192,27 @@ def _continued(value: str) -> list[str]:
     return [*pieces, value]
 
 
-def metakernel_files(path: str | Path) -> list[Path]:
+def _quoted_values(path: Path) -> int:
+    """How many quoted strings a text kernel holds at most (its quote characters over two),
+    counted in chunks without holding the file."""
+    quotes = 0
+    with open(path, "rb") as fh:
+        while chunk := fh.read(_SCAN_CHUNK):
+            quotes += chunk.count(b"'")
+    return quotes // 2
+
+
+def metakernel_files(path: str | Path, *, max_entries: int = MAX_METAKERNEL_ENTRIES) -> list[Path]:
     """The files a meta-kernel names, in order; relative paths resolved against its directory.
 
     Parsed by SPICE itself (ldpool); its path variables are then removed from the pool, as
-    furnsh does.
+    furnsh does. KernelError, before SPICE reads it, for a meta-kernel whose strings could
+    name more than max_entries kernels.
     """
     mk = Path(os.path.abspath(path))
+    if (strings := _quoted_values(mk)) > max_entries:
+        raise KernelError(f"{mk.name} holds {strings} strings, more than the {max_entries} "
+                          "kernels a meta-kernel may name (kernel pool room)")
     sp.ldpool(str(mk))
     try:
         values = [_pool_string(name) for name in _MK_VARIABLES]

@@ -9,6 +9,7 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from service.downlinks import Outcome
 from service.jobs import error_reason
 from service.models import DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, JobStatus, ModelKind
 from service.queries import CoverageSummary, MapletCoverage, MapletImage, MapletInfo, RevisionInfo
@@ -143,12 +144,24 @@ class ImageDetail(ImageOut):
 
 
 class DownlinkOut(_Out):
+    """A downlink and what its ingest made of it (service.downlinks): outcome rejected when
+    every product failed; unused_files, the files it offered that are neither kernels nor
+    products (each with its reason in the catalog); repeat_count, its deliveries after the
+    first."""
+
     id: int
     name: str
     received_at: datetime
     status: DownlinkStatus
+    outcome: Outcome
     kernels: int
     images: dict[ImageStatus, int]
+    accepted: int
+    rejected: int
+    conflict: int
+    unused_files: int
+    repeat_count: int
+    last_seen_at: datetime | None
 
 
 class JobOut(_Out):

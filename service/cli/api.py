@@ -15,13 +15,21 @@ def serve(
     host: str = typer.Option("127.0.0.1", help="address to listen on"),
     port: int = typer.Option(8000, min=1, max=65535, help="port to listen on"),
 ) -> None:
-    """Serve the HTTP API (OpenAPI at /openapi.json) over the configured catalog."""
+    """Serve the HTTP API (OpenAPI at /openapi.json) over the configured catalog. Without a broker
+    (PWM_BROKER_URL), a requested ingest runs after the response, in a process of its own."""
     import uvicorn
 
     from service.api import create_app
+    from service.cli.background import BackgroundQueue
+    from service.settings import get_settings
     from workers.tasks import CeleryQueue
 
-    uvicorn.run(create_app(job_queue=CeleryQueue()), host=host, port=port)
+    queue = CeleryQueue() if get_settings().broker_url else BackgroundQueue(CeleryQueue())
+    try:
+        uvicorn.run(create_app(job_queue=queue), host=host, port=port)
+    finally:
+        if isinstance(queue, BackgroundQueue):
+            queue.close()
 
 
 @app.command()

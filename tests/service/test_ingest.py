@@ -3,7 +3,16 @@ catalog, the geometry of each image, bad inputs, idempotence, and real archive d
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
 import shutil
+import socket
+import subprocess
+import sys
+import time
+import tracemalloc
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +30,7 @@ from service.ingest import ingest_directory
 from service.models import (
     Acceptance,
     Downlink,
+    DownlinkFile,
     DownlinkStatus,
     Image,
     ImageGeometry,
@@ -30,6 +40,7 @@ from service.models import (
     KernelCoverage,
     KernelKind,
 )
+from service.settings import IngestLimits
 
 BENNU, SC, MAPCAM, SC_BUS = 2101955, -64, -64361, -64000
 RANGE_KM = 2.0  # from Bennu's centre
@@ -39,6 +50,7 @@ CK_WINDOWS_S = [(0.0, 600.0), (1800.0, 2400.0)]  # attitude only here; the SPK c
 GOOD_OFFSETS_S = [120.0, 240.0, 1860.0]
 WINDOW = (600, 300, 16, 24)  # first line, first sample, lines, samples of the test products
 REAL_MAPCAM_UTC = "2019-03-03T10:59:40.279"
+BUNDLED_SHAPE = Path(__file__).resolve().parents[2] / "pwm" / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
 EXPOSURE_S = 0.01
 
 
@@ -268,11 +280,13 @@ def _assert_footprint(footprint: list, corners: list[np.ndarray | None]) -> None
 
 
 def _ingest_with_bad_product(catalog: sessionmaker[Session], downlink: Path, name: str,
-                             code: str) -> Image:
+                             code: str, *, orphans: int = 0) -> Image:
+    """orphans: data files no readable label names, reported as unknown files."""
     report = ingest_directory(catalog, downlink)
-    assert (report.images.accepted, report.images.rejected, report.failed) == (3, 1, 1)
+    assert (report.images.accepted, report.images.rejected, report.failed) == (3, 1, 1 + orphans)
     assert report.failures[0].code == code and name in report.failures[0].path
-    assert "1 rejected" in report.summary() and "1 failed" in report.summary()
+    assert [f.code for f in report.failures[1:]] == ["unknown_type"] * orphans
+    assert "1 rejected" in report.summary() and f"{1 + orphans} failed" in report.summary()
     images = _images(catalog)
     _assert_good_images_accepted(images)
     bad = images[name]
@@ -293,7 +307,7 @@ def _bad_product(downlink: Path, kernels: dict) -> tuple[Path, Path]:
 def test_malformed_xml_is_rejected(catalog, downlink, kernels) -> None:
     label, _ = _bad_product(downlink, kernels)
     label.write_text(label.read_text()[:700])
-    bad = _ingest_with_bad_product(catalog, downlink, "bad", "malformed_xml")
+    bad = _ingest_with_bad_product(catalog, downlink, "bad", "malformed_xml", orphans=1)
     assert "not well-formed" in bad.rejection_reason and bad.lid.startswith("unidentified:")
 
 
@@ -451,7 +465,9 @@ def _real_mapcam_downlink(root: Path, shared_data: Path) -> Path:
 def test_real_mapcam_geometry_matches_spice(catalog, tmp_path, shared_data) -> None:
     root = _real_mapcam_downlink(tmp_path / "orex", shared_data)
     report = ingest_directory(catalog, root)
-    assert (report.images.accepted, report.failed) == (1, 0), report.failures
+    assert report.images.accepted == 1 and report.images.rejected == 0, report.failures
+    # the archive's PDS3 (ISIS) label is no kernel or PDS4 label: recorded, with why
+    assert [(Path(f.path).suffix, f.code) for f in report.failures] == [(".lbl", "unknown_type")]
     image = _images(catalog)["mapcam"]
     g = image.geometry
     assert (image.instrument.naif_id, g.body_frame) == (MAPCAM, "IAU_BENNU")
@@ -518,8 +534,9 @@ def test_images_before_their_kernels_are_taken_up_later(sqlite_url, kernels, tmp
 
 
 def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_path, shared_data) -> None:
-    """PATH_VALUES relative to the meta-kernel reach kernels outside the ingested directory; a
-    meta-kernel naming missing files is rejected with the list."""
+    """PATH_VALUES relative to the meta-kernel reach kernels elsewhere in the downlink; a
+    meta-kernel naming missing files is rejected with the list; one naming files outside the
+    downlink has those entries refused, with why, unless they are in the kernel library."""
     upgrade(sqlite_url)
     sessions = make_sessionmaker(make_engine(sqlite_url))
     archive = tmp_path / "archive"
@@ -530,7 +547,7 @@ def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_pat
         "KPL/MK\n\\begindata\n PATH_VALUES = ( '..' )\n PATH_SYMBOLS = ( 'K' )\n"
         " KERNELS_TO_LOAD = ( '$K/lsk/naif0012.tls' )\n\\begintext\n")
     shutil.copy(shared_data / "spice" / "mk" / "orx_2020_v05.tm", archive / "mk")
-    report = ingest_directory(sessions, archive / "mk")
+    report = ingest_directory(sessions, archive, limits=IngestLimits())
     with sessions() as session:
         rows = {Path(k.path).name: k for k in session.scalars(select(Kernel))}
     assert rows["set.tm"].status == "accepted" and rows["set.tm"].kind == "mk"
@@ -541,3 +558,401 @@ def test_metakernels_register_the_kernels_they_name(sqlite_url, kernels, tmp_pat
     assert reason.startswith("206 kernels it names are missing: ")
     assert str(archive / "fk" / "orx_v14.tf") in reason and "naif0012" not in reason
     assert (report.kernels.accepted, report.kernels.rejected) == (2, 1)
+
+    # another downlink's meta-kernel naming files outside it, by absolute path and by '..'
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.copy(bundled_kernels()["bennu_v16.tpc"], tmp_path / "elsewhere.tpc")
+    (other / "evil.tm").write_text(
+        f"KPL/MK\n\\begindata\n KERNELS_TO_LOAD = ( '{tmp_path / 'elsewhere.tpc'}'\n"
+        "  '../archive/lsk/naif0012.tls' )\n\\begintext\n")
+    evil = ingest_directory(sessions, other, limits=IngestLimits())
+    with sessions() as session:
+        assert "elsewhere.tpc" not in {Path(k.path).name for k in session.scalars(select(Kernel))}
+        refused = {f.path: (f.code, f.reason) for f in session.scalars(select(DownlinkFile))}
+    assert set(refused) == {str(tmp_path / "elsewhere.tpc"), str(archive / "lsk" / "naif0012.tls")}
+    code, reason = refused[str(tmp_path / "elsewhere.tpc")]
+    assert code == "outside_downlink" and reason.startswith("named by evil.tm: ")
+    assert f"outside {other}" in reason
+    assert {(f.code, f.path) for f in evil.failures} == {("outside_downlink", p) for p in refused}
+    again = ingest_directory(sessions, other, limits=IngestLimits())
+    assert again.failed == 0 and again.kernels.unchanged == 3
+
+    # a configured kernel library may be named from outside
+    upgrade(f"sqlite:///{tmp_path / 'library.sqlite'}")
+    library = make_sessionmaker(make_engine(f"sqlite:///{tmp_path / 'library.sqlite'}"))
+    ingest_directory(library, other, limits=IngestLimits(kernel_library=archive / "lsk"))
+    with library() as session:
+        assert session.scalars(select(Kernel.status).where(
+            Kernel.path == str(archive / "lsk" / "naif0012.tls"))).one() == "accepted"
+        assert session.scalars(select(DownlinkFile.path)).all() == [str(tmp_path / "elsewhere.tpc")]
+
+
+# ---------------------------------------------------------------------------------------------
+# Hostile input (issue 17): each product judged on its own, kernels kept to the downlink, reading
+# bounded before it starts, symbolic links refused, and every file accounted for
+
+
+def _edit(label: Path, old: str, new: str) -> None:
+    text = label.read_text()
+    assert old in text, old
+    label.write_text(text.replace(old, new, 1))
+
+
+def _edit_fits(label: Path, data: Path, card: str, value: str) -> None:
+    """Rewrite one card of the FITS header of `data` and the label's md5 to match it."""
+    raw = bytearray(data.read_bytes())
+    start = raw.index(card.ljust(8).encode() + b"= ")
+    raw[start + 10:start + 30] = value.rjust(20).encode()
+    old_md5 = hashlib.md5(data.read_bytes()).hexdigest()
+    data.write_bytes(bytes(raw))
+    _edit(label, old_md5, hashlib.md5(bytes(raw)).hexdigest())
+
+
+def _bad(downlink: Path, kernels: dict, name: str, **meta) -> tuple[Path, Path]:
+    with kernel_pool([bundled_kernels()["naif0012.tls"]]):
+        return _product(downlink / "images", name, kernels["et0"] + 180.0, **meta)
+
+
+def _hostile_labels(downlink: Path, kernels: dict) -> dict[str, str]:
+    """Products whose checks used to raise out of ingest, by label stem: the expected code."""
+    label, _ = _bad(downlink, kernels, "a_exposure")
+    _edit(label, '<img:exposure_duration unit="s">0.01<', '<img:exposure_duration unit="s">fast<')
+    for name, length in (("b_header_1e20", 10**20), ("c_header_4e15", 4 * 10**15)):
+        label, _ = _bad(downlink, kernels, name)
+        _edit(label, '<object_length unit="byte">2880<', f'<object_length unit="byte">{length}<')
+    # two LIDs that join into one LIDVID: a::b + c and a + b::c
+    base = "urn:nasa:pds:pwm_test:data_calibrated:joined"
+    for name, lid, vid in (("d_join1", f"{base}::1", "0"), ("e_join2", base, "1::0")):
+        label, _ = _bad(downlink, kernels, name)
+        _edit(label, f"<logical_identifier>urn:nasa:pds:pwm_test:data_calibrated:{name}<",
+              f"<logical_identifier>{lid}<")
+        _edit(label, "<version_id>1.0<", f"<version_id>{vid}<")
+    label, _ = _bad(downlink, kernels, "f_long_vid")
+    _edit(label, "<version_id>1.0<", f"<version_id>{'1' * 40}.0<")  # past VARCHAR(32)
+    return {"a_exposure": "bad_value", "b_header_1e20": "bad_header",
+            "c_header_4e15": "bad_header", "d_join1": "bad_identifier",
+            "e_join2": "bad_identifier", "f_long_vid": "bad_identifier"}
+
+
+def test_one_bad_label_never_stops_the_downlink(catalog, downlink, kernels) -> None:
+    expected = _hostile_labels(downlink, kernels)
+    report = ingest_directory(catalog, downlink)
+    assert (report.images.accepted, report.images.rejected) == (3, len(expected))
+    assert {Path(f.path).stem: f.code for f in report.failures} == expected
+    images = _images(catalog)
+    _assert_good_images_accepted(images)
+    for name, code in expected.items():
+        assert (images[name].status, images[name].rejection_code) == ("rejected", code)
+        assert images[name].rejection_reason
+    assert "4000000000000000 bytes at byte 0 does not fit" in images["c_header_4e15"].rejection_reason
+    assert images["d_join1"].lid.startswith("unidentified:")  # keyed by its label's sha256
+    with catalog() as session:
+        assert session.scalars(select(Downlink.status)).one() == DownlinkStatus.INGESTED
+    before = _snapshot(catalog)
+    again = ingest_directory(catalog, downlink)
+    assert (again.images.unchanged, again.failed) == (3 + len(expected), 0)
+    assert _snapshot(catalog) == before
+
+
+def _radii_doubled(tmp_path: Path) -> Path:
+    pck = tmp_path / "outside" / "bennu_big.tpc"
+    pck.parent.mkdir()
+    text = bundled_kernels()["bennu_v16.tpc"].read_text()
+    with kernel_pool([bundled_kernels()["bennu_v16.tpc"]]):
+        radii = sp.bodvrd("BENNU", "RADII", 3)[1]
+    start = text.index("BODY2101955_RADII")
+    end = text.index(")", start) + 1
+    pck.write_text(text[:start] + "BODY2101955_RADII = ( "
+                   + " ".join(f"{2 * r:.6f}" for r in radii) + " )" + text[end:])
+    return pck
+
+
+def test_kernels_of_a_later_downlink_never_change_catalogued_geometry(catalog, downlink, kernels,
+                                                                      tmp_path) -> None:
+    """A later downlink holding only a meta-kernel that names a PCK elsewhere (Bennu twice as
+    large): the PCK is refused, and the images catalogued already keep their geometry."""
+    ingest_directory(catalog, downlink)
+    before = _snapshot(catalog)
+    later = tmp_path / "later"
+    later.mkdir()
+    pck = _radii_doubled(tmp_path)
+    (later / "later.tm").write_text("KPL/MK\n\\begindata\n KERNELS_TO_LOAD = ( "
+                                    "'../outside/bennu_big.tpc' )\n\\begintext\n")
+    report = ingest_directory(catalog, later)
+    assert [(f.path, f.code) for f in report.failures] == [(str(pck), "outside_downlink")]
+    after = _snapshot(catalog)
+    assert after["geometry"] == before["geometry"] and after["images"] == before["images"]
+    with catalog() as session:
+        assert str(pck) not in set(session.scalars(select(Kernel.path)))
+    with kernel_pool([bundled_kernels()["naif0012.tls"]]):
+        _product(downlink / "images", "good_later", kernels["et0"] + 300.0)
+    ingest_directory(catalog, downlink)  # new images still use the downlink's own PCK
+    image = _images(catalog)["good_later"]
+    assert image.geometry.intercept_range_km == pytest.approx(
+        _images(catalog)["good0"].geometry.intercept_range_km, rel=0.05)
+
+
+def test_a_copied_simulated_downlink_catalogues_its_own_kernels(sqlite_url, tiny_sim, tmp_path) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_sim / "downlink", copy)
+    upgrade(sqlite_url)
+    sessions = make_sessionmaker(make_engine(sqlite_url))
+    report = ingest_directory(sessions, copy)
+    assert report.failed == 0, report.failures
+    with sessions() as session:
+        paths = list(session.scalars(select(Kernel.path)))
+    assert paths and all(Path(p).is_relative_to(copy) for p in paths)
+
+
+def test_a_giant_metakernel_or_text_kernel_leaves_room_in_the_pool(sqlite_url, downlink) -> None:
+    """A meta-kernel naming 200k kernels, and a PCK holding 20k strings (more than SPICE's pool
+    holds), are rejected with why; the downlink's FK, IK and images are still accepted."""
+    upgrade(sqlite_url)
+    sessions = make_sessionmaker(make_engine(sqlite_url))
+    with open(downlink / "kernels" / "giant.tm", "w") as fh:
+        fh.write("KPL/MK\n\\begindata\nKERNELS_TO_LOAD = (\n")
+        fh.writelines(f"'k{i}.bsp'\n" for i in range(200_000))
+        fh.write(")\n\\begintext\n")
+    with open(downlink / "kernels" / "aaa_full.tpc", "w") as fh:
+        fh.write("KPL/PCK\n\\begindata\nFILLER = (\n")
+        fh.writelines(f"'value{i}'\n" for i in range(20_000))
+        fh.write(")\n\\begintext\n")
+    report = ingest_directory(sessions, downlink)
+    with sessions() as session:
+        rows = {Path(k.path).name: k for k in session.scalars(select(Kernel))}
+    assert rows["giant.tm"].status == "rejected"
+    assert "more than the 5000 kernels a meta-kernel may name" in rows["giant.tm"].rejection_reason
+    assert rows["aaa_full.tpc"].status == "rejected"
+    assert "KERNELPOOLFULL" in rows["aaa_full.tpc"].rejection_reason
+    assert all(rows[n].status == "accepted" for n in ("orx_v14.tf", "orx_ocams_v07.ti"))
+    assert report.images.accepted == 3
+    _assert_good_images_accepted(_images(sessions))
+
+
+def test_label_reading_is_bounded_before_it_starts(sqlite_url, downlink, kernels) -> None:
+    """A 16 MB label is refused unread; arrays larger than the detector, or than the pixel
+    limit, are refused from the label's axes before any array is read."""
+    upgrade(sqlite_url)
+    sessions = make_sessionmaker(make_engine(sqlite_url))
+    label, _ = _bad(downlink, kernels, "giant_label")
+    _edit(label, "<Identification_Area>", "<Identification_Area><!--" + "x" * 16 * 1024**2 + "-->")
+    label, _ = _bad(downlink, kernels, "huge_declared")
+    for n in ("16", "24"):
+        _edit(label, f"<elements>{n}<", "<elements>8000<")
+    with kernel_pool([bundled_kernels()["naif0012.tls"]]):
+        _product(downlink / "images", "beyond_detector", kernels["et0"] + 200.0,
+                 window=(0, 0, 1500, 1500))
+    tracemalloc.start()
+    clock = time.perf_counter()
+    report = ingest_directory(sessions, downlink)
+    elapsed = time.perf_counter() - clock
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    codes = {Path(f.path).name: f.code for f in report.failures}
+    # the giant label, unread, names no data file: its data file is unknown
+    assert codes == {"giant_label.xml": "too_large", "giant_label.fits": "unknown_type",
+                     "huge_declared.xml": "too_large", "beyond_detector.xml": "bad_dimensions"}
+    assert elapsed < 10 and peak < 16 * 1024**2  # the 1500x1500 array read would be 18 MB
+
+
+def test_symbolic_links_out_of_the_downlink_are_refused(sqlite_url, downlink, kernels, tmp_path) -> None:
+    upgrade(sqlite_url)
+    sessions = make_sessionmaker(make_engine(sqlite_url))
+    label, data = _bad(downlink, kernels, "to_passwd")
+    data.unlink()
+    data.symlink_to("/etc/passwd")
+    outside = tmp_path / "outside"
+    with kernel_pool([bundled_kernels()["naif0012.tls"]]):
+        elsewhere, _ = _product(outside, "elsewhere", kernels["et0"] + 200.0)
+    (downlink / "images" / "linked.xml").symlink_to(elsewhere)
+    (downlink / "kernels" / "linked.tpc").symlink_to(bundled_kernels()["bennu_v16.tpc"])
+    report = ingest_directory(sessions, downlink)
+    codes = {Path(f.path).name: f.code for f in report.failures}
+    assert codes == {"to_passwd.xml": "outside_downlink", "to_passwd.fits": "outside_downlink",
+                     "linked.xml": "outside_downlink", "linked.tpc": "outside_downlink"}
+    images = _images(sessions)
+    assert "to_passwd" in images and images["to_passwd"].geometry is None
+    assert "elsewhere" not in images and report.images.accepted == 3
+    with sessions() as session:
+        files = {Path(f.path).name: f.reason for f in session.scalars(select(DownlinkFile))}
+        assert all(not k.path.endswith("linked.tpc") for k in session.scalars(select(Kernel)))
+    assert set(files) == {"linked.xml", "linked.tpc", "to_passwd.fits"}
+    assert "outside" in files["linked.xml"]
+
+
+def test_lenient_values_are_rejected(sqlite_url, downlink, kernels) -> None:
+    upgrade(sqlite_url)
+    sessions = make_sessionmaker(make_engine(sqlite_url))
+    for name, value in (("scale_nan", "NaN"), ("scale_inf", "inf"), ("scale_zero", "0.0")):
+        label, _ = _bad(downlink, kernels, name)
+        _edit(label, "<scaling_factor>0.0001<", f"<scaling_factor>{value}<")
+    label, data = _bad(downlink, kernels, "bitpix_lie")
+    _edit_fits(label, data, "BITPIX", "32")
+    label, data = _bad(downlink, kernels, "naxis_lie")
+    _edit_fits(label, data, "NAXIS", "3")
+    label, _ = _bad(downlink, kernels, "year_0019")
+    text = label.read_text()
+    label.write_text(text.replace("<start_date_time>2019", "<start_date_time>0019")
+                     .replace("<stop_date_time>2019", "<stop_date_time>0019"))
+    report = ingest_directory(sessions, downlink)
+    codes = {Path(f.path).stem: f.code for f in report.failures}
+    assert codes == {"scale_nan": "bad_value", "scale_inf": "bad_value", "scale_zero": "bad_value",
+                     "bitpix_lie": "bad_dimensions", "naxis_lie": "bad_dimensions",
+                     "year_0019": "bad_time"}
+    reasons = {Path(f.path).stem: f.reason for f in report.failures}
+    assert "BITPIX 32 (label: 16)" in reasons["bitpix_lie"] and "NAXIS 3" in reasons["naxis_lie"]
+    assert "year 19" in reasons["year_0019"]
+
+
+def test_every_file_is_accounted_for(catalog, downlink, kernels) -> None:
+    """Files of no known type get a row with why; the downlink's rows account for every file."""
+    (downlink / "README.txt").write_text("notes\n")
+    (downlink / "empty.dat").write_bytes(b"")
+    report = ingest_directory(catalog, downlink)
+    assert {Path(f.path).name: f.code for f in report.failures} == {
+        "README.txt": "unknown_type", "empty.dat": "unknown_type"}
+    with catalog() as session:
+        accounted = ({Path(p) for p in session.scalars(select(Kernel.path))}
+                     | {Path(p) for p in session.scalars(select(Image.label_path))}
+                     | {Path(p) for p in session.scalars(select(Image.data_path))}
+                     | {Path(p) for p in session.scalars(select(DownlinkFile.path))})
+    assert {p for p in downlink.rglob("*") if p.is_file()} <= accounted
+    assert ingest_directory(catalog, downlink).failed == 0
+
+
+def _ingest_command(directory: Path, url: str) -> subprocess.Popen:
+    env = {**os.environ, "PWM_DATABASE_URL": url, "PYTHONPATH": str(Path(__file__).parents[2])}
+    return subprocess.Popen([sys.executable, "-c", "from service.cli import app; app()", "ingest",
+                             str(directory)], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_two_concurrent_command_line_ingests_of_one_downlink(catalog, db_url, downlink) -> None:
+    """Serialised: the second waits for the first, then finds everything catalogued."""
+    runs = [_ingest_command(downlink, db_url) for _ in range(2)]
+    results = [(run.wait(timeout=240), *run.communicate()) for run in runs]
+    assert [code for code, _, _ in results] == [0, 0], results
+    assert not any("Traceback" in err or "IntegrityError" in err for _, _, err in results)
+    summaries = sorted(out for _, out, _ in results)
+    assert "3 accepted" in summaries[0] + summaries[1] and "3 unchanged" in summaries[0] + summaries[1]
+    with catalog() as session:
+        downlink_row = session.scalars(select(Downlink)).one()
+        assert (downlink_row.status, downlink_row.ingest_owner) == ("ingested", None)
+        assert downlink_row.repeat_count == 1
+    _assert_good_images_accepted(_images(catalog))
+
+
+@pytest.mark.parametrize("owner, age_s", [(f"{socket.gethostname()}:999999999", 0.0),
+                                          ("elsewhere:1", 7200.0)])
+def test_a_killed_ingest_is_recovered(catalog, downlink, owner, age_s) -> None:
+    """A downlink left ingesting by a process that is gone, or that stopped committing longer
+    ago than the stale limit, is taken over and ingested."""
+    ingest_directory(catalog, downlink)
+    with catalog.begin() as session:
+        row = session.scalars(select(Downlink)).one()
+        row.status, row.ingest_owner = DownlinkStatus.INGESTING, owner
+        row.ingest_heartbeat_at = datetime.now(UTC) - timedelta(seconds=age_s)
+    clock = time.perf_counter()
+    report = ingest_directory(catalog, downlink, limits=IngestLimits(stale_s=600.0))
+    assert time.perf_counter() - clock < 30 and report.images.unchanged == 3
+    with catalog() as session:
+        assert session.scalars(select(Downlink.status)).one() == DownlinkStatus.INGESTED
+
+
+def test_a_live_ingest_is_waited_for(sqlite_url, downlink) -> None:
+    upgrade(sqlite_url)
+    sessions = make_sessionmaker(make_engine(sqlite_url))
+    ingest_directory(sessions, downlink)
+    with sessions.begin() as session:
+        row = session.scalars(select(Downlink)).one()
+        row.status, row.ingest_owner = DownlinkStatus.INGESTING, "elsewhere:1"
+        row.ingest_heartbeat_at = datetime.now(UTC)
+    clock = time.perf_counter()
+    ingest_directory(sessions, downlink, limits=IngestLimits(stale_s=3.0))
+    assert time.perf_counter() - clock >= 2.5  # until the claim went stale
+
+
+def test_a_repeated_delivery_is_counted_on_its_downlink(catalog, downlink, tmp_path) -> None:
+    (downlink / "manifest.json").write_text('{"files": []}')
+    ingest_directory(catalog, downlink)
+    again = tmp_path / "again"
+    shutil.copytree(downlink, again)
+    report = ingest_directory(catalog, again)
+    assert report.images.unchanged == 3 and report.downlink == "downlink"
+    with catalog() as session:
+        row = session.scalars(select(Downlink)).one()
+        assert row.repeat_count == 1 and row.last_seen_at is not None
+
+
+def test_downlinks_command_and_api_show_each_outcome(tmp_path, downlink, kernels, monkeypatch) -> None:
+    """A downlink whose products all failed is marked rejected, by `pwm downlinks` as by the
+    API's /downlinks."""
+    from fastapi.testclient import TestClient
+    from typer.testing import CliRunner
+
+    from service.api import create_app
+    from service.cli import app
+    from service.settings import Settings, get_settings
+
+    monkeypatch.setenv("PWM_DATA_DIR", str(tmp_path / "data"))
+    get_settings.cache_clear()
+    try:
+        bad = tmp_path / "all-bad"
+        label, _ = _bad(bad, kernels, "broken")
+        label.write_text("<not-a-label")
+        runner = CliRunner()
+        for directory in (downlink, bad):
+            runner.invoke(app, ["ingest", str(directory)])
+        result = runner.invoke(app, ["downlinks", "--json"])
+        assert result.exit_code == 0, result.output
+        by_cli = {d["name"]: d for d in json.loads(result.output)}
+        with TestClient(create_app(Settings())) as client:
+            by_api = {d["name"]: d for d in client.get("/downlinks").json()["items"]}
+    finally:
+        get_settings.cache_clear()
+    assert {n: d["outcome"] for n, d in by_cli.items()} == {"downlink": "accepted", "all-bad": "rejected"}
+    for name, d in by_cli.items():
+        assert {k: by_api[name][k] for k in ("outcome", "accepted", "rejected", "conflict", "kernels",
+                                             "repeat_count", "status")} == {
+            k: d[k] for k in ("outcome", "accepted", "rejected", "conflict", "kernels", "repeat_count",
+                              "status")}
+    assert (by_cli["all-bad"]["accepted"], by_cli["all-bad"]["rejected"]) == (0, 1)
+    assert [f["code"] for f in by_cli["all-bad"]["unused_files"]] == ["unknown_type"]  # broken.fits
+    table = runner.invoke(app, ["downlinks", "--files"]).output
+    assert "rejected" in table and "unused" in table and "broken.fits" in table
+
+
+def test_without_a_broker_an_ingest_runs_after_the_response(tmp_path, downlink, monkeypatch) -> None:
+    """POST /ingests answers at once; the ingest (and what follows) runs in a background
+    process, and its job is done afterwards."""
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.cli.background import BackgroundQueue
+    from service.settings import Settings
+    from workers.tasks import CeleryQueue
+
+    data = tmp_path / "data"
+    shutil.copytree(downlink, data / "incoming" / "dl")
+    shutil.copy(BUNDLED_SHAPE, data / "incoming" / "dl" / "start_model.obj")
+    monkeypatch.setenv("PWM_DATA_DIR", str(data))
+    monkeypatch.setenv("PWM_API_TOKEN", "token-0123456789abcdef")
+    monkeypatch.delenv("PWM_BROKER_URL", raising=False)
+    queue = BackgroundQueue(CeleryQueue())
+    try:
+        with TestClient(create_app(Settings(), job_queue=queue)) as client:
+            clock = time.perf_counter()
+            response = client.post("/ingests", json={"path": "dl"},
+                                   headers={"Authorization": "Bearer token-0123456789abcdef"})
+            answered_s = time.perf_counter() - clock
+            assert response.status_code == 202, response.text
+            key = response.json()["key"]
+            queued = {j["key"]: j["status"] for j in client.get("/jobs").json()["items"]}
+            assert queued[key] in ("queued", "running")
+            queue.close()
+            jobs = {j["key"]: j for j in client.get("/jobs").json()["items"]}
+    finally:
+        queue.close()
+    assert answered_s < 5.0
+    assert jobs[key]["status"] == "done", jobs[key]

@@ -6,12 +6,12 @@ from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, Request, status
-from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from service.api.deps import Authorized, Id, JobsDep, PagingDep, SessionDep, SettingsDep
 from service.api.schemas import DownlinkOut, IngestRequest, JobSubmitted, Page, Problem
-from service.models import Downlink, DownlinkStatus, Image, ImageStatus, Kernel
+from service.downlinks import downlink_ids, downlink_summaries
+from service.models import DownlinkStatus
 
 router = APIRouter(tags=["downlinks"])
 
@@ -37,34 +37,20 @@ def incoming_directory(data_dir: Path, requested: str) -> Path:
 
 
 def _downlinks(session: Session, ids: list[int]) -> list[DownlinkOut]:
-    if not ids:
-        return []
-    rows = session.scalars(select(Downlink).where(Downlink.id.in_(ids))
-                           .order_by(Downlink.received_at.desc(), Downlink.id.desc()))
-    kernels = dict(session.execute(select(Kernel.downlink_id, func.count())
-                                   .where(Kernel.downlink_id.in_(ids))
-                                   .group_by(Kernel.downlink_id)).all())
-    images: dict[int | None, dict[ImageStatus, int]] = {}
-    for downlink_id, image_status, n in session.execute(
-            select(Image.downlink_id, Image.status, func.count())
-            .where(Image.downlink_id.in_(ids)).group_by(Image.downlink_id, Image.status)):
-        images.setdefault(downlink_id, {})[image_status] = n
     return [DownlinkOut(id=d.id, name=d.name, received_at=d.received_at, status=d.status,
-                        kernels=kernels.get(d.id, 0), images=images.get(d.id, {}))
-            for d in rows]
+                        outcome=d.outcome, kernels=d.kernels, images=d.images,
+                        accepted=d.accepted, rejected=d.rejected, conflict=d.conflict,
+                        unused_files=d.unused_files, repeat_count=d.repeat_count,
+                        last_seen_at=d.last_seen_at)
+            for d in downlink_summaries(session, ids)]
 
 
 @router.get("/downlinks", response_model=Page[DownlinkOut])
 def list_downlinks(session: SessionDep, paging: PagingDep,
                    status_: Annotated[DownlinkStatus | None, Query(alias="status")] = None
                    ) -> Page[DownlinkOut]:
-    """Downlinks, newest first, with their kernel and image counts."""
-    query = select(Downlink.id)
-    if status_ is not None:
-        query = query.where(Downlink.status == status_)
-    total = session.execute(select(func.count()).select_from(query.subquery())).scalar_one()
-    ids = list(session.scalars(query.order_by(Downlink.received_at.desc(), Downlink.id.desc())
-                               .limit(paging.limit).offset(paging.offset)))
+    """Downlinks, newest first, with their outcome and their kernel and image counts."""
+    ids, total = downlink_ids(session, status=status_, limit=paging.limit, offset=paging.offset)
     return Page(items=_downlinks(session, ids), total=total, **paging.model_dump())
 
 

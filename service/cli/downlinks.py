@@ -1,0 +1,49 @@
+"""`pwm downlinks`: each downlink's outcome, as the API's /downlinks gives it."""
+
+from __future__ import annotations
+
+import typer
+
+from service.cli.app import app, echo_json
+
+
+@app.command()
+def downlinks(
+    status: str | None = typer.Option(None, help="received | ingesting | ingested | failed"),
+    limit: int = typer.Option(50, min=1, help="at most this many rows, newest first"),
+    files: bool = typer.Option(False, "--files", help="also list each unused file and why"),
+    json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
+) -> None:
+    """List downlinks with their outcome: products accepted, rejected and in conflict (outcome rejected when every
+    product failed), kernels, unused files and repeated deliveries."""
+    from sqlalchemy import select
+
+    from service.catalog import open_catalog
+    from service.downlinks import downlink_ids, downlink_summaries
+    from service.models import DownlinkFile, DownlinkStatus
+
+    try:
+        wanted = None if status is None else DownlinkStatus(status)
+    except ValueError:
+        raise typer.BadParameter(f"expected one of {', '.join(DownlinkStatus)}", param_hint="--status") from None
+    with open_catalog()() as session:
+        ids, _ = downlink_ids(session, status=wanted, limit=limit)
+        rows = downlink_summaries(session, ids)
+        unused = {d.id: [(f.path, f.code, f.reason) for f in session.scalars(
+            select(DownlinkFile).filter_by(downlink_id=d.id).order_by(DownlinkFile.path))]
+            for d in rows} if files or json_out else {}
+    if json_out:
+        echo_json([{"id": d.id, "name": d.name, "path": d.path, "received_at": d.received_at.isoformat(),
+                    "status": d.status.value, "outcome": d.outcome.value, "accepted": d.accepted,
+                    "rejected": d.rejected, "conflict": d.conflict, "kernels": d.kernels,
+                    "unused_files": [dict(zip(("path", "code", "reason"), f, strict=True)) for f in unused[d.id]],
+                    "repeat_count": d.repeat_count,
+                    "last_seen_at": d.last_seen_at.isoformat() if d.last_seen_at else None} for d in rows])
+        return
+    typer.echo(f"{'id':>4} {'downlink':<32} {'status':<10} {'outcome':<9} {'accepted':>8} {'rejected':>8} "
+               f"{'conflict':>8} {'kernels':>7} {'unused':>6} {'repeats':>7}")
+    for d in rows:
+        typer.echo(f"{d.id:>4} {d.name[:32]:<32} {d.status.value:<10} {d.outcome.value:<9} {d.accepted:>8} "
+                   f"{d.rejected:>8} {d.conflict:>8} {d.kernels:>7} {d.unused_files:>6} {d.repeat_count:>7}")
+        for path, code, reason in unused.get(d.id, []) if files else []:
+            typer.echo(f"      unused {path}: {code}: {reason}")

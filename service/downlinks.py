@@ -1,0 +1,100 @@
+"""Each downlink's outcome: how many of its products were accepted, rejected or in conflict,
+its kernels, the files it offered that are not used, and how often it was delivered; the one
+source of `pwm downlinks` and the API's /downlinks."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from service.models import Downlink, DownlinkFile, DownlinkStatus, Image, ImageStatus, Kernel
+
+
+class Outcome(enum.StrEnum):
+    """What a finished ingest made of a downlink's products: all accepted, some, none
+    (rejected: every product failed), or it offered none (empty); pending while it is not
+    ingested."""
+
+    ACCEPTED = "accepted"
+    PARTIAL = "partial"
+    REJECTED = "rejected"
+    EMPTY = "empty"
+    PENDING = "pending"
+
+
+@dataclass(frozen=True)
+class DownlinkSummary:
+    id: int
+    name: str
+    path: str
+    received_at: datetime
+    status: DownlinkStatus
+    repeat_count: int
+    last_seen_at: datetime | None
+    kernels: int
+    images: dict[ImageStatus, int] = field(default_factory=dict)
+    unused_files: int = 0
+
+    @property
+    def accepted(self) -> int:
+        return self.images.get(ImageStatus.ACCEPTED, 0)
+
+    @property
+    def rejected(self) -> int:
+        return self.images.get(ImageStatus.REJECTED, 0)
+
+    @property
+    def conflict(self) -> int:
+        return self.images.get(ImageStatus.CONFLICT, 0)
+
+    @property
+    def outcome(self) -> Outcome:
+        if self.status is not DownlinkStatus.INGESTED:
+            return Outcome.PENDING
+        offered = sum(self.images.values())
+        if offered == 0:
+            return Outcome.EMPTY
+        if self.accepted == offered:
+            return Outcome.ACCEPTED
+        return Outcome.PARTIAL if self.accepted else Outcome.REJECTED
+
+
+def downlink_ids(session: Session, *, status: DownlinkStatus | None = None, limit: int | None = None,
+                 offset: int = 0) -> tuple[list[int], int]:
+    """Ids of downlinks (of `status`), newest first, one page of them; and how many there are."""
+    query = select(Downlink.id)
+    if status is not None:
+        query = query.where(Downlink.status == status)
+    total = session.execute(select(func.count()).select_from(query.subquery())).scalar_one()
+    page = query.order_by(Downlink.received_at.desc(), Downlink.id.desc()).offset(offset)
+    return list(session.scalars(page if limit is None else page.limit(limit))), total
+
+
+def downlink_summaries(session: Session, ids: list[int]) -> list[DownlinkSummary]:
+    """The summaries of the downlinks `ids`, newest first."""
+    if not ids:
+        return []
+
+    def per_downlink(column: Any) -> dict[int, int]:
+        return {k: n for k, n in session.execute(select(column, func.count())
+                                                 .where(column.in_(ids)).group_by(column))}
+
+    kernels = per_downlink(Kernel.downlink_id)
+    unused = per_downlink(DownlinkFile.downlink_id)
+    images: dict[int | None, dict[ImageStatus, int]] = {}
+    for downlink_id, image_status, n in session.execute(
+            select(Image.downlink_id, Image.status, func.count())
+            .where(Image.downlink_id.in_(ids)).group_by(Image.downlink_id, Image.status)):
+        images.setdefault(downlink_id, {})[image_status] = n
+    rows = session.scalars(select(Downlink).where(Downlink.id.in_(ids))
+                           .order_by(Downlink.received_at.desc(), Downlink.id.desc()))
+    return [DownlinkSummary(id=d.id, name=d.name, path=d.path, received_at=d.received_at,
+                            status=d.status, repeat_count=d.repeat_count,
+                            last_seen_at=d.last_seen_at, kernels=kernels.get(d.id, 0),
+                            images=images.get(d.id, {}), unused_files=unused.get(d.id, 0))
+            for d in rows]
