@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -57,17 +58,26 @@ def test_downlink_manifest_lists_every_file_with_its_checksum(tiny_sim):
         assert hashlib.sha256((downlink / entry["path"]).read_bytes()).hexdigest() == entry["sha256"]
 
 
-def test_metakernel_loads_from_another_working_directory(tiny_sim, tmp_path):
+def test_a_copied_downlinks_metakernel_loads_its_own_kernels(tiny_sim, tmp_path):
+    """The meta-kernel names its kernels relative to itself (PATH_VALUES, which SPICE resolves
+    from the working directory, as mission archives' meta-kernels do): run from its own folder,
+    a copy of the downlink loads the copy's kernels, not the original's."""
     image = manifest(tiny_sim)["images"][0]
+    copy = shutil.copytree(tiny_sim / "downlink", tmp_path / "copy")
+    mk = copy / metakernel(tiny_sim).relative_to(tiny_sim / "downlink")
     code = (
         "import spiceypy as sp, sys\n"
-        f"sp.furnsh({str(metakernel(tiny_sim))!r})\n"
+        f"sp.furnsh({mk.name!r})\n"
         f"p, _ = sp.spkpos('-64', {image['et']!r}, 'IAU_BENNU', 'NONE', 'BENNU')\n"
         "print(*p)\n"
+        "for k in range(sp.ktotal('ALL')):\n"
+        "    print(sp.kdata(k, 'ALL')[0])\n"
     )
-    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True)
-    position = np.array([float(v) for v in done.stdout.split()])
-    np.testing.assert_allclose(position, image["position_km"], atol=1e-9)
+    done = subprocess.run([sys.executable, "-c", code], cwd=mk.parent, capture_output=True, text=True, check=True)
+    first, *loaded = done.stdout.splitlines()
+    np.testing.assert_allclose([float(v) for v in first.split()], image["position_km"], atol=1e-9)
+    assert len(loaded) > 5
+    assert all((mk.parent / path).resolve().is_relative_to(copy) for path in loaded), loaded
 
 
 def test_geometry_matches_the_plan(tiny_sim):
