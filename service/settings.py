@@ -27,6 +27,10 @@ class Settings(BaseSettings):
         recently served go first.
     cors_origins: PWM_CORS_ORIGINS, the origins (a JSON list) whose pages may call the API from
         a browser; empty: none (no CORS headers).
+    heartbeat_s: PWM_HEARTBEAT_S, how often a running job's attempt records that it is alive.
+    heartbeat_grace_s: PWM_HEARTBEAT_GRACE_S, how long after its latest heartbeat an attempt is
+        lost (shown so, and taken over by the next delivery); several heartbeats, so that a
+        loaded database or a paused process is not taken for a dead one.
     refine_mode, maplet_nodes, tile_radius_km: PWM_REFINE_MODE, PWM_MAPLET_NODES and
         PWM_TILE_RADIUS_KM, the catalog's refinement settings (`refinement`); their defaults and
         every other setting are pwm.config.DEFAULTS.
@@ -40,6 +44,8 @@ class Settings(BaseSettings):
     api_token: SecretStr | None = None
     export_cache_bytes: int = Field(2 * 1024**3, ge=0)
     cors_origins: list[str] = []
+    heartbeat_s: float = Field(10.0, gt=0)
+    heartbeat_grace_s: float = Field(60.0, gt=0)
     refine_mode: Mode = DEFAULTS.mode
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
@@ -51,6 +57,10 @@ class Settings(BaseSettings):
         if not self.database_url:
             self.database_url = f"sqlite:///{self.data_dir / CATALOG_FILENAME}"
         self.refinement()  # its checks, at load time
+        if self.heartbeat_grace_s < 2 * self.heartbeat_s:
+            raise ValueError(f"heartbeat_grace_s ({self.heartbeat_grace_s:g} s) must be at least "
+                             f"twice heartbeat_s ({self.heartbeat_s:g} s), or one late beat "
+                             "shows a live job as lost")
         return self
 
     def refinement(self) -> RefinementConfig:

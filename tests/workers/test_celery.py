@@ -24,7 +24,19 @@ from pwm.io.spice_kernels import kernel_pool
 from pwm.simulate.windows import window_downlink
 from service.db import make_engine, make_sessionmaker, session_scope, upgrade
 from service.ingest import COMMIT_EVERY, ingest_directory
-from service.jobs import JobBusy, JobLost, claim_job, fail_job, finish_job, report_progress, submit_job
+from service.jobs import (
+    JobBusy,
+    JobLost,
+    JobState,
+    claim_job,
+    fail_job,
+    find_jobs,
+    finish_job,
+    heartbeat,
+    job_state,
+    report_progress,
+    submit_job,
+)
 from service.kernels import accepted_kernels
 from service.models import (
     Base,
@@ -230,25 +242,41 @@ def jobs_db(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[sessionm
     engine.dispose()
 
 
-def test_claims_follow_the_lease_and_fence_stale_attempts(
+def test_claims_follow_the_heartbeat_and_fence_stale_attempts(
         jobs_db: sessionmaker[Session]) -> None:
-    kind, key, lease_s = JobKind.REFINE, "refine:test", 60.0
+    kind, key, grace_s = JobKind.REFINE, "refine:test", 60.0
     t0 = datetime(2030, 1, 1, tzinfo=UTC)
     with session_scope(jobs_db) as session:
-        first = claim_job(session, kind=kind, key=key, lease_s=lease_s, now=t0)
-    assert (first.status, first.attempts, first.started_at) == (JobStatus.RUNNING, 1, t0)
-    with session_scope(jobs_db) as session, pytest.raises(JobBusy) as busy:
-        claim_job(session, kind=kind, key=key, lease_s=lease_s, now=t0 + timedelta(seconds=45))
+        first = claim_job(session, kind=kind, key=key, grace_s=grace_s, worker="a@host:1", now=t0)
+    assert (first.status, first.attempts, first.started_at, first.heartbeat_at, first.worker) == (
+        JobStatus.RUNNING, 1, t0, t0, "a@host:1")
+    with session_scope(jobs_db) as session, pytest.raises(JobBusy, match="a@host:1") as busy:
+        claim_job(session, kind=kind, key=key, grace_s=grace_s, now=t0 + timedelta(seconds=45))
     assert busy.value.retry_after_s == pytest.approx(15.0)
+    # A heartbeat keeps the attempt alive past the grace counted from its start.
     with session_scope(jobs_db) as session:
         report_progress(session, first, 0.25, "a quarter")
+        heartbeat(session, first, now=t0 + timedelta(seconds=50))
     assert (_job(jobs_db, key).progress, _job(jobs_db, key).message) == (0.25, "a quarter")
+    assert job_state(_job(jobs_db, key), grace_s=grace_s,
+                     now=t0 + timedelta(seconds=100)) is JobState.RUNNING
+    with session_scope(jobs_db) as session, pytest.raises(JobBusy) as busy:
+        claim_job(session, kind=kind, key=key, grace_s=grace_s, now=t0 + timedelta(seconds=100))
+    assert busy.value.retry_after_s == pytest.approx(10.0)
+    # Silent for longer than the grace: lost, and the next delivery takes it over.
+    lost_at = t0 + timedelta(seconds=111)
+    assert job_state(_job(jobs_db, key), grace_s=grace_s, now=lost_at) is JobState.LOST
+    with jobs_db() as session:
+        for state, count in ((JobState.LOST, 1), (JobState.RUNNING, 0)):
+            assert find_jobs(session, grace_s=grace_s, state=state, now=lost_at)[0] == count
     with session_scope(jobs_db) as session:
-        second = claim_job(session, kind=kind, key=key, lease_s=lease_s,
-                           now=t0 + timedelta(seconds=61))
-    assert (second.id, second.attempts, second.progress) == (first.id, 2, 0.0)
+        second = claim_job(session, kind=kind, key=key, grace_s=grace_s, worker="b@host:2",
+                           now=lost_at)
+    assert (second.id, second.attempts, second.progress, second.worker) == (
+        first.id, 2, 0.0, "b@host:2")
     # The first attempt's worker was presumed dead: it may no longer write.
     for stale in (lambda s: report_progress(s, first, 0.5),
+                  lambda s: heartbeat(s, first),
                   lambda s: finish_job(s, first, message="stale"),
                   lambda s: fail_job(s, first, error="stale")):
         with pytest.raises(JobLost), session_scope(jobs_db) as session:
@@ -258,16 +286,16 @@ def test_claims_follow_the_lease_and_fence_stale_attempts(
     assert (_job(jobs_db, key).status, _job(jobs_db, key).error) == (
         JobStatus.FAILED, "Traceback: boom")
     with session_scope(jobs_db) as session:
-        third = claim_job(session, kind=kind, key=key, lease_s=lease_s,
-                          now=t0 + timedelta(seconds=62))
+        third = claim_job(session, kind=kind, key=key, grace_s=grace_s,
+                          now=t0 + timedelta(seconds=112))
         assert third.error is None
     with session_scope(jobs_db) as session:
         finish_job(session, third, message="solved")
     with session_scope(jobs_db) as session:
-        assert claim_job(session, kind=kind, key=key, lease_s=lease_s) is None
+        assert claim_job(session, kind=kind, key=key, grace_s=grace_s) is None
         assert submit_job(session, kind=kind, key=key).status is JobStatus.DONE
         with pytest.raises(ValueError, match="refine job"):
-            claim_job(session, kind=JobKind.FUSE, key=key, lease_s=lease_s)
+            claim_job(session, kind=JobKind.FUSE, key=key, grace_s=grace_s)
     row = _job(jobs_db, key)
     assert (row.status, row.attempts, row.progress, row.message) == (
         JobStatus.DONE, 3, 1.0, "solved")
@@ -285,7 +313,7 @@ def test_concurrent_first_deliveries_claim_once(postgres_url: str) -> None:
         barrier.wait()
         try:
             with session_scope(sessions) as session:
-                claim_job(session, kind=JobKind.FUSE, key="fuse:race", lease_s=60.0)
+                claim_job(session, kind=JobKind.FUSE, key="fuse:race", grace_s=60.0)
                 time.sleep(0.2)  # hold the row lock while the others queue up on it
             outcomes.append("claimed")
         except JobBusy:
