@@ -16,7 +16,18 @@ from pathlib import Path
 
 import pytest
 from celery import Celery
-from harness import PWM, REPO, WORKER_START_TIMEOUT_S, Worker, logs, pwm_worker_command, wait_for
+from harness import (
+    HEARTBEAT_GRACE_S,
+    PWM,
+    REPO,
+    VISIBILITY_TIMEOUT_S,
+    WORKER_START_TIMEOUT_S,
+    Worker,
+    end_to_end_settings,
+    logs,
+    pwm_worker_command,
+    wait_for,
+)
 from sqlalchemy import create_engine, func, select, text
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
@@ -25,12 +36,6 @@ from service.models import Job, JobKind, JobStatus, MapletRevision, ModelVersion
 from workers.app import WorkerSettings
 from workers.tasks import fuse_key, ingest_downlink, ingest_key
 
-# As in test_operations: the hard limit outlasts the slowest attempt on a loaded machine, and
-# Redis hands an unacknowledged task out again only after the visibility timeout.
-TIME_LIMIT_S, VISIBILITY_TIMEOUT_S = 25.0, 30.0
-# Short liveness and reconciliation settings, so that recoveries take seconds.
-HEARTBEAT_S, HEARTBEAT_GRACE_S, RECONCILE_INTERVAL_S, REQUEUE_AFTER_S = 1.0, 5.0, 1.0, 10.0
-MAPLET_NODES, TILE_RADIUS_KM = 40, 0.002  # 9 small maplets of the tiny site
 DOWNLINK_TIMEOUT_S = 150.0
 WORKERS_TOGETHER = 3  # without the migration lock, two of them often collide
 
@@ -42,14 +47,8 @@ def broker_url(redis_server) -> str:
 
 @pytest.fixture
 def settings(broker_url: str, postgres_url: str, tmp_path: Path) -> WorkerSettings:
-    return WorkerSettings(broker_url=broker_url, database_url=postgres_url,
-                          data_dir=tmp_path / "data", job_time_limit_s=TIME_LIMIT_S,
-                          visibility_timeout_s=VISIBILITY_TIMEOUT_S, task_retries=1,
-                          retry_backoff_s=1.0, maplet_nodes=MAPLET_NODES,
-                          tile_radius_km=TILE_RADIUS_KM, heartbeat_s=HEARTBEAT_S,
-                          heartbeat_grace_s=HEARTBEAT_GRACE_S,
-                          reconcile_interval_s=RECONCILE_INTERVAL_S,
-                          requeue_after_s=REQUEUE_AFTER_S)
+    return end_to_end_settings(broker_url=broker_url, database_url=postgres_url,
+                               data_dir=tmp_path / "data")
 
 
 def _jobs(sessions: sessionmaker[Session], kind: JobKind, *where) -> list[Job]:

@@ -16,7 +16,17 @@ from pathlib import Path
 
 import pytest
 from celery import Celery
-from harness import PWM, REPO, Worker, pwm_worker_command, result_of, wait_for
+from harness import (
+    HEARTBEAT_GRACE_S,
+    PWM,
+    REPO,
+    TIME_LIMIT_S,
+    Worker,
+    end_to_end_settings,
+    pwm_worker_command,
+    result_of,
+    wait_for,
+)
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
@@ -28,13 +38,6 @@ from service.versions import artifact_path, version_mesh
 from workers.app import WorkerSettings
 from workers.tasks import fuse_key, ingest_downlink, ingest_key
 
-# The hard limit on one attempt outlasts the slowest attempt on a loaded machine: an ingest that
-# imports the start model, or a refinement.
-TIME_LIMIT_S, VISIBILITY_TIMEOUT_S = 25.0, 30.0
-# A killed refinement is taken over once its heartbeat is HEARTBEAT_GRACE_S old.
-HEARTBEAT_S, HEARTBEAT_GRACE_S, RECONCILE_INTERVAL_S, REQUEUE_AFTER_S = 1.0, 5.0, 1.0, 10.0
-# Small maplets over the middle of the tiny site: 9 of them, a second or two each to refine.
-MAPLET_NODES, TILE_RADIUS_KM = 40, 0.002
 # The revisit: 64 px windows (3 m at 5 cm) of the tiny images, beside one corner of the tiling.
 CORNER_WINDOW_PX, CORNER_FIRST_PX = 64, (180, 180)
 DOWNLINK_TIMEOUT_S = 150.0
@@ -42,14 +45,8 @@ DOWNLINK_TIMEOUT_S = 150.0
 
 @pytest.fixture
 def settings(broker_url: str, postgres_url: str, tmp_path: Path) -> WorkerSettings:
-    return WorkerSettings(broker_url=broker_url, database_url=postgres_url,
-                          data_dir=tmp_path / "data", job_time_limit_s=TIME_LIMIT_S,
-                          visibility_timeout_s=VISIBILITY_TIMEOUT_S, task_retries=1,
-                          retry_backoff_s=1.0, maplet_nodes=MAPLET_NODES,
-                          tile_radius_km=TILE_RADIUS_KM, heartbeat_s=HEARTBEAT_S,
-                          heartbeat_grace_s=HEARTBEAT_GRACE_S,
-                          reconcile_interval_s=RECONCILE_INTERVAL_S,
-                          requeue_after_s=REQUEUE_AFTER_S)
+    return end_to_end_settings(broker_url=broker_url, database_url=postgres_url,
+                               data_dir=tmp_path / "data")
 
 
 @pytest.fixture
