@@ -33,15 +33,17 @@ HEARTBEAT_S, HEARTBEAT_GRACE_S, RECONCILE_INTERVAL_S, REQUEUE_AFTER_S = 1.0, 5.0
 MAPLET_NODES, TILE_RADIUS_KM = 40, 0.002
 
 
-def end_to_end_settings(*, broker_url: str, database_url: str, data_dir: Path) -> WorkerSettings:
-    """The settings of the end-to-end tests' processes, on their broker and catalog."""
+def end_to_end_settings(*, broker_url: str, database_url: str, data_dir: Path,
+                        **overrides: object) -> WorkerSettings:
+    """The settings of the end-to-end tests' processes, on their broker and catalog, with any
+    of them overridden."""
+    values: dict[str, object] = dict(
+        job_time_limit_s=TIME_LIMIT_S, visibility_timeout_s=VISIBILITY_TIMEOUT_S, task_retries=1,
+        retry_backoff_s=1.0, maplet_nodes=MAPLET_NODES, tile_radius_km=TILE_RADIUS_KM,
+        heartbeat_s=HEARTBEAT_S, heartbeat_grace_s=HEARTBEAT_GRACE_S,
+        reconcile_interval_s=RECONCILE_INTERVAL_S, requeue_after_s=REQUEUE_AFTER_S)
     return WorkerSettings(broker_url=broker_url, database_url=database_url, data_dir=data_dir,
-                          job_time_limit_s=TIME_LIMIT_S, visibility_timeout_s=VISIBILITY_TIMEOUT_S,
-                          task_retries=1, retry_backoff_s=1.0, maplet_nodes=MAPLET_NODES,
-                          tile_radius_km=TILE_RADIUS_KM, heartbeat_s=HEARTBEAT_S,
-                          heartbeat_grace_s=HEARTBEAT_GRACE_S,
-                          reconcile_interval_s=RECONCILE_INTERVAL_S,
-                          requeue_after_s=REQUEUE_AFTER_S)
+                          **(values | overrides))
 
 
 @dataclass
