@@ -10,7 +10,7 @@ from typing import Any
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import URL, Engine, create_engine, event, make_url, text
+from sqlalchemy import URL, Connection, Engine, create_engine, event, make_url, text
 from sqlalchemy.orm import Session, sessionmaker
 
 # The repository's top-level migrations/ folder; the package is installed editable next to it.
@@ -83,17 +83,25 @@ def upgrade(url: str | URL, revision: str = "head") -> None:
     others, once it has committed, find nothing left to do."""
     engine = make_engine(url)
     try:
-        with _migration_file_lock(engine.url), engine.begin() as connection:
-            if connection.dialect.name == "postgresql":
-                # Released when the transaction ends, that is after the migration committed.
-                connection.execute(text("SELECT pg_advisory_xact_lock(:key)"),
-                                   {"key": MIGRATION_LOCK_KEY})
+        with migration_transaction(engine) as connection:
             config = _alembic_config()
             # env.py migrates this connection, so the SQLite pragmas above apply there too.
             config.attributes["connection"] = connection
             command.upgrade(config, revision)
     finally:
         engine.dispose()
+
+
+@contextmanager
+def migration_transaction(engine: Engine) -> Iterator[Connection]:
+    """A transaction on `engine` holding the migration lock (upgrade; the alembic command line
+    through migrations/env.py)."""
+    with _migration_file_lock(engine.url), engine.begin() as connection:
+        if connection.dialect.name == "postgresql":
+            # Released when the transaction ends, that is after the migration committed.
+            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"),
+                               {"key": MIGRATION_LOCK_KEY})
+        yield connection
 
 
 @contextmanager

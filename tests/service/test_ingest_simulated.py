@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
+import pytest
 from sqlalchemy import select
 
 from pwm.simulate.campaign import simulate
@@ -33,10 +35,17 @@ def test_simulated_downlink_matches_the_truth_manifest(tiny_sim, catalog):
             assert np.allclose([g.sun_x, g.sun_y, g.sun_z], true["sun_direction"], atol=1e-6)
 
 
-def test_simulations_of_different_seeds_ingest_side_by_side(tiny_sim, catalog, tmp_path):
-    # The same scenario with another seed: the same observation names, other products.
-    other = tmp_path / "seed4"
-    simulate(other, scenario=get_scenario("tiny"), seed=4)
+@pytest.fixture(scope="module")
+def tiny_sim_seed4(tmp_path_factory) -> Path:
+    """The tiny scenario with another seed than tiny_sim's: the same observation names, other
+    products."""
+    out = tmp_path_factory.mktemp("tiny-seed4") / "sim"
+    simulate(out, scenario=get_scenario("tiny"), seed=4)
+    return out
+
+
+def test_simulations_of_different_seeds_ingest_side_by_side(tiny_sim, tiny_sim_seed4, catalog):
+    other = tiny_sim_seed4
     first = ingest_directory(catalog, tiny_sim / "downlink")
     second = ingest_directory(catalog, other / "downlink")
     count = json.loads((other / "truth" / "manifest.json").read_text())["image_count"]
