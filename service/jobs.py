@@ -15,6 +15,9 @@ presumed dead cannot overwrite the outcome of the attempt that took over; they w
 table and leave the Job object passed as it was claimed. Each function works in the caller's
 transaction: commit promptly so that the API sees progress.
 
+The keys' formats live here (ingest_key, refine_key, fuse_key): a version's lineage is read
+from the refine keys of the revisions it carries (refined_downlinks).
+
 The table, not the broker, is the truth about what must run next: every hand-over to the broker
 is recorded (`mark_enqueued`, with its error when the broker could not take it), and
 `due_jobs` finds the jobs a reconciler must hand over again: queued or retryable ones whose

@@ -245,13 +245,13 @@ def _sender(job: Job) -> Callable[[], object]:
     return _fuse_sender(int(rest) if rest.isdigit() else None, job.key)
 
 
-def _enqueue(sessions: sessionmaker[Session], key: str, send: Callable[[], object]) -> bool:
+def _enqueue(sessions: sessionmaker[Session], key: str, send: Callable[[], object]) -> None:
     """Hand the job `key` to the broker with `send` and record it in the job row; a broker that
     refuses it is recorded too (the reconciler hands it over again), not raised. In eager mode
     (no broker) `send` runs the job here, and its errors are raised."""
     if app.conf.task_always_eager:
         send()
-        return True
+        return
     try:
         send()
     except Exception as exc:  # the broker is unreachable or refused it: record, retry later
@@ -260,10 +260,9 @@ def _enqueue(sessions: sessionmaker[Session], key: str, send: Callable[[], objec
                     error)
         with session_scope(sessions) as session:
             mark_enqueued(session, key=key, error=error)
-        return False
+        return
     with session_scope(sessions) as session:
         mark_enqueued(session, key=key)
-    return True
 
 
 def reconcile(sessions: sessionmaker[Session] | None = None) -> list[str]:
@@ -366,9 +365,10 @@ def _run_job(task: Task, *, kind: JobKind, key: str,
         with _beating(state.sessions, job, interval_s=settings.heartbeat_s):
             outcome = work(state, job)
     except Exception as exc:
+        error = traceback.format_exc()
         with session_scope(state.sessions) as session:
-            fail_job(session, job, error=traceback.format_exc())
-        reason = error_reason(traceback.format_exc())
+            fail_job(session, job, error=error)
+        reason = error_reason(error)
         if job.attempts <= settings.task_retries:
             countdown = settings.retry_backoff_s * 2 ** (job.attempts - 1)
             log.warning("job %s: attempt %d failed (%s); retried in %.1f s (%d of %d)", key,
