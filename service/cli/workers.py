@@ -3,16 +3,18 @@ the jobs: list, show, retry."""
 
 from __future__ import annotations
 
+import enum
 import threading
 import time
 from datetime import datetime
 from pathlib import Path
+from typing import TypeVar
 
 import typer
 
 from service.cli.app import app, echo_json, setup_logging
-from service.jobs import JobState
-from service.models import JobKind
+
+E = TypeVar("E", bound=enum.StrEnum)
 
 jobs_app = typer.Typer(help="Background jobs, as the API's /jobs shows them.", no_args_is_help=True)
 app.add_typer(jobs_app, name="jobs")
@@ -83,8 +85,9 @@ def worker(
 
 @jobs_app.command("list")
 def jobs_list(
-    status: JobState | None = typer.Option(None, help="as shown: lost is running with no heartbeat"),
-    kind: JobKind | None = typer.Option(None),
+    status: str | None = typer.Option(None, help="a status as shown: queued, running, lost (running with no "
+                                      "heartbeat), done, failed"),
+    kind: str | None = typer.Option(None, help="ingest, refine or fuse"),
     key: str | None = typer.Option(None, help="the job with this key"),
     limit: int = typer.Option(50, min=1, max=1000),
     offset: int = typer.Option(0, min=0),
@@ -93,14 +96,18 @@ def jobs_list(
 ) -> None:
     """Jobs, newest first: id, kind, status, attempts, progress, worker, last heartbeat, key, and the
     message or the failure's reason."""
+    # Imported here, as the enums they need: every other command starts without them.
     from service.api.schemas import JobOut, Page
     from service.catalog import open_catalog
-    from service.jobs import find_jobs
+    from service.jobs import JobState, find_jobs
+    from service.models import JobKind
     from service.settings import get_settings
 
+    state = None if status is None else _choice(JobState, status, "--status")
+    job_kind = None if kind is None else _choice(JobKind, kind, "--kind")
     grace_s = get_settings().heartbeat_grace_s
     with open_catalog()() as session:
-        total, rows = find_jobs(session, grace_s=grace_s, state=status, kind=kind, key=key, limit=limit,
+        total, rows = find_jobs(session, grace_s=grace_s, state=state, kind=job_kind, key=key, limit=limit,
                                 offset=offset)
         jobs = [JobOut.shown(job, with_traceback=True, grace_s=grace_s) for job in rows]
     if as_json:
@@ -108,7 +115,7 @@ def jobs_list(
         return
     for job in jobs:
         beat = "-" if job.heartbeat_at is None else f"{_age_s(job.heartbeat_at):.0f}s ago"
-        note = job.error if job.status in (JobState.FAILED,) else job.message
+        note = job.error if job.status is JobState.FAILED else job.message
         if job.enqueue_error:
             note = f"not handed to the broker: {job.enqueue_error}"
         typer.echo(f"{job.id}\t{job.kind}\t{job.status}\t{job.attempts}\t{job.progress:.2f}\t"
@@ -147,6 +154,13 @@ def jobs_retry(job_id: int = typer.Argument(..., min=1)) -> None:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(1) from None
     typer.echo(key)
+
+
+def _choice(enum: type[E], value: str, option: str) -> E:
+    try:
+        return enum(value)
+    except ValueError:
+        raise typer.BadParameter(f"expected one of {', '.join(enum)}", param_hint=option) from None
 
 
 def _age_s(moment: datetime) -> float:
