@@ -12,7 +12,7 @@ from logging.config import fileConfig
 from alembic import context
 from sqlalchemy.engine import Connection
 
-from service.db import make_engine
+from service.db import make_engine, migration_transaction
 from service.models import Base
 from service.settings import get_settings
 
@@ -46,7 +46,7 @@ else:
         fileConfig(config.config_file_name, disable_existing_loggers=False)
     engine = make_engine(database_url())
     try:
-        with engine.begin() as connection:
+        with migration_transaction(engine) as connection:
             run_migrations(connection)
     finally:
         engine.dispose()

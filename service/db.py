@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -9,13 +10,15 @@ from typing import Any
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import URL, Engine, create_engine, event, make_url
+from sqlalchemy import URL, Connection, Engine, create_engine, event, make_url, text
 from sqlalchemy.orm import Session, sessionmaker
 
 # The repository's top-level migrations/ folder; the package is installed editable next to it.
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
+# The PostgreSQL advisory lock key that serializes migrations (any fixed 64-bit number: "pwm").
+MIGRATION_LOCK_KEY = 0x70776D
 
 
 def normalize_url(url: str | URL) -> URL:
@@ -72,13 +75,44 @@ def _alembic_config() -> Config:
 
 
 def upgrade(url: str | URL, revision: str = "head") -> None:
-    """Migrate the database at `url` to `revision` (default: the latest schema)."""
+    """Migrate the database at `url` to `revision` (default: the latest schema).
+
+    Any number of processes may call it at once (workers starting together on an empty
+    database): the upgrade runs under a lock, a PostgreSQL advisory lock held by the migrating
+    transaction or an exclusive lock on a file beside a SQLite database, so one migrates and the
+    others, once it has committed, find nothing left to do."""
     engine = make_engine(url)
     try:
-        with engine.begin() as connection:
+        with migration_transaction(engine) as connection:
             config = _alembic_config()
             # env.py migrates this connection, so the SQLite pragmas above apply there too.
             config.attributes["connection"] = connection
             command.upgrade(config, revision)
     finally:
         engine.dispose()
+
+
+@contextmanager
+def migration_transaction(engine: Engine) -> Iterator[Connection]:
+    """A transaction on `engine` holding the migration lock (upgrade; the alembic command line
+    through migrations/env.py)."""
+    with _migration_file_lock(engine.url), engine.begin() as connection:
+        if connection.dialect.name == "postgresql":
+            # Released when the transaction ends, that is after the migration committed.
+            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"),
+                               {"key": MIGRATION_LOCK_KEY})
+        yield connection
+
+
+@contextmanager
+def _migration_file_lock(url: URL) -> Iterator[None]:
+    """An exclusive lock on `<database>.migrate.lock` for a SQLite file, else nothing."""
+    if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
+        yield
+        return
+    with open(f"{url.database}.migrate.lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

@@ -4,15 +4,26 @@ A job row is made once per key (`submit_job` when work is requested, or `claim_j
 delivery) and every delivery of that key works on the same row:
 - done: nothing to do, `claim_job` returns None;
 - queued or failed: the delivery takes it (a failed job is tried again);
-- running: another attempt holds it while its lease lasts (JobBusy). The lease is the attempt's
-  start plus `lease_s`, which must exceed the longest an attempt may run (the workers' hard time
-  limit): a job still running after that lost its worker, and the next delivery takes it over.
+- running: another attempt holds it while it is alive (JobBusy): the attempt records its worker
+  and beats (`heartbeat`) every heartbeat_s while it runs, and an attempt whose latest beat is
+  more than grace_s old is lost (JobState.LOST, shown so by the API and `pwm jobs`): the next
+  delivery takes it over.
 
 `attempts` counts the attempts taken and fences them: progress, finish and fail only change the
 row while it is running for the attempt that calls them (JobLost otherwise), so a worker that was
 presumed dead cannot overwrite the outcome of the attempt that took over; they write to the
 table and leave the Job object passed as it was claimed. Each function works in the caller's
 transaction: commit promptly so that the API sees progress.
+
+The keys' formats live here (ingest_key, refine_key, fuse_key): a version's lineage is read
+from the refine keys of the revisions it carries (refined_downlinks).
+
+The table, not the broker, is the truth about what must run next: every hand-over to the broker
+is recorded (`mark_enqueued`, with its error when the broker could not take it), and
+`due_jobs` finds the jobs a reconciler must hand over again: queued or retryable ones whose
+message may be gone, lost attempts, and downlinks whose refinements are all done with no fusion
+job (`downlinks_awaiting_fusion`). Handing a job over twice is harmless: the claim makes every
+delivery after the first a no-op.
 
 Work is handed to whoever runs it through a JobQueue: the workers implement it
 (workers.tasks.CeleryQueue) and the command line, which wires the parts together, gives it to
@@ -21,17 +32,18 @@ the API and the watcher; nothing else in `service` knows who runs the jobs.
 
 from __future__ import annotations
 
+import enum
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Iterable
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any, Protocol, cast
 
-from sqlalchemy import CursorResult, select, update
+from sqlalchemy import ColumnElement, CursorResult, and_, func, or_, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.models import Job, JobKind, JobStatus, utcnow
+from service.models import Job, JobKind, JobStatus, MapletRevision, utcnow
 
 _INSERT_IGNORING_CONFLICT: dict[str, Callable[..., postgresql.Insert | sqlite.Insert]] = {
     "postgresql": postgresql.insert, "sqlite": sqlite.insert}
@@ -40,14 +52,42 @@ _INSERT_IGNORING_CONFLICT: dict[str, Callable[..., postgresql.Insert | sqlite.In
 _ABSOLUTE_PATH = re.compile(r"(?<=')/[^']*(?=')|(?<=\")/[^\"]*(?=\")"
                             r"|(?<![^\s(\[=])/[^\s'\"()\[\]]*")
 MAX_REASON_CHARS = 500
+# Marks the refine and fuse keys of a refinement asked for outside any downlink.
+REQUESTED = "requested"
+
+
+class JobState(enum.StrEnum):
+    """A job as shown: its status, with a running job whose heartbeat stopped shown as lost."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    LOST = "lost"
+    DONE = "done"
+    FAILED = "failed"
+
+
+def ingest_key(directory: str | Path) -> str:
+    """The idempotency key of ingesting `directory`: its absolute path. A directory whose
+    content changes after it was ingested needs a key of its own to be ingested again."""
+    return f"ingest:{Path(directory).resolve()}"
+
+
+def refine_key(downlink_id: int | None, maplet_id: int, input_hash: str) -> str:
+    """The key of refining a maplet's input (its hash) for a downlink, or on request (None)."""
+    return f"refine:{REQUESTED if downlink_id is None else downlink_id}:{maplet_id}:{input_hash}"
+
+
+def fuse_key(downlink_id: int | None) -> str:
+    """The key of fusing a downlink's refinements (None: the catalog's) into a new version."""
+    return f"fuse:{downlink_id}"
 
 
 class JobBusy(Exception):
     """Another attempt holds the job; deliver again after `retry_after_s` (s)."""
 
-    def __init__(self, key: str, retry_after_s: float) -> None:
-        super().__init__(f"job {key!r} is running in another attempt; its lease ends in "
-                         f"{retry_after_s:.1f} s")
+    def __init__(self, key: str, retry_after_s: float, worker: str | None = None) -> None:
+        super().__init__(f"job {key!r} is running in another attempt (worker {worker}); it is "
+                         f"lost unless it beats again within {retry_after_s:.1f} s")
         self.key, self.retry_after_s = key, retry_after_s
 
 
@@ -77,28 +117,172 @@ def submit_job(session: Session, *, kind: JobKind, key: str, downlink_id: int | 
     return _locked(session, kind, key)
 
 
-def claim_job(session: Session, *, kind: JobKind, key: str, lease_s: float,
-              downlink_id: int | None = None, maplet_id: int | None = None,
-              now: datetime | None = None) -> Job | None:
-    """Start an attempt at the job of `key` (made if missing): running, attempts + 1.
+def claim_job(session: Session, *, kind: JobKind, key: str, grace_s: float,
+              worker: str | None = None, downlink_id: int | None = None,
+              maplet_id: int | None = None, now: datetime | None = None) -> Job | None:
+    """Start an attempt at the job of `key` (made if missing) by `worker`: running,
+    attempts + 1, its heartbeat now.
 
-    Returns None when the job is done. Raises JobBusy while another attempt's lease lasts
-    (lease_s, s, from the start of that attempt). The row is locked until the transaction ends
-    (PostgreSQL; SQLite holds its write lock from the insert), so of two concurrent deliveries
-    one claims and the other sees the claim.
+    Returns None when the job is done. Raises JobBusy while another attempt is alive: its latest
+    heartbeat (or its start) less than grace_s (s) ago. The row is locked until the transaction
+    ends (PostgreSQL; SQLite holds its write lock from the insert), so of two concurrent
+    deliveries one claims and the other sees the claim.
     """
     now = now or utcnow()
     _insert_if_missing(session, kind=kind, key=key, downlink_id=downlink_id, maplet_id=maplet_id)
     job = _locked(session, kind, key)
     if job.status is JobStatus.DONE:
         return None
-    if job.status is JobStatus.RUNNING and job.started_at is not None:
-        remaining = (job.started_at + timedelta(seconds=lease_s) - now).total_seconds()
+    if job.status is JobStatus.RUNNING and (alive := _last_sign_of_life(job)) is not None:
+        remaining = (alive + timedelta(seconds=grace_s) - now).total_seconds()
         if remaining > 0:
-            raise JobBusy(key, remaining)
+            raise JobBusy(key, remaining, job.worker)
     job.status, job.attempts = JobStatus.RUNNING, job.attempts + 1
-    job.started_at, job.finished_at = now, None
-    job.progress, job.error = 0.0, None
+    job.started_at, job.heartbeat_at, job.finished_at = now, now, None
+    job.worker, job.progress, job.error = worker, 0.0, None
+    session.flush()
+    return job
+
+
+def heartbeat(session: Session, job: Job, *, now: datetime | None = None) -> None:
+    """Record that the attempt `job` (as claimed) is alive."""
+    _update_running(session, job, {"heartbeat_at": now or utcnow()})
+
+
+def job_state(job: Job, *, grace_s: float, now: datetime | None = None) -> JobState:
+    """The job as shown: lost when it is running with no heartbeat in the last grace_s (s)."""
+    if job.status is JobStatus.RUNNING:
+        alive = _last_sign_of_life(job)
+        if alive is not None and (now or utcnow()) - alive > timedelta(seconds=grace_s):
+            return JobState.LOST
+    return JobState(job.status.value)
+
+
+def state_filter(state: JobState, *, grace_s: float, now: datetime | None = None
+                 ) -> ColumnElement[bool]:
+    """The SQL condition for the jobs shown in `state` (job_state)."""
+    cutoff = (now or utcnow()) - timedelta(seconds=grace_s)
+    stale = func.coalesce(Job.heartbeat_at, Job.started_at) < cutoff
+    if state is JobState.LOST:
+        return and_(Job.status == JobStatus.RUNNING, stale)
+    if state is JobState.RUNNING:
+        return and_(Job.status == JobStatus.RUNNING, or_(stale.is_(None), ~stale))
+    return Job.status == JobStatus(state.value)
+
+
+def find_jobs(session: Session, *, grace_s: float, state: JobState | None = None,
+              kind: JobKind | None = None, key: str | None = None, limit: int | None = None,
+              offset: int = 0, now: datetime | None = None) -> tuple[int, list[Job]]:
+    """The jobs in `state` (job_state, lost after grace_s), of `kind`, with `key`, newest
+    first: how many match, and `limit` of them from `offset` (the API's /jobs and `pwm jobs`)."""
+    query = select(Job)
+    if state is not None:
+        query = query.where(state_filter(state, grace_s=grace_s, now=now))
+    if kind is not None:
+        query = query.where(Job.kind == kind)
+    if key is not None:
+        query = query.where(Job.key == key)
+    total = session.execute(select(func.count()).select_from(query.subquery())).scalar_one()
+    rows = session.scalars(query.order_by(Job.created_at.desc(), Job.id.desc())
+                           .limit(limit).offset(offset))
+    return total, list(rows)
+
+
+def mark_enqueued(session: Session, *, key: str, error: str | None = None,
+                  now: datetime | None = None) -> None:
+    """Record that the job `key` was handed to the broker now, or that it could not be (error):
+    a job whose hand-over failed is due again at the reconciler's next pass (due_jobs)."""
+    session.execute(update(Job).where(Job.key == key).values(
+        enqueued_at=None if error else (now or utcnow()), enqueue_error=error)
+        .execution_options(synchronize_session=False))
+
+
+def due_jobs(session: Session, *, grace_s: float, requeue_after_s: float, retries: int,
+             backoff_s: float, waiting_kinds: Collection[JobKind] = (),
+             now: datetime | None = None) -> list[tuple[Job, str]]:
+    """The jobs that must be handed to the broker again, with why, each taken for this caller
+    (its enqueued_at set to now, in the caller's transaction; rows another caller holds are
+    skipped) so that reconcilers running together hand each over once:
+    - a job whose last hand-over failed (mark_enqueued with an error);
+    - queued, with no attempt requeue_after_s (s) after it was made or last handed over (its
+      message may have gone with the broker), unless its kind is in waiting_kinds (its queue
+      holds messages, which may be its own);
+    - lost (no heartbeat for grace_s), grace_s after its last beat, then every requeue_after_s;
+    - failed with retries left (attempts <= retries), once the retry's backoff
+      (backoff_s * 2**(attempts - 1)) and requeue_after_s have passed with no new attempt.
+    """
+    now = now or utcnow()
+    candidates = session.scalars(
+        select(Job).where(or_(Job.status.in_([JobStatus.QUEUED, JobStatus.RUNNING]),
+                              and_(Job.status == JobStatus.FAILED, Job.attempts <= retries)))
+        .order_by(Job.id).with_for_update(skip_locked=True)
+        .execution_options(populate_existing=True)).all()
+    due = []
+    for job in candidates:
+        if job.enqueue_error is not None:
+            due.append((job, f"its hand-over failed: {job.enqueue_error}"))
+            continue
+        if job.status is JobStatus.QUEUED:
+            if job.kind in waiting_kinds:
+                continue
+            since, wait, why = job.created_at, requeue_after_s, "queued with no attempt"
+        elif job.status is JobStatus.FAILED:
+            since = job.finished_at or job.created_at
+            wait = backoff_s * 2 ** max(job.attempts - 1, 0) + requeue_after_s
+            why = f"attempt {job.attempts} failed, with no retry since"
+        elif job_state(job, grace_s=grace_s, now=now) is JobState.LOST:
+            since, wait = _last_sign_of_life(job) or job.created_at, grace_s
+            why = f"attempt {job.attempts} on {job.worker} lost: no heartbeat"
+        else:
+            continue
+        if job.enqueued_at is not None and job.enqueued_at > since:
+            since, wait = job.enqueued_at, max(wait, requeue_after_s)
+        idle_s = (now - since).total_seconds()
+        if idle_s > wait:
+            due.append((job, f"{why} for {idle_s:.0f} s"))
+    for job, _ in due:
+        job.enqueued_at, job.enqueue_error = now, None
+    session.flush()
+    return due
+
+
+def downlinks_awaiting_fusion(session: Session) -> list[int]:
+    """The downlinks with refine jobs, all done, and no fusion job: their fan-in never
+    happened (the worker died between the two, or the fusion job was never made)."""
+    refines = select(Job.downlink_id).where(Job.kind == JobKind.REFINE,
+                                            Job.downlink_id.is_not(None)).group_by(
+        Job.downlink_id).having(func.count().filter(Job.status != JobStatus.DONE) == 0)
+    fused = select(Job.downlink_id).where(Job.kind == JobKind.FUSE, Job.downlink_id.is_not(None))
+    return list(session.scalars(refines.where(Job.downlink_id.not_in(fused))
+                                .order_by(Job.downlink_id)))
+
+
+def refined_downlinks(session: Session, revisions: Iterable[MapletRevision]) -> set[int]:
+    """The downlinks whose refine jobs made these revisions (by maplet and input)."""
+    wanted = {(r.maplet_id, r.input_hash) for r in revisions}
+    if not wanted:
+        return set()
+    rows = session.execute(select(Job.key, Job.downlink_id).where(
+        Job.kind == JobKind.REFINE, Job.status == JobStatus.DONE, Job.downlink_id.is_not(None),
+        Job.maplet_id.in_({m for m, _ in wanted})))
+    return {downlink_id for key, downlink_id in rows if downlink_id is not None
+            and any(key == refine_key(downlink_id, m, h) for m, h in wanted)}
+
+
+def retry_job(session: Session, job_id: int, *, grace_s: float,
+              now: datetime | None = None) -> Job:
+    """Make a failed or lost job queued again, to be handed to the broker (the caller's queue,
+    or the reconciler); its attempts are kept. Raises LookupError for an unknown job and
+    ValueError for one that is done, queued or alive."""
+    job = session.scalars(select(Job).where(Job.id == job_id).with_for_update()
+                          .execution_options(populate_existing=True)).one_or_none()
+    if job is None:
+        raise LookupError(f"no job {job_id}")
+    state = job_state(job, grace_s=grace_s, now=now)
+    if state not in (JobState.FAILED, JobState.LOST):
+        raise ValueError(f"job {job_id} is {state}: only failed or lost jobs are retried")
+    job.status, job.worker, job.enqueued_at, job.enqueue_error = (
+        JobStatus.QUEUED, None, None, None)
     session.flush()
     return job
 
@@ -158,6 +342,10 @@ def _insert_if_missing(session: Session, *, kind: JobKind, key: str, downlink_id
     session.execute(insert(Job).values(kind=kind, key=key, downlink_id=downlink_id,
                                        maplet_id=maplet_id)
                     .on_conflict_do_nothing(index_elements=[Job.key]))
+
+
+def _last_sign_of_life(job: Job) -> datetime | None:
+    return job.heartbeat_at or job.started_at
 
 
 def _locked(session: Session, kind: JobKind, key: str) -> Job:

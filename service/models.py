@@ -579,6 +579,12 @@ class Job(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     started_at: Mapped[datetime | None]
     finished_at: Mapped[datetime | None]
+    # The running attempt's worker and its latest sign of life (service.jobs); when the job was
+    # last handed to the broker, and why that failed if it did.
+    worker: Mapped[str | None] = mapped_column(String(255))
+    heartbeat_at: Mapped[datetime | None]
+    enqueued_at: Mapped[datetime | None]
+    enqueue_error: Mapped[str | None] = mapped_column(Text)
     downlink_id: Mapped[int | None] = mapped_column(
         ForeignKey("downlinks.id", ondelete="SET NULL"), index=True
     )

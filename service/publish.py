@@ -18,14 +18,15 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_grid, write_grid
 from service.db import session_scope
-from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion
+from service.jobs import refined_downlinks
+from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion, model_version_downlinks
 from service.refinement import load_revision_maplet
 from service.versions import (
     artifact_path,
@@ -46,7 +47,9 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
     from the latest version's (nothing is published then).
 
     config.overlap: the maplets' overlap, over which fusion tapers their weights.
-    Lineage: the parent, the maplet revisions fused, the parent's downlinks plus downlink_ids.
+    Lineage: the parent, the maplet revisions fused, the parent's downlinks plus downlink_ids
+    and the downlinks whose refine jobs made the revisions changed (service.jobs
+    .refined_downlinks).
     Statistics: maplets changed, added, replaced and fused in all, images used, whether the
     parent's sums were reused, the base version, voxels and seconds (with the mesh's own).
     """
@@ -82,7 +85,9 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
         scratch = scratch_path(data_dir, ".npz")
         write_grid(scratch, grid)
         downlinks = {d.id: d for d in parent.downlinks}
-        for downlink_id in downlink_ids:
+        # Every downlink whose refinements this version carries, besides those asked for: a
+        # fusion may take up revisions whose own downlink's fusion has not run yet.
+        for downlink_id in sorted(set(downlink_ids) | refined_downlinks(session, changed)):
             if downlink_id not in downlinks:
                 downlinks[downlink_id] = session.get_one(Downlink, downlink_id)
         images = {name for r in current.values() for name in r.statistics.get("images", [])}
@@ -102,6 +107,13 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
                  version.version, parent.version, len(changed), len(current),
                  time.perf_counter() - clock)
         return version.version
+
+
+def first_version_with(session: Session, *, downlink_id: int) -> int | None:
+    """The first version whose lineage names the downlink, or None."""
+    return session.scalar(select(func.min(ModelVersion.version)).join(
+        model_version_downlinks, model_version_downlinks.c.model_version_id == ModelVersion.id)
+        .where(model_version_downlinks.c.downlink_id == downlink_id))
 
 
 def _current_revisions(session: Session) -> dict[int, MapletRevision]:

@@ -51,6 +51,10 @@ class Settings(BaseSettings):
     kernel_library, max_label_bytes, max_image_pixels, max_metakernel_entries, ingest_stale_s:
         PWM_KERNEL_LIBRARY, PWM_MAX_LABEL_BYTES, PWM_MAX_IMAGE_PIXELS,
         PWM_MAX_METAKERNEL_ENTRIES and PWM_INGEST_STALE_S, what ingest accepts (`ingest_limits`).
+    heartbeat_s: PWM_HEARTBEAT_S, how often a running job's attempt records that it is alive.
+    heartbeat_grace_s: PWM_HEARTBEAT_GRACE_S, how long after its latest heartbeat an attempt is
+        lost (shown so, and taken over by the next delivery); several heartbeats, so that a
+        loaded database or a paused process is not taken for a dead one.
     refine_mode, maplet_nodes, tile_radius_km: PWM_REFINE_MODE, PWM_MAPLET_NODES and
         PWM_TILE_RADIUS_KM, the catalog's refinement settings (`refinement`); their defaults and
         every other setting are pwm.config.DEFAULTS.
@@ -69,6 +73,8 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(MAX_PIXELS, ge=1)
     max_metakernel_entries: int = Field(MAX_METAKERNEL_ENTRIES, ge=1)
     ingest_stale_s: float = Field(INGEST_STALE_S, gt=0)
+    heartbeat_s: float = Field(10.0, gt=0)
+    heartbeat_grace_s: float = Field(60.0, gt=0)
     refine_mode: Mode = DEFAULTS.mode
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
@@ -82,6 +88,10 @@ class Settings(BaseSettings):
         if not self.database_url:
             self.database_url = f"sqlite:///{self.data_dir / CATALOG_FILENAME}"
         self.refinement()  # its checks, at load time
+        if self.heartbeat_grace_s < 2 * self.heartbeat_s:
+            raise ValueError(f"heartbeat_grace_s ({self.heartbeat_grace_s:g} s) must be at least "
+                             f"twice heartbeat_s ({self.heartbeat_s:g} s), or one late beat "
+                             "shows a live job as lost")
         return self
 
     def ingest_limits(self) -> IngestLimits:

@@ -140,45 +140,81 @@ def postgres_url(postgres_server: PostgresServer) -> Iterator[str]:
         admin.execute(f'DROP DATABASE "{name}" WITH (FORCE)')
 
 
+class RedisServer:
+    """A redis-server without persistence on a local port, which a test may stop and start
+    again (on the same port, empty: as a restarted broker without persistence comes back)."""
+
+    def __init__(self, workdir: Path) -> None:
+        executable = shutil.which("redis-server")
+        if executable is None:
+            pytest.fail(
+                "redis-server not found: install Debian's `redis-server` package "
+                "(scripts/test.sh does)",
+                pytrace=False,
+            )
+        self.executable, self.workdir, self.port = executable, workdir, _free_port()
+        self.log = workdir / "server.log"
+        self.process: subprocess.Popen | None = None
+
+    def url(self, database: int = 0) -> str:
+        return f"redis://127.0.0.1:{self.port}/{database}"
+
+    def start(self) -> None:
+        self.process = subprocess.Popen(
+            [self.executable, "--port", str(self.port), "--bind", "127.0.0.1", "--dir",
+             str(self.workdir), "--logfile", str(self.log), "--save", "", "--appendonly", "no",
+             "--daemonize", "no"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+        )
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            if self.process.poll() is not None:
+                server_log = self.log.read_text() if self.log.exists() else ""
+                pytest.fail(f"redis-server exited ({self.process.returncode}):\n{server_log}")
+            try:
+                socket.create_connection(("127.0.0.1", self.port), timeout=0.5).close()
+                return
+            except OSError:
+                if time.monotonic() > deadline:
+                    pytest.fail(f"redis-server did not accept connections on port {self.port}")
+                time.sleep(0.05)
+
+    def stop(self, *, kill: bool = False) -> None:
+        """Stop the server (SIGKILL with `kill`, as a crash would), losing what it held."""
+        if self.process is None:
+            return
+        if kill:
+            self.process.kill()
+        else:
+            self.process.terminate()
+        try:
+            self.process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self.process = None
+
+
 @pytest.fixture(scope="session")
 def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """A Redis server without persistence on a free local port, for the session."""
-    executable = shutil.which("redis-server")
-    if executable is None:
-        pytest.fail(
-            "redis-server not found: install Debian's `redis-server` package "
-            "(scripts/test.sh does)",
-            pytrace=False,
-        )
-    port = _free_port()
-    workdir = tmp_path_factory.mktemp("redis")
-    log = workdir / "server.log"
-    process = subprocess.Popen(
-        [executable, "--port", str(port), "--bind", "127.0.0.1", "--dir", str(workdir),
-         "--logfile", str(log), "--save", "", "--appendonly", "no", "--daemonize", "no"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
-    )
+    server = RedisServer(tmp_path_factory.mktemp("redis"))
     try:
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while True:
-            if process.poll() is not None:
-                server_log = log.read_text() if log.exists() else ""
-                pytest.fail(f"redis-server exited ({process.returncode}):\n{server_log}")
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    pytest.fail(f"redis-server did not accept connections on port {port}")
-                time.sleep(0.05)
-        yield f"redis://127.0.0.1:{port}/0"
+        server.start()
+        yield server.url()
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        server.stop()
+
+
+@pytest.fixture
+def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
+    """A Redis server of one test's own, started; the test may stop and restart it."""
+    server = RedisServer(tmp_path_factory.mktemp("redis-own"))
+    try:
+        server.start()
+        yield server
+    finally:
+        server.stop()
 
 
 @pytest.fixture(scope="session")
@@ -234,5 +270,5 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         params = callspec.params if callspec is not None else {}
         if "postgres_server" in names or params.get("db_url") == "postgres":
             item.add_marker(pytest.mark.postgres)
-        if "redis_url" in names:
+        if "redis_url" in names or "redis_server" in names:
             item.add_marker(pytest.mark.redis)

@@ -4,9 +4,11 @@ Run a worker with `pwm worker` (or `celery -A workers.app worker --pool=prefork 
 ingest,refine,fuse`). A task is acknowledged after it ran (acks_late) and given back when its
 worker process dies (task_reject_on_worker_lost); a worker that vanishes altogether leaves its
 task unacknowledged, and Redis hands it out again once visibility_timeout_s has passed.
-visibility_timeout_s must therefore exceed job_time_limit_s, the hard limit on one attempt,
-which is also the lease of a running job (service.jobs): a redelivered task finds its job's
-lease over and takes it over.
+visibility_timeout_s must exceed job_time_limit_s, the hard limit on one attempt, so that Redis
+does not hand a running task to a second worker. A running attempt beats every heartbeat_s;
+one silent for heartbeat_grace_s is lost (service.jobs), and the reconciler (Reconciler, in
+every worker's main process) hands its job over again, so a dead worker's job is taken over
+after about the grace rather than the visibility timeout.
 Tasks make deliveries idempotent through the jobs table (workers.tasks).
 
 spiceypy keeps one kernel pool per process and is not thread-safe: workers run the prefork pool
@@ -24,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import spiceypy as sp
-from celery import Celery, signals
+from celery import Celery, bootsteps, signals
 from celery.concurrency import get_implementation
 from celery.concurrency.prefork import TaskPool as PreforkPool
 from celery.concurrency.solo import TaskPool as SoloPool
@@ -50,19 +52,25 @@ SOFT_LIMIT_GRACE_FRACTION, SOFT_LIMIT_GRACE_S = 0.1, 60.0
 class WorkerSettings(Settings):
     """The service settings plus the workers' limits (s).
 
-    job_time_limit_s: PWM_JOB_TIME_LIMIT_S, the hard limit on one attempt at a job, and so the
-        lease of a running job.
+    job_time_limit_s: PWM_JOB_TIME_LIMIT_S, the hard limit on one attempt at a job.
     visibility_timeout_s: PWM_VISIBILITY_TIMEOUT_S, how long Redis waits for a delivered task to
         be acknowledged before it delivers it again; above job_time_limit_s.
     task_retries: PWM_TASK_RETRIES, how many times a failed job is tried again.
     retry_backoff_s: PWM_RETRY_BACKOFF_S, the wait before the first retry, doubled for each
         further one.
+    reconcile_interval_s: PWM_RECONCILE_INTERVAL_S, how often each worker and the watcher look
+        for work the broker lost (workers.tasks.reconcile).
+    requeue_after_s: PWM_REQUEUE_AFTER_S, how long a queued job may wait with no attempt (its
+        queue empty) before it is handed to the broker again; short recovers a lost message
+        sooner, long sends fewer needless duplicates (each a no-op).
     """
 
     job_time_limit_s: float = Field(6600.0, gt=0)
     visibility_timeout_s: float = Field(7200.0, gt=0)
     task_retries: int = Field(3, ge=0)
     retry_backoff_s: float = Field(30.0, ge=0)
+    reconcile_interval_s: float = Field(30.0, gt=0)
+    requeue_after_s: float = Field(120.0, gt=0)
 
     @model_validator(mode="after")
     def _check_limits(self) -> WorkerSettings:
@@ -183,4 +191,30 @@ def _prepare_process(**_: Any) -> None:
     process_state()
 
 
+class Reconciler(bootsteps.StartStopStep):
+    """Runs workers.tasks.reconcile every reconcile_interval_s on the worker's timer, in its main
+    process (not a thread: the pool forks from it). Stopped with the worker."""
+
+    requires = {"celery.worker.components:Timer"}
+
+    def __init__(self, worker: Any, **kwargs: Any) -> None:
+        super().__init__(worker, **kwargs)
+        self.timer_ref: Any = None
+
+    def start(self, worker: Any) -> None:
+        self.timer_ref = worker.timer.call_repeatedly(
+            get_worker_settings().reconcile_interval_s, self.run)
+
+    def stop(self, worker: Any) -> None:
+        if self.timer_ref is not None:
+            self.timer_ref.cancel()
+            self.timer_ref = None
+
+    def run(self) -> None:
+        from workers.tasks import reconcile_pass  # the tasks import this module
+
+        reconcile_pass()
+
+
 app = make_app(get_worker_settings())
+app.steps["worker"].add(Reconciler)

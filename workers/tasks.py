@@ -1,10 +1,12 @@
 """Celery tasks: each runs one job of the jobs table (service.jobs), known by its key.
 
 Every delivery claims the job first, so deliveries are idempotent: a job already done is not
-done again, a job another attempt holds is retried once that attempt's lease ends, and a job
-whose worker died is taken over by the redelivery. The outcome (done with a summary, or failed
-with the traceback) is recorded in the job row, then returned or raised to Celery; a failed
-attempt is tried again after a backoff, up to task_retries times (workers.app.WorkerSettings).
+done again, a job another live attempt holds is retried once that attempt could be lost, and a
+job whose attempt stopped beating (its worker died) is taken over by the next delivery. While it
+runs, an attempt records its heartbeat every heartbeat_s from a thread of its own. The outcome
+(done with a summary, or failed with the traceback) is recorded in the job row, then returned
+or raised to Celery; a failed attempt is tried again after a backoff, up to task_retries times
+(workers.app.WorkerSettings).
 
 The flow of a downlink: ingest_downlink catalogues it against the current model
 (service.run.ingest_and_plan) and submits one refine job per maplet whose input changed;
@@ -15,14 +17,24 @@ fuse_downlink publishes the new version (service.publish). The check runs after 
 job's outcome is committed, so of refinements finishing together the last to commit sees all
 done; fan-ins that both see it submit the same fuse key, and the claim makes the second delivery a no-op.
 
+The broker may lose what it was given (an outage, a restart without persistence) or refuse it:
+every hand-over goes through `_enqueue`, which records it in the job row (service.jobs
+.mark_enqueued), and `reconcile`, run periodically by every worker (workers.app.Reconciler) and
+by `pwm watch`, hands over again what the jobs table says is due (service.jobs.due_jobs) and
+submits the fusion of any downlink whose refinements are all done without one.
+
 Task names decide the queue (workers.app.TASK_ROUTES): ingest_* tasks go to `ingest`, refine_*
 to `refine`, fuse_* to `fuse`.
 """
 
 from __future__ import annotations
 
+import logging
+import os
+import threading
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,17 +44,35 @@ from sqlalchemy import event, func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import session_scope
-from service.jobs import JobBusy, claim_job, fail_job, finish_job, report_progress, submit_job
+from service.jobs import (
+    REQUESTED,
+    JobBusy,
+    JobLost,
+    claim_job,
+    downlinks_awaiting_fusion,
+    due_jobs,
+    error_reason,
+    fail_job,
+    finish_job,
+    fuse_key,
+    heartbeat,
+    ingest_key,
+    mark_enqueued,
+    refine_key,
+    report_progress,
+    retry_job,
+    submit_job,
+)
 from service.models import Job, JobKind, JobStatus, Maplet
-from service.publish import fuse_and_publish
+from service.publish import first_version_with, fuse_and_publish
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
 from service.run import ingest_and_plan
-from workers.app import ProcessState, app, get_worker_settings, process_state
+from workers.app import QUEUES, ProcessState, app, get_worker_settings, process_state
 
-# A retried delivery waits this long past the end of the lease that made it wait (s).
-LEASE_SLACK_S = 1.0
-# Marks the refine and fuse keys of a refinement asked for outside any downlink.
-REQUESTED = "requested"
+log = logging.getLogger(__name__)
+
+# A delivery that found its job busy comes again this long after the holder could be lost (s).
+BUSY_SLACK_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -52,22 +82,6 @@ class Outcome:
     message: str
     downlink_id: int | None = None
     maplet_id: int | None = None
-
-
-def ingest_key(directory: str | Path) -> str:
-    """The idempotency key of ingesting `directory`: its absolute path. A directory whose
-    content changes after it was ingested needs a key of its own to be ingested again."""
-    return f"ingest:{Path(directory).resolve()}"
-
-
-def refine_key(downlink_id: int | None, maplet_id: int, input_hash: str) -> str:
-    """The key of refining a maplet's input (its hash) for a downlink, or on request (None)."""
-    return f"refine:{REQUESTED if downlink_id is None else downlink_id}:{maplet_id}:{input_hash}"
-
-
-def fuse_key(downlink_id: int | None) -> str:
-    """The key of fusing a downlink's refinements (None: the catalog's) into a new version."""
-    return f"fuse:{downlink_id}"
 
 
 class CeleryQueue:
@@ -90,7 +104,8 @@ def submit_ingest(directory: Path, *, sessions: sessionmaker[Session] | None = N
     with session_scope(sessions or process_state().sessions) as session:
         done = submit_job(session, kind=JobKind.INGEST, key=key).status is JobStatus.DONE
     if not done:
-        ingest_downlink.apply_async(args=[str(path)], kwargs={"key": key})
+        _enqueue(sessions or process_state().sessions, key,
+                 lambda: ingest_downlink.apply_async(args=[str(path)], kwargs={"key": key}))
     return key
 
 
@@ -108,8 +123,9 @@ def submit_refinement(session: Session, *, maplet_id: int) -> str:
         raise ValueError(f"maplet {maplet_id} has nothing new to refine: its current revision is "
                          f"of its current input, or it has fewer than {config.min_images} images")
     if _submit_refine(session, None, stale[0]) is not None:
-        event.listen(session, "after_commit", lambda _: _enqueue_refine(None, stale[0]),
-                     once=True)
+        sessions = sessionmaker(bind=session.get_bind())
+        event.listen(session, "after_commit",
+                     lambda _: _enqueue_refine(sessions, None, stale[0]), once=True)
     return refine_key(None, maplet_id, stale[0].input_hash)
 
 
@@ -130,7 +146,7 @@ def ingest_downlink(self: Task, directory: str, key: str | None = None) -> dict[
             pending = [w for w in plan.work if _submit_refine(session, plan.downlink_id, w)]
         # Enqueued once their jobs are committed, so that the fan-in sees every sibling.
         for work_item in pending:
-            _enqueue_refine(plan.downlink_id, work_item)
+            _enqueue_refine(state.sessions, plan.downlink_id, work_item)
         return Outcome(f"{plan.ingest.summary()}; {len(plan.work)} maplets to refine "
                        f"from version {plan.base_version}", downlink_id=plan.downlink_id)
 
@@ -177,8 +193,16 @@ def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
         version = fuse_and_publish(state.sessions, data_dir=settings.data_dir,
                                    downlink_ids=[] if downlink_id is None else [downlink_id],
                                    config=settings.refinement())
-        message = ("no maplet changed: no new version" if version is None
-                   else f"published version {version}")
+        if version is not None:
+            message = f"published version {version}"
+        else:
+            with state.sessions() as session:
+                earlier = (None if downlink_id is None
+                           else first_version_with(session, downlink_id=downlink_id))
+            # Its refinements fused into a version by another downlink's fusion (which names
+            # this downlink in its lineage): nothing left to publish.
+            message = ("no maplet changed: no new version" if earlier is None else
+                       f"its refinements were already published in version {earlier}")
         return Outcome(message, downlink_id=downlink_id)
 
     return _run_job(self, kind=JobKind.FUSE, key=key or fuse_key(downlink_id), work=work)
@@ -192,10 +216,110 @@ def _submit_refine(session: Session, downlink_id: int | None, work: MapletWork) 
     return None if job.status is JobStatus.DONE else key
 
 
-def _enqueue_refine(downlink_id: int | None, work: MapletWork) -> None:
-    refine_revision.apply_async(kwargs={"maplet_id": work.maplet_id,
-                                      "input_hash": work.input_hash,
-                                      "downlink_id": downlink_id})
+def _enqueue_refine(sessions: sessionmaker[Session], downlink_id: int | None,
+                    work: MapletWork) -> None:
+    _enqueue(sessions, refine_key(downlink_id, work.maplet_id, work.input_hash),
+             _refine_sender(downlink_id, work.maplet_id, work.input_hash))
+
+
+def _refine_sender(downlink_id: int | None, maplet_id: int, input_hash: str
+                   ) -> Callable[[], object]:
+    return lambda: refine_revision.apply_async(kwargs={
+        "maplet_id": maplet_id, "input_hash": input_hash, "downlink_id": downlink_id})
+
+
+def _fuse_sender(downlink_id: int | None, key: str) -> Callable[[], object]:
+    return lambda: fuse_downlink.apply_async(kwargs={"downlink_id": downlink_id, "key": key})
+
+
+def _sender(job: Job) -> Callable[[], object]:
+    """What hands the job over to the broker, from its key (the key functions' formats)."""
+    rest = job.key.split(":", 1)[1]
+    if job.kind is JobKind.INGEST:
+        return lambda: ingest_downlink.apply_async(args=[rest], kwargs={"key": job.key})
+    if job.kind is JobKind.REFINE:
+        downlink, maplet_id, input_hash = rest.split(":", 2)
+        return _refine_sender(None if downlink == REQUESTED else int(downlink), int(maplet_id),
+                              input_hash)
+    # fuse:<downlink id>, fuse:None (the catalog's), or fuse:<requested refine key>
+    return _fuse_sender(int(rest) if rest.isdigit() else None, job.key)
+
+
+def _enqueue(sessions: sessionmaker[Session], key: str, send: Callable[[], object]) -> None:
+    """Hand the job `key` to the broker with `send` and record it in the job row; a broker that
+    refuses it is recorded too (the reconciler hands it over again), not raised. In eager mode
+    (no broker) `send` runs the job here, and its errors are raised."""
+    if app.conf.task_always_eager:
+        send()
+        return
+    try:
+        send()
+    except Exception as exc:  # the broker is unreachable or refused it: record, retry later
+        error = f"{type(exc).__name__}: {exc}"
+        log.warning("could not hand job %s to the broker, left to the reconciler: %s", key,
+                    error)
+        with session_scope(sessions) as session:
+            mark_enqueued(session, key=key, error=error)
+        return
+    with session_scope(sessions) as session:
+        mark_enqueued(session, key=key)
+
+
+def reconcile(sessions: sessionmaker[Session] | None = None) -> list[str]:
+    """Hand over again the jobs the jobs table says are due (service.jobs.due_jobs) and submit
+    the fusion of each downlink whose refinements are all done without one; the keys handed
+    over. Queued jobs of a kind whose queue still holds messages are left: theirs may be among
+    them. Raises when the broker cannot be reached (nothing is changed then)."""
+    settings = get_worker_settings()
+    sessions = sessions or process_state().sessions
+    waiting = _waiting_kinds()
+    with session_scope(sessions) as session:
+        sends: list[tuple[str, str, Callable[[], object]]] = []
+        for downlink_id in downlinks_awaiting_fusion(session):
+            key = fuse_key(downlink_id)
+            submit_job(session, kind=JobKind.FUSE, key=key, downlink_id=downlink_id)
+            sends.append((key, "its downlink's refinements are all done, with no fusion",
+                          _fuse_sender(downlink_id, key)))
+        for job, reason in due_jobs(session, grace_s=settings.heartbeat_grace_s,
+                                    requeue_after_s=settings.requeue_after_s,
+                                    retries=settings.task_retries,
+                                    backoff_s=settings.retry_backoff_s, waiting_kinds=waiting):
+            sends.append((job.key, reason, _sender(job)))
+    for key, reason, send in sends:
+        log.warning("reconciler: handing job %s to the broker again: %s", key, reason)
+        _enqueue(sessions, key, send)
+    return [key for key, _, _ in sends]
+
+
+def reconcile_pass() -> None:
+    """reconcile, with a broker or database that cannot be reached logged, not raised: the next
+    pass tries again (the workers' Reconciler and `pwm watch` run it periodically)."""
+    try:
+        reconcile()
+    except Exception as exc:
+        log.warning("reconciler: pass skipped: %s: %s", type(exc).__name__, exc)
+
+
+def retry(job_id: int, *, sessions: sessionmaker[Session] | None = None) -> str:
+    """Queue the failed or lost job `job_id` again (service.jobs.retry_job) and hand it to the
+    broker (or run it here without one); its key. Raises LookupError or ValueError as
+    retry_job does."""
+    sessions = sessions or process_state().sessions
+    with session_scope(sessions) as session:
+        job = retry_job(session, job_id, grace_s=get_worker_settings().heartbeat_grace_s)
+        send = _sender(job)
+    _enqueue(sessions, job.key, send)
+    return job.key
+
+
+def _waiting_kinds() -> set[JobKind]:
+    """The job kinds whose queue holds messages not yet delivered."""
+    with app.connection_for_write() as connection:
+        connection.ensure_connection(max_retries=1)  # a broker away fails the pass at once
+        channel = connection.default_channel
+        return {JobKind(queue) for queue in QUEUES
+                if channel.queue_declare(queue=queue, durable=True, auto_delete=False
+                                         ).message_count}
 
 
 def _fan_in(sessions: sessionmaker[Session], *, downlink_id: int | None, after: str
@@ -216,34 +340,70 @@ def _fan_in(sessions: sessionmaker[Session], *, downlink_id: int | None, after: 
         done = submit_job(session, kind=JobKind.FUSE, key=key,
                           downlink_id=downlink_id).status is JobStatus.DONE
     if not done:
-        fuse_downlink.apply_async(kwargs={"downlink_id": downlink_id, "key": key})
+        _enqueue(sessions, key, _fuse_sender(downlink_id, key))
     return key
 
 
 def _run_job(task: Task, *, kind: JobKind, key: str,
              work: Callable[[ProcessState, Job], Outcome]) -> dict[str, Any]:
-    """Claim the job `key`, run `work` as one attempt at it and record the outcome; a failed
-    attempt is retried after retry_backoff_s * 2**(attempt - 1) while attempts <= task_retries."""
+    """Claim the job `key`, run `work` as one attempt at it, beating while it runs, and record
+    the outcome; a failed attempt is retried after retry_backoff_s * 2**(attempt - 1) while
+    attempts <= task_retries."""
     state = process_state()
     settings = get_worker_settings()
+    worker = f"{task.request.hostname or 'local'}:{os.getpid()}"
     try:
         with session_scope(state.sessions) as session:
-            job = claim_job(session, kind=kind, key=key, lease_s=settings.job_time_limit_s)
+            job = claim_job(session, kind=kind, key=key, grace_s=settings.heartbeat_grace_s,
+                            worker=worker)
     except JobBusy as busy:
-        raise task.retry(countdown=busy.retry_after_s + LEASE_SLACK_S) from busy
+        log.info("job %s: %s; delivered again then", key, busy)
+        raise task.retry(exc=busy, countdown=busy.retry_after_s + BUSY_SLACK_S) from busy
     if job is None:
         return {"key": key, "status": "done", "ran": False}
     try:
-        outcome = work(state, job)
+        with _beating(state.sessions, job, interval_s=settings.heartbeat_s):
+            outcome = work(state, job)
     except Exception as exc:
+        error = traceback.format_exc()
         with session_scope(state.sessions) as session:
-            fail_job(session, job, error=traceback.format_exc())
+            fail_job(session, job, error=error)
+        reason = error_reason(error)
         if job.attempts <= settings.task_retries:
-            raise task.retry(exc=exc, countdown=settings.retry_backoff_s
-                             * 2 ** (job.attempts - 1)) from exc
+            countdown = settings.retry_backoff_s * 2 ** (job.attempts - 1)
+            log.warning("job %s: attempt %d failed (%s); retried in %.1f s (%d of %d)", key,
+                        job.attempts, reason, countdown, job.attempts, settings.task_retries)
+            raise task.retry(exc=exc, countdown=countdown) from exc
+        log.error("job %s: attempt %d failed (%s); no retries left: `pwm jobs retry %d` runs "
+                  "it again", key, job.attempts, reason, job.id)
         raise
     with session_scope(state.sessions) as session:
         finish_job(session, job, message=outcome.message, downlink_id=outcome.downlink_id,
                    maplet_id=outcome.maplet_id)
     return {"key": key, "status": "done", "ran": True, "attempt": job.attempts,
             "message": outcome.message}
+
+
+@contextmanager
+def _beating(sessions: sessionmaker[Session], job: Job, *, interval_s: float) -> Iterator[None]:
+    """Record the attempt's heartbeat every interval_s from a thread while the block runs. The
+    thread only writes the job row: SPICE, which is not thread-safe, stays with the task."""
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(interval_s):
+            try:
+                with session_scope(sessions) as session:
+                    heartbeat(session, job)
+            except JobLost:
+                return  # taken over: the attempt's outcome will be refused too
+            except Exception as exc:  # the database briefly away: the next beat may pass
+                log.warning("job %s: heartbeat not recorded: %s", job.key, exc)
+
+    thread = threading.Thread(target=beat, name=f"heartbeat {job.key}", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()

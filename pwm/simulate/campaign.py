@@ -119,7 +119,7 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
                                        factor=scenario.supersample, photometry=photometry)
             seen = view.reflectance if scenario.optics.perfect else blur(view.reflectance, scenario.optics) * flat
             images.append(_write_product(downlink / "images", obs=obs, view=seen, scenario=scenario,
-                                         mission=mission, window=window, rng=rng))
+                                         seed=seed, mission=mission, window=window, rng=rng))
             images[-1].update(_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera))
             log.info("image %d/%d %s rendered", k + 1, len(observations), obs.name)
         held_out = []
@@ -308,8 +308,8 @@ def _geometry(et: float, scenario: Scenario) -> tuple[Pose, np.ndarray]:
     return pose, sun_direction(et=et, target=scenario.target, body_frame=scenario.body_frame)
 
 
-def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scenario: Scenario, mission: Mission,
-                   window: tuple[int, int] | None, rng: np.random.Generator) -> dict:
+def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scenario: Scenario, seed: int,
+                   mission: Mission, window: tuple[int, int] | None, rng: np.random.Generator) -> dict:
     expected_max = max(float(np.percentile(view[view > 0], 99.9)) if (view > 0).any() else 0.05, 1e-4)
     exposure = choose_exposure(expected_max, full_well_dn=scenario.full_well_dn, fill=scenario.exposure_fill,
                                error=scenario.exposure_error, rng=rng)
@@ -321,7 +321,9 @@ def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scena
     directory.mkdir(parents=True, exist_ok=True)
     label, data = write_image_product(
         directory=directory, basename=basename, dn=dn, scaling_factor=exposure.scaling, value_offset=0.0,
-        lid=f"urn:nasa:pds:pwm_sim:{scenario.name.replace('-', '_')}:{basename}", start_utc=utc, stop_utc=stop,
+        # The scenario and seed in the bundle's name: simulations that differ in either are different products,
+        # so that their downlinks can be ingested into one catalog side by side.
+        lid=f"urn:nasa:pds:pwm_sim_{scenario.name.replace('-', '_')}_s{seed}:{basename}", start_utc=utc, stop_utc=stop,
         mission=mission.name, host_name=mission.host,
         instrument_name=mission.instrument_label or instrument_frame(scenario.instrument_id),
         target_name=mission.target_label, title=f"Simulated {scenario.name} image {obs.name}", exposure_s=EXPOSURE_S,

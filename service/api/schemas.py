@@ -10,8 +10,8 @@ from typing import Any, Generic, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from service.downlinks import Outcome
-from service.jobs import error_reason
-from service.models import DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, JobStatus, ModelKind
+from service.jobs import JobState, error_reason, job_state
+from service.models import DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, ModelKind
 from service.queries import CoverageSummary, MapletCoverage, MapletImage, MapletInfo, RevisionInfo
 
 Item = TypeVar("Item")
@@ -171,7 +171,8 @@ class JobOut(_Out):
     id: int
     kind: JobKind
     key: str
-    status: JobStatus
+    status: JobState = Field(description="`lost`: running, but its attempt's heartbeat stopped "
+                             "(its worker died); it is taken over after the grace")
     attempts: int
     progress: float
     message: str | None
@@ -179,6 +180,11 @@ class JobOut(_Out):
                               "line, with paths reduced to file names")
     traceback: str | None = Field(None, description="the failed attempt's full traceback; only "
                                   "with the API token")
+    worker: str | None = Field(description="the worker (node:pid) of the latest attempt")
+    heartbeat_at: datetime | None = Field(description="the latest attempt's latest heartbeat")
+    enqueued_at: datetime | None = Field(description="when the job was last handed to the broker")
+    enqueue_error: str | None = Field(description="why the last hand-over to the broker failed; "
+                                      "the reconciler tries again")
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
@@ -186,10 +192,11 @@ class JobOut(_Out):
     maplet_id: int | None
 
     @classmethod
-    def shown(cls, job: Job, *, with_traceback: bool) -> JobOut:
-        """The job as shown to a caller: the reason for anyone, the traceback only
-        `with_traceback` (a caller with the token)."""
+    def shown(cls, job: Job, *, with_traceback: bool, grace_s: float) -> JobOut:
+        """The job as shown to a caller: lost when its heartbeat is older than grace_s (s), the
+        reason for anyone, the traceback only `with_traceback` (a caller with the token)."""
         return cls.model_validate(job).model_copy(update={
+            "status": job_state(job, grace_s=grace_s),
             "error": error_reason(job.error),
             "traceback": job.error if with_traceback else None})
 

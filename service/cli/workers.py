@@ -1,12 +1,23 @@
-"""Distributed commands: a Celery worker, and the watcher that submits new downlinks' ingest."""
+"""Distributed commands: a Celery worker, the watcher that submits new downlinks' ingest, and
+the jobs: list, show, retry."""
 
 from __future__ import annotations
 
+import enum
+import threading
+import time
+from datetime import datetime
 from pathlib import Path
+from typing import TypeVar
 
 import typer
 
-from service.cli.app import app, setup_logging
+from service.cli.app import app, echo_json, setup_logging
+
+E = TypeVar("E", bound=enum.StrEnum)
+
+jobs_app = typer.Typer(help="Background jobs, as the API's /jobs shows them.", no_args_is_help=True)
+app.add_typer(jobs_app, name="jobs")
 
 
 @app.command()
@@ -24,10 +35,21 @@ def watch(
     (manifest.json present, or quiet); with PWM_BROKER_URL the workers run it, else it runs here."""
     from service.catalog import open_catalog
     from service.watch import watch as watch_directory
-    from workers.tasks import submit_ingest
+    from workers.app import get_worker_settings
+    from workers.tasks import reconcile_pass, submit_ingest
 
     setup_logging(verbose)
     open_catalog()  # migrated before the first submission
+    settings = get_worker_settings()
+    if settings.broker_url and not once:
+        # The watcher reconciles too, so that work the broker lost is handed over again even
+        # while no worker can (all of them busy on long jobs, or none started yet).
+        def reconcile_forever() -> None:
+            while True:
+                time.sleep(settings.reconcile_interval_s)
+                reconcile_pass()
+
+        threading.Thread(target=reconcile_forever, name="reconciler", daemon=True).start()
     watch_directory(directory, submit=submit_ingest, quiet_s=quiet_seconds, poll_s=poll_seconds,
                     once=once)
 
@@ -59,3 +81,89 @@ def worker(
     if name is not None:
         argv += ["-n", name]
     celery_app.worker_main(argv)
+
+
+@jobs_app.command("list")
+def jobs_list(
+    status: str | None = typer.Option(None, help="a status as shown: queued, running, lost (running with no "
+                                      "heartbeat), done, failed"),
+    kind: str | None = typer.Option(None, help="ingest, refine or fuse"),
+    key: str | None = typer.Option(None, help="the job with this key"),
+    limit: int = typer.Option(50, min=1, max=1000),
+    offset: int = typer.Option(0, min=0),
+    as_json: bool = typer.Option(False, "--json", help="the page as the API's GET /jobs gives it (with the "
+                                 "token)"),
+) -> None:
+    """Jobs, newest first: id, kind, status, attempts, progress, worker, last heartbeat, key, and the
+    message or the failure's reason."""
+    # Imported here, as the enums they need: every other command starts without them.
+    from service.api.schemas import JobOut, Page
+    from service.catalog import open_catalog
+    from service.jobs import JobState, find_jobs
+    from service.models import JobKind
+    from service.settings import get_settings
+
+    state = None if status is None else _choice(JobState, status, "--status")
+    job_kind = None if kind is None else _choice(JobKind, kind, "--kind")
+    grace_s = get_settings().heartbeat_grace_s
+    with open_catalog()() as session:
+        total, rows = find_jobs(session, grace_s=grace_s, state=state, kind=job_kind, key=key, limit=limit,
+                                offset=offset)
+        jobs = [JobOut.shown(job, with_traceback=True, grace_s=grace_s) for job in rows]
+    if as_json:
+        echo_json(Page(items=jobs, total=total, limit=limit, offset=offset).model_dump(mode="json"))
+        return
+    for job in jobs:
+        beat = "-" if job.heartbeat_at is None else f"{_age_s(job.heartbeat_at):.0f}s ago"
+        note = job.error if job.status is JobState.FAILED else job.message
+        if job.enqueue_error:
+            note = f"not handed to the broker: {job.enqueue_error}"
+        typer.echo(f"{job.id}\t{job.kind}\t{job.status}\t{job.attempts}\t{job.progress:.2f}\t"
+                   f"{job.worker or '-'}\t{beat}\t{job.key}\t{note or ''}")
+    typer.echo(f"{len(jobs)} of {total} jobs", err=True)
+
+
+@jobs_app.command("show")
+def jobs_show(job_id: int = typer.Argument(..., min=1)) -> None:
+    """One job as the API's GET /jobs/ID gives it (with the token: the traceback too)."""
+    from service.api.schemas import JobOut
+    from service.catalog import open_catalog
+    from service.models import Job
+    from service.settings import get_settings
+
+    with open_catalog()() as session:
+        job = session.get(Job, job_id)
+        if job is None:
+            typer.echo(f"error: no job {job_id}", err=True)
+            raise typer.Exit(1)
+        echo_json(JobOut.shown(job, with_traceback=True, grace_s=get_settings().heartbeat_grace_s)
+                  .model_dump(mode="json"))
+
+
+@jobs_app.command("retry")
+def jobs_retry(job_id: int = typer.Argument(..., min=1)) -> None:
+    """Run a failed or lost job again: queued and handed to the workers (PWM_BROKER_URL), or run here without a
+    broker. Its attempts so far are kept."""
+    from service.catalog import open_catalog
+    from workers.tasks import retry
+
+    setup_logging(False)
+    try:
+        key = retry(job_id, sessions=open_catalog())
+    except (LookupError, ValueError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(key)
+
+
+def _choice(enum: type[E], value: str, option: str) -> E:
+    try:
+        return enum(value)
+    except ValueError:
+        raise typer.BadParameter(f"expected one of {', '.join(enum)}", param_hint=option) from None
+
+
+def _age_s(moment: datetime) -> float:
+    from service.models import utcnow
+
+    return (utcnow() - moment).total_seconds()

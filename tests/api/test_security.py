@@ -4,8 +4,10 @@ tracebacks only with the token, security headers on every response, CORS only wh
 
 from __future__ import annotations
 
+import json
 import re
 import traceback
+from datetime import timedelta
 
 import pytest
 from fastapi.routing import iter_route_contexts
@@ -14,7 +16,7 @@ from fastapi.testclient import TestClient
 from service.api import create_app
 from service.db import session_scope
 from service.jobs import claim_job, fail_job
-from service.models import JobKind
+from service.models import JobKind, utcnow
 from service.settings import Settings
 from workers.tasks import ingest_key
 
@@ -168,7 +170,7 @@ def _failed_job(populated) -> tuple[int, str]:
     except OSError:
         error = traceback.format_exc()
     with session_scope(populated.app.state.sessions) as session:
-        job = claim_job(session, kind=JobKind.INGEST, key="ingest:fails", lease_s=60)
+        job = claim_job(session, kind=JobKind.INGEST, key="ingest:fails", grace_s=60)
         fail_job(session, job, error=error)
         return job.id, error
 
@@ -234,3 +236,44 @@ def test_cors_is_off_unless_origins_are_configured(client, populated, tmp_path):
         assert read.headers["access-control-allow-origin"] == "https://console.example"
         other = allowed.get("/versions", headers={"Origin": "https://elsewhere.example"})
         assert "access-control-allow-origin" not in other.headers
+
+
+def test_pwm_jobs_shows_what_the_api_shows(client, populated, auth, monkeypatch):
+    from typer.testing import CliRunner
+
+    from service.cli import app as cli
+    from service.settings import get_settings
+
+    settings = populated.app.state.settings
+    with session_scope(populated.app.state.sessions) as session:
+        # An attempt whose worker died two hours ago: its heartbeat stopped then.
+        lost = claim_job(session, kind=JobKind.REFINE, key="refine:lost-in-test", grace_s=60,
+                         worker="gone@host:7", now=utcnow() - timedelta(hours=2))
+    _failed_job(populated)
+    monkeypatch.setenv("PWM_DATA_DIR", str(settings.data_dir))
+    monkeypatch.setenv("PWM_DATABASE_URL", settings.database_url)
+    get_settings.cache_clear()
+    runner = CliRunner()
+    try:
+        for options, params in (([], {}), (["--status", "lost"], {"status": "lost"}),
+                                (["--kind", "ingest", "--limit", "2"], {"kind": "ingest",
+                                                                        "limit": 2})):
+            listed = runner.invoke(cli, ["jobs", "list", "--json", *options])
+            assert listed.exit_code == 0, listed.output
+            api = client.get("/jobs", params={"limit": 50} | params, headers=auth).json()
+            assert json.loads(listed.stdout) == api and api["total"] > 0
+        [shown] = api_lost = client.get("/jobs", params={"status": "lost"}, headers=auth
+                                        ).json()["items"]
+        assert (shown["id"], shown["status"], shown["worker"]) == (lost.id, "lost", "gone@host:7")
+        assert all(item["status"] != "lost" for item in client.get(
+            "/jobs", params={"status": "running"}).json()["items"])
+        one = runner.invoke(cli, ["jobs", "show", str(lost.id)])
+        assert one.exit_code == 0 and json.loads(one.stdout) == client.get(
+            f"/jobs/{lost.id}", headers=auth).json() == api_lost[0]
+        table = runner.invoke(cli, ["jobs", "list", "--status", "lost"])
+        assert table.exit_code == 0 and table.stdout.split("\t")[:3] == [
+            str(lost.id), "refine", "lost"]
+        refused = runner.invoke(cli, ["jobs", "retry", "999999"])
+        assert refused.exit_code == 1 and "no job 999999" in refused.output
+    finally:
+        get_settings.cache_clear()

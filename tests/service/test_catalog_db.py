@@ -88,6 +88,17 @@ def test_migrations_build_the_schema_of_the_models(db_url: str) -> None:
     assert _schema_differences(db_url) == []
 
 
+def test_processes_migrating_an_empty_database_at_once_all_succeed(db_url: str) -> None:
+    # As workers starting together do: the migration lock lets one migrate, the rest wait and
+    # find nothing to do.
+    code = f"from service.db import upgrade; upgrade({db_url!r})"
+    processes = [subprocess.Popen([sys.executable, "-c", code], cwd=REPO, stderr=subprocess.PIPE,
+                                  text=True) for _ in range(3)]
+    errors = [p.communicate(timeout=120)[1] for p in processes]
+    assert [p.returncode for p in processes] == [0, 0, 0], errors
+    assert _schema_differences(db_url) == []
+
+
 def test_alembic_command_line_downgrades_and_the_service_upgrades_again(
     db_url: str, tmp_path: Path
 ) -> None:

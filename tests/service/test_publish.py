@@ -1,6 +1,7 @@
 """Fusion into versions: nothing changed publishes nothing; concurrent fusions build one on the
 other under the publication lock; a parent without sums (an imported model) starts a new grid
-from every current revision."""
+from every current revision; a version's lineage names the downlinks of the refinements it
+carries, whichever fusion took them up."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ from sqlalchemy import func, select
 from pwm.config import RefinementConfig
 from pwm.io.meshio import write_ply
 from service.db import session_scope
-from service.models import ModelKind, ModelVersion
-from service.publish import fuse_and_publish
+from service.jobs import claim_job, finish_job, refine_key
+from service.models import Downlink, JobKind, ModelKind, ModelVersion
+from service.publish import first_version_with, fuse_and_publish
 from service.refinement import refine_catalog_maplet
 from service.run import ingest_and_plan
 from service.versions import get_version, import_model, version_mesh
@@ -51,3 +53,31 @@ def test_fusions_publish_changes_once(tiny_sim, catalog, tmp_path):
         assert v4.statistics["base_version"] == 3 and not v4.statistics["incremental"]
         assert v4.statistics["maplets_fused"] == 1 and v4.statistics["maplets_changed"] == 1
         assert v4.downlinks == []
+
+
+def test_a_version_names_every_downlink_whose_refinements_it_carries(tiny_sim, catalog,
+                                                                     tmp_path):
+    data = tmp_path / "data"
+    plan = ingest_and_plan(catalog, tiny_sim / "downlink", data_dir=data,
+                           config=RefinementConfig(nodes=40, tile_radius_km=0.0003))
+    [work] = plan.work
+    with session_scope(catalog) as session:
+        later = Downlink(name="later", path="/incoming/later")
+        session.add(later)
+        session.flush()
+        later_id = later.id
+        job = claim_job(session, kind=JobKind.REFINE, grace_s=60.0,
+                        key=refine_key(plan.downlink_id, work.maplet_id, work.input_hash),
+                        downlink_id=plan.downlink_id, maplet_id=work.maplet_id)
+    refine_catalog_maplet(catalog, data_dir=data, maplet_id=work.maplet_id,
+                          input_hash=work.input_hash)
+    with session_scope(catalog) as session:
+        finish_job(session, job, message="refined")
+    # A later downlink's fusion runs before this downlink's and takes its refinement up.
+    assert fuse_and_publish(catalog, data_dir=data, downlink_ids=[later_id]) == 2
+    with catalog() as session:
+        assert sorted(d.id for d in get_version(session, 2).downlinks) == sorted(
+            [plan.downlink_id, later_id])
+        assert first_version_with(session, downlink_id=plan.downlink_id) == 2
+    # This downlink's own fusion then finds nothing left to publish.
+    assert fuse_and_publish(catalog, data_dir=data, downlink_ids=[plan.downlink_id]) is None

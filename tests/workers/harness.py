@@ -15,12 +15,35 @@ from pathlib import Path
 import pytest
 from celery.result import AsyncResult
 
-from workers.app import QUEUES
+from workers.app import QUEUES, WorkerSettings
 
 REPO = Path(__file__).resolve().parents[2]
 PWM = Path(sys.executable).parent / "pwm"
 WORKER_START_TIMEOUT_S = 60.0
 RESULT_TIMEOUT_S = 60.0
+
+# The end-to-end tests' settings (test_operations, test_faults). The hard limit on one attempt
+# outlasts the slowest attempt on a loaded machine (an ingest that imports the start model, or a
+# refinement), and Redis hands an unacknowledged task out again after the visibility timeout.
+TIME_LIMIT_S, VISIBILITY_TIMEOUT_S = 25.0, 30.0
+# Short liveness and reconciliation: a lost attempt is taken over, and work the broker lost is
+# handed over again, within seconds.
+HEARTBEAT_S, HEARTBEAT_GRACE_S, RECONCILE_INTERVAL_S, REQUEUE_AFTER_S = 1.0, 5.0, 1.0, 10.0
+# Small maplets over the middle of the tiny site: 9 of them, a second or two each to refine.
+MAPLET_NODES, TILE_RADIUS_KM = 40, 0.002
+
+
+def end_to_end_settings(*, broker_url: str, database_url: str, data_dir: Path,
+                        **overrides: object) -> WorkerSettings:
+    """The settings of the end-to-end tests' processes, on their broker and catalog, with any
+    of them overridden."""
+    values: dict[str, object] = dict(
+        job_time_limit_s=TIME_LIMIT_S, visibility_timeout_s=VISIBILITY_TIMEOUT_S, task_retries=1,
+        retry_backoff_s=1.0, maplet_nodes=MAPLET_NODES, tile_radius_km=TILE_RADIUS_KM,
+        heartbeat_s=HEARTBEAT_S, heartbeat_grace_s=HEARTBEAT_GRACE_S,
+        reconcile_interval_s=RECONCILE_INTERVAL_S, requeue_after_s=REQUEUE_AFTER_S)
+    return WorkerSettings(broker_url=broker_url, database_url=database_url, data_dir=data_dir,
+                          **(values | overrides))
 
 
 @dataclass

@@ -16,15 +16,33 @@ import redis
 import spiceypy as sp
 from celery import Celery
 from celery.result import AsyncResult
-from harness import REPO, RESULT_TIMEOUT_S, Worker, celery_worker_command, result_of, wait_for
-from sqlalchemy import func, select
+from harness import REPO, RESULT_TIMEOUT_S, Worker, celery_worker_command, logs, result_of, wait_for
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.io.spice_kernels import kernel_pool
 from pwm.simulate.windows import window_downlink
 from service.db import make_engine, make_sessionmaker, session_scope, upgrade
 from service.ingest import COMMIT_EVERY, ingest_directory
-from service.jobs import JobBusy, JobLost, claim_job, fail_job, finish_job, report_progress, submit_job
+from service.jobs import (
+    JobBusy,
+    JobLost,
+    JobState,
+    claim_job,
+    downlinks_awaiting_fusion,
+    due_jobs,
+    fail_job,
+    find_jobs,
+    finish_job,
+    fuse_key,
+    heartbeat,
+    job_state,
+    mark_enqueued,
+    refine_key,
+    report_progress,
+    retry_job,
+    submit_job,
+)
 from service.kernels import accepted_kernels
 from service.models import (
     Base,
@@ -44,10 +62,12 @@ from service.versions import import_model
 from workers.app import QUEUES, ProcessState, WorkerSettings, make_app
 from workers.tasks import ingest_downlink, ingest_key
 
-# Short limits so that a lost task comes back within seconds: the lease (hard time limit) must
-# outlast the slowest attempt here (COMMIT_EVERY products on a loaded machine), and Redis
-# redelivers after the visibility timeout.
-TIME_LIMIT_S, VISIBILITY_TIMEOUT_S = 10.0, 12.0
+# Short limits so that a lost task comes back within seconds: the hard time limit must outlast
+# the slowest attempt here (the big downlink's ingest, 6 s alone, on a loaded machine), and
+# Redis redelivers after the visibility timeout; a reconciler hands a lost attempt's job over
+# once its heartbeat is HEARTBEAT_GRACE_S old.
+TIME_LIMIT_S, VISIBILITY_TIMEOUT_S = 20.0, 24.0
+HEARTBEAT_S, HEARTBEAT_GRACE_S, RECONCILE_INTERVAL_S, REQUEUE_AFTER_S = 0.5, 3.0, 1.0, 10.0
 # A failed attempt is tried again this many times, after this backoff (s).
 TASK_RETRIES, RETRY_BACKOFF_S = 2, 0.2
 # An ingest plans the refinement of what its images see: one small maplet here, so that the
@@ -63,7 +83,10 @@ def settings(broker_url: str, postgres_url: str, tmp_path: Path) -> WorkerSettin
                           data_dir=tmp_path / "data", job_time_limit_s=TIME_LIMIT_S,
                           visibility_timeout_s=VISIBILITY_TIMEOUT_S, task_retries=TASK_RETRIES,
                           retry_backoff_s=RETRY_BACKOFF_S, maplet_nodes=MAPLET_NODES,
-                          tile_radius_km=TILE_RADIUS_KM)
+                          tile_radius_km=TILE_RADIUS_KM, heartbeat_s=HEARTBEAT_S,
+                          heartbeat_grace_s=HEARTBEAT_GRACE_S,
+                          reconcile_interval_s=RECONCILE_INTERVAL_S,
+                          requeue_after_s=REQUEUE_AFTER_S)
 
 
 def _send_ingest(client: Celery, directory: Path, key: str) -> AsyncResult:
@@ -195,14 +218,18 @@ def test_a_task_lost_with_its_worker_is_redelivered_and_done_once(
     assert COMMIT_EVERY <= _count(catalog, Image) < len(labels)
 
     second_worker = start_worker()
-    result = result_of(pending, [first_worker, second_worker],
-                     timeout=VISIBILITY_TIMEOUT_S + RESULT_TIMEOUT_S)
+    # The second worker's reconciler hands the lost job over again, or Redis its message once
+    # the visibility timeout passed; whichever delivery comes second finds the job taken.
+    result_of(pending, [first_worker, second_worker],
+              timeout=VISIBILITY_TIMEOUT_S + RESULT_TIMEOUT_S)
+    wait_for(lambda: _job(catalog, key).status is JobStatus.DONE, "the job done",
+             [second_worker])
 
     done = _job(catalog, key)
-    assert result["ran"] and result["attempt"] == 2
-    assert (done.status, done.attempts, done.progress) == (JobStatus.DONE, 2, 1.0)
-    # Taken over only once the first attempt's lease was over.
-    assert done.started_at - job.started_at >= timedelta(seconds=TIME_LIMIT_S)
+    assert (done.status, done.attempts, done.progress) == (JobStatus.DONE, 2, 1.0), logs(
+        [first_worker, second_worker])
+    # Taken over only once the first attempt's heartbeat was the grace old.
+    assert done.started_at - job.heartbeat_at >= timedelta(seconds=HEARTBEAT_GRACE_S)
     with catalog() as session:
         lidvids = session.scalars(select(Image.lidvid)).all()
         downlink = session.scalars(select(Downlink)).one()
@@ -230,25 +257,41 @@ def jobs_db(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[sessionm
     engine.dispose()
 
 
-def test_claims_follow_the_lease_and_fence_stale_attempts(
+def test_claims_follow_the_heartbeat_and_fence_stale_attempts(
         jobs_db: sessionmaker[Session]) -> None:
-    kind, key, lease_s = JobKind.REFINE, "refine:test", 60.0
+    kind, key, grace_s = JobKind.REFINE, "refine:test", 60.0
     t0 = datetime(2030, 1, 1, tzinfo=UTC)
     with session_scope(jobs_db) as session:
-        first = claim_job(session, kind=kind, key=key, lease_s=lease_s, now=t0)
-    assert (first.status, first.attempts, first.started_at) == (JobStatus.RUNNING, 1, t0)
-    with session_scope(jobs_db) as session, pytest.raises(JobBusy) as busy:
-        claim_job(session, kind=kind, key=key, lease_s=lease_s, now=t0 + timedelta(seconds=45))
+        first = claim_job(session, kind=kind, key=key, grace_s=grace_s, worker="a@host:1", now=t0)
+    assert (first.status, first.attempts, first.started_at, first.heartbeat_at, first.worker) == (
+        JobStatus.RUNNING, 1, t0, t0, "a@host:1")
+    with session_scope(jobs_db) as session, pytest.raises(JobBusy, match="a@host:1") as busy:
+        claim_job(session, kind=kind, key=key, grace_s=grace_s, now=t0 + timedelta(seconds=45))
     assert busy.value.retry_after_s == pytest.approx(15.0)
+    # A heartbeat keeps the attempt alive past the grace counted from its start.
     with session_scope(jobs_db) as session:
         report_progress(session, first, 0.25, "a quarter")
+        heartbeat(session, first, now=t0 + timedelta(seconds=50))
     assert (_job(jobs_db, key).progress, _job(jobs_db, key).message) == (0.25, "a quarter")
+    assert job_state(_job(jobs_db, key), grace_s=grace_s,
+                     now=t0 + timedelta(seconds=100)) is JobState.RUNNING
+    with session_scope(jobs_db) as session, pytest.raises(JobBusy) as busy:
+        claim_job(session, kind=kind, key=key, grace_s=grace_s, now=t0 + timedelta(seconds=100))
+    assert busy.value.retry_after_s == pytest.approx(10.0)
+    # Silent for longer than the grace: lost, and the next delivery takes it over.
+    lost_at = t0 + timedelta(seconds=111)
+    assert job_state(_job(jobs_db, key), grace_s=grace_s, now=lost_at) is JobState.LOST
+    with jobs_db() as session:
+        for state, count in ((JobState.LOST, 1), (JobState.RUNNING, 0)):
+            assert find_jobs(session, grace_s=grace_s, state=state, now=lost_at)[0] == count
     with session_scope(jobs_db) as session:
-        second = claim_job(session, kind=kind, key=key, lease_s=lease_s,
-                           now=t0 + timedelta(seconds=61))
-    assert (second.id, second.attempts, second.progress) == (first.id, 2, 0.0)
+        second = claim_job(session, kind=kind, key=key, grace_s=grace_s, worker="b@host:2",
+                           now=lost_at)
+    assert (second.id, second.attempts, second.progress, second.worker) == (
+        first.id, 2, 0.0, "b@host:2")
     # The first attempt's worker was presumed dead: it may no longer write.
     for stale in (lambda s: report_progress(s, first, 0.5),
+                  lambda s: heartbeat(s, first),
                   lambda s: finish_job(s, first, message="stale"),
                   lambda s: fail_job(s, first, error="stale")):
         with pytest.raises(JobLost), session_scope(jobs_db) as session:
@@ -258,20 +301,88 @@ def test_claims_follow_the_lease_and_fence_stale_attempts(
     assert (_job(jobs_db, key).status, _job(jobs_db, key).error) == (
         JobStatus.FAILED, "Traceback: boom")
     with session_scope(jobs_db) as session:
-        third = claim_job(session, kind=kind, key=key, lease_s=lease_s,
-                          now=t0 + timedelta(seconds=62))
+        third = claim_job(session, kind=kind, key=key, grace_s=grace_s,
+                          now=t0 + timedelta(seconds=112))
         assert third.error is None
     with session_scope(jobs_db) as session:
         finish_job(session, third, message="solved")
     with session_scope(jobs_db) as session:
-        assert claim_job(session, kind=kind, key=key, lease_s=lease_s) is None
+        assert claim_job(session, kind=kind, key=key, grace_s=grace_s) is None
         assert submit_job(session, kind=kind, key=key).status is JobStatus.DONE
         with pytest.raises(ValueError, match="refine job"):
-            claim_job(session, kind=JobKind.FUSE, key=key, lease_s=lease_s)
+            claim_job(session, kind=JobKind.FUSE, key=key, grace_s=grace_s)
     row = _job(jobs_db, key)
     assert (row.status, row.attempts, row.progress, row.message) == (
         JobStatus.DONE, 3, 1.0, "solved")
     assert _count(jobs_db, Job) == 1
+
+
+def test_the_reconciler_finds_what_the_table_says_is_due(
+        jobs_db: sessionmaker[Session]) -> None:
+    grace_s, requeue_s, retries, backoff_s = 60.0, 100.0, 1, 10.0
+
+    def due(after_s: float, waiting: tuple[JobKind, ...] = ()) -> dict[str, str]:
+        with session_scope(jobs_db) as session:
+            return {job.key: why for job, why in due_jobs(
+                session, grace_s=grace_s, requeue_after_s=requeue_s, retries=retries,
+                backoff_s=backoff_s, waiting_kinds=waiting,
+                now=t0 + timedelta(seconds=after_s))}
+
+    with session_scope(jobs_db) as session:
+        session.add_all([Downlink(name=f"dl-{k}", path=f"/x/dl-{k}") for k in (1, 2)])
+    with jobs_db() as session:
+        dl1, dl2 = session.scalars(select(Downlink.id).order_by(Downlink.id)).all()
+    with session_scope(jobs_db) as session:
+        queued = submit_job(session, kind=JobKind.INGEST, key="ingest:/x/dl-1")
+        t0 = queued.created_at
+        running = claim_job(session, kind=JobKind.REFINE, key=refine_key(dl1, 1, "a"),
+                            grace_s=grace_s, downlink_id=dl1, worker="w@h:1",
+                            now=t0)
+        failed = claim_job(session, kind=JobKind.REFINE, key=refine_key(dl2, 1, "b"),
+                           grace_s=grace_s, downlink_id=dl2, now=t0)
+        fail_job(session, failed, error="Traceback: boom")
+    with session_scope(jobs_db) as session:  # failed at t0 + its wall time: about t0
+        session.execute(update(Job).where(Job.id == failed.id).values(finished_at=t0))
+    assert due(50) == {}
+    # The running attempt, silent since t0: lost after the grace, handed over (whatever the
+    # queues hold), then not again until requeue_after_s later.
+    assert due(70, waiting=(JobKind.INGEST,)) == {
+        refine_key(dl1, 1, "a"): "attempt 1 on w@h:1 lost: no heartbeat for 70 s"}
+    # Queued past requeue_after_s: handed over once its queue holds no message, then not again
+    # until requeue_after_s after that.
+    assert due(101, waiting=(JobKind.INGEST,)) == {}
+    assert due(105) == {"ingest:/x/dl-1": "queued with no attempt for 105 s"}
+    # Failed with a retry left and none came: due after its backoff and requeue_after_s.
+    assert due(111) == {refine_key(dl2, 1, "b"): "attempt 1 failed, with no retry since for 111 s"}
+    # A heartbeat: alive again.
+    with session_scope(jobs_db) as session:
+        heartbeat(session, running, now=t0 + timedelta(seconds=200))
+    assert refine_key(dl1, 1, "a") not in due(230)
+    # A failed hand-over: due at the next pass.
+    with session_scope(jobs_db) as session:
+        mark_enqueued(session, key="ingest:/x/dl-1", error="OperationalError: refused")
+    assert due(231) == {"ingest:/x/dl-1": "its hand-over failed: OperationalError: refused"}
+    # A lost job can be retried by hand; a live one cannot.
+    with session_scope(jobs_db) as session:
+        with pytest.raises(ValueError, match="running"):
+            retry_job(session, running.id, grace_s=grace_s, now=t0 + timedelta(seconds=201))
+        assert retry_job(session, running.id, grace_s=grace_s,
+                         now=t0 + timedelta(seconds=300)).status is JobStatus.QUEUED
+    # Downlink 2's refinements are all done once its failed one is; with no fusion job, its
+    # fusion is due; downlink 1's refinement still runs.
+    with session_scope(jobs_db) as session:
+        assert downlinks_awaiting_fusion(session) == []
+        retried = retry_job(session, failed.id, grace_s=grace_s)
+        assert (retried.status, retried.attempts) == (JobStatus.QUEUED, 1)
+        again = claim_job(session, kind=JobKind.REFINE, key=retried.key, grace_s=grace_s)
+        finish_job(session, again, message="done")
+        assert downlinks_awaiting_fusion(session) == [dl2]
+        submit_job(session, kind=JobKind.FUSE, key=fuse_key(dl2), downlink_id=dl2)
+        assert downlinks_awaiting_fusion(session) == []
+        with pytest.raises(ValueError, match="only failed or lost"):
+            retry_job(session, again.id, grace_s=grace_s)
+        with pytest.raises(LookupError):
+            retry_job(session, 999999, grace_s=grace_s)
 
 
 def test_concurrent_first_deliveries_claim_once(postgres_url: str) -> None:
@@ -285,7 +396,7 @@ def test_concurrent_first_deliveries_claim_once(postgres_url: str) -> None:
         barrier.wait()
         try:
             with session_scope(sessions) as session:
-                claim_job(session, kind=JobKind.FUSE, key="fuse:race", lease_s=60.0)
+                claim_job(session, kind=JobKind.FUSE, key="fuse:race", grace_s=60.0)
                 time.sleep(0.2)  # hold the row lock while the others queue up on it
             outcomes.append("claimed")
         except JobBusy:

@@ -16,7 +16,17 @@ from pathlib import Path
 
 import pytest
 from celery import Celery
-from harness import PWM, REPO, Worker, pwm_worker_command, result_of, wait_for
+from harness import (
+    HEARTBEAT_GRACE_S,
+    PWM,
+    REPO,
+    TIME_LIMIT_S,
+    Worker,
+    end_to_end_settings,
+    pwm_worker_command,
+    result_of,
+    wait_for,
+)
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
@@ -28,11 +38,6 @@ from service.versions import artifact_path, version_mesh
 from workers.app import WorkerSettings
 from workers.tasks import fuse_key, ingest_downlink, ingest_key
 
-# The lease (hard limit on one attempt) outlasts the slowest attempt on a loaded machine: an
-# ingest that imports the start model, or a refinement; a killed refinement comes back after it.
-TIME_LIMIT_S, VISIBILITY_TIMEOUT_S = 25.0, 30.0
-# Small maplets over the middle of the tiny site: 9 of them, a second or two each to refine.
-MAPLET_NODES, TILE_RADIUS_KM = 40, 0.002
 # The revisit: 64 px windows (3 m at 5 cm) of the tiny images, beside one corner of the tiling.
 CORNER_WINDOW_PX, CORNER_FIRST_PX = 64, (180, 180)
 DOWNLINK_TIMEOUT_S = 150.0
@@ -40,11 +45,8 @@ DOWNLINK_TIMEOUT_S = 150.0
 
 @pytest.fixture
 def settings(broker_url: str, postgres_url: str, tmp_path: Path) -> WorkerSettings:
-    return WorkerSettings(broker_url=broker_url, database_url=postgres_url,
-                          data_dir=tmp_path / "data", job_time_limit_s=TIME_LIMIT_S,
-                          visibility_timeout_s=VISIBILITY_TIMEOUT_S, task_retries=1,
-                          retry_backoff_s=1.0, maplet_nodes=MAPLET_NODES,
-                          tile_radius_km=TILE_RADIUS_KM)
+    return end_to_end_settings(broker_url=broker_url, database_url=postgres_url,
+                               data_dir=tmp_path / "data")
 
 
 @pytest.fixture
@@ -262,8 +264,9 @@ def test_a_refinement_lost_with_its_pool_process_is_redelivered_and_done_once(
     refines = _jobs(catalog, JobKind.REFINE)
     retaken = next(j for j in refines if j.key == lost.key)
     assert (retaken.status, retaken.attempts, retaken.progress) == (JobStatus.DONE, 2, 1.0)
-    # Taken over once the lost attempt's lease was over.
-    assert retaken.started_at - lost.started_at >= timedelta(seconds=TIME_LIMIT_S)
+    # Taken over once the lost attempt's heartbeat was the grace old, not after the hard limit.
+    assert (timedelta(seconds=HEARTBEAT_GRACE_S) <= retaken.started_at - lost.started_at
+            < timedelta(seconds=TIME_LIMIT_S))
     assert all((j.status, j.attempts) == (JobStatus.DONE, 1) for j in refines if j is not retaken)
     with catalog() as session:
         revisions = session.execute(select(MapletRevision.maplet_id, MapletRevision.revision)
@@ -281,4 +284,4 @@ def test_a_refinement_lost_with_its_pool_process_is_redelivered_and_done_once(
         (JobStatus.DONE, 1)]
     assert worker.process.poll() is None and pool_process not in worker.children()
     print(f"\nrefinement taken over {(retaken.started_at - lost.started_at).total_seconds():.1f} s"
-          f" after the lost attempt began (lease {TIME_LIMIT_S:g} s)")
+          f" after the lost attempt began (heartbeat grace {HEARTBEAT_GRACE_S:g} s)")
