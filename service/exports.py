@@ -65,7 +65,7 @@ from service.versions import ArtifactError, artifact_mesh, artifact_path
 EXPORTS_DIRNAME = "exports"
 # Bump when an export's content changes for the same inputs, so that old cache entries are
 # not served for new requests.
-EXPORT_REVISION = 2
+EXPORT_REVISION = 3
 # The site grid has at most (2 * MAX_SITE_HALF_NODES + 1)^2 nodes.
 MAX_SITE_HALF_NODES = 500
 # Requests of one process that may wait for the making lock or hold it; one more is refused.
