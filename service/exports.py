@@ -260,14 +260,16 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
 
 
 def cached_artifact(data_dir: Path, key: str, *, suffix: str, make: Callable[[Path], None],
-                    cache_bytes: int) -> dict[str, Any]:
+                    cache_bytes: int | None) -> dict[str, Any]:
     """The record ({"path", "sha256", "bytes"}) of the file kept for `key` (a hex digest), made
     by `make(path)` (which writes the file `path`) the first time, or again when it went missing.
 
     Making holds the process's making lock (so `make` may use SPICE and fast-simplification);
     of requests that must make their file, MAX_QUEUED_EXPORTS wait for it at most EXPORT_WAIT_S,
     and the others are refused with ExportBusy. Once made, the least recently served files are
-    removed until the kept ones total at most `cache_bytes` (the new one always stays).
+    removed until the kept ones total at most `cache_bytes` (the new one always stays); None
+    (a process without the service's settings, such as a publication) leaves that to the next
+    request that makes a file.
     """
     record = _kept(data_dir, key)
     if record is not None:
@@ -282,7 +284,8 @@ def cached_artifact(data_dir: Path, key: str, *, suffix: str, make: Callable[[Pa
             record = _kept(data_dir, key)
             if record is None:
                 record = _make_and_keep(data_dir, key, suffix=suffix, make=make)
-                _evict(data_dir, cache_bytes=cache_bytes, keep=key)
+                if cache_bytes is not None:
+                    _evict(data_dir, cache_bytes=cache_bytes, keep=key)
         finally:
             _PROCESS_GLOBAL.release()
     finally:
