@@ -389,19 +389,30 @@ def resample_site(mesh: Mesh, site: Site) -> SiteGrid:
     edge = float(np.linalg.norm(corners[near] - np.roll(corners[near], 1, axis=1), axis=2).mean())
     half = min(MAX_SITE_HALF_NODES, max(1, math.ceil(site.radius_km / edge)))
     axis = np.linspace(-site.radius_km, site.radius_km, 2 * half + 1)
-    # Rays start above everything within the site's horizontal reach, so the first hit is the top.
+    return sample_grid(mesh, frame, axis, axis, tracer=tracer)
+
+
+def sample_grid(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray, *,
+                tracer: RayTracer | None = None) -> SiteGrid:
+    """The heights and albedo of `mesh` at the nodes x_km, y_km of `frame`: where a ray down the
+    frame's z axis first meets the surface (NaN where it misses)."""
+    tracer = tracer or RayTracer(mesh)
+    # Rays start above everything within the grid's horizontal reach, so the first hit is the top.
     local = frame.to_local(mesh.vertices)
-    beside = np.hypot(local[:, 0], local[:, 1]) <= 1.5 * site.radius_km
-    top = float(local[beside, 2].max()) + edge
-    xx, yy = np.meshgrid(axis, axis)
+    reach = 1.5 * max(np.abs(x_km).max(), np.abs(y_km).max())
+    beside = np.hypot(local[:, 0], local[:, 1]) <= reach
+    if not beside.any():
+        raise ExportError("the grid lies beside the surface")
+    top = float(local[beside, 2].max()) + 1e-3 * reach
+    xx, yy = np.meshgrid(x_km, y_km)
     starts = frame.to_body(np.stack([xx, yy, np.full_like(xx, top)], axis=-1).reshape(-1, 3))
     downward = np.broadcast_to(-frame.normal, starts.shape)
     hits = tracer.intersect(starts, downward)
     height = frame.to_local(tracer.hit_points(starts, downward, hits))[:, 2]
     albedo = (np.where(hits.hit, tracer.interpolate(mesh.albedo, hits), np.nan)
               if mesh.albedo is not None else np.full(len(starts), np.nan))
-    return SiteGrid(frame=frame, x_km=axis, y_km=axis, height_km=height.reshape(xx.shape),
-                    albedo=albedo.reshape(xx.shape))
+    return SiteGrid(frame=frame, x_km=np.asarray(x_km), y_km=np.asarray(y_km),
+                    height_km=height.reshape(xx.shape), albedo=albedo.reshape(xx.shape))
 
 
 def _write_icq(path: Path, mesh: Mesh, q: int) -> None:

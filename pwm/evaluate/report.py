@@ -17,7 +17,7 @@ import numpy as np
 from pwm.camera import Camera, Pose
 from pwm.evaluate import plots
 from pwm.evaluate.distance import ClosestPoint
-from pwm.evaluate.icp import register
+from pwm.evaluate.icp import RigidTransform, register
 from pwm.evaluate.images import ncc, ssim
 from pwm.evaluate.profiles import boulder_height_ratio
 from pwm.io.meshio import read_mesh
@@ -48,12 +48,9 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     region = np.ones(len(model.vertices), bool) if whole_body else in_site(model.vertices, truth)
     if region.sum() < 10:
         raise ValueError(f"{model_path}: only {region.sum()} vertices inside the evaluation region")
-    reach_km = ICP_REACH_GSD * gsd_km
-    surface = ClosestPoint(truth.mesh if whole_body else near_site(truth, margin_km=2 * reach_km))
-    points = model.vertices[region]
-    sample = points[np.random.default_rng(0).permutation(len(points))[:ICP_POINTS]]
-    transform = register(sample, surface, max_distance_km=reach_km, tolerance_km=ICP_TOLERANCE_GSD * gsd_km)
+    transform, surface = register_to_truth(model, truth, region=region, gsd_km=gsd_km, whole_body=whole_body)
     registered = Mesh(transform.apply(model.vertices), model.faces, model.albedo)
+    points = model.vertices[region]
     distance, _, _ = surface.query(registered.vertices[region])
     moved = np.linalg.norm(registered.vertices[region] - points, axis=1)
 
@@ -79,6 +76,18 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     if model.albedo is not None:
         result.update(_views(manifest, truth_dir, tracer, plots_dir=plots_dir))
     return result
+
+
+def register_to_truth(model: Mesh, truth: Truth, *, region: np.ndarray, gsd_km: float,
+                      whole_body: bool) -> tuple[RigidTransform, ClosestPoint]:
+    """ICP of ICP_POINTS of the model's vertices in `region` onto the truth (the whole body, or
+    the faces near the site), pairs within ICP_REACH_GSD; the transform and the truth surface."""
+    reach_km = ICP_REACH_GSD * gsd_km
+    surface = ClosestPoint(truth.mesh if whole_body else near_site(truth, margin_km=2 * reach_km))
+    points = model.vertices[region]
+    sample = points[np.random.default_rng(0).permutation(len(points))[:ICP_POINTS]]
+    return register(sample, surface, max_distance_km=reach_km,
+                    tolerance_km=ICP_TOLERANCE_GSD * gsd_km), surface
 
 
 def in_site(points_body: np.ndarray, truth: Truth) -> np.ndarray:

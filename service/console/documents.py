@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib import colormaps
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy import case, distinct, func, select
 from sqlalchemy.orm import Session
@@ -32,22 +33,26 @@ from service.models import Coverage, CoverageRole, Maplet, MapletRevision, Model
 from service.versions import artifact_mesh, artifact_path
 
 MAGIC = b"PWMC"
-# What a browser draws smoothly: meshes above this many faces are decimated for the 3D view.
-MESH_FACES = 500_000
+# What a browser draws smoothly: meshes above this many faces are decimated for the 3D view
+# (at 300k the document is about 8 MB; bench/console.py times its first draw).
+MESH_FACES = 300_000
 # Bump when a document's content changes for the same inputs.
 REVISION = 1
+FIELD_UNITS = {"albedo": "", "height": "m", "slope": "deg", "change": "m"}
+UNKNOWN_GREY = 115
 # Farthest (km) a version's surface may have moved from its parent's and still be compared.
 CHANGE_REACH_KM = 0.01
 
 
 def pack(header: dict[str, Any], arrays: list[tuple[str, np.ndarray]]) -> bytes:
     """The binary document of `header` (JSON-able; "arrays" is added) and the named arrays
-    (float32, uint32 or uint8)."""
+    (float32, uint32, uint8 or int8)."""
     listed, offset, blobs = [], 0, []
     for name, array in arrays:
         data = np.ascontiguousarray(array)
-        if data.dtype not in (np.float32, np.uint32, np.uint8):
-            raise TypeError(f"array {name} is {data.dtype}; float32, uint32 or uint8 travel")
+        if data.dtype not in (np.float32, np.uint32, np.uint8, np.int8):
+            raise TypeError(f"array {name} is {data.dtype}; float32, uint32, uint8 or int8 "
+                            f"travel")
         listed.append({"name": name, "dtype": data.dtype.name, "shape": list(data.shape),
                        "offset": offset})
         blob = data.astype(data.dtype.newbyteorder("<"), copy=False).tobytes()
@@ -94,11 +99,12 @@ class MeshRequest:
 def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | None,
                   faces: int = MESH_FACES) -> Path:
     """The file of the 3D view's document of a version, made once: the mesh decimated to at
-    most `faces` faces, vertices (float32, km, body-fixed) and faces (uint32), and per vertex
-    (float32, NaN where unknown) albedo, height (m above the mean radius), slope (deg between
-    the vertex normal and the radial direction) and change (m along the normal since the parent
-    version, pwm.compare; NaN everywhere without a parent). cache_bytes: as for
-    service.exports.cached_artifact."""
+    most `faces` faces, vertices (float32, km, body-fixed), faces (uint32), unit normals
+    (int8, x 127), and per vertex an RGB colour (uint8) of each of albedo, height (m above the
+    mean radius), slope (deg between the vertex normal and the radial direction) and change (m
+    along the normal since the parent version, pwm.compare; unknown without a parent), with
+    the range each colour map spans in the header. The browser does no per-vertex work.
+    cache_bytes: as for service.exports.cached_artifact."""
     key = digest({"console": "mesh", "revision": REVISION, "mesh": request.mesh["sha256"],
                   "parent": request.parent_mesh["sha256"] if request.parent_mesh else None,
                   "faces": faces})
@@ -117,22 +123,40 @@ def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full_faces:
     radial = mesh.vertices / radius[:, None]
     normals = mesh.vertex_normals()
     slope = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", normals, radial), -1.0, 1.0)))
-    height = (radius - radius.mean()) * 1e3
-    albedo = (mesh.albedo if mesh.albedo is not None
-              else np.full(len(mesh.vertices), np.nan))
-    change = (height_change(artifact_mesh(data_dir, request.parent_mesh), mesh,
-                            max_distance_km=CHANGE_REACH_KM).change_m
-              if request.parent_mesh is not None else np.full(len(mesh.vertices), np.nan))
+    fields = {"albedo": (mesh.albedo if mesh.albedo is not None
+                         else np.full(len(mesh.vertices), np.nan)),
+              "height": (radius - radius.mean()) * 1e3, "slope": slope,
+              "change": (height_change(artifact_mesh(data_dir, request.parent_mesh), mesh,
+                                       max_distance_km=CHANGE_REACH_KM).change_m
+                         if request.parent_mesh is not None
+                         else np.full(len(mesh.vertices), np.nan))}
+    colours = {name: _colour(values, signed=name == "change") for name, values in fields.items()}
     header = {"kind": "mesh", "version": request.version, "parent": request.parent,
               "faces_full": full_faces, "faces": len(mesh.faces),
-              "vertices": len(mesh.vertices), "units": {"vertices": "km", "albedo": "",
-                                                        "height": "m", "slope": "deg",
-                                                        "change": "m"}}
+              "vertices": len(mesh.vertices),
+              "colours": {name: {"unit": FIELD_UNITS[name], **scale}
+                          for name, (_, scale) in colours.items()}}
     return pack(header, [("vertices", mesh.vertices.astype(np.float32)),
                          ("faces", mesh.faces.astype(np.uint32)),
-                         *((name, values.astype(np.float32)) for name, values in
-                           (("albedo", albedo), ("height", height), ("slope", slope),
-                            ("change", change)))])
+                         ("normals", np.round(normals * 127).astype(np.int8)),
+                         *((f"colour_{name}", rgb) for name, (rgb, _) in colours.items())])
+
+
+def _colour(values: np.ndarray, *, signed: bool) -> tuple[np.ndarray, dict[str, Any]]:
+    """RGB (uint8, per vertex) of `values` on viridis from their 2nd to 98th percentile, or for
+    a signed field on RdBu_r symmetric about 0 (grey where unknown), and that range."""
+    known = np.isfinite(values)
+    rgb = np.full((len(values), 3), UNKNOWN_GREY, dtype=np.uint8)
+    if not known.any():
+        return rgb, {"min": None, "max": None}
+    low, high = (float(v) for v in np.percentile(values[known], [2.0, 98.0]))
+    if signed:
+        high = max(abs(low), abs(high), 1e-9)
+        low = -high
+    span = high - low if high > low else 1.0
+    cmap = colormaps["RdBu_r" if signed else "viridis"]
+    rgb[known] = np.round(cmap(np.clip((values[known] - low) / span, 0.0, 1.0))[:, :3] * 255)
+    return rgb, {"min": low, "max": high}
 
 
 @dataclass(frozen=True)

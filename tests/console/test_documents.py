@@ -39,16 +39,21 @@ def test_mesh_document_of_a_refined_version(console):
     assert arrays["vertices"].shape == (version["vertices"], 3)
     assert arrays["faces"].shape == (version["faces"], 3)
     assert arrays["faces"].max() == version["vertices"] - 1
-    # the refinement stands RAISE_M outside its parent everywhere
-    change = arrays["change"][np.isfinite(arrays["change"])]
-    assert change.size > 0.9 * len(arrays["vertices"])
-    assert np.median(change) == pytest.approx(RAISE_M, abs=0.01)
-    assert 0.034 <= np.nanmin(arrays["albedo"]) and np.nanmax(arrays["albedo"]) <= 0.054 + 1e-6
-    assert 0 <= arrays["slope"].min() and arrays["slope"].max() <= 180
-    assert abs(float(np.mean(arrays["height"]))) < 1e-2  # about the mean radius
-    # the start has no parent: no change, and no albedo in its OBJ
+    normals = arrays["normals"].astype(float) / 127
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=0.02)
+    for name in ("albedo", "height", "slope", "change"):
+        assert arrays[f"colour_{name}"].shape == (version["vertices"], 3)
+    colours = header["colours"]
+    # the refinement stands RAISE_M outside its parent everywhere: the change map's range
+    assert colours["change"]["max"] == pytest.approx(RAISE_M, abs=0.01)
+    assert colours["change"]["min"] == -colours["change"]["max"]
+    assert 0.034 <= colours["albedo"]["min"] < colours["albedo"]["max"] <= 0.054
+    assert colours["slope"]["unit"] == "deg" and 0 <= colours["slope"]["min"]
+    assert arrays["colour_albedo"].std(axis=0).max() > 10  # coloured, not one grey
+    # the start has no parent (no change) and no albedo in its OBJ: grey
     header1, arrays1 = unpack(console.api.get("/console/api/versions/1/mesh").content)
-    assert header1["parent"] is None and np.isnan(arrays1["change"]).all()
+    assert header1["parent"] is None and header1["colours"]["change"]["min"] is None
+    assert (arrays1["colour_change"] == arrays1["colour_change"][0]).all()
 
 
 def test_mesh_document_is_decimated_above_the_limit(console, tmp_path):
@@ -60,7 +65,8 @@ def test_mesh_document_is_decimated_above_the_limit(console, tmp_path):
                          faces=faces)
     header, arrays = unpack(path.read_bytes())
     assert header["faces_full"] == 2 * faces and 0.9 * faces <= header["faces"] <= faces
-    assert len(arrays["faces"]) == header["faces"] and np.isfinite(arrays["albedo"]).all()
+    assert len(arrays["normals"]) == len(arrays["vertices"]) == header["vertices"]
+    assert len(arrays["faces"]) == header["faces"] and header["colours"]["albedo"]["min"] > 0
 
 
 @pytest.mark.parametrize(("params", "status"), [

@@ -72,12 +72,17 @@ export async function post(path, body) {
 
 // A binary document: {header, arrays: {name: TypedArray}}.
 export async function getDocument(path) {
-  const response = await fetch(path);
+  return documentOf(fetch(path));
+}
+
+// The document of a fetch under way.
+export async function documentOf(responding) {
+  const response = await responding;
   if (!response.ok) throw await failure(response);
   return parseDocument(await response.arrayBuffer());
 }
 
-const TYPES = { float32: Float32Array, uint32: Uint32Array, uint8: Uint8Array };
+const TYPES = { float32: Float32Array, uint32: Uint32Array, uint8: Uint8Array, int8: Int8Array };
 
 export function parseDocument(buffer) {
   const magic = new TextDecoder().decode(new Uint8Array(buffer, 0, 4));
@@ -155,18 +160,14 @@ export function viridis(t) {
   return VIRIDIS[k].map((c, i) => (c + f * (VIRIDIS[k + 1][i] - c)) / 255);
 }
 
-// Blue-white-red for signed values, t in [-1, 1].
-export function diverging(t) {
-  const x = Math.min(Math.max(t, -1), 1);
-  return x < 0 ? [1 + x * 0.8, 1 + x * 0.6, 1] : [1, 1 - x * 0.6, 1 - x * 0.8];
-}
-
-// The 2nd and 98th percentiles of the finite values (a colour range that outliers do not set).
+// The 2nd and 98th percentiles of the finite values (a colour range that outliers do not set),
+// from at most about 20000 of them.
 export function range(values) {
-  const finite = Array.from(values).filter(Number.isFinite);
-  if (!finite.length) return [0, 1];
-  const step = Math.max(1, Math.floor(finite.length / 20000));
-  const sample = finite.filter((_, i) => i % step === 0).sort((a, b) => a - b);
+  const step = Math.max(1, Math.floor(values.length / 20000));
+  const sample = [];
+  for (let i = 0; i < values.length; i += step) if (Number.isFinite(values[i])) sample.push(values[i]);
+  if (!sample.length) return [0, 1];
+  sample.sort((a, b) => a - b);
   const lo = sample[Math.floor(0.02 * (sample.length - 1))];
   const hi = sample[Math.floor(0.98 * (sample.length - 1))];
   return hi > lo ? [lo, hi] : [lo - 1e-6, lo + 1e-6];

@@ -3,17 +3,21 @@
 // When the first frame is drawn, body[data-drawn-ms] holds the time since navigation start
 // (bench/console.py reads it).
 import * as THREE from "/console/vendor/three.module.min.js";
-import { diverging, fmt, getDocument, getJSON, header, params, range, showError, viridis } from "/console/common.js";
+import { documentOf, fmt, getDocument, getJSON, header, params, showError } from "/console/common.js";
 
+const timings = { module: performance.now() };
 header();
 const holder = document.getElementById("view");
 const status = document.getElementById("status");
 const width = Math.min(window.innerWidth - 40, 1000);
 const height = Math.round(width * 0.62);
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+// the context view-prefetch.js made while this module loaded
+const renderer = new THREE.WebGLRenderer({ canvas: window.pwmCanvas, context: await window.pwmContext,
+  antialias: true, preserveDrawingBuffer: true });
 renderer.setPixelRatio(1);
 renderer.setSize(width, height);
 holder.append(renderer.domElement);
+timings.context = performance.now();
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x0b0e13);
 const camera = new THREE.PerspectiveCamera(35, width / height, 1e-4, 100);
@@ -25,23 +29,15 @@ let mesh = null;
 let document_ = null;
 const orbit = { yaw: 0, pitch: 0, distance: 1, target: new THREE.Vector3(), up: new THREE.Vector3(0, 0, 1) };
 
+// The colours come made from the server (uint8 RGB per vertex): no per-vertex work here.
 function colours(field) {
-  const values = document_.arrays[field];
-  const out = new Float32Array(values.length * 3);
-  const signed = field === "change";
-  let [lo, hi] = range(values);
-  if (signed) { const m = Math.max(Math.abs(lo), Math.abs(hi)); lo = -m; hi = m; }
-  const grey = [0.45, 0.45, 0.45];
-  for (let i = 0; i < values.length; i++) {
-    const v = values[i];
-    const c = !Number.isFinite(v) ? grey : signed ? diverging(v / hi) : viridis((v - lo) / (hi - lo));
-    out[3 * i] = c[0]; out[3 * i + 1] = c[1]; out[3 * i + 2] = c[2];
-  }
-  const unit = document_.header.units[field];
-  document.getElementById("legend").textContent = Number.isFinite(values.find(Number.isFinite))
-    ? `${field}: ${fmt(lo)} to ${fmt(hi)} ${unit} (2nd to 98th percentile; grey: unknown)`
-    : `${field}: unknown everywhere (grey)` + (field === "change" && document_.header.parent === null ? ": no parent version" : "");
-  return out;
+  const { header: h, arrays } = document_;
+  const scale = h.colours[field];
+  document.getElementById("legend").textContent = scale.min === null
+    ? `${field}: unknown everywhere (grey)` + (field === "change" && h.parent === null ? ": no parent version" : "")
+    : `${field}: ${fmt(scale.min)} to ${fmt(scale.max)} ${scale.unit} (` +
+      (field === "change" ? "blue lower, red higher than the parent" : "2nd to 98th percentile") + "; grey: unknown)";
+  return new THREE.BufferAttribute(arrays[`colour_${field}`], 3, true);
 }
 
 function place() {
@@ -63,16 +59,17 @@ function draw() {
   renderer.render(scene, camera);
 }
 
-async function show(version) {
+async function show(version, responding) {
   const started = performance.now();
   status.textContent = "loading…";
-  document_ = await getDocument(`/console/api/versions/${version}/mesh`);
+  document_ = await (responding ? documentOf(responding) : getDocument(`/console/api/versions/${version}/mesh`));
+  timings.fetched = performance.now();
   const { header: h, arrays } = document_;
   const geometry = new THREE.BufferGeometry();
   geometry.setAttribute("position", new THREE.BufferAttribute(arrays.vertices, 3));
   geometry.setIndex(new THREE.BufferAttribute(arrays.faces, 1));
-  geometry.computeVertexNormals();
-  geometry.setAttribute("color", new THREE.BufferAttribute(colours(document.getElementById("colour").value), 3));
+  geometry.setAttribute("normal", new THREE.BufferAttribute(arrays.normals, 3, true));
+  geometry.setAttribute("color", colours(document.getElementById("colour").value));
   geometry.computeBoundingSphere();
   if (mesh) { scene.remove(mesh); mesh.geometry.dispose(); }
   mesh = new THREE.Mesh(geometry, material);
@@ -90,9 +87,12 @@ async function show(version) {
   camera.near = orbit.distance / 1000;
   camera.far = orbit.distance + 4 * sphere.radius;
   camera.updateProjectionMatrix();
+  timings.built = performance.now();
   draw();
   renderer.getContext().finish();
   const elapsed = performance.now();
+  timings.drawn = elapsed;
+  document.body.dataset.timings = JSON.stringify(timings);
   document.getElementById("title").textContent =
     `3D view: version ${h.version} (${fmt(h.faces)} of ${fmt(h.faces_full)} faces)`;
   status.textContent = `drawn in ${fmt((elapsed - started) / 1000)} s`;
@@ -129,7 +129,7 @@ renderer.domElement.addEventListener("wheel", (e) => {
 }, { passive: false });
 document.getElementById("colour").addEventListener("change", (e) => {
   if (!mesh) return;
-  mesh.geometry.setAttribute("color", new THREE.BufferAttribute(colours(e.target.value), 3));
+  mesh.geometry.setAttribute("color", colours(e.target.value));
   draw();
 });
 
@@ -137,7 +137,7 @@ async function start() {
   const wanted = params().get("v") || "latest";
   const field = params().get("colour");
   if (field) document.getElementById("colour").value = field;
-  const drawn = show(wanted);
+  const drawn = show(wanted, window.pwmFirstMesh);
   const page = await getJSON("/versions?limit=1000");
   const select = document.getElementById("version");
   for (const v of page.items) select.append(new Option(`v${v.version} (${v.kind})`, v.version));
