@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 from matplotlib import colormaps
 from pydantic import BaseModel, ConfigDict
-from sqlalchemy import case, distinct, func, select
+from scipy.spatial import cKDTree
+from sqlalchemy import case, distinct, func, select, true
 from sqlalchemy.orm import Session
 
 from pwm.compare import height_change
@@ -30,6 +31,7 @@ from pwm.mesh import Mesh
 from pwm.site import ROUGHNESS_BASELINE_M, HazardThresholds, hazard, relief_m, roughness_m, slope_deg
 from service.exports import ExportError, Site, cached_artifact, digest, resample_site
 from service.models import Coverage, CoverageRole, Maplet, MapletRevision, ModelVersion
+from service.queries import list_maplets
 from service.versions import artifact_mesh, artifact_path
 
 MAGIC = b"PWMC"
@@ -112,13 +114,14 @@ def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | No
     def make(path: Path) -> None:
         full = artifact_mesh(data_dir, request.mesh)
         mesh = decimate(full, faces) if len(full.faces) > faces else full
-        path.write_bytes(_mesh_bytes(data_dir, request, mesh, full_faces=len(full.faces)))
+        path.write_bytes(_mesh_bytes(data_dir, request, mesh, full=full))
 
     record = cached_artifact(data_dir, key, suffix=".pwmc", make=make, cache_bytes=cache_bytes)
     return artifact_path(data_dir, record)
 
 
-def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full_faces: int) -> bytes:
+def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> bytes:
+    """The document of `mesh` (`full` decimated, or `full` itself)."""
     radius = np.linalg.norm(mesh.vertices, axis=1)
     radial = mesh.vertices / radius[:, None]
     normals = mesh.vertex_normals()
@@ -126,13 +129,10 @@ def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full_faces:
     fields = {"albedo": (mesh.albedo if mesh.albedo is not None
                          else np.full(len(mesh.vertices), np.nan)),
               "height": (radius - radius.mean()) * 1e3, "slope": slope,
-              "change": (height_change(artifact_mesh(data_dir, request.parent_mesh), mesh,
-                                       max_distance_km=CHANGE_REACH_KM).change_m
-                         if request.parent_mesh is not None
-                         else np.full(len(mesh.vertices), np.nan))}
+              "change": _change(data_dir, request, mesh, full=full)}
     colours = {name: _colour(values, signed=name == "change") for name, values in fields.items()}
     header = {"kind": "mesh", "version": request.version, "parent": request.parent,
-              "faces_full": full_faces, "faces": len(mesh.faces),
+              "faces_full": len(full.faces), "faces": len(mesh.faces),
               "vertices": len(mesh.vertices),
               "colours": {name: {"unit": FIELD_UNITS[name], **scale}
                           for name, (_, scale) in colours.items()}}
@@ -140,6 +140,20 @@ def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full_faces:
                          ("faces", mesh.faces.astype(np.uint32)),
                          ("normals", np.round(normals * 127).astype(np.int8)),
                          *((f"colour_{name}", rgb) for name, (rgb, _) in colours.items())])
+
+
+def _change(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> np.ndarray:
+    """Height change (m) since the parent at the vertices of `mesh`: measured on the full mesh
+    (decimation moves the surface, which is no change of the model) and taken from each
+    vertex's nearest full one; NaN everywhere without a parent."""
+    if request.parent_mesh is None:
+        return np.full(len(mesh.vertices), np.nan)
+    change = height_change(artifact_mesh(data_dir, request.parent_mesh), full,
+                           max_distance_km=CHANGE_REACH_KM).change_m
+    if mesh is full:
+        return change
+    _, nearest = cKDTree(full.vertices).query(mesh.vertices)
+    return change[nearest]
 
 
 def _colour(values: np.ndarray, *, signed: bool) -> tuple[np.ndarray, dict[str, Any]]:
@@ -242,9 +256,16 @@ class MapletCoverageRow(BaseModel):
     five_views: bool
 
 
-def coverage_map(session: Session) -> list[MapletCoverageRow]:
+def coverage_map(session: Session, *, near: tuple[float, float, float] | None = None
+                 ) -> list[MapletCoverageRow]:
     """Every maplet with its coverage figures (as service.queries.maplet_coverage counts them),
-    by name, in two queries."""
+    by name; near = (lat_deg, lon_deg, radius_km): only the maplets within radius_km of that
+    surface point (service.queries.list_maplets), for the map of a site."""
+    ids = None
+    if near is not None:
+        lat_deg, lon_deg, radius_km = near
+        ids = [m.id for m in list_maplets(session, lat_deg=lat_deg, lon_deg=lon_deg,
+                                          radius_km=radius_km, limit=2**31 - 1)]
     used = Coverage.weight > 0
     figures = {row.maplet_id: row for row in session.execute(
         select(Coverage.maplet_id, func.count().label("images"),
@@ -252,11 +273,14 @@ def coverage_map(session: Session) -> list[MapletCoverageRow]:
                func.min(case((used, Coverage.incidence_deg))).label("inc_min"),
                func.max(case((used, Coverage.incidence_deg))).label("inc_max"),
                func.count(distinct(Coverage.role)).label("roles"))
-        .where(Coverage.visible_fraction > 0).group_by(Coverage.maplet_id))}
+        .where(Coverage.visible_fraction > 0,
+               Coverage.maplet_id.in_(ids) if ids is not None else true())
+        .group_by(Coverage.maplet_id))}
     rows = session.execute(
         select(Maplet.id, Maplet.name, Maplet.center_lat_deg, Maplet.center_lon_deg,
                Maplet.size_km, Maplet.region_weight, MapletRevision.revision)
         .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
+        .where(Maplet.id.in_(ids) if ids is not None else true())
         .order_by(Maplet.name))
     out = []
     for row in rows:

@@ -82,3 +82,14 @@ def test_bad_site_requests_are_refused(console, params, status):
 def test_unknown_version_is_404(console):
     response = console.api.get("/console/api/versions/99/mesh")
     assert response.status_code == 404 and "99" in response.json()["detail"]
+
+
+def test_coverage_of_a_site_is_the_maplets_near_it(console):
+    everything = console.api.get("/console/api/coverage").json()
+    first = everything[0]
+    near = {"lat": first["center_lat_deg"], "lon": first["center_lon_deg"], "radius_km": 0.001}
+    site = console.api.get("/console/api/coverage", params=near).json()
+    listed = console.api.get("/maplets", params={**near, "limit": 1000}).json()["items"]
+    assert sorted(m["id"] for m in site) == sorted(m["id"] for m in listed)
+    assert 0 < len(site) < len(everything) and first in site
+    assert console.api.get("/console/api/coverage", params={"lat": 1}).status_code == 422

@@ -106,8 +106,20 @@ def _document(path: Path, ref: str) -> FileResponse:
                      headers={"Cache-Control": IMMUTABLE if ref.isdigit() else REVALIDATE})
 
 
-@router.get("/console/api/coverage", response_model=list[MapletCoverageRow])
-def coverage(session: SessionDep) -> list[MapletCoverageRow]:
-    """Every maplet's coverage for the map: images that see it and those used, w_PWM, the used
-    images' incidence range and whether the five views are filled."""
-    return coverage_map(session)
+@router.get("/console/api/coverage", response_model=list[MapletCoverageRow],
+            responses={422: {"model": Problem}})
+def coverage(
+    session: SessionDep,
+    lat: Annotated[float | None, Query(ge=-90, le=90, description="site latitude, deg")] = None,
+    lon: Annotated[float | None, Query(ge=-360, le=360, description="site east longitude, "
+                                       "deg")] = None,
+    radius_km: Annotated[float, Query(ge=0, le=100, description="maplets within this distance "
+                                      "of the site, km")] = 0.0,
+) -> list[MapletCoverageRow]:
+    """Every maplet's coverage for the map (with lat and lon, those of a site): images that see
+    it and those used, w_PWM, the used images' incidence range and whether the five views are
+    filled."""
+    if (lat is None) != (lon is None):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "give lat and lon together")
+    near = (lat, lon, radius_km) if lat is not None and lon is not None else None
+    return coverage_map(session, near=near)

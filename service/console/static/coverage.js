@@ -2,7 +2,7 @@
 // five-view completeness or incidence spread, where a planner sees where more images are
 // needed; the table holds the same numbers, with a re-queue control per maplet (a changing
 // call: refused without the token).
-import { fmt, getJSON, header, requeueControl, showError, tableRow, viridis } from "/console/common.js";
+import { fmt, getJSON, header, params, requeueControl, showError, tableRow, viridis } from "/console/common.js";
 
 header();
 let maplets = [];
@@ -69,7 +69,9 @@ function fillTable() {
 }
 
 async function load() {
-  maplets = await getJSON("/console/api/coverage");
+  // ?lat=&lon=&radius_km=: the maplets of a site only
+  const site = new URLSearchParams([...params()].filter(([k]) => ["lat", "lon", "radius_km"].includes(k)));
+  maplets = await getJSON(`/console/api/coverage?${site}`);
   drawMap();
   fillTable();
   document.body.dataset.ready = "1";
