@@ -81,9 +81,9 @@ async function show(version, responding) {
   for (let i = 0; i < v.length; i += 3) centre.x += v[i], centre.y += v[i + 1], centre.z += v[i + 2];
   centre.divideScalar(v.length / 3);
   const dense = centre.length() > 0.3 * sphere.radius;
-  orbit.target.copy(dense ? centre.clone().normalize().multiplyScalar(sphere.radius * 0.9) : sphere.center);
-  orbit.distance = dense ? sphere.radius * 0.9 : sphere.radius * 3.2;
-  if (dense) orbit.target.copy(nearestSurface(centre));
+  orbit.target.copy(dense ? nearestSurface(centre) : sphere.center);
+  // close enough that the dense region (most of the vertices) fills the view
+  orbit.distance = dense ? Math.min(sphere.radius * 0.9, 4 * nearDistance(orbit.target)) : sphere.radius * 3.2;
   camera.near = orbit.distance / 1000;
   camera.far = orbit.distance + 4 * sphere.radius;
   camera.updateProjectionMatrix();
@@ -100,13 +100,23 @@ async function show(version, responding) {
   document.body.dataset.version = h.version;
 }
 
+function nearDistance(point) {
+  // the 30th percentile of a sample of the vertices' distances from the point
+  const v = document_.arrays.vertices;
+  const step = 3 * Math.max(1, Math.floor(v.length / 3 / 5000));
+  const d = [];
+  for (let i = 0; i < v.length; i += step) d.push(Math.hypot(v[i] - point.x, v[i + 1] - point.y, v[i + 2] - point.z));
+  d.sort((a, b) => a - b);
+  return d[Math.floor(0.3 * d.length)];
+}
+
 function nearestSurface(direction) {
-  // the vertex farthest out along the direction: where to aim on the surface
+  // the vertex nearest the direction in angle: where the line from the centre meets the surface
   const v = document_.arrays.vertices;
   const d = direction.clone().normalize();
   let best = -Infinity, at = 0;
   for (let i = 0; i < v.length; i += 3) {
-    const s = v[i] * d.x + v[i + 1] * d.y + v[i + 2] * d.z;
+    const s = (v[i] * d.x + v[i + 1] * d.y + v[i + 2] * d.z) / Math.hypot(v[i], v[i + 1], v[i + 2]);
     if (s > best) best = s, at = i;
   }
   return new THREE.Vector3(v[at], v[at + 1], v[at + 2]);
