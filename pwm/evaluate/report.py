@@ -78,18 +78,6 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     return result
 
 
-def register_to_truth(model: Mesh, truth: Truth, *, region: np.ndarray, gsd_km: float,
-                      whole_body: bool) -> tuple[RigidTransform, ClosestPoint]:
-    """ICP of ICP_POINTS of the model's vertices in `region` onto the truth (the whole body, or
-    the faces near the site), pairs within ICP_REACH_GSD; the transform and the truth surface."""
-    reach_km = ICP_REACH_GSD * gsd_km
-    surface = ClosestPoint(truth.mesh if whole_body else near_site(truth, margin_km=2 * reach_km))
-    points = model.vertices[region]
-    sample = points[np.random.default_rng(0).permutation(len(points))[:ICP_POINTS]]
-    return register(sample, surface, max_distance_km=reach_km,
-                    tolerance_km=ICP_TOLERANCE_GSD * gsd_km), surface
-
-
 def in_site(points_body: np.ndarray, truth: Truth) -> np.ndarray:
     """True for points inside the evaluation disc of the site (measured in the site frame's x-y) on
     the site's side of the body: within the disc's radius of its plane, not on the far side."""
@@ -105,6 +93,18 @@ def near_site(truth: Truth, *, margin_km: float) -> Mesh:
     reach = truth.eval_radius_km + margin_km
     near = (np.hypot(local[:, 0], local[:, 1]) <= reach) & (np.abs(local[:, 2]) <= reach)
     return Mesh(truth.mesh.vertices, truth.mesh.faces[near[truth.mesh.faces].any(axis=1)])
+
+
+def register_to_truth(model: Mesh, truth: Truth, *, region: np.ndarray, gsd_km: float,
+                      whole_body: bool) -> tuple[RigidTransform, ClosestPoint]:
+    """ICP of ICP_POINTS of the model's vertices in `region` onto the truth (the whole body, or
+    the faces near the site), pairs within ICP_REACH_GSD; the transform and the truth surface."""
+    reach_km = ICP_REACH_GSD * gsd_km
+    surface = ClosestPoint(truth.mesh if whole_body else near_site(truth, margin_km=2 * reach_km))
+    points = model.vertices[region]
+    sample = points[np.random.default_rng(0).permutation(len(points))[:ICP_POINTS]]
+    return register(sample, surface, max_distance_km=reach_km,
+                    tolerance_km=ICP_TOLERANCE_GSD * gsd_km), surface
 
 
 def sample_heights(tracer: RayTracer, truth: Truth, x_km: np.ndarray, y_km: np.ndarray) -> np.ndarray:
