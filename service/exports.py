@@ -65,7 +65,7 @@ from service.versions import ArtifactError, artifact_mesh, artifact_path
 EXPORTS_DIRNAME = "exports"
 # Bump when an export's content changes for the same inputs, so that old cache entries are
 # not served for new requests.
-EXPORT_REVISION = 2
+EXPORT_REVISION = 3
 # The site grid has at most (2 * MAX_SITE_HALF_NODES + 1)^2 nodes.
 MAX_SITE_HALF_NODES = 500
 # Requests of one process that may wait for the making lock or hold it; one more is refused.
@@ -260,14 +260,16 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
 
 
 def cached_artifact(data_dir: Path, key: str, *, suffix: str, make: Callable[[Path], None],
-                    cache_bytes: int) -> dict[str, Any]:
+                    cache_bytes: int | None) -> dict[str, Any]:
     """The record ({"path", "sha256", "bytes"}) of the file kept for `key` (a hex digest), made
     by `make(path)` (which writes the file `path`) the first time, or again when it went missing.
 
     Making holds the process's making lock (so `make` may use SPICE and fast-simplification);
     of requests that must make their file, MAX_QUEUED_EXPORTS wait for it at most EXPORT_WAIT_S,
     and the others are refused with ExportBusy. Once made, the least recently served files are
-    removed until the kept ones total at most `cache_bytes` (the new one always stays).
+    removed until the kept ones total at most `cache_bytes` (the new one always stays); None
+    (a process without the service's settings, such as a publication) leaves that to the next
+    request that makes a file.
     """
     record = _kept(data_dir, key)
     if record is not None:
@@ -282,7 +284,8 @@ def cached_artifact(data_dir: Path, key: str, *, suffix: str, make: Callable[[Pa
             record = _kept(data_dir, key)
             if record is None:
                 record = _make_and_keep(data_dir, key, suffix=suffix, make=make)
-                _evict(data_dir, cache_bytes=cache_bytes, keep=key)
+                if cache_bytes is not None:
+                    _evict(data_dir, cache_bytes=cache_bytes, keep=key)
         finally:
             _PROCESS_GLOBAL.release()
     finally:
@@ -386,19 +389,30 @@ def resample_site(mesh: Mesh, site: Site) -> SiteGrid:
     edge = float(np.linalg.norm(corners[near] - np.roll(corners[near], 1, axis=1), axis=2).mean())
     half = min(MAX_SITE_HALF_NODES, max(1, math.ceil(site.radius_km / edge)))
     axis = np.linspace(-site.radius_km, site.radius_km, 2 * half + 1)
-    # Rays start above everything within the site's horizontal reach, so the first hit is the top.
+    return sample_grid(mesh, frame, axis, axis, tracer=tracer)
+
+
+def sample_grid(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray, *,
+                tracer: RayTracer | None = None) -> SiteGrid:
+    """The heights and albedo of `mesh` at the nodes x_km, y_km of `frame`: where a ray down the
+    frame's z axis first meets the surface (NaN where it misses)."""
+    tracer = tracer or RayTracer(mesh)
+    # Rays start above everything within the grid's horizontal reach, so the first hit is the top.
     local = frame.to_local(mesh.vertices)
-    beside = np.hypot(local[:, 0], local[:, 1]) <= 1.5 * site.radius_km
-    top = float(local[beside, 2].max()) + edge
-    xx, yy = np.meshgrid(axis, axis)
+    reach = 1.5 * max(np.abs(x_km).max(), np.abs(y_km).max())
+    beside = np.hypot(local[:, 0], local[:, 1]) <= reach
+    if not beside.any():
+        raise ExportError("the grid lies beside the surface")
+    top = float(local[beside, 2].max()) + 1e-3 * reach
+    xx, yy = np.meshgrid(x_km, y_km)
     starts = frame.to_body(np.stack([xx, yy, np.full_like(xx, top)], axis=-1).reshape(-1, 3))
     downward = np.broadcast_to(-frame.normal, starts.shape)
     hits = tracer.intersect(starts, downward)
     height = frame.to_local(tracer.hit_points(starts, downward, hits))[:, 2]
     albedo = (np.where(hits.hit, tracer.interpolate(mesh.albedo, hits), np.nan)
               if mesh.albedo is not None else np.full(len(starts), np.nan))
-    return SiteGrid(frame=frame, x_km=axis, y_km=axis, height_km=height.reshape(xx.shape),
-                    albedo=albedo.reshape(xx.shape))
+    return SiteGrid(frame=frame, x_km=np.asarray(x_km), y_km=np.asarray(y_km),
+                    height_km=height.reshape(xx.shape), albedo=albedo.reshape(xx.shape))
 
 
 def _write_icq(path: Path, mesh: Mesh, q: int) -> None:

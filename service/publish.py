@@ -24,6 +24,7 @@ from sqlalchemy.orm import Session, selectinload, sessionmaker
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_grid, write_grid
+from service.console.documents import MeshRequest, mesh_document
 from service.db import session_scope
 from service.jobs import refined_downlinks
 from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion, model_version_downlinks
@@ -52,6 +53,7 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
     .refined_downlinks).
     Statistics: maplets changed, added, replaced and fused in all, images used, whether the
     parent's sums were reused, the base version, voxels and seconds (with the mesh's own).
+    The console's 3D document of the new version (service.console.mesh_document) is made too.
     """
     clock = time.perf_counter()
     with session_scope(sessions) as session:
@@ -106,7 +108,15 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
         log.info("fusion: version %d from version %d, %d of %d maplets changed (%.1f s)",
                  version.version, parent.version, len(changed), len(current),
                  time.perf_counter() - clock)
-        return version.version
+        request = MeshRequest.of(version)
+    # Made now, outside the publication lock, so that the console's first 3D view of the new
+    # version is read, not decimated while the user waits; a failure here loses nothing (the
+    # first request makes it).
+    try:
+        mesh_document(data_dir, request, cache_bytes=None)
+    except Exception:
+        log.exception("the console's mesh of version %d was not made now", request.version)
+    return request.version
 
 
 def first_version_with(session: Session, *, downlink_id: int) -> int | None:

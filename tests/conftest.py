@@ -262,8 +262,8 @@ def open_catalog_at() -> Iterator[Callable[[str], sessionmaker[Session]]]:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Mark the tests that need a server, by the fixtures they use, so that `-m "not postgres and
-    not redis"` runs the rest on its own."""
+    """Mark the tests that need a server or the browser, by the fixtures they use, so that
+    `-m "not postgres and not redis and not browser"` runs the rest on its own."""
     for item in items:
         names = set(getattr(item, "fixturenames", ()))
         callspec = getattr(item, "callspec", None)
@@ -272,3 +272,5 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
             item.add_marker(pytest.mark.postgres)
         if "redis_url" in names or "redis_server" in names:
             item.add_marker(pytest.mark.redis)
+        if "browser" in names:
+            item.add_marker(pytest.mark.browser)

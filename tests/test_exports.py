@@ -21,6 +21,7 @@ from pwm.io.site_product import write_site_product
 from pwm.io.spice_kernels import SpkSegment, bundled_kernels, kernel_pool, write_spk
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
+from pwm.site import roughness_m, slope_deg
 
 BENNU_OBJ = (Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes"
              / "bennu_radar_nolan2013_sbgat.obj")
@@ -322,6 +323,15 @@ def test_site_product_reads_back_with_pds4_tools(tmp_path):
     np.testing.assert_array_equal(height, args["height_km"] * 1e3)
     np.testing.assert_array_equal(albedo, args["albedo"].astype(np.float32))
     assert structures["height"].data.dtype == ">f8" and structures["albedo"].data.dtype == ">f4"
+    # slope and roughness are pwm.site's of the heights carried, in deg and m
+    slope = np.ma.filled(structures["slope"].as_masked().data.astype(float), np.nan)
+    roughness = np.ma.filled(structures["roughness"].as_masked().data.astype(float), np.nan)
+    expected_slope = slope_deg(args["height_km"] * 1e3, spacing_m=1.0)
+    np.testing.assert_allclose(slope, expected_slope, rtol=1e-6)
+    assert np.isnan(slope[3, 4]) and np.nanmax(slope) > 10
+    np.testing.assert_allclose(roughness, roughness_m(args["height_km"] * 1e3, spacing_m=1.0),
+                               rtol=1e-5, atol=1e-9)
+    assert "<unit>deg</unit>" in files.label.read_text()
 
     label = files.label.read_text()
     assert f"<md5_checksum>{checksum_md5(files.data)}</md5_checksum>" in label
@@ -350,3 +360,5 @@ def test_site_product_rejects_irregular_grids(tmp_path):
         _site(tmp_path, x_km=x)
     with pytest.raises(ValueError, match="len"):
         _site(tmp_path, y_km=np.arange(31) * 1e-3)
+    with pytest.raises(ValueError, match="same step"):
+        _site(tmp_path, y_km=np.arange(30) * 2e-3)

@@ -36,12 +36,6 @@ class MapletFootprint:
     half_km: float
 
 
-def slope_deg(height_km: np.ndarray, spacing_km: float) -> np.ndarray:
-    """Slope (degrees) of a height field from its central differences."""
-    dz_dy, dz_dx = np.gradient(height_km, spacing_km)
-    return np.degrees(np.arctan(np.hypot(dz_dx, dz_dy)))
-
-
 def rim_mask(x_km: np.ndarray, y_km: np.ndarray, craters: list[Crater], band: float = RIM_BAND) -> np.ndarray:
     """Nodes (len(y), len(x)) within band * radius of a crater's rim crest."""
     gx, gy = np.meshgrid(x_km, y_km)

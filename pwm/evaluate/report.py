@@ -28,10 +28,9 @@ from pwm.evaluate.classes import (
     error_by_class,
     rim_mask,
     shadow_share,
-    slope_deg,
 )
 from pwm.evaluate.distance import ClosestPoint
-from pwm.evaluate.icp import register
+from pwm.evaluate.icp import RigidTransform, register
 from pwm.evaluate.images import ncc, ssim
 from pwm.evaluate.profiles import boulder_height_ratio
 from pwm.frames import LocalFrame
@@ -40,6 +39,7 @@ from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.render import render
 from pwm.simulate.truth import Truth, load as load_truth, sampled
+from pwm.site import slope_deg
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +65,9 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     region = np.ones(len(model.vertices), bool) if whole_body else in_site(model.vertices, truth)
     if region.sum() < 10:
         raise ValueError(f"{model_path}: only {region.sum()} vertices inside the evaluation region")
-    reach_km = ICP_REACH_GSD * gsd_km
-    surface = ClosestPoint(truth.mesh if whole_body else near_site(truth, margin_km=2 * reach_km))
-    points = model.vertices[region]
-    sample = points[np.random.default_rng(0).permutation(len(points))[:ICP_POINTS]]
-    transform = register(sample, surface, max_distance_km=reach_km, tolerance_km=ICP_TOLERANCE_GSD * gsd_km)
+    transform, surface = register_to_truth(model, truth, region=region, gsd_km=gsd_km, whole_body=whole_body)
     registered = Mesh(transform.apply(model.vertices), model.faces, model.albedo)
+    points = model.vertices[region]
     distance, _, _ = surface.query(registered.vertices[region])
     moved = np.linalg.norm(registered.vertices[region] - points, axis=1)
 
@@ -122,6 +119,18 @@ def near_site(truth: Truth, *, margin_km: float) -> Mesh:
     reach = truth.eval_radius_km + margin_km
     near = (np.hypot(local[:, 0], local[:, 1]) <= reach) & (np.abs(local[:, 2]) <= reach)
     return Mesh(truth.mesh.vertices, truth.mesh.faces[near[truth.mesh.faces].any(axis=1)])
+
+
+def register_to_truth(model: Mesh, truth: Truth, *, region: np.ndarray, gsd_km: float,
+                      whole_body: bool) -> tuple[RigidTransform, ClosestPoint]:
+    """ICP of ICP_POINTS of the model's vertices in `region` onto the truth (the whole body, or
+    the faces near the site), pairs within ICP_REACH_GSD; the transform and the truth surface."""
+    reach_km = ICP_REACH_GSD * gsd_km
+    surface = ClosestPoint(truth.mesh if whole_body else near_site(truth, margin_km=2 * reach_km))
+    points = model.vertices[region]
+    sample = points[np.random.default_rng(0).permutation(len(points))[:ICP_POINTS]]
+    return register(sample, surface, max_distance_km=reach_km,
+                    tolerance_km=ICP_TOLERANCE_GSD * gsd_km), surface
 
 
 def sample_heights(tracer: RayTracer, truth: Truth, x_km: np.ndarray, y_km: np.ndarray) -> np.ndarray:
@@ -192,7 +201,7 @@ def _classes(truth: Truth, x: np.ndarray, y: np.ndarray, truth_h: np.ndarray, *,
     local_normals /= np.linalg.norm(local_normals, axis=-1, keepdims=True)
     # shadows cast by the truth as the grid holds it, without the averaging of a coarser model
     coarse = RayTracer(sampled(truth, spacing_km=spacing_km, average_km=truth.resolution_km))
-    masks = {"walls": slope_deg(truth_h, spacing_km) > WALL_SLOPE_DEG,
+    masks = {"walls": slope_deg(truth_h * 1e3, spacing_m=spacing_km * 1e3) > WALL_SLOPE_DEG,
              "rims": rim_mask(x, y, truth.craters)}
     if maplets:
         masks["maplet edges"] = edge_mask(points, maplets, EDGE_BAND_GSD * gsd_km)

@@ -1,9 +1,12 @@
-"""Local terrain product of a site: heights and albedo on the site frame's grid as a PDS4
-Product_Observational (two Array_2D_Image objects in one binary file) with a PNG preview.
+"""Local terrain product of a site: heights, albedo, slope and roughness on the site frame's
+grid as a PDS4 Product_Observational (four Array_2D_Image objects in one binary file) with a PNG
+preview.
 
 Arrays are [line, sample] = [i (y), j (x)] with x and y increasing; heights in metres along
-the site frame's z, big-endian IEEE doubles; albedo big-endian IEEE singles. Nodes without
-data (NaN) are stored as MISSING and declared as the missing_constant.
+the site frame's z, big-endian IEEE doubles; albedo, slope (deg from the site frame's z, the
+regional normal) and roughness (m, RMS about a plane over the baseline; pwm.site) big-endian
+IEEE singles. Nodes without data (NaN) are stored as MISSING and declared as the
+missing_constant.
 """
 
 from __future__ import annotations
@@ -20,10 +23,11 @@ from scipy.ndimage import distance_transform_edt
 
 from pwm.frames import LocalFrame
 from pwm.io.pds4 import INFORMATION_MODEL, checksum_md5, label_text, utc_iso
+from pwm.site import ROUGHNESS_BASELINE_M, roughness_m, slope_deg
 
 MISSING = -1.0e32  # the PDS convention for missing real values
 _HEIGHT = ("IEEE754MSBDouble", ">f8")  # (PDS4 data_type, numpy dtype)
-_ALBEDO = ("IEEE754MSBSingle", ">f4")
+_SINGLE = ("IEEE754MSBSingle", ">f4")
 
 
 class SiteProductFiles(NamedTuple):
@@ -38,9 +42,12 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
                        y_km: np.ndarray, height_km: np.ndarray, albedo: np.ndarray, lid: str,
                        version: str, model_version: str, body_frame: str, target_name: str,
                        target_type: str = "Asteroid", mission: str, host_name: str,
-                       start_utc: str, stop_utc: str) -> SiteProductFiles:
-    """Write name.xml (PDS4 label), name.dat (heights, then albedo) and name.png (shaded relief
-    and albedo side by side) into `directory`; existing files are never overwritten.
+                       start_utc: str, stop_utc: str,
+                       roughness_baseline_m: float = ROUGHNESS_BASELINE_M) -> SiteProductFiles:
+    """Write name.xml (PDS4 label), name.dat (heights, albedo, slope, roughness) and name.png
+    (shaded relief and albedo side by side) into `directory`; existing files are never
+    overwritten. Slope and roughness are computed from the heights (pwm.site), roughness over
+    a window of side roughness_baseline_m; the grid must be square (equal x and y steps).
 
     frame: the site frame (origin and axes in body_frame, km); x_km (nx,), y_km (ny,): regular,
     increasing node coordinates in it; height_km, albedo: (ny, nx), NaN where there is no data.
@@ -55,6 +62,10 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
                          f"(len(y_km), len(x_km)) = {(len(y), len(x))}")
     if np.isnan(height_m).all():
         raise ValueError("height_km has no data")
+    spacing_m = (x[1] - x[0]) * 1e3
+    if abs((y[1] - y[0]) * 1e3 - spacing_m) > 1e-9 * spacing_m:
+        raise ValueError(f"x_km and y_km must have the same step, got {x[1] - x[0]} and "
+                         f"{y[1] - y[0]}")
     if Path(name).name != name:
         raise ValueError(f"name {name!r} must be a bare file name")
     files = SiteProductFiles(*(Path(directory) / f"{name}.{ext}" for ext in ("xml", "dat", "png")))
@@ -62,19 +73,30 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
         if path.exists():
             raise FileExistsError(f"{path} exists; a product is written once")
 
-    arrays = [np.where(np.isnan(a), MISSING, a).astype(dtype) for a, (_, dtype) in
-              ((height_m, _HEIGHT), (albedo, _ALBEDO))]
+    slope = slope_deg(height_m, spacing_m=spacing_m)
+    roughness = roughness_m(height_m, spacing_m=spacing_m, baseline_m=roughness_baseline_m)
+    contents = [
+        ("height", height_m, _HEIGHT, "m",
+         "Height (m) along the site frame z axis; the site frame and grid are described in the "
+         "Observation_Area comment."),
+        ("albedo", albedo, _SINGLE, None, "Normal albedo (unitless) at the same nodes as the "
+                                          "heights."),
+        ("slope", slope, _SINGLE, "deg",
+         "Slope (deg): angle of the surface normal from the site frame z axis (the regional "
+         "normal), from central differences of the heights."),
+        ("roughness", roughness, _SINGLE, "m",
+         f"Roughness (m): RMS deviation of the heights from the plane fitted over the square "
+         f"of side {roughness_baseline_m:g} m centred on each node."),
+    ]
+    arrays = [np.where(np.isnan(a), MISSING, a).astype(dtype) for _, a, (_, dtype), *_ in contents]
     with open(files.data, "xb") as fh:
         for array in arrays:
             fh.write(array.tobytes())
     frame_text = _frame_text(frame, body_frame, x, y)
-    images = [
-        _image("height", 0, _HEIGHT[0], "m", height_m.shape,
-               "Height (m) along the site frame z axis; the site frame and grid are described "
-               "in the Observation_Area comment."),
-        _image("albedo", arrays[0].nbytes, _ALBEDO[0], None, height_m.shape,
-               "Normal albedo (unitless) at the same nodes as the heights."),
-    ]
+    offsets = np.cumsum([0] + [a.nbytes for a in arrays[:-1]])
+    images = [_image(local_id, int(offset), data_type, unit, height_m.shape, description)
+              for (local_id, _, (data_type, _), unit, description), offset
+              in zip(contents, offsets, strict=True)]
     text = label_text([
         ("Identification_Area", [
             ("logical_identifier", lid), ("version_id", version),

@@ -16,7 +16,7 @@ from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 import pwm
-from service.api.routers import diffs, downlinks, images, jobs, maplets, versions
+from service.api.routers import console, diffs, downlinks, images, jobs, maplets, versions
 from service.catalog import open_catalog
 from service.exports import RETRY_AFTER_S, ExportBusy
 from service.jobs import JobQueue
@@ -64,8 +64,9 @@ def create_app(settings: Settings | None = None, *, job_queue: JobQueue | None =
     app.state.settings = settings
     app.state.sessions = sessions
     app.state.job_queue = job_queue
-    for module in (versions, diffs, maplets, images, downlinks, jobs):
+    for module in (versions, diffs, maplets, images, downlinks, jobs, console):
         app.include_router(module.router)
+    app.mount("/console", console.static_files(), name="console")
     app.add_exception_handler(ExportBusy, _busy_exports)
     app.add_exception_handler(PoolTimeout, _busy_catalog)
     app.add_middleware(BodyLimit, max_bytes=MAX_BODY_BYTES)

@@ -11,6 +11,7 @@ from sqlalchemy import func, select
 
 from pwm.config import RefinementConfig
 from pwm.io.meshio import write_ply
+from service.console.documents import unpack
 from service.db import session_scope
 from service.jobs import claim_job, finish_job, refine_key
 from service.models import Downlink, JobKind, ModelKind, ModelVersion
@@ -41,6 +42,11 @@ def test_fusions_publish_changes_once(tiny_sim, catalog, tmp_path):
         assert not v2.statistics["incremental"] and "grid" in v2.artifacts
         start, fused = version_mesh(data, get_version(session, 1)), version_mesh(data, v2)
     assert fused.albedo is not None and len(fused.faces) > len(start.faces)
+    # the console's 3D document was made at publication, so its first view reads it
+    [document] = (data / "exports").glob("*.pwmc")
+    header, _ = unpack(document.read_bytes())
+    assert (header["version"], header["parent"], header["faces"]) == (2, 1, len(fused.faces))
+    assert header["colours"]["change"]["max"] is not None
 
     # An imported model becomes the parent: the next fusion starts over on it.
     write_ply(tmp_path / "other.ply", start)

@@ -1,0 +1,120 @@
+"""Site products on a regular height grid: slope, roughness, relief and hazard.
+
+Heights are in metres along the site frame's z axis (the regional normal: pwm.frames.local_frame
+of the site's mean normal), on a square grid of `spacing_m` between nodes, arrays [line, sample]
+= [y, x]; NaN where there is no surface. A result is NaN (roughness, relief, slope) where its
+stencil or window reaches a node without data or past the grid's edge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import correlate, uniform_filter
+
+ROUGHNESS_BASELINE_M = 1.0
+"""Side (m) of the square window a plane is fitted over for roughness and relief, by default."""
+
+
+@dataclass(frozen=True)
+class HazardThresholds:
+    """A node is hazardous where the slope (deg from the regional normal) is above
+    max_slope_deg, where the surface stands more than max_relief_m above the plane fitted over
+    the baseline about it (a boulder), or where either is unknown (no data)."""
+
+    max_slope_deg: float = 20.0
+    max_relief_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.max_slope_deg < 90.0 and self.max_relief_m > 0.0):
+            raise ValueError(f"thresholds must be a slope in (0, 90) deg and a relief > 0 m, "
+                             f"got {self.max_slope_deg}, {self.max_relief_m}")
+
+
+def slope_deg(height_m: np.ndarray, *, spacing_m: float) -> np.ndarray:
+    """The angle (deg) between the surface normal and the regional normal at each node, from
+    central differences (one-sided at the edges); NaN at and beside nodes without data."""
+    height = _grid(height_m, spacing_m)
+    dh_dy, dh_dx = np.gradient(height, spacing_m)
+    slope = np.degrees(np.arctan(np.hypot(dh_dx, dh_dy)))
+    slope[np.isnan(height)] = np.nan
+    return slope
+
+
+def window_nodes(*, spacing_m: float, baseline_m: float) -> int:
+    """Nodes on a side of the window spanning `baseline_m`: odd, at least 3."""
+    if not baseline_m > 0:
+        raise ValueError(f"baseline_m must be > 0, got {baseline_m}")
+    return max(3, 2 * round(baseline_m / spacing_m / 2) + 1)
+
+
+def roughness_m(height_m: np.ndarray, *, spacing_m: float,
+                baseline_m: float = ROUGHNESS_BASELINE_M) -> np.ndarray:
+    """RMS deviation (m) of the heights from the least-squares plane fitted over the square
+    window of side `baseline_m` (window_nodes) centred on each node."""
+    return _plane_fit(height_m, spacing_m=spacing_m, baseline_m=baseline_m)[1]
+
+
+def relief_m(height_m: np.ndarray, *, spacing_m: float,
+             baseline_m: float = ROUGHNESS_BASELINE_M) -> np.ndarray:
+    """Height (m) of each node above the least-squares plane fitted over the square window of
+    side `baseline_m` centred on it: a boulder stands out by about its height."""
+    height = _grid(height_m, spacing_m)
+    return height - _plane_fit(height, spacing_m=spacing_m, baseline_m=baseline_m)[0]
+
+
+def hazard(slope: np.ndarray, relief: np.ndarray, thresholds: HazardThresholds) -> np.ndarray:
+    """Boolean map of hazardous nodes (HazardThresholds says which), from slope_deg and
+    relief_m of the same grid."""
+    slope, relief = np.asarray(slope, dtype=float), np.asarray(relief, dtype=float)
+    if slope.shape != relief.shape:
+        raise ValueError(f"slope {slope.shape} and relief {relief.shape} differ in shape")
+    with np.errstate(invalid="ignore"):
+        return ((slope > thresholds.max_slope_deg) | (relief > thresholds.max_relief_m)
+                | np.isnan(slope) | np.isnan(relief))
+
+
+def _grid(height_m: np.ndarray, spacing_m: float) -> np.ndarray:
+    height = np.asarray(height_m, dtype=np.float64)
+    if height.ndim != 2 or min(height.shape) < 3:
+        raise ValueError(f"height_m must be a 2-D grid of at least 3 x 3 nodes, got {height.shape}")
+    if not spacing_m > 0:
+        raise ValueError(f"spacing_m must be > 0, got {spacing_m}")
+    return height
+
+
+def _plane_fit(height_m: np.ndarray, *, spacing_m: float,
+               baseline_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted plane's height at each window's centre and the RMS residual (m).
+
+    The window's offsets u, v from its centre are symmetric, so Σu = Σv = Σuv = 0 and the fit
+    h ≈ a + b u + c v separates: a = mean h, b = Σuh / Σu², c = Σvh / Σv²; the residual sum of
+    squares is Σh² - n a² - b² Σu² - c² Σv². Heights are taken about the grid's mean first so
+    that large heights do not cancel in Σh² - n a².
+    """
+    height = _grid(height_m, spacing_m)
+    n = window_nodes(spacing_m=spacing_m, baseline_m=baseline_m)
+    half = n // 2
+    missing = np.isnan(height)
+    if missing.all():
+        nan = np.full(height.shape, np.nan)
+        return nan, nan.copy()
+    level = float(np.nanmean(height))
+    filled = np.where(missing, 0.0, height - level)
+    # windows that reach a node without data, or past the edge, give NaN
+    incomplete = uniform_filter(missing.astype(float), n, mode="constant", cval=1.0) > 1e-9
+    mean = uniform_filter(filled, n, mode="constant")
+    offsets = np.arange(-half, half + 1, dtype=float)
+    u = np.broadcast_to(offsets[None, :], (n, n))
+    v = np.broadcast_to(offsets[:, None], (n, n))
+    su2 = float((u ** 2).sum())
+    b = correlate(filled, u, mode="constant") / su2
+    c = correlate(filled, v, mode="constant") / su2
+    # per node: (Σh² - n a² - (b² + c²) Σu²) / n
+    square = uniform_filter(filled ** 2, n, mode="constant") - mean ** 2
+    residual = np.maximum(square - (b ** 2 + c ** 2) * su2 / n ** 2, 0.0)
+    plane = mean + level
+    plane[incomplete] = np.nan
+    residual[incomplete] = np.nan
+    return plane, np.sqrt(residual)

@@ -1,0 +1,297 @@
+"""What the browser console (service/console/static, served by service/api/routers/console.py)
+reads beyond the API's JSON: a version's mesh for WebGL, a site's maps, and the coverage of
+every maplet at once.
+
+Big arrays travel as one binary document (`pack`): the 4 bytes b"PWMC", a little-endian uint32
+header length, a UTF-8 JSON header padded with spaces to a multiple of 4 bytes, then the arrays,
+little-endian and C-ordered, at the offsets (from the end of the header) the header lists as
+{"name", "dtype", "shape", "offset"}. JavaScript reads them as typed arrays without a copy.
+The mesh and site documents are made once and kept with the exports (service.exports.
+cached_artifact: same bound on bytes kept, same making lock), keyed by the version's mesh.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib import colormaps
+from pydantic import BaseModel, ConfigDict
+from scipy.spatial import cKDTree
+from sqlalchemy import case, distinct, func, select, true
+from sqlalchemy.orm import Session
+
+from pwm.compare import height_change
+from pwm.decimate import decimate
+from pwm.mesh import Mesh
+from pwm.site import ROUGHNESS_BASELINE_M, HazardThresholds, hazard, relief_m, roughness_m, slope_deg
+from service.exports import ExportError, Site, cached_artifact, digest, resample_site
+from service.models import Coverage, CoverageRole, Maplet, MapletRevision, ModelVersion
+from service.queries import list_maplets
+from service.versions import artifact_mesh, artifact_path
+
+MAGIC = b"PWMC"
+# What a browser draws smoothly: meshes above this many faces are decimated for the 3D view
+# (at 300k the document is about 8 MB; bench/console.py times its first draw).
+MESH_FACES = 300_000
+# Bump when a document's content changes for the same inputs.
+REVISION = 1
+FIELD_UNITS = {"albedo": "", "height": "m", "slope": "deg", "change": "m"}
+UNKNOWN_GREY = 115
+# Farthest (km) a version's surface may have moved from its parent's and still be compared.
+CHANGE_REACH_KM = 0.01
+
+
+def pack(header: dict[str, Any], arrays: list[tuple[str, np.ndarray]]) -> bytes:
+    """The binary document of `header` (JSON-able; "arrays" is added) and the named arrays
+    (float32, uint32, uint8 or int8)."""
+    listed, offset, blobs = [], 0, []
+    for name, array in arrays:
+        data = np.ascontiguousarray(array)
+        if data.dtype not in (np.float32, np.uint32, np.uint8, np.int8):
+            raise TypeError(f"array {name} is {data.dtype}; float32, uint32, uint8 or int8 "
+                            f"travel")
+        listed.append({"name": name, "dtype": data.dtype.name, "shape": list(data.shape),
+                       "offset": offset})
+        blob = data.astype(data.dtype.newbyteorder("<"), copy=False).tobytes()
+        blobs.append(blob + b"\0" * (-len(blob) % 4))  # each array starts 4-byte aligned
+        offset += len(blobs[-1])
+    text = json.dumps({**header, "arrays": listed}, allow_nan=False).encode()
+    text += b" " * (-len(text) % 4)
+    return MAGIC + struct.pack("<I", len(text)) + text + b"".join(blobs)
+
+
+def unpack(document: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The header and arrays of a `pack`ed document."""
+    if document[:4] != MAGIC:
+        raise ValueError("not a console document: no PWMC magic")
+    (length,) = struct.unpack("<I", document[4:8])
+    header = json.loads(document[8:8 + length])
+    start = 8 + length
+    arrays = {}
+    for entry in header["arrays"]:
+        dtype = np.dtype(entry["dtype"]).newbyteorder("<")
+        count = int(np.prod(entry["shape"]))
+        arrays[entry["name"]] = np.frombuffer(document, dtype=dtype, count=count,
+                                              offset=start + entry["offset"]).reshape(entry["shape"])
+    return header, arrays
+
+
+@dataclass(frozen=True)
+class MeshRequest:
+    """A version's mesh record (its PLY artifact) and its parent's, for the change colour."""
+
+    version: int
+    mesh: dict[str, Any]
+    parent: int | None
+    parent_mesh: dict[str, Any] | None
+
+    @classmethod
+    def of(cls, version: ModelVersion) -> MeshRequest:
+        parent = version.parent
+        return cls(version=version.version, mesh=dict(version.artifacts["ply"]),
+                   parent=parent.version if parent else None,
+                   parent_mesh=dict(parent.artifacts["ply"]) if parent else None)
+
+
+def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | None,
+                  faces: int = MESH_FACES) -> Path:
+    """The file of the 3D view's document of a version, made once: the mesh decimated to at
+    most `faces` faces, vertices (float32, km, body-fixed), faces (uint32), unit normals
+    (int8, x 127), and per vertex an RGB colour (uint8) of each of albedo, height (m above the
+    mean radius), slope (deg between the vertex normal and the radial direction) and change (m
+    along the normal since the parent version, pwm.compare; unknown without a parent), with
+    the range each colour map spans in the header. The browser does no per-vertex work.
+    cache_bytes: as for service.exports.cached_artifact."""
+    key = digest({"console": "mesh", "revision": REVISION, "mesh": request.mesh["sha256"],
+                  "parent": request.parent_mesh["sha256"] if request.parent_mesh else None,
+                  "faces": faces})
+
+    def make(path: Path) -> None:
+        full = artifact_mesh(data_dir, request.mesh)
+        mesh = decimate(full, faces) if len(full.faces) > faces else full
+        path.write_bytes(_mesh_bytes(data_dir, request, mesh, full=full))
+
+    record = cached_artifact(data_dir, key, suffix=".pwmc", make=make, cache_bytes=cache_bytes)
+    return artifact_path(data_dir, record)
+
+
+def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> bytes:
+    """The document of `mesh` (`full` decimated, or `full` itself)."""
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    radial = mesh.vertices / radius[:, None]
+    normals = mesh.vertex_normals()
+    slope = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", normals, radial), -1.0, 1.0)))
+    fields = {"albedo": (mesh.albedo if mesh.albedo is not None
+                         else np.full(len(mesh.vertices), np.nan)),
+              "height": (radius - radius.mean()) * 1e3, "slope": slope,
+              "change": _change(data_dir, request, mesh, full=full)}
+    colours = {name: _colour(values, signed=name == "change") for name, values in fields.items()}
+    header = {"kind": "mesh", "version": request.version, "parent": request.parent,
+              "faces_full": len(full.faces), "faces": len(mesh.faces),
+              "vertices": len(mesh.vertices),
+              "colours": {name: {"unit": FIELD_UNITS[name], **scale}
+                          for name, (_, scale) in colours.items()}}
+    return pack(header, [("vertices", mesh.vertices.astype(np.float32)),
+                         ("faces", mesh.faces.astype(np.uint32)),
+                         ("normals", np.round(normals * 127).astype(np.int8)),
+                         *((f"colour_{name}", rgb) for name, (rgb, _) in colours.items())])
+
+
+def _change(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> np.ndarray:
+    """Height change (m) since the parent at the vertices of `mesh`: measured on the full mesh
+    (decimation moves the surface, which is no change of the model) and taken from each
+    vertex's nearest full one; NaN everywhere without a parent."""
+    if request.parent_mesh is None:
+        return np.full(len(mesh.vertices), np.nan)
+    change = height_change(artifact_mesh(data_dir, request.parent_mesh), full,
+                           max_distance_km=CHANGE_REACH_KM).change_m
+    if mesh is full:
+        return change
+    _, nearest = cKDTree(full.vertices).query(mesh.vertices)
+    return change[nearest]
+
+
+def _colour(values: np.ndarray, *, signed: bool) -> tuple[np.ndarray, dict[str, Any]]:
+    """RGB (uint8, per vertex) of `values` on viridis from their 2nd to 98th percentile, or for
+    a signed field on RdBu_r symmetric about 0 (grey where unknown), and that range."""
+    known = np.isfinite(values)
+    rgb = np.full((len(values), 3), UNKNOWN_GREY, dtype=np.uint8)
+    if not known.any():
+        return rgb, {"min": None, "max": None}
+    low, high = (float(v) for v in np.percentile(values[known], [2.0, 98.0]))
+    if signed:
+        high = max(abs(low), abs(high), 1e-9)
+        low = -high
+    span = high - low if high > low else 1.0
+    cmap = colormaps["RdBu_r" if signed else "viridis"]
+    rgb[known] = np.round(cmap(np.clip((values[known] - low) / span, 0.0, 1.0))[:, :3] * 255)
+    return rgb, {"min": low, "max": high}
+
+
+@dataclass(frozen=True)
+class SiteRequest:
+    """A site of a version's mesh, the roughness baseline (m) and the hazard thresholds."""
+
+    version: int
+    mesh: dict[str, Any]
+    site: Site
+    baseline_m: float = ROUGHNESS_BASELINE_M
+    thresholds: HazardThresholds = HazardThresholds()
+
+
+def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> Path:
+    """The file of a site's maps, made once: the version's surface resampled on the site
+    frame's grid (service.exports.resample_site, as the site product is), with height (m),
+    albedo, slope (deg), roughness (m), relief (m above the plane over the baseline) and the
+    hazard mask (uint8, pwm.site) as [line = y, sample = x] arrays; the header holds the grid
+    (x0_m, y0_m, spacing_m, the site frame) and each map's minimum, mean and maximum.
+    Raises ExportError when the site meets no surface."""
+    key = digest({"console": "site", "revision": REVISION, "mesh": request.mesh["sha256"],
+                  "site": request.site.model_dump(), "baseline_m": request.baseline_m,
+                  "thresholds": [request.thresholds.max_slope_deg,
+                                 request.thresholds.max_relief_m]})
+
+    def make(path: Path) -> None:
+        grid = resample_site(artifact_mesh(data_dir, request.mesh), request.site)
+        height = grid.height_km * 1e3
+        if np.isnan(height).all():
+            raise ExportError("the site grid meets no surface")
+        spacing_m = float(grid.x_km[1] - grid.x_km[0]) * 1e3
+        maps = {"height": height, "albedo": grid.albedo,
+                "slope": slope_deg(height, spacing_m=spacing_m),
+                "roughness": roughness_m(height, spacing_m=spacing_m,
+                                         baseline_m=request.baseline_m),
+                "relief": relief_m(height, spacing_m=spacing_m, baseline_m=request.baseline_m)}
+        hazardous = hazard(maps["slope"], maps["relief"], request.thresholds)
+        header = {"kind": "site", "version": request.version, "site": request.site.model_dump(),
+                  "nx": len(grid.x_km), "ny": len(grid.y_km), "x0_m": float(grid.x_km[0]) * 1e3,
+                  "y0_m": float(grid.y_km[0]) * 1e3, "spacing_m": spacing_m,
+                  "baseline_m": request.baseline_m,
+                  "thresholds": {"max_slope_deg": request.thresholds.max_slope_deg,
+                                 "max_relief_m": request.thresholds.max_relief_m},
+                  "frame": {"origin_km": grid.frame.origin.tolist(),
+                            "rotation": grid.frame.rotation.tolist()},
+                  "statistics": {name: _extent(values) for name, values in maps.items()},
+                  "hazard_fraction": float(hazardous.mean())}
+        path.write_bytes(pack(header, [*((name, values.astype(np.float32))
+                                         for name, values in maps.items()),
+                                       ("hazard", hazardous.astype(np.uint8))]))
+
+    record = cached_artifact(data_dir, key, suffix=".pwmc", make=make, cache_bytes=cache_bytes)
+    return artifact_path(data_dir, record)
+
+
+def _extent(values: np.ndarray) -> dict[str, float | None]:
+    finite = values[np.isfinite(values)]
+    if not finite.size:
+        return {"min": None, "mean": None, "max": None}
+    return {"min": float(finite.min()), "mean": float(finite.mean()), "max": float(finite.max())}
+
+
+class MapletCoverageRow(BaseModel):
+    """One maplet on the coverage map: where it is, its region weight w_PWM, the images that see
+    it (visible fraction above 0) and those of them with a weight above 0 ("used"), the range of
+    the used images' incidence angles (deg; None without any), and whether the five views
+    (nadir, east, west, north, south) are all filled."""
+
+    model_config = ConfigDict(frozen=True)
+
+    id: int
+    name: str
+    center_lat_deg: float
+    center_lon_deg: float
+    size_km: float
+    region_weight: float
+    current_revision: int | None
+    image_count: int
+    used_count: int
+    incidence_min_deg: float | None
+    incidence_max_deg: float | None
+    roles_filled: int
+    five_views: bool
+
+
+def coverage_map(session: Session, *, near: tuple[float, float, float] | None = None
+                 ) -> list[MapletCoverageRow]:
+    """Every maplet with its coverage figures (as service.queries.maplet_coverage counts them),
+    by name; near = (lat_deg, lon_deg, radius_km): only the maplets within radius_km of that
+    surface point (service.queries.list_maplets), for the map of a site."""
+    ids = None
+    if near is not None:
+        lat_deg, lon_deg, radius_km = near
+        ids = [m.id for m in list_maplets(session, lat_deg=lat_deg, lon_deg=lon_deg,
+                                          radius_km=radius_km, limit=2**31 - 1)]
+    used = Coverage.weight > 0
+    figures = {row.maplet_id: row for row in session.execute(
+        select(Coverage.maplet_id, func.count().label("images"),
+               func.sum(case((used, 1), else_=0)).label("used"),
+               func.min(case((used, Coverage.incidence_deg))).label("inc_min"),
+               func.max(case((used, Coverage.incidence_deg))).label("inc_max"),
+               func.count(distinct(Coverage.role)).label("roles"))
+        .where(Coverage.visible_fraction > 0,
+               Coverage.maplet_id.in_(ids) if ids is not None else true())
+        .group_by(Coverage.maplet_id))}
+    rows = session.execute(
+        select(Maplet.id, Maplet.name, Maplet.center_lat_deg, Maplet.center_lon_deg,
+               Maplet.size_km, Maplet.region_weight, MapletRevision.revision)
+        .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
+        .where(Maplet.id.in_(ids) if ids is not None else true())
+        .order_by(Maplet.name))
+    out = []
+    for row in rows:
+        seen = figures.get(row.id)
+        roles = int(seen.roles) if seen else 0
+        out.append(MapletCoverageRow(
+            id=row.id, name=row.name, center_lat_deg=row.center_lat_deg,
+            center_lon_deg=row.center_lon_deg, size_km=row.size_km,
+            region_weight=row.region_weight, current_revision=row.revision,
+            image_count=int(seen.images) if seen else 0, used_count=int(seen.used or 0) if seen else 0,
+            incidence_min_deg=seen.inc_min if seen else None,
+            incidence_max_deg=seen.inc_max if seen else None,
+            roles_filled=roles, five_views=roles == len(CoverageRole)))
+    return out

@@ -1,0 +1,91 @@
+"""The console over a SQLite catalog built from the simulated `tiny` downlink (images, geometry,
+maplets and coverage by ingest), with two versions (the downlink's start model, and a refinement
+of it: subdivided, raised by RAISE_M, with albedo), a maplet revision, and jobs queued, running
+and failed; served by uvicorn on a free port and read by headless Chromium."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import httpx
+import numpy as np
+import pytest
+import trimesh
+from fastapi import FastAPI
+from selenium import webdriver
+from sqlalchemy import select
+
+from pwm.io.meshio import read_mesh
+from pwm.mesh import Mesh
+from service.api import create_app
+from service.db import session_scope
+from service.ingest import ingest_directory
+from service.jobs import claim_job, fail_job, report_progress, submit_job
+from service.models import Downlink, JobKind, Maplet, MapletRevision, ModelKind
+from service.settings import Settings
+from service.versions import import_model, publish_version
+from tests.console.browser import chromium, serve
+
+TOKEN = "console-token-0123456789"
+RAISE_M = 0.2  # the refined version's surface stands this far outside the start's
+FAILURE = "ValueError: too few images see maplet 1"
+
+
+@dataclass(frozen=True)
+class Console:
+    app: FastAPI
+    url: str
+    api: httpx.Client
+    maplet_id: int
+
+
+def raised(start: Mesh) -> Mesh:
+    """The start subdivided once, moved RAISE_M outward along the radius, with albedo."""
+    vertices, faces = trimesh.remesh.subdivide(start.vertices, start.faces)
+    radius = np.linalg.norm(vertices, axis=1, keepdims=True)
+    vertices = vertices * (1 + RAISE_M * 1e-3 / radius)
+    return Mesh(vertices, faces, albedo=0.044 + 0.01 * np.sin(vertices[:, 0] / 0.02))
+
+
+@pytest.fixture(scope="module")
+def console(tiny_sim, tmp_path_factory) -> Iterator[Console]:
+    data_dir = tmp_path_factory.mktemp("console-data")
+    app = create_app(Settings(data_dir=data_dir, api_token=TOKEN))
+    sessions = app.state.sessions
+    downlink = tiny_sim / "downlink"
+    start_path = downlink / "start_model.obj"
+    ingest_directory(sessions, downlink, shape=read_mesh(start_path))
+    with session_scope(sessions) as session:
+        maplet = session.scalars(select(Maplet).order_by(Maplet.id)).first()
+        assert maplet is not None
+        revision = MapletRevision(maplet=maplet, revision=1, input_hash=f"{1:064x}", mode="pwm",
+                                  statistics={"residual_rms": 0.02}, artifact_path="maplets/1.npz",
+                                  sha256=f"{1:064x}")
+        session.add(revision)
+        session.flush()
+        maplet.current_revision = revision
+        start = import_model(session, data_dir=data_dir, path=start_path, kind=ModelKind.START)
+        publish_version(session, data_dir=data_dir, mesh=raised(read_mesh(start_path)),
+                        kind=ModelKind.REFINED, parent=start, maplet_revisions=[revision],
+                        downlinks=session.scalars(select(Downlink)).all(),
+                        statistics={"note": "refined for the console tests"})
+        maplet_id = maplet.id
+        submit_job(session, kind=JobKind.INGEST, key="ingest:queued")
+        running = claim_job(session, kind=JobKind.REFINE, key="refine:running", lease_s=600,
+                            maplet_id=maplet_id)
+        assert running is not None
+        report_progress(session, running, 0.4, "registering 3 of 7 images")
+        failed = claim_job(session, kind=JobKind.REFINE, key="refine:failed", lease_s=600,
+                           maplet_id=maplet_id)
+        assert failed is not None
+        fail_job(session, failed, error=FAILURE)
+    with serve(app) as url, httpx.Client(base_url=url, timeout=120) as api:
+        yield Console(app=app, url=url, api=api, maplet_id=maplet_id)
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[webdriver.Chrome]:
+    """Headless Chromium (tests/console/browser.py); tests using it are marked `browser`."""
+    with chromium() as driver:
+        yield driver

@@ -1,0 +1,95 @@
+"""The console's documents without a browser: the binary layout, the 3D view's mesh with its
+colours (change since the parent against a known displacement), decimation above the limit,
+and bad requests refused with a reason."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.console.documents import MESH_FACES, MeshRequest, mesh_document, pack, unpack
+from service.db import session_scope
+from service.versions import get_version
+from tests.console.conftest import RAISE_M
+
+
+def test_pack_round_trip_and_refusals():
+    arrays = [("a", np.arange(5, dtype=np.float32)), ("b", np.array([[1, 2], [3, 4]], np.uint32)),
+              ("c", np.array([1, 0, 1], np.uint8))]
+    header, back = unpack(pack({"kind": "test"}, arrays))
+    assert header["kind"] == "test" and [a["name"] for a in header["arrays"]] == ["a", "b", "c"]
+    for name, array in arrays:
+        np.testing.assert_array_equal(back[name], array)
+        assert header["arrays"][[n for n, _ in arrays].index(name)]["offset"] % 4 == 0
+    with pytest.raises(TypeError, match="float64"):
+        pack({}, [("x", np.zeros(3))])
+    with pytest.raises(ValueError, match="magic"):
+        unpack(b"JUNK" + bytes(8))
+
+
+def test_mesh_document_of_a_refined_version(console):
+    response = console.api.get("/console/api/versions/2/mesh")
+    assert response.status_code == 200
+    assert response.headers["content-type"] == "application/vnd.pwm.console"
+    assert "immutable" in response.headers["cache-control"]
+    assert console.api.get("/console/api/versions/latest/mesh").headers["cache-control"] == "no-cache"
+    header, arrays = unpack(response.content)
+    version = console.api.get("/versions/2").json()
+    assert header["faces"] == header["faces_full"] == version["faces"] <= MESH_FACES
+    assert arrays["vertices"].shape == (version["vertices"], 3)
+    assert arrays["faces"].shape == (version["faces"], 3)
+    assert arrays["faces"].max() == version["vertices"] - 1
+    normals = arrays["normals"].astype(float) / 127
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=0.02)
+    for name in ("albedo", "height", "slope", "change"):
+        assert arrays[f"colour_{name}"].shape == (version["vertices"], 3)
+    colours = header["colours"]
+    # the refinement stands RAISE_M outside its parent everywhere: the change map's range
+    assert colours["change"]["max"] == pytest.approx(RAISE_M, abs=0.01)
+    assert colours["change"]["min"] == -colours["change"]["max"]
+    assert 0.034 <= colours["albedo"]["min"] < colours["albedo"]["max"] <= 0.054
+    assert colours["slope"]["unit"] == "deg" and 0 <= colours["slope"]["min"]
+    assert arrays["colour_albedo"].std(axis=0).max() > 10  # coloured, not one grey
+    # the start has no parent (no change) and no albedo in its OBJ: grey
+    header1, arrays1 = unpack(console.api.get("/console/api/versions/1/mesh").content)
+    assert header1["parent"] is None and header1["colours"]["change"]["min"] is None
+    assert (arrays1["colour_change"] == arrays1["colour_change"][0]).all()
+
+
+def test_mesh_document_is_decimated_above_the_limit(console, tmp_path):
+    settings = console.app.state.settings
+    with session_scope(console.app.state.sessions) as session:
+        request = MeshRequest.of(get_version(session, 2))
+    faces = console.api.get("/versions/2").json()["faces"] // 2
+    path = mesh_document(settings.data_dir, request, cache_bytes=settings.export_cache_bytes,
+                         faces=faces)
+    header, arrays = unpack(path.read_bytes())
+    assert header["faces_full"] == 2 * faces and 0.9 * faces <= header["faces"] <= faces
+    assert len(arrays["normals"]) == len(arrays["vertices"]) == header["vertices"]
+    assert len(arrays["faces"]) == header["faces"] and header["colours"]["albedo"]["min"] > 0
+
+
+@pytest.mark.parametrize(("params", "status"), [
+    ({"lat": 0, "lon": 0, "radius_km": 2}, 422),  # over the console's 1 km
+    ({"lat": 0, "lon": 0}, 422),
+    ({"lat": 0, "lon": 0, "radius_km": 0.01, "max_slope_deg": 90}, 422),
+])
+def test_bad_site_requests_are_refused(console, params, status):
+    response = console.api.get("/console/api/versions/2/site", params=params)
+    assert response.status_code == status and response.json()["detail"]
+
+
+def test_unknown_version_is_404(console):
+    response = console.api.get("/console/api/versions/99/mesh")
+    assert response.status_code == 404 and "99" in response.json()["detail"]
+
+
+def test_coverage_of_a_site_is_the_maplets_near_it(console):
+    everything = console.api.get("/console/api/coverage").json()
+    first = everything[0]
+    near = {"lat": first["center_lat_deg"], "lon": first["center_lon_deg"], "radius_km": 0.001}
+    site = console.api.get("/console/api/coverage", params=near).json()
+    listed = console.api.get("/maplets", params={**near, "limit": 1000}).json()["items"]
+    assert sorted(m["id"] for m in site) == sorted(m["id"] for m in listed)
+    assert 0 < len(site) < len(everything) and first in site
+    assert console.api.get("/console/api/coverage", params={"lat": 1}).status_code == 422
