@@ -72,11 +72,11 @@ def console(tiny_sim, tmp_path_factory) -> Iterator[Console]:
                         statistics={"note": "refined for the console tests"})
         maplet_id = maplet.id
         submit_job(session, kind=JobKind.INGEST, key="ingest:queued")
-        running = claim_job(session, kind=JobKind.REFINE, key="refine:running", lease_s=600,
+        running = claim_job(session, kind=JobKind.REFINE, key="refine:running", grace_s=600,
                             maplet_id=maplet_id)
         assert running is not None
         report_progress(session, running, 0.4, "registering 3 of 7 images")
-        failed = claim_job(session, kind=JobKind.REFINE, key="refine:failed", lease_s=600,
+        failed = claim_job(session, kind=JobKind.REFINE, key="refine:failed", grace_s=600,
                            maplet_id=maplet_id)
         assert failed is not None
         fail_job(session, failed, error=FAILURE)
