@@ -108,6 +108,9 @@ def test_a_fusion_due_during_a_broker_outage_is_published_once_the_broker_is_bac
     restarted = utcnow()
     wait_for(lambda: len(_versions(catalog)) == 2, "the version published after the outage",
              [worker], timeout=60.0)
+    # the fusion goes on after its publication, making the console's 3D document
+    wait_for(lambda: all(j.status is JobStatus.DONE for j in _jobs(catalog, JobKind.FUSE)),
+             "the fusion's job done", [worker])
     published = _versions(catalog)[-1]
     [fuse] = _jobs(catalog, JobKind.FUSE)
     assert published.created_at - restarted < timedelta(seconds=60)

@@ -134,8 +134,11 @@ def _downlink_id(sessions: sessionmaker[Session], name: str) -> int:
 
 def _wait_for_version(sessions: sessionmaker[Session], number: int, processes: list[Worker]
                       ) -> None:
-    wait_for(lambda: len(_versions(sessions)) >= number, f"model version {number}", processes,
-             timeout=DOWNLINK_TIMEOUT_S)
+    """Until version `number` is published and no fusion job is left unfinished: a fusion
+    goes on after its publication to make the console's 3D document of the new version."""
+    wait_for(lambda: len(_versions(sessions)) >= number
+             and all(j.status is JobStatus.DONE for j in _jobs(sessions, JobKind.FUSE)),
+             f"model version {number}, its fusion done", processes, timeout=DOWNLINK_TIMEOUT_S)
 
 
 def _files(data_dir: Path, version: ModelVersion) -> dict[str, str]:
