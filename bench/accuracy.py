@@ -26,6 +26,8 @@ import sys
 import time
 from pathlib import Path
 
+from pwm.evaluate.classes import CLASSES
+
 CHILD = """
 import resource, sys
 from service.cli import app
@@ -70,8 +72,6 @@ def split_row(label: str, figures: dict) -> str:
     cells += [f"{classes[c]['rms'] / gsd:>13.2f}" if c in classes else f"{'-':>13}" for c in CLASSES]
     return f"{label:<12}" + "".join(cells)
 
-
-CLASSES = ("walls", "rims", "maplet edges", "shadow", "elsewhere")
 
 
 def main() -> None:
