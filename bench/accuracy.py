@@ -94,7 +94,7 @@ def main() -> None:
         sim = args.out / (name + (f"-ke{args.knowledge_error}" if args.knowledge_error else ""))
         if not (sim / "truth" / "manifest.json").exists():
             extra = ["--knowledge-error", args.knowledge_error] if args.knowledge_error else []
-            pwm("simulate", str(sim), "--scenario", name, "--seed", "1", *extra)
+            pwm("simulate", str(sim), "--scenario", name, "--seed", "1", "--with-start-model", *extra)
         runs.append((sim, sim))
     runs += [(sim, args.out / sim.name) for sim in args.sims]
     for sim, work in runs:

@@ -216,7 +216,7 @@ def main() -> int:
     sim = args.sim or work / "sim"
     if not (sim / "downlink").is_dir():
         subprocess.run([sys.executable, "-c", "from service.cli import app; app()", "simulate", str(sim),
-                        "--scenario", "tiny", "--seed", "3"], check=True, env={**os.environ,
+                        "--scenario", "tiny", "--seed", "3", "--with-start-model"], check=True, env={**os.environ,
                                                                                 "PYTHONPATH": str(REPO)})
     root, outside = work / "hostile", work / "outside"
     shutil.rmtree(root, ignore_errors=True)

@@ -162,7 +162,7 @@ def main() -> None:
         scratch.mkdir(parents=True, exist_ok=True)
         downlink = args.downlink
         if downlink is None:
-            simulate(scratch / "tiny", scenario=get_scenario("tiny"), seed=3)
+            simulate(scratch / "tiny", scenario=get_scenario("tiny"), seed=3, with_start_model=True)
             downlink = scratch / "tiny" / "downlink"
         revisit = scratch / "revisit"
         if not revisit.exists():

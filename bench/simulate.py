@@ -23,7 +23,7 @@ import resource, sys, time
 from pwm.simulate.campaign import simulate
 from pwm.simulate.scenarios import get_scenario
 start = time.perf_counter()
-simulate(sys.argv[1], scenario=get_scenario(sys.argv[2]), seed=1)
+simulate(sys.argv[1], scenario=get_scenario(sys.argv[2]), seed=1, with_start_model=True)
 print(time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 """
 

@@ -48,6 +48,15 @@ class Ellipsoid:
         normals = points / radii**2
         return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
+    def mesh(self, *, subdivisions: int = 5) -> Mesh:
+        """The ellipsoid as a closed triangle mesh (km): an icosphere of `subdivisions` (20 * 4**n
+        faces) scaled by the radii."""
+        import trimesh
+
+        sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
+        return Mesh(np.asarray(sphere.vertices) * np.asarray(self.radii, dtype=float),
+                    np.asarray(sphere.faces, dtype=np.int64))
+
 
 class MeshSurface:
     """A shape model, ray traced with Embree; normals are those of the facets hit."""

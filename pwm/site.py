@@ -4,6 +4,12 @@ Heights are in metres along the site frame's z axis (the regional normal: pwm.fr
 of the site's mean normal), on a square grid of `spacing_m` between nodes, arrays [line, sample]
 = [y, x]; NaN where there is no surface. A result is NaN (roughness, relief, slope) where its
 stencil or window reaches a node without data or past the grid's edge.
+
+Slope, roughness and relief of a site are taken over one baseline: the least-squares plane
+fitted over a square window of that side about each node gives the slope (its tilt), the
+roughness (the RMS residual about it) and the relief (the height above it). The baseline is the
+scale a team asks about, e.g. a spacecraft's or a sampler's footprint; slopes at the grid's own
+spacing (central differences, no baseline) are what the evaluation uses to find steep walls.
 """
 
 from __future__ import annotations
@@ -13,8 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import correlate, uniform_filter
 
-ROUGHNESS_BASELINE_M = 1.0
-"""Side (m) of the square window a plane is fitted over for roughness and relief, by default."""
+BASELINE_M = 1.0
+"""Side (m) of the square window a plane is fitted over for slope, roughness and relief, by
+default."""
 
 
 @dataclass(frozen=True)
@@ -32,9 +39,15 @@ class HazardThresholds:
                              f"got {self.max_slope_deg}, {self.max_relief_m}")
 
 
-def slope_deg(height_m: np.ndarray, *, spacing_m: float) -> np.ndarray:
-    """The angle (deg) between the surface normal and the regional normal at each node, from
-    central differences (one-sided at the edges); NaN at and beside nodes without data."""
+def slope_deg(height_m: np.ndarray, *, spacing_m: float,
+              baseline_m: float | None = None) -> np.ndarray:
+    """The angle (deg) between the surface normal and the regional normal at each node.
+
+    baseline_m None: from central differences at the grid's spacing (one-sided at the edges),
+    NaN at and beside nodes without data. A baseline: the tilt of the least-squares plane fitted
+    over the square window of side baseline_m (window_nodes) centred on each node."""
+    if baseline_m is not None:
+        return _plane_fit(height_m, spacing_m=spacing_m, baseline_m=baseline_m)[2]
     height = _grid(height_m, spacing_m)
     dh_dy, dh_dx = np.gradient(height, spacing_m)
     slope = np.degrees(np.arctan(np.hypot(dh_dx, dh_dy)))
@@ -50,14 +63,14 @@ def window_nodes(*, spacing_m: float, baseline_m: float) -> int:
 
 
 def roughness_m(height_m: np.ndarray, *, spacing_m: float,
-                baseline_m: float = ROUGHNESS_BASELINE_M) -> np.ndarray:
+                baseline_m: float = BASELINE_M) -> np.ndarray:
     """RMS deviation (m) of the heights from the least-squares plane fitted over the square
     window of side `baseline_m` (window_nodes) centred on each node."""
     return _plane_fit(height_m, spacing_m=spacing_m, baseline_m=baseline_m)[1]
 
 
 def relief_m(height_m: np.ndarray, *, spacing_m: float,
-             baseline_m: float = ROUGHNESS_BASELINE_M) -> np.ndarray:
+             baseline_m: float = BASELINE_M) -> np.ndarray:
     """Height (m) of each node above the least-squares plane fitted over the square window of
     side `baseline_m` centred on it: a boulder stands out by about its height."""
     height = _grid(height_m, spacing_m)
@@ -85,8 +98,9 @@ def _grid(height_m: np.ndarray, spacing_m: float) -> np.ndarray:
 
 
 def _plane_fit(height_m: np.ndarray, *, spacing_m: float,
-               baseline_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The fitted plane's height at each window's centre and the RMS residual (m).
+               baseline_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fitted plane's height at each window's centre, the RMS residual (m) and the plane's
+    tilt (deg).
 
     The window's offsets u, v from its centre are symmetric, so Σu = Σv = Σuv = 0 and the fit
     h ≈ a + b u + c v separates: a = mean h, b = Σuh / Σu², c = Σvh / Σv²; the residual sum of
@@ -99,7 +113,7 @@ def _plane_fit(height_m: np.ndarray, *, spacing_m: float,
     missing = np.isnan(height)
     if missing.all():
         nan = np.full(height.shape, np.nan)
-        return nan, nan.copy()
+        return nan, nan.copy(), nan.copy()
     level = float(np.nanmean(height))
     filled = np.where(missing, 0.0, height - level)
     # windows that reach a node without data, or past the edge, give NaN
@@ -115,6 +129,7 @@ def _plane_fit(height_m: np.ndarray, *, spacing_m: float,
     square = uniform_filter(filled ** 2, n, mode="constant") - mean ** 2
     residual = np.maximum(square - (b ** 2 + c ** 2) * su2 / n ** 2, 0.0)
     plane = mean + level
-    plane[incomplete] = np.nan
-    residual[incomplete] = np.nan
-    return plane, np.sqrt(residual)
+    tilt = np.degrees(np.arctan(np.hypot(b, c) / spacing_m))  # b, c: height per node step
+    for values in (plane, residual, tilt):
+        values[incomplete] = np.nan
+    return plane, np.sqrt(residual), tilt

@@ -10,7 +10,9 @@ out="${1:-out/demo}"
 export PWM_DATA_DIR="$out/pwm-data"
 export PWM_DATABASE_URL=""  # the SQLite catalog in PWM_DATA_DIR, whatever the environment says
 rm -rf "$out/pwm-data"  # a fresh catalog: the simulated products are new each time
-.venv/bin/pwm simulate "$out" --scenario tiny --seed 1
+# tiny is one small site: too small a footprint for photogrammetry to start from the PCK
+# ellipsoid, so the downlink brings a start model, as a site campaign would have one
+.venv/bin/pwm simulate "$out" --scenario tiny --seed 1 --with-start-model
 .venv/bin/pwm run "$out/downlink" --workers 2
 .venv/bin/pwm versions
 .venv/bin/pwm diff 1 latest --png "$out/evaluation/diff.png"

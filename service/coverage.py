@@ -59,6 +59,12 @@ class CoverageReport:
     rows_deleted: int = 0
 
 
+def unweighed_images(session: Session) -> set[int]:
+    """The images not weighed yet (Image.coverage_computed_at): a new downlink's, those ingested
+    while the catalog had no shape, and those whose pose was corrected since."""
+    return set(session.scalars(select(Image.id).where(Image.coverage_computed_at.is_(None))))
+
+
 def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = None,
                     image_ids: Collection[int] | None = None, config: RefinementConfig = DEFAULTS,
                     sample_nodes: int = SAMPLE_NODES) -> CoverageReport:

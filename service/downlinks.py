@@ -39,6 +39,7 @@ class DownlinkSummary:
     kernels: int
     images: dict[ImageStatus, int] = field(default_factory=dict)
     unused_files: int = 0
+    model_note: str | None = None
 
     @property
     def accepted(self) -> int:
@@ -96,5 +97,6 @@ def downlink_summaries(session: Session, ids: list[int]) -> list[DownlinkSummary
     return [DownlinkSummary(id=d.id, name=d.name, path=d.path, received_at=d.received_at,
                             status=d.status, repeat_count=d.repeat_count,
                             last_seen_at=d.last_seen_at, kernels=kernels.get(d.id, 0),
-                            images=images.get(d.id, {}), unused_files=unused.get(d.id, 0))
+                            images=images.get(d.id, {}), unused_files=unused.get(d.id, 0),
+                            model_note=d.model_note)
             for d in rows]

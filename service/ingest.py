@@ -54,7 +54,7 @@ from pwm.io.pds4 import ImageLabel, ProductError, read_array, read_image_label
 from pwm.io.spice_geometry import ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, observe, spacecraft_of
 from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
-from service.coverage import CoverageReport, update_coverage
+from service.coverage import CoverageReport, unweighed_images, update_coverage
 from service.db import make_sessionmaker, session_scope
 from service.kernels import (
     KernelOutcome,
@@ -242,11 +242,9 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                             "neither a SPICE kernel nor a PDS4 label, nor a file a label names")
         if shape is not None:
             with session_scope(sessions) as session:
-                # The images not weighed yet (this downlink's, or earlier ones ingested without
-                # a shape): a repeated ingest leaves the maplets' inputs as they are.
-                unweighed = set(session.scalars(select(Image.id).where(
-                    Image.coverage_computed_at.is_(None))))
-                report.coverage = update_coverage(session, shape, image_ids=unweighed, config=config)
+                # A repeated ingest leaves the maplets' inputs as they are.
+                report.coverage = update_coverage(session, shape, image_ids=unweighed_images(session),
+                                                  config=config)
     except BaseException:
         _release(sessions, downlink_id, DownlinkStatus.FAILED)
         raise

@@ -15,15 +15,15 @@ presumed dead cannot overwrite the outcome of the attempt that took over; they w
 table and leave the Job object passed as it was claimed. Each function works in the caller's
 transaction: commit promptly so that the API sees progress.
 
-The keys' formats live here (ingest_key, refine_key, fuse_key): a version's lineage is read
+The keys' formats live here (ingest_key, refine_key and refine_key_parts, fuse_key): a version's lineage is read
 from the refine keys of the revisions it carries (refined_downlinks).
 
 The table, not the broker, is the truth about what must run next: every hand-over to the broker
 is recorded (`mark_enqueued`, with its error when the broker could not take it), and
 `due_jobs` finds the jobs a reconciler must hand over again: queued or retryable ones whose
 message may be gone, lost attempts, and downlinks whose refinements are all done with no fusion
-job (`downlinks_awaiting_fusion`). Handing a job over twice is harmless: the claim makes every
-delivery after the first a no-op.
+job after them (`downlinks_awaiting_fusion`; a downlink fuses once per pass, `due_fusion`).
+Handing a job over twice is harmless: the claim makes every delivery after the first a no-op.
 
 Work is handed to whoever runs it through a JobQueue: the workers implement it
 (workers.tasks.CeleryQueue) and the command line, which wires the parts together, gives it to
@@ -43,7 +43,7 @@ from sqlalchemy import ColumnElement, CursorResult, and_, func, or_, select, upd
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.models import Job, JobKind, JobStatus, MapletRevision, utcnow
+from service.models import Job, JobKind, JobStatus, Maplet, MapletRevision, utcnow
 
 _INSERT_IGNORING_CONFLICT: dict[str, Callable[..., postgresql.Insert | sqlite.Insert]] = {
     "postgresql": postgresql.insert, "sqlite": sqlite.insert}
@@ -77,9 +77,32 @@ def refine_key(downlink_id: int | None, maplet_id: int, input_hash: str) -> str:
     return f"refine:{REQUESTED if downlink_id is None else downlink_id}:{maplet_id}:{input_hash}"
 
 
-def fuse_key(downlink_id: int | None) -> str:
-    """The key of fusing a downlink's refinements (None: the catalog's) into a new version."""
-    return f"fuse:{downlink_id}"
+def refine_key_parts(key: str) -> tuple[int | None, int, str]:
+    """The downlink id (None: on request), maplet id and input hash that refine_key made `key`
+    of; ValueError for another key."""
+    kind, downlink, maplet_id, input_hash = key.split(":", 3)
+    if kind != "refine" or not maplet_id.isdigit() or not (downlink == REQUESTED or downlink.isdigit()):
+        raise ValueError(f"not a refine key: {key!r}")
+    return None if downlink == REQUESTED else int(downlink), int(maplet_id), input_hash
+
+
+def fuse_key(downlink_id: int | None, nth: int = 1) -> str:
+    """The key of the nth fusion of a downlink's refinements (None: the catalog's) into a new
+    version: the first follows its ingest's refinements, each later one a later pass's."""
+    return f"fuse:{downlink_id}" if nth == 1 else f"fuse:{downlink_id}:{nth}"
+
+
+def due_fusion(session: Session, downlink_id: int) -> str | None:
+    """The key of the downlink's next fusion when it is due: it has refine jobs, all done, and
+    no fusion job made after the last of them. None when not due."""
+    unfinished, last = session.execute(select(
+        func.count().filter(Job.status != JobStatus.DONE), func.max(Job.id)).where(
+        Job.kind == JobKind.REFINE, Job.downlink_id == downlink_id)).one()
+    fusions, latest = session.execute(select(func.count(), func.max(Job.id)).where(
+        Job.kind == JobKind.FUSE, Job.downlink_id == downlink_id)).one()
+    if last is None or unfinished or (latest is not None and latest > last):
+        return None
+    return fuse_key(downlink_id, fusions + 1)
 
 
 class JobBusy(Exception):
@@ -247,14 +270,36 @@ def due_jobs(session: Session, *, grace_s: float, requeue_after_s: float, retrie
 
 
 def downlinks_awaiting_fusion(session: Session) -> list[int]:
-    """The downlinks with refine jobs, all done, and no fusion job: their fan-in never
+    """The downlinks whose fusion is due (`due_fusion`) and was never made: their fan-in never
     happened (the worker died between the two, or the fusion job was never made)."""
-    refines = select(Job.downlink_id).where(Job.kind == JobKind.REFINE,
-                                            Job.downlink_id.is_not(None)).group_by(
-        Job.downlink_id).having(func.count().filter(Job.status != JobStatus.DONE) == 0)
-    fused = select(Job.downlink_id).where(Job.kind == JobKind.FUSE, Job.downlink_id.is_not(None))
-    return list(session.scalars(refines.where(Job.downlink_id.not_in(fused))
-                                .order_by(Job.downlink_id)))
+    refines = (select(Job.downlink_id, func.max(Job.id).label("last"))
+               .where(Job.kind == JobKind.REFINE, Job.downlink_id.is_not(None))
+               .group_by(Job.downlink_id)
+               .having(func.count().filter(Job.status != JobStatus.DONE) == 0).subquery())
+    fused = (select(Job.downlink_id, func.max(Job.id).label("latest"))
+             .where(Job.kind == JobKind.FUSE, Job.downlink_id.is_not(None))
+             .group_by(Job.downlink_id).subquery())
+    return list(session.scalars(
+        select(refines.c.downlink_id)
+        .outerjoin(fused, fused.c.downlink_id == refines.c.downlink_id)
+        .where(or_(fused.c.latest.is_(None), fused.c.latest < refines.c.last))
+        .order_by(refines.c.downlink_id)))
+
+
+def made_current(session: Session, *, downlink_id: int | None,
+                 maplet_ids: Collection[int] | None = None) -> set[int]:
+    """The maplets (of maplet_ids, or all) whose current revision a done refine job of the
+    downlink (None: a requested one) made."""
+    query = (select(Job.key, Job.maplet_id, MapletRevision.input_hash)
+             .join(Maplet, Maplet.id == Job.maplet_id)
+             .join(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
+             .where(Job.kind == JobKind.REFINE, Job.status == JobStatus.DONE,
+                    Job.downlink_id.is_(None) if downlink_id is None
+                    else Job.downlink_id == downlink_id))
+    if maplet_ids is not None:
+        query = query.where(Job.maplet_id.in_(list(maplet_ids)))
+    return {m for key, m, h in session.execute(query)
+            if m is not None and key == refine_key(downlink_id, m, h)}
 
 
 def refined_downlinks(session: Session, revisions: Iterable[MapletRevision]) -> set[int]:

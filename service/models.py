@@ -189,6 +189,9 @@ class Downlink(Base):
     # committed: an ingest whose owner died or stopped committing is stale and is taken over.
     ingest_owner: Mapped[str | None] = mapped_column(String(255))
     ingest_heartbeat_at: Mapped[datetime | None]
+    # Set when the downlink arrived at a catalog without a model version: the version made from
+    # the images by photogrammetry (service.spg.start_from_images), or why none could be made.
+    model_note: Mapped[str | None] = mapped_column(Text)
 
     kernels: Mapped[list[Kernel]] = relationship(back_populates="downlink")
     images: Mapped[list[Image]] = relationship(back_populates="downlink")

@@ -2,10 +2,14 @@
 
 A maplet's input is the set of images its coverage rows weigh above zero (the refinement's own
 rules, service.coverage), each with its pose correction, plus the refinement settings
-(pwm.config.RefinementConfig.digest) and the maplet's grid. Its input hash names that input: a
-maplet whose current revision was made from another input is stale. Refining a maplet stores a
-new revision, keyed by the input hash, so the same input is never solved twice; the maplet's
-current revision moves to it while the hash is still the maplet's input.
+(pwm.config.RefinementConfig.digest), the maplet's grid and the pass. Its input hash names that
+input: a maplet whose current revision was made from another input is stale. Refining a maplet
+stores a new revision, keyed by the input hash, so the same input is never solved twice; the
+maplet's current revision moves to it while the hash is still one of the maplet's inputs.
+
+Passes, as `pwm refine` makes them: a maplet is refined from the same images config.passes
+times, each later pass against the model that fused the pass before (pass p + 1 is due once the
+latest version holds the maplet's pass-p revision). A new input starts again at pass 1.
 
 The refinement itself is pwm.pipeline.refine_maplet, on the maplet's nodes at the heights of
 the current model (the latest version), with visibility against that model.
@@ -34,7 +38,15 @@ from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface
 from service.db import session_scope
-from service.models import Coverage, GeometryStatus, Image, ImageStatus, Maplet, MapletRevision
+from service.models import (
+    Coverage,
+    GeometryStatus,
+    Image,
+    ImageStatus,
+    Maplet,
+    MapletRevision,
+    model_version_maplet_revisions,
+)
 from service.versions import artifact_mesh, artifact_path, latest_version, scratch_path, store_artifact
 from service.views import catalog_views
 
@@ -45,28 +57,37 @@ _INSERT_ATTEMPTS = 5
 
 @dataclass(frozen=True)
 class MapletWork:
-    """A maplet whose input changed since its current revision: its id and name, the hash of its
-    input now, and how many images that input holds."""
+    """A maplet due for refinement: its id and name, the hash of its input now (of the pass
+    due), how many images that input holds, and the pass (1 for a new input)."""
 
     maplet_id: int
     name: str
     input_hash: str
     images: int
+    pass_number: int = 1
 
 
 @dataclass(frozen=True)
 class _Input:
+    """A maplet's images and the input hash of each pass (pass 1 first)."""
+
     image_ids: tuple[int, ...]
-    input_hash: str
+    hashes: tuple[str, ...]
+
+    def pass_of(self, input_hash: str | None) -> int | None:
+        """The pass of this input that `input_hash` names, or None when it names another input."""
+        return self.hashes.index(input_hash) + 1 if input_hash in self.hashes else None
 
 
 def input_hash(image_keys: Collection[str], *, config: RefinementConfig, nodes_per_side: int,
-               size_km: float) -> str:
+               size_km: float, pass_number: int = 1) -> str:
     """sha256 naming a refinement's input: the images' keys (sha256 of the product, with its
-    pose correction), the refinement settings (config.digest()) and the maplet's grid (nodes per
-    side, side in km)."""
-    payload = {"images": sorted(image_keys), "config": config.digest(),
-               "nodes_per_side": nodes_per_side, "size_km": repr(float(size_km))}
+    pose correction), the refinement settings (config.digest()), the maplet's grid (nodes per
+    side, side in km) and, after the first, the pass."""
+    payload: dict[str, object] = {"images": sorted(image_keys), "config": config.digest(),
+                                  "nodes_per_side": nodes_per_side, "size_km": repr(float(size_km))}
+    if pass_number > 1:
+        payload["pass"] = pass_number
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
@@ -91,25 +112,38 @@ def _inputs(session: Session, config: RefinementConfig, maplet_ids: Collection[i
     grids = dict((i, (n, s)) for i, n, s in session.execute(
         select(Maplet.id, Maplet.nodes_per_side, Maplet.size_km).where(
             Maplet.id.in_(list(images)))))
-    return {m: _Input(tuple(i for i, _ in rows),
-                      input_hash([k for _, k in rows], config=config, nodes_per_side=grids[m][0],
-                                 size_km=grids[m][1]))
+    return {m: _Input(tuple(i for i, _ in rows), tuple(
+        input_hash([k for _, k in rows], config=config, nodes_per_side=grids[m][0],
+                   size_km=grids[m][1], pass_number=p) for p in range(1, config.passes + 1)))
             for m, rows in images.items()}
 
 
 def stale_maplets(session: Session, *, config: RefinementConfig = DEFAULTS,
                   maplet_ids: Collection[int] | None = None) -> list[MapletWork]:
-    """The maplets (of maplet_ids, or all) with at least config.min_images images whose input hash is
-    not their current revision's, by id."""
+    """The maplets (of maplet_ids, or all) with at least config.min_images images that are due
+    for refinement, by id: at pass 1 when their current revision is of another input, at pass
+    p + 1 when it is the pass-p revision of their input and the latest version fused it. A
+    revision not fused yet is awaited: its next pass starts from the model that holds it."""
     inputs = _inputs(session, config, maplet_ids)
+    latest = latest_version(session)
+    fused = set() if latest is None else set(session.scalars(
+        select(model_version_maplet_revisions.c.maplet_revision_id).where(
+            model_version_maplet_revisions.c.model_version_id == latest.id)))
     rows = session.execute(
-        select(Maplet.id, Maplet.name, MapletRevision.input_hash)
+        select(Maplet.id, Maplet.name, MapletRevision.id, MapletRevision.input_hash)
         .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
         .where(Maplet.id.in_(list(inputs))).order_by(Maplet.id))
-    return [MapletWork(maplet_id=m, name=name, input_hash=inputs[m].input_hash,
-                       images=len(inputs[m].image_ids))
-            for m, name, current in rows
-            if len(inputs[m].image_ids) >= config.min_images and current != inputs[m].input_hash]
+    work = []
+    for m, name, revision_id, current in rows:
+        if len(inputs[m].image_ids) < config.min_images:
+            continue
+        done = inputs[m].pass_of(current)
+        if done == config.passes or (done is not None and revision_id not in fused):
+            continue
+        due = 1 if done is None else done + 1
+        work.append(MapletWork(maplet_id=m, name=name, input_hash=inputs[m].hashes[due - 1],
+                               images=len(inputs[m].image_ids), pass_number=due))
+    return work
 
 
 def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, maplet_id: int,
@@ -118,10 +152,11 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
     """Refine one maplet from the catalog; the id of its revision for `input_hash`.
 
     Idempotent: a revision already stored for (maplet, input_hash) is returned as it is. The
-    maplet's current input is what gets refined; when it no longer hashes to input_hash (the
-    catalog changed since the work was planned, and newer work is on its way), the revision is
-    stored under the hash of what was refined, for that newer work to find. The current revision
-    moves to the new one only if its hash is still the maplet's input when it is stored.
+    maplet's current input is what gets refined, at the pass input_hash names; when input_hash
+    names none of its passes (the catalog changed since the work was planned, and newer work is
+    on its way), pass 1 of the current input is refined and stored under its hash, for that
+    newer work to find. The current revision moves to the new one only if its hash is still one
+    of the maplet's inputs when it is stored, and not to an earlier pass of the input it holds.
     The refined maplet is a content-addressed artifact (pwm.io.fusion_state.write_maplet).
     progress(fraction, message) is told how far it got.
     """
@@ -136,10 +171,12 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
         current = _inputs(session, config, [maplet_id]).get(maplet_id)
         if current is None or len(current.image_ids) < config.min_images:
             raise ValueError(f"maplet {row.name} has fewer than {config.min_images} usable images")
-        if current.input_hash != input_hash:
+        pass_number = current.pass_of(input_hash)
+        if pass_number is None:
             log.info("maplet %s: input changed since planned; refining its current input",
                      row.name)
-            found = _revision_id(session, maplet_id, current.input_hash)
+            pass_number, input_hash = 1, current.hashes[0]
+            found = _revision_id(session, maplet_id, input_hash)
             if found is not None:
                 return found
         model = latest_version(session)
@@ -150,7 +187,7 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
         ordered = [views[i] for i in current.image_ids if i in views]
         grid = _grid(row)
         model_version, model_ply = model.version, model.artifacts["ply"]
-    say(0.2, f"refining against version {model_version}")
+    say(0.2, f"refining (pass {pass_number}) against version {model_version}")
     tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
     grid.heights, grid.albedo = sample_surface(tracer, grid)
     result = refine_maplet(grid, ordered, tracer, config=config)
@@ -162,14 +199,15 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
                   "five_views": result.five_views, "dropped": result.dropped,
                   "iterations": result.iterations, "converged": result.converged,
                   "residual_rms": result.residual_rms, "seconds": result.seconds,
-                  "model_version": model_version,
+                  "model_version": model_version, "pass": pass_number,
                   "height_change_rms_m": float(np.sqrt(np.mean(
                       (result.maplet.heights - grid.heights) ** 2)) * 1e3)}
-    revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=current.input_hash,
+    revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=input_hash,
                                   config=config, artifact=artifact, statistics=statistics)
     say(1.0, "done")
-    log.info("maplet %s: revision %d from %d images, %d iterations (%.1f s)", grid.name,
-             revision_id, len(result.images), result.iterations, result.seconds)
+    log.info("maplet %s: revision %d (pass %d) from %d images, %d iterations (%.1f s)",
+             grid.name, revision_id, pass_number, len(result.images), result.iterations,
+             result.seconds)
     return revision_id
 
 
@@ -203,7 +241,8 @@ def _grid(row: Maplet) -> MapletGrid:
 def _store_revision(sessions: sessionmaker[Session], *, maplet_id: int, input_hash: str,
                     config: RefinementConfig, artifact: dict, statistics: dict) -> int:
     """Insert the revision (next number for its maplet) unless a concurrent job stored the same
-    input first, and make it current if its hash is the maplet's input now; its id."""
+    input first, and make it current if its hash is one of the maplet's inputs now and the
+    current revision is not a later pass of that input; its id."""
     for _ in range(_INSERT_ATTEMPTS):
         try:
             with session_scope(sessions) as session:
@@ -222,7 +261,10 @@ def _store_revision(sessions: sessionmaker[Session], *, maplet_id: int, input_ha
                 session.add(revision)
                 session.flush()
                 now = _inputs(session, config, [maplet_id]).get(maplet_id)
-                if now is not None and now.input_hash == input_hash:
+                made = None if now is None else now.pass_of(input_hash)
+                held = None if now is None or maplet.current_revision is None else now.pass_of(
+                    maplet.current_revision.input_hash)
+                if made is not None and (held is None or held < made):
                     maplet.current_revision_id = revision.id
                 return revision.id
         except IntegrityError:

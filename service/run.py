@@ -1,6 +1,9 @@
-"""`pwm run DIR`: a downlink from directory to published model version in one process, with no
-servers: ingest (with the coverage of its images against the current model), refinement of the
-maplets whose input changed, fusion into a new version.
+"""`pwm run DIR`: a downlink from directory to published model versions in one process, with no
+servers: ingest (with the coverage of its images against the current model; a catalog with no
+model and none given first makes one from the images, service.spg.start_from_images),
+refinement of the maplets whose input changed, fusion into a new version; then each further
+pass (RefinementConfig.passes) refines those maplets again against that version and fuses the
+next.
 
 The distributed setup (workers/) runs the same three steps as Celery tasks.
 """
@@ -18,44 +21,56 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.parallel import map_processes
+from service.coverage import unweighed_images, update_coverage
 from service.db import make_engine, make_sessionmaker, session_scope
 from service.ingest import IngestReport, ingest_directory
 from service.models import Downlink, ModelKind
 from service.publish import fuse_and_publish
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
-from service.versions import import_model, latest_version, publication_lock, version_mesh
+from service.spg import start_from_images
+from service.versions import get_version, import_model, latest_version, publication_lock, version_mesh
 
 log = logging.getLogger(__name__)
 
 START_MODEL_NAME = "start_model.obj"
-"""The start model a simulated downlink carries (pwm simulate)."""
+"""The start model a simulated downlink carries when asked for (pwm simulate --with-start-model)."""
 
 
 @dataclass
 class Plan:
     """What a downlink asks for: its id, its ingest, the maplets to refine, and the version
-    (number) that the refinement starts from."""
+    (number) that the refinement starts from (None: the catalog has no model, and none could be
+    made from the images yet; the downlink's model_note says why)."""
 
     downlink_id: int
     ingest: IngestReport
     work: list[MapletWork]
-    base_version: int
+    base_version: int | None
 
 
 @dataclass
 class RunReport:
-    """What `run_directory` did: the plan, the revisions refined (ids), the version published
-    (None when nothing changed) and the time taken (s)."""
+    """What `run_directory` did: the plan, the revisions refined (ids, of every pass), the
+    versions published (one per pass that changed a maplet), the last of them (None when
+    nothing changed) and the time taken (s)."""
 
     plan: Plan
     revisions: list[int] = field(default_factory=list)
-    version: int | None = None
+    versions: list[int] = field(default_factory=list)
     seconds: float = 0.0
 
+    @property
+    def version(self) -> int | None:
+        return self.versions[-1] if self.versions else None
+
     def summary(self) -> str:
-        outcome = (f"published version {self.version}" if self.version is not None
+        if self.plan.base_version is None:
+            return (f"{self.plan.ingest.summary()}\nno model to refine: the catalog has none and "
+                    f"the images could not make one yet; {self.seconds:.1f} s")
+        outcome = (f"published version{'s' * (len(self.versions) > 1)} "
+                   f"{', '.join(map(str, self.versions))}" if self.versions
                    else "no new version (nothing changed)")
-        return (f"{self.plan.ingest.summary()}\n{len(self.plan.work)} maplets refined from "
+        return (f"{self.plan.ingest.summary()}\n{len(self.revisions)} maplet refinements from "
                 f"version {self.plan.base_version}; {outcome}; {self.seconds:.1f} s")
 
 
@@ -66,26 +81,39 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     model (the shape moved, and with it which images they keep) or a stopped run left stale.
 
     The current model is the latest version; a catalog without one first imports `start` (or
-    DIRECTORY/start_model.obj when present) as a version of kind start. config: how maplets
-    are tiled where the images look and none is catalogued (service.ingest.ingest_directory),
-    and refined.
+    DIRECTORY/start_model.obj when present) as a version of kind start, and with neither makes
+    one from the catalogued images after the ingest (service.spg.start_from_images), which then
+    weighs them against it; when it cannot yet, nothing is refined (Plan.base_version None).
+    config: how maplets are tiled where the images look and none is catalogued
+    (service.ingest.ingest_directory), and refined.
     """
     directory = Path(directory)
+    given = start if start is not None else (
+        directory / START_MODEL_NAME if (directory / START_MODEL_NAME).is_file() else None)
     with session_scope(sessions) as session:
         # Locked, so that two first runs do not both import a start model.
         publication_lock(session)
         base = latest_version(session)
-        if base is None:
-            base = import_model(session, data_dir=data_dir, kind=ModelKind.START,
-                                path=_start_model(directory, start))
+        if base is None and given is not None:
+            base = import_model(session, data_dir=data_dir, kind=ModelKind.START, path=given)
             log.info("imported %s as version %d (start)", base.statistics["source"], base.version)
-        elif start is not None:
+        elif base is not None and start is not None:
             log.info("the catalog's latest version %d is the current model; %s is not used",
                      base.version, start)
-        shape, base_version = version_mesh(data_dir, base), base.version
+        shape = None if base is None else version_mesh(data_dir, base)
+        base_version = None if base is None else base.version
     report = ingest_directory(sessions, directory, shape=shape, config=config)
     with sessions() as session:
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
+    if shape is None:
+        base_version = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id)
+        if base_version is None:
+            return Plan(downlink_id=downlink_id, ingest=report, work=[], base_version=None)
+        with session_scope(sessions) as session:
+            shape = version_mesh(data_dir, get_version(session, base_version))
+            report.coverage = update_coverage(session, shape, image_ids=unweighed_images(session),
+                                              config=config)
+    with sessions() as session:
         work = stale_maplets(session, config=config)
     log.info("%s: %d maplets to refine", report.downlink, len(work))
     return Plan(downlink_id=downlink_id, ingest=report, work=work, base_version=base_version)
@@ -95,35 +123,42 @@ def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir:
                   start: Path | None = None, config: RefinementConfig = DEFAULTS,
                   workers: int = 1) -> RunReport:
     """Ingest, refine (in `workers` processes, pwm.parallel.map_processes) and fuse one downlink;
-    see `ingest_and_plan`. A version is published when some maplet's current revision changed."""
+    see `ingest_and_plan`. A version is published when some maplet's current revision changed;
+    then the maplets due for a later pass (service.refinement.stale_maplets) are refined against
+    it and fused again, until none is due (at most config.passes rounds)."""
     clock = time.perf_counter()
     plan = ingest_and_plan(sessions, directory, data_dir=data_dir, start=start, config=config)
     report = RunReport(plan=plan)
+    if plan.base_version is None:  # no model, and none could be made yet: nothing to refine
+        report.seconds = time.perf_counter() - clock
+        log.info("run %s: %s", directory, report.summary())
+        return report
     url = sessions.kw["bind"].url.render_as_string(hide_password=False)
     refine = partial(_refine_in_process, data_dir=data_dir, config=config)
-    revisions = map_processes(refine, plan.work, workers=workers, initializer=_open_catalog, initargs=(url,))
-    try:
-        for k, (work, revision) in enumerate(zip(plan.work, revisions, strict=True), 1):
-            report.revisions.append(revision)
-            _log_progress(k, len(plan.work), work, clock)
-    finally:
-        _close_catalog()
-    report.version = fuse_and_publish(sessions, data_dir=data_dir, downlink_ids=[plan.downlink_id],
-                                      config=config)
+    work = plan.work
+    for round_number in range(1, config.passes + 1):
+        revisions = map_processes(refine, work, workers=workers, initializer=_open_catalog,
+                                  initargs=(url,))
+        try:
+            for k, (item, revision) in enumerate(zip(work, revisions, strict=True), 1):
+                report.revisions.append(revision)
+                _log_progress(k, len(work), item, clock)
+        finally:
+            _close_catalog()
+        version = fuse_and_publish(sessions, data_dir=data_dir,
+                                   downlink_ids=[plan.downlink_id], config=config)
+        if version is not None:
+            report.versions.append(version)
+        with sessions() as session:
+            # Only later passes: a new input now is another run's (its downlink's) to refine.
+            work = [w for w in stale_maplets(session, config=config) if w.pass_number > 1]
+        if not work:
+            break
+        log.info("round %d: %d maplets due for another pass", round_number + 1, len(work))
     report.seconds = time.perf_counter() - clock
-    log.info("run %s: %d maplets refined, version %s (%.1f s)", directory, len(plan.work),
-             report.version, report.seconds)
+    log.info("run %s: %d maplet refinements, versions %s (%.1f s)", directory,
+             len(report.revisions), report.versions, report.seconds)
     return report
-
-
-def _start_model(directory: Path, start: Path | None) -> Path:
-    if start is not None:
-        return start
-    if (directory / START_MODEL_NAME).is_file():
-        return directory / START_MODEL_NAME
-    raise FileNotFoundError(f"the catalog has no model version and {directory} holds no "
-                            f"{START_MODEL_NAME}: give a start model (pwm run --start MODEL, "
-                            "or pwm import MODEL)")
 
 
 _CATALOG: dict[str, sessionmaker[Session]] = {}
@@ -147,5 +182,5 @@ def _refine_in_process(work: MapletWork, *, data_dir: Path, config: RefinementCo
 
 
 def _log_progress(k: int, total: int, work: MapletWork, clock: float) -> None:
-    log.info("maplet %d/%d %s refined from %d images (%.0f s elapsed)", k, total, work.name,
-             work.images, time.perf_counter() - clock)
+    log.info("maplet %d/%d %s refined (pass %d) from %d images (%.0f s elapsed)", k, total,
+             work.name, work.pass_number, work.images, time.perf_counter() - clock)

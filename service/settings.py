@@ -55,9 +55,9 @@ class Settings(BaseSettings):
     heartbeat_grace_s: PWM_HEARTBEAT_GRACE_S, how long after its latest heartbeat an attempt is
         lost (shown so, and taken over by the next delivery); several heartbeats, so that a
         loaded database or a paused process is not taken for a dead one.
-    refine_mode, maplet_nodes, tile_radius_km: PWM_REFINE_MODE, PWM_MAPLET_NODES and
-        PWM_TILE_RADIUS_KM, the catalog's refinement settings (`refinement`); their defaults and
-        every other setting are pwm.config.DEFAULTS.
+    refine_mode, refine_passes, maplet_nodes, tile_radius_km: PWM_REFINE_MODE,
+        PWM_REFINE_PASSES, PWM_MAPLET_NODES and PWM_TILE_RADIUS_KM, the catalog's refinement
+        settings (`refinement`); their defaults and every other setting are pwm.config.DEFAULTS.
     """
 
     model_config = SettingsConfigDict(env_prefix="PWM_")
@@ -76,6 +76,7 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(10.0, gt=0)
     heartbeat_grace_s: float = Field(60.0, gt=0)
     refine_mode: Mode = DEFAULTS.mode
+    refine_passes: int = DEFAULTS.passes
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
 
@@ -103,8 +104,8 @@ class Settings(BaseSettings):
 
     def refinement(self) -> RefinementConfig:
         """How the catalog tiles and refines maplets: pwm.config.DEFAULTS with these settings."""
-        return dataclasses.replace(DEFAULTS, mode=self.refine_mode, nodes=self.maplet_nodes,
-                                   tile_radius_km=self.tile_radius_km)
+        return dataclasses.replace(DEFAULTS, mode=self.refine_mode, passes=self.refine_passes,
+                                   nodes=self.maplet_nodes, tile_radius_km=self.tile_radius_km)
 
 
 @lru_cache(maxsize=1)

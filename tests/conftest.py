@@ -219,9 +219,19 @@ def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServ
 
 @pytest.fixture(scope="session")
 def tiny_sim(tmp_path_factory) -> Path:
-    """OUT directory of `pwm simulate OUT --scenario tiny --seed 3` (downlink/ and truth/)."""
+    """OUT directory of `pwm simulate OUT --scenario tiny --seed 3 --with-start-model` (downlink/
+    and truth/)."""
     out = tmp_path_factory.mktemp("tiny") / "sim"
-    simulate(out, scenario=get_scenario("tiny"), seed=3)
+    simulate(out, scenario=get_scenario("tiny"), seed=3, with_start_model=True)
+    return out
+
+
+@pytest.fixture(scope="session")
+def global_tiny_sim(tmp_path_factory) -> Path:
+    """OUT directory of `pwm simulate OUT --scenario global-tiny --seed 2`: a whole-body survey
+    that comes with no shape model."""
+    out = tmp_path_factory.mktemp("global-tiny") / "sim"
+    simulate(out, scenario=get_scenario("global-tiny"), seed=2)
     return out
 
 
@@ -241,7 +251,8 @@ def ryugu_sim(tmp_path_factory) -> Path:
     from service.cli import app
 
     out = tmp_path_factory.mktemp("ryugu") / "sim"
-    result = CliRunner().invoke(app, ["simulate", str(out), "--scenario", "ryugu-tiny", "--seed", "3"])
+    result = CliRunner().invoke(app, ["simulate", str(out), "--scenario", "ryugu-tiny", "--seed", "3",
+                                      "--with-start-model"])
     assert result.exit_code == 0, result.output
     return out
 

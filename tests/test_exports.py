@@ -21,7 +21,7 @@ from pwm.io.site_product import write_site_product
 from pwm.io.spice_kernels import SpkSegment, bundled_kernels, kernel_pool, write_spk
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
-from pwm.site import roughness_m, slope_deg
+from pwm.site import BASELINE_M, roughness_m, slope_deg
 
 BENNU_OBJ = (Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes"
              / "bennu_radar_nolan2013_sbgat.obj")
@@ -323,10 +323,10 @@ def test_site_product_reads_back_with_pds4_tools(tmp_path):
     np.testing.assert_array_equal(height, args["height_km"] * 1e3)
     np.testing.assert_array_equal(albedo, args["albedo"].astype(np.float32))
     assert structures["height"].data.dtype == ">f8" and structures["albedo"].data.dtype == ">f4"
-    # slope and roughness are pwm.site's of the heights carried, in deg and m
+    # slope and roughness are pwm.site's of the heights carried over the baseline, in deg and m
     slope = np.ma.filled(structures["slope"].as_masked().data.astype(float), np.nan)
     roughness = np.ma.filled(structures["roughness"].as_masked().data.astype(float), np.nan)
-    expected_slope = slope_deg(args["height_km"] * 1e3, spacing_m=1.0)
+    expected_slope = slope_deg(args["height_km"] * 1e3, spacing_m=1.0, baseline_m=BASELINE_M)
     np.testing.assert_allclose(slope, expected_slope, rtol=1e-6)
     assert np.isnan(slope[3, 4]) and np.nanmax(slope) > 10
     np.testing.assert_allclose(roughness, roughness_m(args["height_km"] * 1e3, spacing_m=1.0),

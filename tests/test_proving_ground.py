@@ -49,7 +49,8 @@ def test_undulations_have_their_rms_and_only_their_wavelengths(tiny_sim):
 
 def test_simulate_options_make_a_harder_downlink(tiny_sim, tmp_path):
     out = tmp_path / "hard"
-    result = CliRunner().invoke(app, ["simulate", str(out), "--scenario", "tiny", "--seed", "3", *HARD])
+    result = CliRunner().invoke(app, ["simulate", str(out), "--scenario", "tiny", "--seed", "3", *HARD,
+                                      "--with-start-model"])
     assert result.exit_code == 0, result.output
     manifest = json.loads((out / "truth" / "manifest.json").read_text())
     scenario = manifest["scenario"]

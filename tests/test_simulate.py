@@ -22,6 +22,7 @@ from pwm.io.spice_kernels import kernel_pool
 from pwm.raytrace import RayTracer
 from pwm.render import render
 from pwm.simulate.campaign import simulate
+from pwm.simulate.knowledge import IndependentErrors
 from pwm.simulate.scenarios import get_scenario
 from pwm.simulate.truth import load as load_truth
 
@@ -162,7 +163,7 @@ def test_start_model_is_worse_than_a_pixel(tiny_sim):
 def test_knowledge_errors_go_into_the_kernels_not_the_images(tmp_path):
     sc = get_scenario("tiny").model_copy(update={"n_nadir": 1, "n_azimuths": 2, "n_validation": 0, "subframe_px": 64})
     out = tmp_path / "sim"
-    m = simulate(out, scenario=sc, seed=5, position_error_m=1.0, pointing_error_rad=1e-4)
+    m = simulate(out, scenario=sc, seed=5, knowledge=IndependentErrors(position_m=1.0, pointing_rad=1e-4))
     assert m["image_count"] == sc.n_images == 3
     offsets, angles = [], []
     with kernel_pool([metakernel(out)]):

@@ -37,6 +37,26 @@ def test_slope_of_a_tilted_plane_and_a_gap():
     assert np.isnan(slope[5, 6]) and np.isnan(slope[4, 7]) and np.isfinite(slope[5, 9])
 
 
+def test_slope_over_a_baseline_is_the_fitted_plane_tilt():
+    rng = np.random.default_rng(7)
+    y, x = np.mgrid[0:120, 0:120] * SPACING_M
+    plane = np.tan(np.radians(25.0)) * (0.6 * x + 0.8 * y) + 40.0
+    exact = slope_deg(plane, spacing_m=SPACING_M, baseline_m=1.0)
+    np.testing.assert_allclose(exact[np.isfinite(exact)], 25.0, atol=1e-9)
+    # noise of a third of the spacing: differences over two spacings turn it into degrees of
+    # slope, a plane over 1 m (11 x 11 nodes) averages it away
+    noisy = plane + rng.normal(0.0, SPACING_M / 3, plane.shape)
+    at_nodes = slope_deg(noisy, spacing_m=SPACING_M)[5:-5, 5:-5]
+    over_baseline = slope_deg(noisy, spacing_m=SPACING_M, baseline_m=1.0)[5:-5, 5:-5]
+    assert np.sqrt(np.mean((at_nodes - 25.0) ** 2)) > 5.0
+    assert np.sqrt(np.mean((over_baseline - 25.0) ** 2)) < 1.0
+    # windows reaching a gap or past the edge give NaN, as roughness does
+    plane[60, 60] = np.nan
+    gap = slope_deg(plane, spacing_m=SPACING_M, baseline_m=1.0)
+    assert np.isnan(gap[55:66, 55:66]).all() and np.isfinite(gap[60, 66])
+    assert np.isnan(gap[:5]).all() and np.isfinite(gap[5, 5])
+
+
 def test_roughness_of_a_plane_with_noise_is_the_noise():
     rng = np.random.default_rng(4)
     y, x = np.mgrid[0:200, 0:200] * SPACING_M

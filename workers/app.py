@@ -192,23 +192,30 @@ def _prepare_process(**_: Any) -> None:
 
 
 class Reconciler(bootsteps.StartStopStep):
-    """Runs workers.tasks.reconcile every reconcile_interval_s on the worker's timer, in its main
-    process (not a thread: the pool forks from it). Stopped with the worker."""
+    """Runs workers.tasks.reconcile every reconcile_interval_s on the consumer's timer, in the
+    worker's main process (not a thread: the pool forks from it).
 
-    requires = {"celery.worker.components:Timer"}
+    A step of the consumer, not of the worker: when the broker connection drops, the consumer
+    clears its timer (celery's Consumer.on_close) and restarts its steps once it is connected
+    again, so that a step of the worker would never run again after a broker outage, the moment
+    it is needed most."""
 
-    def __init__(self, worker: Any, **kwargs: Any) -> None:
-        super().__init__(worker, **kwargs)
+    requires = {"celery.worker.consumer.tasks:Tasks"}
+
+    def __init__(self, consumer: Any, **kwargs: Any) -> None:
+        super().__init__(consumer, **kwargs)
         self.timer_ref: Any = None
 
-    def start(self, worker: Any) -> None:
-        self.timer_ref = worker.timer.call_repeatedly(
+    def start(self, consumer: Any) -> None:
+        self.timer_ref = consumer.timer.call_repeatedly(
             get_worker_settings().reconcile_interval_s, self.run)
 
-    def stop(self, worker: Any) -> None:
+    def stop(self, consumer: Any) -> None:
         if self.timer_ref is not None:
             self.timer_ref.cancel()
             self.timer_ref = None
+
+    shutdown = stop
 
     def run(self) -> None:
         from workers.tasks import reconcile_pass  # the tasks import this module
@@ -217,4 +224,4 @@ class Reconciler(bootsteps.StartStopStep):
 
 
 app = make_app(get_worker_settings())
-app.steps["worker"].add(Reconciler)
+app.steps["consumer"].add(Reconciler)

@@ -16,6 +16,9 @@ refine job of its downlink is left unfinished, the downlink's fuse job is submit
 fuse_downlink publishes the new version (service.publish). The check runs after the refine
 job's outcome is committed, so of refinements finishing together the last to commit sees all
 done; fan-ins that both see it submit the same fuse key, and the claim makes the second delivery a no-op.
+A fusion then submits, as refine jobs of the same downlink, the next pass of the maplets whose
+revisions it fused (RefinementConfig.passes), and their fan-in the downlink's next fusion
+(service.jobs.due_fusion): one version per pass, as `pwm run` publishes them.
 
 The broker may lose what it was given (an outage, a restart without persistence) or refuse it:
 every hand-over goes through `_enqueue`, which records it in the job row (service.jobs
@@ -40,16 +43,17 @@ from pathlib import Path
 from typing import Any
 
 from celery import Task
-from sqlalchemy import event, func, select
+from sqlalchemy import event
 from sqlalchemy.orm import Session, sessionmaker
 
+from pwm.config import RefinementConfig
 from service.db import session_scope
 from service.jobs import (
-    REQUESTED,
     JobBusy,
     JobLost,
     claim_job,
     downlinks_awaiting_fusion,
+    due_fusion,
     due_jobs,
     error_reason,
     fail_job,
@@ -57,8 +61,10 @@ from service.jobs import (
     fuse_key,
     heartbeat,
     ingest_key,
+    made_current,
     mark_enqueued,
     refine_key,
+    refine_key_parts,
     report_progress,
     retry_job,
     submit_job,
@@ -110,8 +116,9 @@ def submit_ingest(directory: Path, *, sessions: sessionmaker[Session] | None = N
 
 
 def submit_refinement(session: Session, *, maplet_id: int) -> str:
-    """Submit the refinement of a maplet's current input, in the caller's transaction, and
-    enqueue it (with its fusion to follow) once that transaction commits; its job key.
+    """Submit the refinement of a maplet's current input (at the pass due), in the caller's
+    transaction, and enqueue it (with its fusion, and its later passes, to follow) once that
+    transaction commits; its job key.
 
     Raises LookupError for an unknown maplet, ValueError when its current revision is already
     of its current input or it has fewer than the configured minimum of usable images."""
@@ -147,8 +154,10 @@ def ingest_downlink(self: Task, directory: str, key: str | None = None) -> dict[
         # Enqueued once their jobs are committed, so that the fan-in sees every sibling.
         for work_item in pending:
             _enqueue_refine(state.sessions, plan.downlink_id, work_item)
-        return Outcome(f"{plan.ingest.summary()}; {len(plan.work)} maplets to refine "
-                       f"from version {plan.base_version}", downlink_id=plan.downlink_id)
+        then = (f"{len(plan.work)} maplets to refine from version {plan.base_version}"
+                if plan.base_version is not None else
+                "no model to refine yet (the downlink's model note says why)")
+        return Outcome(f"{plan.ingest.summary()}; {then}", downlink_id=plan.downlink_id)
 
     return _run_job(self, kind=JobKind.INGEST, key=key or ingest_key(path), work=work)
 
@@ -184,15 +193,27 @@ def refine_revision(self: Task, maplet_id: int, input_hash: str,
 def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
                   ) -> dict[str, Any]:
     """Fuse the maplets' current revisions into a new version (service.publish) as the job `key`
-    (default fuse_key(downlink_id)), with the downlink in its lineage."""
+    (default fuse_key(downlink_id)), with the downlink in its lineage; then submit and enqueue
+    the next pass of the maplets whose current revision the downlink's (or the requested)
+    refinements made. Also when nothing was published: an attempt may have died after
+    publishing and before submitting."""
+    key = key or fuse_key(downlink_id)
 
     def work(state: ProcessState, job: Job) -> Outcome:
         with session_scope(state.sessions) as session:
             report_progress(session, job, 0.0, "fusing")
         settings = get_worker_settings()
+        config = settings.refinement()
         version = fuse_and_publish(state.sessions, data_dir=settings.data_dir,
                                    downlink_ids=[] if downlink_id is None else [downlink_id],
-                                   config=settings.refinement())
+                                   config=config)
+        with session_scope(state.sessions) as session:
+            later = [w for w in _next_passes(session, downlink_id=downlink_id, key=key,
+                                             config=config)
+                     if _submit_refine(session, downlink_id, w)]
+        for work_item in later:
+            _enqueue_refine(state.sessions, downlink_id, work_item)
+        then = f"; {len(later)} maplets due for another pass" if later else ""
         if version is not None:
             message = f"published version {version}"
         else:
@@ -203,9 +224,25 @@ def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
             # this downlink in its lineage): nothing left to publish.
             message = ("no maplet changed: no new version" if earlier is None else
                        f"its refinements were already published in version {earlier}")
-        return Outcome(message, downlink_id=downlink_id)
+        return Outcome(message + then, downlink_id=downlink_id)
 
-    return _run_job(self, kind=JobKind.FUSE, key=key or fuse_key(downlink_id), work=work)
+    return _run_job(self, kind=JobKind.FUSE, key=key, work=work)
+
+
+def _next_passes(session: Session, *, downlink_id: int | None, key: str,
+                 config: RefinementConfig) -> list[MapletWork]:
+    """The maplets due for a later pass (service.refinement.stale_maplets) whose current
+    revision the downlink's refine jobs made, or (downlink None) the requested refinement
+    that the fuse job `key` follows made."""
+    if downlink_id is None:
+        try:
+            _, maplet_id, _ = refine_key_parts(key.removeprefix("fuse:"))
+        except ValueError:  # the catalog's own fusion follows no refinement
+            return []
+        made = made_current(session, downlink_id=None, maplet_ids=[maplet_id])
+    else:
+        made = made_current(session, downlink_id=downlink_id)
+    return [w for w in stale_maplets(session, config=config, maplet_ids=made) if w.pass_number > 1]
 
 
 def _submit_refine(session: Session, downlink_id: int | None, work: MapletWork) -> str | None:
@@ -238,11 +275,10 @@ def _sender(job: Job) -> Callable[[], object]:
     if job.kind is JobKind.INGEST:
         return lambda: ingest_downlink.apply_async(args=[rest], kwargs={"key": job.key})
     if job.kind is JobKind.REFINE:
-        downlink, maplet_id, input_hash = rest.split(":", 2)
-        return _refine_sender(None if downlink == REQUESTED else int(downlink), int(maplet_id),
-                              input_hash)
-    # fuse:<downlink id>, fuse:None (the catalog's), or fuse:<requested refine key>
-    return _fuse_sender(int(rest) if rest.isdigit() else None, job.key)
+        return _refine_sender(*refine_key_parts(job.key))
+    # fuse:<downlink id>[:<nth>], fuse:None (the catalog's), or fuse:<requested refine key>
+    downlink = rest.split(":", 1)[0]
+    return _fuse_sender(int(downlink) if downlink.isdigit() else None, job.key)
 
 
 def _enqueue(sessions: sessionmaker[Session], key: str, send: Callable[[], object]) -> None:
@@ -276,7 +312,9 @@ def reconcile(sessions: sessionmaker[Session] | None = None) -> list[str]:
     with session_scope(sessions) as session:
         sends: list[tuple[str, str, Callable[[], object]]] = []
         for downlink_id in downlinks_awaiting_fusion(session):
-            key = fuse_key(downlink_id)
+            key = due_fusion(session, downlink_id)
+            if key is None:
+                continue  # made since the list was read
             submit_job(session, kind=JobKind.FUSE, key=key, downlink_id=downlink_id)
             sends.append((key, "its downlink's refinements are all done, with no fusion",
                           _fuse_sender(downlink_id, key)))
@@ -325,18 +363,17 @@ def _waiting_kinds() -> set[JobKind]:
 def _fan_in(sessions: sessionmaker[Session], *, downlink_id: int | None, after: str
             ) -> str | None:
     """Submit and enqueue the fusion that follows the refine job `after` when it is due: a
-    downlink's once none of its refine jobs is unfinished (failed ones count as unfinished),
-    a requested refinement's at once. Its key, or None when not due."""
+    downlink's once none of its refine jobs is unfinished (failed ones count as unfinished) and
+    none was made since them (service.jobs.due_fusion), a requested refinement's at once. Its
+    key, or None when not due."""
     with session_scope(sessions) as session:
         if downlink_id is None:
             key = f"fuse:{after}"
         else:
-            unfinished = session.scalar(select(func.count()).select_from(Job).where(
-                Job.kind == JobKind.REFINE, Job.downlink_id == downlink_id,
-                Job.status != JobStatus.DONE))
-            if unfinished:
+            due = due_fusion(session, downlink_id)
+            if due is None:
                 return None
-            key = fuse_key(downlink_id)
+            key = due
         done = submit_job(session, kind=JobKind.FUSE, key=key,
                           downlink_id=downlink_id).status is JobStatus.DONE
     if not done:

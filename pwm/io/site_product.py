@@ -4,8 +4,8 @@ preview.
 
 Arrays are [line, sample] = [i (y), j (x)] with x and y increasing; heights in metres along
 the site frame's z, big-endian IEEE doubles; albedo, slope (deg from the site frame's z, the
-regional normal) and roughness (m, RMS about a plane over the baseline; pwm.site) big-endian
-IEEE singles. Nodes without data (NaN) are stored as MISSING and declared as the
+regional normal: the tilt of the plane fitted over the baseline) and roughness (m, RMS about
+that plane; pwm.site) big-endian IEEE singles. Nodes without data (NaN) are stored as MISSING and declared as the
 missing_constant.
 """
 
@@ -23,7 +23,7 @@ from scipy.ndimage import distance_transform_edt
 
 from pwm.frames import LocalFrame
 from pwm.io.pds4 import INFORMATION_MODEL, checksum_md5, label_text, utc_iso
-from pwm.site import ROUGHNESS_BASELINE_M, roughness_m, slope_deg
+from pwm.site import BASELINE_M, roughness_m, slope_deg
 
 MISSING = -1.0e32  # the PDS convention for missing real values
 _HEIGHT = ("IEEE754MSBDouble", ">f8")  # (PDS4 data_type, numpy dtype)
@@ -43,11 +43,11 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
                        version: str, model_version: str, body_frame: str, target_name: str,
                        target_type: str = "Asteroid", mission: str, host_name: str,
                        start_utc: str, stop_utc: str,
-                       roughness_baseline_m: float = ROUGHNESS_BASELINE_M) -> SiteProductFiles:
+                       baseline_m: float = BASELINE_M) -> SiteProductFiles:
     """Write name.xml (PDS4 label), name.dat (heights, albedo, slope, roughness) and name.png
     (shaded relief and albedo side by side) into `directory`; existing files are never
-    overwritten. Slope and roughness are computed from the heights (pwm.site), roughness over
-    a window of side roughness_baseline_m; the grid must be square (equal x and y steps).
+    overwritten. Slope and roughness are computed from the heights (pwm.site) over a window of
+    side baseline_m; the grid must be square (equal x and y steps).
 
     frame: the site frame (origin and axes in body_frame, km); x_km (nx,), y_km (ny,): regular,
     increasing node coordinates in it; height_km, albedo: (ny, nx), NaN where there is no data.
@@ -73,8 +73,8 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
         if path.exists():
             raise FileExistsError(f"{path} exists; a product is written once")
 
-    slope = slope_deg(height_m, spacing_m=spacing_m)
-    roughness = roughness_m(height_m, spacing_m=spacing_m, baseline_m=roughness_baseline_m)
+    slope = slope_deg(height_m, spacing_m=spacing_m, baseline_m=baseline_m)
+    roughness = roughness_m(height_m, spacing_m=spacing_m, baseline_m=baseline_m)
     contents = [
         ("height", height_m, _HEIGHT, "m",
          "Height (m) along the site frame z axis; the site frame and grid are described in the "
@@ -82,11 +82,11 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
         ("albedo", albedo, _SINGLE, None, "Normal albedo (unitless) at the same nodes as the "
                                           "heights."),
         ("slope", slope, _SINGLE, "deg",
-         "Slope (deg): angle of the surface normal from the site frame z axis (the regional "
-         "normal), from central differences of the heights."),
+         f"Slope (deg): angle from the site frame z axis (the regional normal) of the normal of "
+         f"the plane fitted over the square of side {baseline_m:g} m centred on each node."),
         ("roughness", roughness, _SINGLE, "m",
          f"Roughness (m): RMS deviation of the heights from the plane fitted over the square "
-         f"of side {roughness_baseline_m:g} m centred on each node."),
+         f"of side {baseline_m:g} m centred on each node."),
     ]
     arrays = [np.where(np.isnan(a), MISSING, a).astype(dtype) for _, a, (_, dtype), *_ in contents]
     with open(files.data, "xb") as fh:

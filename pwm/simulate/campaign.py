@@ -36,6 +36,7 @@ from pwm.photometry import PHOTOMETRY
 from pwm.raytrace import RayTracer
 from pwm.render import render_supersampled
 from pwm.simulate.detector import choose_exposure, to_dn
+from pwm.simulate.knowledge import EXACT, IndependentErrors, KnowledgeErrors, manifest_entries, perturb
 from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
 from pwm.simulate.optics import blur, flat_field
 from pwm.simulate.plan import Observation, plan_global, plan_site, sun_states
@@ -49,11 +50,21 @@ CK_FRAME_CLASS = 3  # SPICE frame class of frames whose attitude a CK gives
 WINDOW_S = 60.0  # each image sits in the middle of a short observation window of the kernels
 EXPOSURE_S = 0.004  # labels carry start and stop; the geometry is at mid-exposure
 OPTICS_STREAM = 21  # the random stream of the camera's flat field
+KNOWLEDGE_STREAM = 22  # the random stream of navigation-like knowledge errors
 
 
-def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_error_m: float = 0.0,
-             pointing_error_rad: float = 0.0) -> dict:
-    """Write OUT/downlink and OUT/truth for `scenario`; returns the truth manifest."""
+def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
+             knowledge: KnowledgeErrors = EXACT, with_start_model: bool = False) -> dict:
+    """Write OUT/downlink and OUT/truth for `scenario`; returns the truth manifest.
+
+    A mission's first downlinks come with no shape model; with_start_model puts one into the
+    downlink (start_model.obj: the truth low-passed, with the scenario's undulations), as an
+    earlier campaign would have left it.
+
+    The downlink's kernels carry the true poses with the `knowledge` errors
+    (pwm.simulate.knowledge; none by default); the images are rendered from the truth, and are
+    the same for a seed whatever the errors.
+    """
     out = Path(out)
     downlink, truth_dir = out / "downlink", out / "truth"
     for d in (downlink, truth_dir):
@@ -94,8 +105,7 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
 
         true_kernels = _write_pose_kernels(truth_dir / "kernels", scenario=scenario, mission=mission,
                                            observations=observations + validation)
-        noisy = _perturb(observations, position_error_m=position_error_m, pointing_error_rad=pointing_error_rad,
-                         rng=rng)
+        noisy, drawn = _perturb(observations, errors=knowledge, rng=rng, seed=seed)
         downlink_kernels = _write_pose_kernels(downlink / "kernels", scenario=scenario, mission=mission,
                                                observations=noisy)
 
@@ -121,6 +131,7 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
             images.append(_write_product(downlink / "images", obs=obs, view=seen, scenario=scenario,
                                          seed=seed, mission=mission, window=window, rng=rng))
             images[-1].update(_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera))
+            images[-1]["knowledge_error"] = drawn[1][k]
             log.info("image %d/%d %s rendered", k + 1, len(observations), obs.name)
         held_out = []
         for obs in validation:
@@ -137,7 +148,8 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
                              **_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera)})
 
     wavelength_km = 30.0 * scenario.gsd_km
-    write_obj(downlink / "start_model.obj", start_model(truth, scenario=scenario, base=base, seed=seed))
+    if with_start_model:
+        write_obj(downlink / "start_model.obj", start_model(truth, scenario=scenario, base=base, seed=seed))
     save_truth(truth, truth_dir)
 
     manifest = {
@@ -145,11 +157,12 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0, position_err
         "seed": seed,
         "gsd_m": scenario.gsd_km * 1e3,
         "image_count": len(images),
-        "knowledge_error": {"position_m": position_error_m, "pointing_rad": pointing_error_rad},
+        "knowledge_error": drawn[0],
         "subframe": None if window is None else {"first_line": window[0], "first_sample": window[1]},
         "camera": {"instrument_id": scenario.instrument_id, "width": camera.width, "height": camera.height,
                    "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy},
-        "start_model": {"file": "downlink/start_model.obj", "low_pass_wavelength_m": wavelength_km * 1e3,
+        "start_model": {"file": "downlink/start_model.obj" if with_start_model else None,
+                        "low_pass_wavelength_m": wavelength_km * 1e3,
                         "vertex_spacing_m": 10.0 * scenario.gsd_km * 1e3,
                         "undulation_rms_m": scenario.start_error_rms_gsd * scenario.gsd_km * 1e3,
                         "undulation_band_m": list(scenario.start_error_band_m)},
@@ -288,18 +301,26 @@ def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Missio
     return [spk, ck_sc, ck_mount]
 
 
-def _perturb(observations: list[Observation], *, position_error_m: float, pointing_error_rad: float,
-             rng: np.random.Generator) -> list[Observation]:
-    """Navigation knowledge: the true poses with Gaussian position (per axis) and pointing errors."""
-    from scipy.spatial.transform import Rotation
+def _perturb(observations: list[Observation], *, errors: KnowledgeErrors, rng: np.random.Generator,
+             seed: int) -> tuple[list[Observation], tuple[dict, list[dict]]]:
+    """Navigation knowledge: the true poses with `errors`, and what the truth manifest records of
+    them (the summary, and an entry per observation).
 
-    noisy = []
-    for obs in observations:
-        dpos = rng.normal(0.0, position_error_m * 1e-3, 3)
-        drot = Rotation.from_rotvec(rng.normal(0.0, pointing_error_rad, 3)).as_matrix()
-        noisy.append(Observation(obs.name, obs.et, obs.position + dpos, drot @ obs.rotation,
-                                 obs.emission_deg, obs.azimuth_deg, obs.target_incidence_deg))
-    return noisy
+    Independent errors come from the simulation's stream, as they always did. Navigation-like
+    ones come from their own stream, and the simulation's stream makes the draws of independent
+    errors all the same, so that the images of a seed are the same whatever the errors."""
+    def arrays(obs: list[Observation]) -> dict[str, Any]:
+        return {"times": np.array([o.et for o in obs]), "positions_km": np.array([o.position for o in obs]),
+                "rotations": np.array([o.rotation for o in obs])}
+
+    if isinstance(errors, IndependentErrors):
+        drawn = perturb(errors, rng=rng, **arrays(observations))
+    else:
+        perturb(EXACT, rng=rng, **arrays(observations))
+        drawn = perturb(errors, rng=np.random.default_rng([seed, KNOWLEDGE_STREAM]), **arrays(observations))
+    noisy = [Observation(obs.name, obs.et, drawn.positions_km[k], drawn.rotations[k], obs.emission_deg,
+                         obs.azimuth_deg, obs.target_incidence_deg) for k, obs in enumerate(observations)]
+    return noisy, manifest_entries(errors, drawn, [obs.name for obs in observations])
 
 
 def _geometry(et: float, scenario: Scenario) -> tuple[Pose, np.ndarray]:

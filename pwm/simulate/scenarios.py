@@ -146,6 +146,15 @@ SCENARIOS: dict[str, Scenario] = {
             global_views=True, n_nadir=0, emissions_deg=(0.0,), n_azimuths=36,
             incidences_deg=(30.0, 45.0, 60.0), n_validation=4, campaign_days=5.0,
         ),
+        Scenario(
+            name="global-tiny",
+            description="global-coarse's design for tests, seconds: 12 images of the whole body at 4 m GSD "
+                        "through a 320 px detector window, over a coarse truth",
+            site_lat_deg=12.0, site_lon_deg=60.0, site_size_km=0.05,
+            gsd_km=4.0e-3, truth_resolution_km=1.0e-4, base_edge_km=2.0e-3, global_roughness_km=1.0e-3,
+            global_views=True, n_nadir=0, emissions_deg=(0.0,), n_azimuths=12, subframe_px=320,
+            incidences_deg=(30.0, 50.0), n_validation=1, campaign_days=5.0,
+        ),
     ]
 }
 

@@ -162,6 +162,9 @@ class DownlinkOut(_Out):
     unused_files: int
     repeat_count: int
     last_seen_at: datetime | None
+    model_note: str | None = Field(description="set when the downlink came to a catalog without "
+                                               "a model: the version its images made, or why none "
+                                               "could be made yet")
 
 
 class JobOut(_Out):

@@ -38,12 +38,15 @@ def downlinks(
                     "rejected": d.rejected, "conflict": d.conflict, "kernels": d.kernels,
                     "unused_files": [dict(zip(("path", "code", "reason"), f, strict=True)) for f in unused[d.id]],
                     "repeat_count": d.repeat_count,
-                    "last_seen_at": d.last_seen_at.isoformat() if d.last_seen_at else None} for d in rows])
+                    "last_seen_at": d.last_seen_at.isoformat() if d.last_seen_at else None,
+                    "model_note": d.model_note} for d in rows])
         return
     typer.echo(f"{'id':>4} {'downlink':<32} {'status':<10} {'outcome':<9} {'accepted':>8} {'rejected':>8} "
                f"{'conflict':>8} {'kernels':>7} {'unused':>6} {'repeats':>7}")
     for d in rows:
         typer.echo(f"{d.id:>4} {d.name[:32]:<32} {d.status.value:<10} {d.outcome.value:<9} {d.accepted:>8} "
                    f"{d.rejected:>8} {d.conflict:>8} {d.kernels:>7} {d.unused_files:>6} {d.repeat_count:>7}")
+        if d.model_note:
+            typer.echo(f"      model: {d.model_note}")
         for path, code, reason in unused.get(d.id, []) if files else []:
             typer.echo(f"      unused {path}: {code}: {reason}")

@@ -24,6 +24,8 @@ def run(
                                     help="pwm (pixel and region weights) | standard (weights off); default "
                                          "PWM_REFINE_MODE"),
     workers: int = typer.Option(1, min=1, help="processes refining maplets in parallel"),
+    passes: int | None = typer.Option(None, help="refinement passes, each fused into a version of its own; "
+                                                 "default PWM_REFINE_PASSES"),
     maplet_nodes: int | None = typer.Option(None,
                                             help="nodes per side of maplets tiled where the images look and none is "
                                                  "catalogued; default PWM_MAPLET_NODES"),
@@ -32,14 +34,16 @@ def run(
                                                   "default PWM_TILE_RADIUS_KM, else from their footprints"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
-    """Ingest a downlink, refine the maplets whose images changed, and publish a new model version, in this process."""
+    """Ingest a downlink, refine the maplets whose images changed, and publish a new model version per pass, in this
+    process."""
     from service.catalog import open_catalog
     from service.run import run_directory
     from service.settings import get_settings
 
     setup_logging(verbose)
     settings = get_settings()
-    config = refinement_config(settings.refinement(), mode=mode, nodes=maplet_nodes, tile_radius_km=tile_radius)
+    config = refinement_config(settings.refinement(), mode=mode, passes=passes, nodes=maplet_nodes,
+                               tile_radius_km=tile_radius)
     try:
         report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,
                                config=config, workers=workers)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
@@ -20,17 +21,19 @@ from service.cli.app import (
     setup_logging,
 )
 
+if TYPE_CHECKING:
+    from pwm.simulate.knowledge import KnowledgeErrors
 
-def _knowledge_error(value: str | None) -> tuple[float, float]:
+
+def _knowledge_error(value: str | None) -> KnowledgeErrors:
+    from pwm.simulate.knowledge import IndependentErrors, parse_knowledge_errors
+
     if value is None:
-        return 0.0, 0.0
+        return IndependentErrors()
     try:
-        pos_m, point_rad = (float(x) for x in value.split(","))
-    except ValueError:
-        raise typer.BadParameter("expected POS_M,POINT_RAD, e.g. 1.0,1e-4") from None
-    if pos_m < 0 or point_rad < 0:
-        raise typer.BadParameter("knowledge errors must be non-negative")
-    return pos_m, point_rad
+        return parse_knowledge_errors(value)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--knowledge-error") from None
 
 
 def _start_error(value: str) -> dict:
@@ -50,11 +53,15 @@ def _start_error(value: str) -> dict:
 @app.command()
 def simulate(
     out: Path = typer.Argument(..., help="output directory (downlink/ and truth/ are written in it)"),
-    scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-hard | site-polar | global-coarse"),
+    scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-hard | site-polar | global-coarse "
+                                              "| global-tiny"),
     seed: int = typer.Option(0, help="random seed: the same seed gives the same products"),
-    knowledge_error: str | None = typer.Option(None,
-                                               help="POS_M,POINT_RAD: 1-sigma position (m) and pointing (rad) errors "
-                                                    "in the kernels"),
+    knowledge_error: str | None = typer.Option(
+        None, help="errors of the kernels' poses (the images are rendered from the truth). POS_M,POINT_RAD: "
+                   "independent per image, 1 sigma per axis, position (m) and pointing (rad); "
+                   "nav:ALONG_M,CROSS_M,MISALIGN_URAD,DRIFT_URAD (e.g. nav:3,1,50,20): navigation-like, smooth "
+                   "over each arc of images, RMS along-track and cross-track (m), one camera misalignment and a "
+                   "pointing drift over the downlink (microradians)"),
     photometry: str | None = typer.Option(None, help="the truth's reflectance law: mcewen (the solver's), "
                                                      "lunar-lambert-slow or hapke (default: the scenario's)"),
     supersample: int | None = typer.Option(None, help="rays per pixel along each axis, averaged"),
@@ -63,16 +70,22 @@ def simulate(
     flat_field: float | None = typer.Option(None, help="relative RMS of the flat-field residual, e.g. 0.01"),
     start_error: str | None = typer.Option(None, help="RMS_GSD[,SHORTEST_M,LONGEST_M]: smooth undulations added "
                                                       "to the start model (default band 10-40 m)"),
+    with_start_model: bool = typer.Option(False, "--with-start-model",
+                                          help="put a start model into the downlink (start_model.obj), as an "
+                                               "earlier campaign would leave it; without it, the downlink comes "
+                                               "with no shape model, as a mission's first ones do"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
-    """Simulate a mission downlink (PDS4 images, SPICE kernels, start model) from a truth asteroid;
-    the options change the scenario's photometry, camera and start-model error."""
+    """Simulate a mission downlink (PDS4 images, SPICE kernels, and with --with-start-model a start
+    model) from a truth asteroid; the options change the scenario's photometry, camera and
+    start-model error."""
     from pydantic import ValidationError
 
     from pwm.simulate.campaign import simulate as run_simulation
     from pwm.simulate.scenarios import Scenario, get_scenario
 
     setup_logging(verbose)
+    errors = _knowledge_error(knowledge_error)
     try:
         sc = get_scenario(scenario)
     except ValueError as exc:
@@ -87,8 +100,7 @@ def simulate(
     except ValidationError as exc:
         raise typer.BadParameter("; ".join(": ".join(filter(None, (".".join(map(str, e["loc"])), e["msg"])))
                                            for e in exc.errors())) from None
-    pos_m, point_rad = _knowledge_error(knowledge_error)
-    manifest = run_simulation(out, scenario=sc, seed=seed, position_error_m=pos_m, pointing_error_rad=point_rad)
+    manifest = run_simulation(out, scenario=sc, seed=seed, knowledge=errors, with_start_model=with_start_model)
     typer.echo(f"{manifest['image_count']} images, GSD {manifest['gsd_m']:.3f} m -> {out}")
 
 

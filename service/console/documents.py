@@ -28,7 +28,7 @@ from sqlalchemy.orm import Session
 from pwm.compare import height_change
 from pwm.decimate import decimate
 from pwm.mesh import Mesh
-from pwm.site import ROUGHNESS_BASELINE_M, HazardThresholds, hazard, relief_m, roughness_m, slope_deg
+from pwm.site import BASELINE_M, HazardThresholds, hazard, relief_m, roughness_m, slope_deg
 from service.exports import ExportError, Site, cached_artifact, digest, resample_site
 from service.models import Coverage, CoverageRole, Maplet, MapletRevision, ModelVersion
 from service.queries import list_maplets
@@ -39,7 +39,7 @@ MAGIC = b"PWMC"
 # (at 300k the document is about 8 MB; bench/console.py times its first draw).
 MESH_FACES = 300_000
 # Bump when a document's content changes for the same inputs.
-REVISION = 1
+REVISION = 2
 FIELD_UNITS = {"albedo": "", "height": "m", "slope": "deg", "change": "m"}
 UNKNOWN_GREY = 115
 # Farthest (km) a version's surface may have moved from its parent's and still be compared.
@@ -180,7 +180,7 @@ class SiteRequest:
     version: int
     mesh: dict[str, Any]
     site: Site
-    baseline_m: float = ROUGHNESS_BASELINE_M
+    baseline_m: float = BASELINE_M
     thresholds: HazardThresholds = HazardThresholds()
 
 
@@ -203,7 +203,7 @@ def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> 
             raise ExportError("the site grid meets no surface")
         spacing_m = float(grid.x_km[1] - grid.x_km[0]) * 1e3
         maps = {"height": height, "albedo": grid.albedo,
-                "slope": slope_deg(height, spacing_m=spacing_m),
+                "slope": slope_deg(height, spacing_m=spacing_m, baseline_m=request.baseline_m),
                 "roughness": roughness_m(height, spacing_m=spacing_m,
                                          baseline_m=request.baseline_m),
                 "relief": relief_m(height, spacing_m=spacing_m, baseline_m=request.baseline_m)}

@@ -114,7 +114,8 @@ def test_site_page_shows_the_sites_numbers(browser, console):
             [extent["min"], extent["mean"], extent["max"]], rel=1e-3, abs=1e-6)
     # the maps are pwm.site's of the heights served
     height = arrays["height"].astype(float)
-    np.testing.assert_allclose(arrays["slope"], slope_deg(height, spacing_m=header["spacing_m"]),
+    np.testing.assert_allclose(arrays["slope"], slope_deg(height, spacing_m=header["spacing_m"],
+                                                          baseline_m=header["baseline_m"]),
                                rtol=1e-4, atol=1e-4)
     assert f"{header['nx']} x {header['ny']} nodes" in browser.find_element(By.ID, "title").text
     # a profile along a line drawn on the height map

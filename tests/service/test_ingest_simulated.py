@@ -40,7 +40,7 @@ def tiny_sim_seed4(tmp_path_factory) -> Path:
     """The tiny scenario with another seed than tiny_sim's: the same observation names, other
     products."""
     out = tmp_path_factory.mktemp("tiny-seed4") / "sim"
-    simulate(out, scenario=get_scenario("tiny"), seed=4)
+    simulate(out, scenario=get_scenario("tiny"), seed=4, with_start_model=True)
     return out
 
 

@@ -1,7 +1,8 @@
 """`pwm run` in-process on a simulated downlink: a first downlink publishes a refined version on
-top of the start model; the same downlink again changes nothing; a second downlink that sees
-part of the site refines only the maplets whose image set changed, and the new version's sums
-are those of a fusion from scratch."""
+top of the start model, and its second pass another on top of that, refined against it; the
+same downlink again changes nothing; a second downlink that sees part of the site refines only
+the maplets whose image set changed (both passes), and the new version's sums are those of a
+fusion from scratch."""
 
 from __future__ import annotations
 
@@ -59,24 +60,39 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
     data = tmp_path / "data"
     first = shutil.copytree(tiny_sim / "downlink", tmp_path / "first")
     run = run_directory(catalog, first, data_dir=data, config=CONFIG)
-    assert (run.plan.base_version, run.version) == (1, 2)
-    assert len(run.plan.work) >= 2 and len(run.revisions) == len(run.plan.work)
+    assert (run.plan.base_version, run.versions) == (1, [2, 3]) and CONFIG.passes == 2
+    assert len(run.plan.work) >= 2 and len(run.revisions) == 2 * len(run.plan.work)
+    assert {w.pass_number for w in run.plan.work} == {1}
+    n = len(run.plan.work)
     with catalog() as session:
-        start, v2 = get_version(session, 1), get_version(session, 2)
+        start, v2, v3 = (get_version(session, v) for v in (1, 2, 3))
         start_artifacts = dict(start.artifacts)
         assert start.kind is ModelKind.START and v2.kind is ModelKind.REFINED
         assert v2.parent.version == 1 and [d.name for d in v2.downlinks] == ["first"]
-        assert sorted(r.id for r in v2.maplet_revisions) == sorted(run.revisions)
-        assert v2.statistics["maplets_changed"] == len(run.revisions)
+        assert sorted(r.id for r in v2.maplet_revisions) == sorted(run.revisions[:n])
+        assert v2.statistics["maplets_changed"] == n
         assert v2.statistics["images"] == 6 and v2.statistics["base_version"] == 1
+        # The second pass: the same maplets from the same images, against version 2.
+        assert v3.parent.version == 2 and [d.name for d in v3.downlinks] == ["first"]
+        assert sorted(r.id for r in v3.maplet_revisions) == sorted(run.revisions[n:])
+        assert v3.statistics["maplets_replaced"] == n and v3.statistics["base_version"] == 1
+        first_pass = {r.maplet_id: r for r in v2.maplet_revisions}
+        for revision in v3.maplet_revisions:
+            assert revision.statistics["pass"] == 2 and revision.statistics["model_version"] == 2
+            assert first_pass[revision.maplet_id].statistics["pass"] == 1
+            assert revision.statistics["images"] == first_pass[revision.maplet_id].statistics["images"]
         inputs = _inputs(session)
         maplets = session.scalar(select(func.count()).select_from(Maplet))
         assert len(run.plan.work) == sum(len(images) >= CONFIG.min_images for images in inputs.values())
     start_mesh, refined = version_mesh(data, start), version_mesh(data, v2)
     assert refined.albedo is not None and len(refined.faces) > len(start_mesh.faces)
+    for revision in v3.maplet_revisions:
+        change = (load_revision_maplet(data, revision).heights
+                  - load_revision_maplet(data, first_pass[revision.maplet_id]).heights)
+        assert 0.01 < np.sqrt(np.mean(change**2)) * 1e6 < 200  # mm, not metres: refined again
 
     again = run_directory(catalog, first, data_dir=data, config=CONFIG)
-    assert again.plan.work == [] and again.version is None
+    assert again.plan.work == [] and again.versions == [] and again.version is None
     with catalog() as session:
         assert session.scalar(select(func.count()).select_from(MapletRevision)) == len(
             run.revisions)
@@ -89,20 +105,22 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
         changed = {m for m in after if after[m] != inputs.get(m) and len(after[m]) >= CONFIG.min_images}
         assert 0 < len(changed) < maplets
         assert {w.maplet_id for w in later.plan.work} == changed
-        assert later.version == 3
-        v3 = get_version(session, 3)
-        assert v3.parent.version == 2 and v3.statistics["incremental"]
-        assert sorted(d.name for d in v3.downlinks) == ["first", "second"]
-        assert v3.statistics["maplets_changed"] == len(changed)
-        assert v3.statistics["maplets_fused"] == len(run.revisions) + len(changed - set(
+        assert later.versions == [4, 5] and len(later.revisions) == 2 * len(changed)
+        v5 = get_version(session, 5)
+        assert v5.parent.version == 4 and v5.statistics["incremental"]
+        assert sorted(d.name for d in v5.downlinks) == ["first", "second"]
+        assert get_version(session, 4).statistics["maplets_changed"] == len(changed)
+        assert v5.statistics["maplets_changed"] == len(changed)
+        assert v5.statistics["maplets_fused"] == n + len(changed - set(
             w.maplet_id for w in run.plan.work))
         current = {m.id: m.current_revision for m in session.scalars(select(Maplet))
                    if m.current_revision is not None}
-        assert {r.id for r in v3.maplet_revisions} == {r.id for r in current.values()}
-        # Unchanged maplets keep the revision version 2 used.
-        kept = {r.maplet_id: r.id for r in v2.maplet_revisions if r.maplet_id not in changed}
+        assert {r.id for r in v5.maplet_revisions} == {r.id for r in current.values()}
+        assert all(r.statistics["pass"] == 2 for r in current.values())
+        # Unchanged maplets keep the revision version 3 used.
+        kept = {r.maplet_id: r.id for r in v3.maplet_revisions if r.maplet_id not in changed}
         assert kept and all(current[m].id == r for m, r in kept.items())
-        incremental = read_grid(artifact_path(data, v3.artifacts["grid"], verify=True))
+        incremental = read_grid(artifact_path(data, v5.artifacts["grid"], verify=True))
         scratch = VoxelGrid(voxel_km=incremental.voxel_km, taper_fraction=CONFIG.overlap)
         for revision in sorted(current.values(), key=lambda r: r.maplet_id):
             scratch.add(load_revision_maplet(data, revision))

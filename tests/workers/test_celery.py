@@ -218,12 +218,12 @@ def test_a_task_lost_with_its_worker_is_redelivered_and_done_once(
     assert COMMIT_EVERY <= _count(catalog, Image) < len(labels)
 
     second_worker = start_worker()
-    # The second worker's reconciler hands the lost job over again, or Redis its message once
-    # the visibility timeout passed; whichever delivery comes second finds the job taken.
-    result_of(pending, [first_worker, second_worker],
-              timeout=VISIBILITY_TIMEOUT_S + RESULT_TIMEOUT_S)
+    # The second worker's reconciler hands the lost job over again once its heartbeat is the
+    # grace old, long before Redis hands the unacknowledged message out again (after the
+    # visibility timeout, at kombu's next restore of unacknowledged messages: its cadence
+    # differs between kombu versions, so the test does not wait for it).
     wait_for(lambda: _job(catalog, key).status is JobStatus.DONE, "the job done",
-             [second_worker])
+             [first_worker, second_worker], timeout=VISIBILITY_TIMEOUT_S + RESULT_TIMEOUT_S)
 
     done = _job(catalog, key)
     assert (done.status, done.attempts, done.progress) == (JobStatus.DONE, 2, 1.0), logs(
@@ -236,10 +236,14 @@ def test_a_task_lost_with_its_worker_is_redelivered_and_done_once(
     assert len(lidvids) == len(set(lidvids)) == len(labels)
     assert downlink.status is DownlinkStatus.INGESTED and downlink.id == interrupted.id
     assert _count(catalog, Job, Job.kind == JobKind.INGEST) == 1
+    # The original message: still unacknowledged in Redis (handed out again later), or already
+    # handed out again, when it found the job done and did nothing.
     broker = redis.Redis.from_url(broker_url)
-    wait_for(lambda: broker.hlen("unacked") == 0, "the acknowledgement", [second_worker])
-    assert broker.llen(JobKind.INGEST.value) == 0
+    assert pending.ready() or broker.hlen("unacked") == 1
     broker.close()
+    if pending.ready():
+        assert not pending.get(timeout=RESULT_TIMEOUT_S)["ran"]
+    assert _job(catalog, key).attempts == 2
     print(f"\nworkers ready in {first_worker.startup_s:.2f} s and {second_worker.startup_s:.2f} s;"
           f" redelivered {(done.started_at - killed_at).total_seconds():.2f} s after the kill, "
           f"{(done.started_at - job.started_at).total_seconds():.2f} s after the first attempt"

@@ -1,7 +1,8 @@
 """Operations end to end with real servers: `pwm watch` and `pwm worker` processes (prefork) on a
 Redis broker and a PostgreSQL catalog take simulated downlinks dropped into a folder to published
 model versions, refining only the maplets whose input changed; a pool process killed during a
-refinement loses nothing and duplicates nothing."""
+refinement loses nothing and duplicates nothing; with two refinement passes, each pass of a
+downlink is fused into a version of its own, the second refined against the first's."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Iterator
 from datetime import timedelta
 from pathlib import Path
@@ -19,6 +21,7 @@ from celery import Celery
 from harness import (
     HEARTBEAT_GRACE_S,
     PWM,
+    RECONCILE_INTERVAL_S,
     REPO,
     TIME_LIMIT_S,
     Worker,
@@ -44,9 +47,12 @@ DOWNLINK_TIMEOUT_S = 150.0
 
 
 @pytest.fixture
-def settings(broker_url: str, postgres_url: str, tmp_path: Path) -> WorkerSettings:
+def settings(request: pytest.FixtureRequest, broker_url: str, postgres_url: str,
+             tmp_path: Path) -> WorkerSettings:
+    """The end-to-end settings; parametrized indirectly, the number of refinement passes."""
+    passes = {"refine_passes": request.param} if hasattr(request, "param") else {}
     return end_to_end_settings(broker_url=broker_url, database_url=postgres_url,
-                               data_dir=tmp_path / "data")
+                               data_dir=tmp_path / "data", **passes)
 
 
 @pytest.fixture
@@ -241,6 +247,49 @@ def test_downlinks_dropped_into_the_watched_folder_become_versions(
     assert key.startswith(f"refine:requested:{maplet}:")
     again = _submit_refinement(worker_env, maplet)
     assert again.returncode != 0 and "nothing new to refine" in again.stderr
+
+
+@pytest.mark.parametrize("settings", [2], indirect=True)
+def test_each_pass_of_a_downlink_is_fused_into_a_version_of_its_own(
+        tiny_sim: Path, catalog: sessionmaker[Session], settings: WorkerSettings, client: Celery,
+        start_worker: Callable[..., Worker]) -> None:
+    worker = start_worker(lambda name: pwm_worker_command(name, 2))
+    downlink = tiny_sim / "downlink"
+    key = ingest_key(downlink)
+    client.send_task(ingest_downlink.name, args=[str(downlink)], kwargs={"key": key})
+    _wait_for_version(catalog, 3, [worker])
+    start, first, second = _versions(catalog)
+    [ingest] = _jobs(catalog, JobKind.INGEST)
+    downlink_id = ingest.downlink_id
+    refines = _jobs(catalog, JobKind.REFINE)
+    maplets = _image_sets(catalog)
+    # each maplet refined once in each pass, each fusion once, nothing tried twice
+    assert settings.refine_passes == 2 and len(maplets) > 1
+    assert sorted(j.maplet_id for j in refines) == sorted(2 * list(maplets))
+    assert all((j.status, j.attempts, j.downlink_id) == (JobStatus.DONE, 1, downlink_id)
+               for j in refines)
+    fuses = _jobs(catalog, JobKind.FUSE)
+    assert [f.key for f in fuses] == [fuse_key(downlink_id), fuse_key(downlink_id, 2)]
+    assert all((f.status, f.attempts) == (JobStatus.DONE, 1) for f in fuses)
+    assert fuses[0].message == (f"published version {first.version}; {len(maplets)} maplets due "
+                                f"for another pass")
+    assert fuses[1].message == f"published version {second.version}"
+    # the second pass starts from the version that fused the first
+    assert (first.parent.version, second.parent.version) == (start.version, first.version)
+    assert [d.id for d in first.downlinks] == [d.id for d in second.downlinks] == [downlink_id]
+    first_pass = {r.maplet_id: r for r in first.maplet_revisions}
+    assert first_pass.keys() == {r.maplet_id for r in second.maplet_revisions} == maplets.keys()
+    for revision in second.maplet_revisions:
+        assert (revision.statistics["pass"], revision.statistics["model_version"]) == (2, first.version)
+        earlier = first_pass[revision.maplet_id].statistics
+        assert (earlier["pass"], earlier["model_version"]) == (1, start.version)
+    assert _count(catalog, MapletRevision) == 2 * len(maplets)
+    # delivered again: nothing is refined or fused again, by the task or by the reconciler
+    assert not result_of(client.send_task(ingest_downlink.name, args=[str(downlink)],
+                                          kwargs={"key": key}), [worker])["ran"]
+    time.sleep(3 * RECONCILE_INTERVAL_S)
+    assert len(_versions(catalog)) == 3 and len(_jobs(catalog, JobKind.FUSE)) == 2
+    assert len(_jobs(catalog, JobKind.REFINE)) == len(refines)
 
 
 def test_a_refinement_lost_with_its_pool_process_is_redelivered_and_done_once(

@@ -12,6 +12,7 @@ from pathlib import Path
 from harness import PWM, REPO
 from sqlalchemy import select
 
+from pwm.config import DEFAULTS
 from service.db import make_engine, make_sessionmaker
 from service.models import Job, JobKind, JobStatus, ModelVersion
 from service.watch import MANIFEST_NAME, Watcher, completeness
@@ -87,7 +88,9 @@ def test_watch_once_without_a_broker_runs_the_downlink_in_process(tiny_sim: Path
         jobs = session.scalars(select(Job)).all()
     engine.dispose()
     kinds = [j.kind for j in jobs]
-    assert versions == [1, 2]
-    assert kinds.count(JobKind.INGEST) == kinds.count(JobKind.FUSE) == 1
-    assert kinds.count(JobKind.REFINE) >= 1
+    # one version per pass (RefinementConfig.passes, 2): each maplet refined once in each
+    assert DEFAULTS.passes == 2 and versions == [1, 2, 3]
+    assert kinds.count(JobKind.INGEST) == 1 and kinds.count(JobKind.FUSE) == 2
+    refined = [j.maplet_id for j in jobs if j.kind is JobKind.REFINE]
+    assert refined and sorted(refined) == sorted(2 * list(set(refined)))
     assert all((j.status, j.attempts) == (JobStatus.DONE, 1) for j in jobs)

@@ -12,7 +12,7 @@ from fastapi import APIRouter, HTTPException, Query, status
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-from pwm.site import ROUGHNESS_BASELINE_M, HazardThresholds
+from pwm.site import BASELINE_M, HazardThresholds
 from service.api.deps import SessionDep, SettingsDep, VersionRef, resolve_version
 from service.api.schemas import Problem
 from service.console.documents import (
@@ -70,8 +70,8 @@ def version_site(
     lat: Annotated[float, Query(ge=-90, le=90, description="site latitude, deg")],
     lon: Annotated[float, Query(ge=-360, le=360, description="site east longitude, deg")],
     radius_km: Annotated[float, Query(gt=0, le=1, description="site half-width, km")],
-    baseline_m: Annotated[float, Query(gt=0, le=100, description="roughness and relief "
-                                       "baseline, m")] = ROUGHNESS_BASELINE_M,
+    baseline_m: Annotated[float, Query(gt=0, le=100, description="slope, roughness and relief "
+                                       "baseline, m")] = BASELINE_M,
     max_slope_deg: Annotated[float, Query(gt=0, lt=90, description="hazard above this slope, "
                                           "deg")] = HazardThresholds().max_slope_deg,
     max_relief_m: Annotated[float, Query(gt=0, le=100, description="hazard above this height "

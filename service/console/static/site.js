@@ -48,7 +48,7 @@ function drawMaps() {
   paint(document.getElementById("map-hazard"), h.nx, h.ny, (k) =>
     hazard[k] ? (Number.isFinite(slope[k]) ? [200, 30, 30, 255] : [120, 120, 120, 255]) : [235, 240, 235, 255]);
   document.getElementById("hazard-caption").textContent =
-    `hazard (red): slope above ${h.thresholds.max_slope_deg} deg or more than ${h.thresholds.max_relief_m} m ` +
+    `hazard (red): slope over ${h.baseline_m} m above ${h.thresholds.max_slope_deg} deg or more than ${h.thresholds.max_relief_m} m ` +
     `above the plane over ${h.baseline_m} m; grey: unknown. ${(100 * h.hazard_fraction).toFixed(1)}% of the site`;
   const body = document.querySelector("#site-stats tbody");
   body.replaceChildren();

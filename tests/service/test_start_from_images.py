@@ -1,0 +1,121 @@
+"""A catalog with no model and none given (issue 15.1): a whole-body survey makes its own start
+model by stereo photogrammetry from the target's PCK ellipsoid, published as version 1 of kind
+photogrammetric with the images' pose corrections, and refinement goes on from it; a site whose
+footprint is too small for photogrammetry to start from the ellipsoid is catalogued with no
+version, the reason recorded on the downlink and shown, and the next downlink tries again."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import select
+from typer.testing import CliRunner
+
+from pwm.config import RefinementConfig
+from pwm.geometry import Ellipsoid
+from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
+from pwm.simulate.truth import load as load_truth
+from service.cli import app
+from service.models import Downlink, Image, ModelKind, ModelVersion
+from service.run import START_MODEL_NAME, run_directory
+from service.settings import get_settings
+from service.versions import get_version, version_mesh
+
+# A few maplets, seconds: about the survey's imaged centre, and the tiny site's
+SURVEY = RefinementConfig(nodes=16, tile_radius_km=0.1)
+SITE = RefinementConfig(nodes=40, tile_radius_km=0.0008)
+BENNU_RADII_KM = np.array([0.283065, 0.271215, 0.24972])  # the simulated downlinks' PCK
+
+
+def _radial_error_m(mesh: Mesh, truth: Mesh) -> float:
+    """RMS difference (m) of the two surfaces' outermost radii along 20000 directions: the poses
+    are exact in these downlinks, so the models are compared in place, without registration."""
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(20000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+
+    def radii(m: Mesh) -> np.ndarray:
+        tracer = RayTracer(m)
+        hits = tracer.intersect(2.0 * directions, -directions)
+        points = tracer.hit_points(2.0 * directions, -directions, hits)
+        return np.where(hits.hit, np.linalg.norm(points, axis=1), np.nan)
+
+    return float(np.sqrt(np.nanmean((radii(mesh) - radii(truth)) ** 2)) * 1e3)
+
+
+def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_path):
+    data = tmp_path / "data"
+    downlink = global_tiny_sim / "downlink"
+    assert not (downlink / START_MODEL_NAME).exists()
+    run = run_directory(catalog, downlink, data_dir=data, config=SURVEY)
+    assert (run.plan.base_version, run.versions) == (1, [2, 3]) and run.plan.work
+    with catalog() as session:
+        first = get_version(session, 1)
+        assert (first.kind, first.parent) == (ModelKind.PHOTOGRAMMETRIC, None)
+        assert [d.name for d in first.downlinks] == ["downlink"]
+        assert first.statistics["images"] == 12 and first.statistics["base_version"] is None
+        assert get_version(session, 2).parent.version == 1
+        assert session.scalars(select(Downlink.model_note)).one() == (
+            "version 1 (photogrammetric) made from the images, with no model before")
+        images = session.scalars(select(Image)).all()
+        # each image's pose correction is stored, and its coverage weighed against version 1
+        assert len(images) == 12 and all(i.pose_corrected_at is not None for i in images)
+        assert all(i.coverage_computed_at >= i.pose_corrected_at for i in images)
+        photogrammetric = version_mesh(data, first)
+    truth = load_truth(global_tiny_sim / "truth").mesh
+    start = _radial_error_m(Ellipsoid(radii=BENNU_RADII_KM).mesh(), truth)
+    made = _radial_error_m(photogrammetric, truth)
+    print(f"\nradial RMS: PCK ellipsoid {start:.1f} m, photogrammetric version 1 {made:.1f} m")
+    assert made < 0.85 * start
+
+
+def test_a_site_too_small_to_start_from_the_ellipsoid_says_why(tiny_sim, catalog, tmp_path,
+                                                               monkeypatch):
+    data = tmp_path / "data"
+    first = tmp_path / "first"
+    shutil.copytree(tiny_sim / "downlink", first, ignore=shutil.ignore_patterns(START_MODEL_NAME))
+    run = run_directory(catalog, first, data_dir=data, config=SITE)
+    assert (run.plan.base_version, run.plan.work, run.versions) == (None, [], [])
+    assert "no model to refine" in run.summary()
+    with catalog() as session:
+        assert session.scalars(select(ModelVersion)).all() == []
+        assert len(session.scalars(select(Image)).all()) == 6  # catalogued all the same
+        note = session.scalars(select(Downlink.model_note)).one()
+    assert note.startswith("no model: stereo photogrammetry cannot work yet: ")
+    # shown by `pwm downlinks`, as a table and as JSON
+    monkeypatch.setenv("PWM_DATA_DIR", str(data))
+    monkeypatch.setenv("PWM_DATABASE_URL", catalog.kw["bind"].url.render_as_string(hide_password=False))
+    get_settings.cache_clear()
+    try:
+        shown = CliRunner().invoke(app, ["downlinks"])
+        listed = CliRunner().invoke(app, ["downlinks", "--json"])
+    finally:
+        get_settings.cache_clear()
+    assert shown.exit_code == 0 and f"model: {note}" in shown.output
+    assert [d["model_note"] for d in json.loads(listed.output)] == [note]
+
+    # the next downlink tries again with every image so far, and says so on its own row
+    second = tmp_path / "second"  # without the manifest, another downlink, not a repeat of the first
+    shutil.copytree(first, second, ignore=shutil.ignore_patterns("manifest.json"))
+    again = run_directory(catalog, second, data_dir=data, config=SITE)
+    assert again.plan.base_version is None
+    with catalog() as session:
+        notes = {name: text for name, text in session.execute(select(Downlink.name, Downlink.model_note))}
+    assert notes == {"first": note, "second": notes["second"]}
+    assert notes["second"].startswith("no model: stereo photogrammetry cannot work yet: ")
+
+
+def test_a_start_model_delivered_later_is_taken_up(tiny_sim, catalog, tmp_path):
+    data = tmp_path / "data"
+    bare = tmp_path / "bare"
+    shutil.copytree(tiny_sim / "downlink", bare, ignore=shutil.ignore_patterns(START_MODEL_NAME))
+    assert run_directory(catalog, bare, data_dir=data, config=SITE).plan.base_version is None
+    run = run_directory(catalog, tiny_sim / "downlink", data_dir=data, config=SITE,
+                        start=Path(tiny_sim / "downlink" / START_MODEL_NAME))
+    assert run.plan.base_version == 1 and run.versions == [2, 3]
+    with catalog() as session:
+        assert get_version(session, 1).kind is ModelKind.START
