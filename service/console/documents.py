@@ -39,7 +39,7 @@ MAGIC = b"PWMC"
 # (at 300k the document is about 8 MB; bench/console.py times its first draw).
 MESH_FACES = 300_000
 # Bump when a document's content changes for the same inputs.
-REVISION = 2
+REVISION = 3
 FIELD_UNITS = {"albedo": "", "height": "m", "slope": "deg", "change": "m"}
 UNKNOWN_GREY = 115
 # Farthest (km) a version's surface may have moved from its parent's and still be compared.

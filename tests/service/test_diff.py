@@ -1,5 +1,6 @@
 """Height change between versions: a known bump and a uniform rise are measured along the
-outward normal, with the area changed, and mapped to a PNG."""
+local vertical, a boulder with near-vertical walls by its height, with the area changed, and
+mapped to a PNG."""
 
 from __future__ import annotations
 
@@ -37,6 +38,36 @@ def test_a_bump_is_measured_where_it_is():
     assert change.max_abs_m() == pytest.approx(0.5, rel=1e-3)
     rising = change.changed(0.01)
     assert rising.any() and not (rising & ~cap).any()
+
+
+def _plane(heights_m: np.ndarray, spacing_m: float) -> Mesh:
+    """A grid of heights (m) on the plane z = 0.3 km (x, y, z in km), two triangles a cell."""
+    ny, nx = heights_m.shape
+    y, x = np.mgrid[0:ny, 0:nx] * spacing_m * 1e-3
+    vertices = np.column_stack([x.ravel(), y.ravel(), 0.3 + heights_m.ravel() * 1e-3])
+    k = np.arange(ny * nx).reshape(ny, nx)[:-1, :-1].ravel()
+    faces = np.concatenate([np.column_stack([k, k + 1, k + nx + 1]), np.column_stack([k, k + nx + 1, k + nx])])
+    return Mesh(vertices, faces)
+
+
+def test_a_boulder_with_steep_walls_changes_by_its_height():
+    spacing_m, size = 0.1, 201
+    flat = np.zeros((size, size))
+    boulder = flat.copy()
+    boulder[90:111, 90:111] = 1.0  # 2 m across, 1 m tall, walls of 84 deg between nodes
+    old, new = _plane(flat, spacing_m), _plane(boulder, spacing_m)
+    change = height_change(old, new, max_distance_km=0.005)
+    # along each vertex's own normal a wall vertex would look metres away from the old plane
+    own = new.vertex_normals()
+    tilt = np.degrees(np.arccos(own[:, 2]))
+    assert tilt.max() > 80
+    # along the local vertical every vertex rises by its own height, walls included
+    np.testing.assert_allclose(change.change_m[change.compared], boulder.ravel()[change.compared], atol=1e-4)
+    # all but the grid's border, where a ray down may pass beside the old plane's edge
+    inner = np.zeros((size, size), dtype=bool)
+    inner[1:-1, 1:-1] = True
+    assert change.compared[inner.ravel()].all() and change.max_abs_m() == pytest.approx(1.0, abs=1e-4)
+    assert np.count_nonzero(change.changed(0.01)) == np.count_nonzero(boulder)
 
 
 def test_diff_of_two_versions(catalog, tmp_path):
