@@ -99,11 +99,15 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
     what happened either way, and the next downlink tries again with every image so far.
     """
     with sessions() as session:
+        made = latest_version(session)
         targets = set(session.scalars(select(Image.target).where(
             Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED)))
         kernels = [Path(k.path) for k in accepted_kernels(session)]
     note, number = None, None
-    if len(targets) != 1 or None in targets:
+    if made is not None:  # another ingest made one meanwhile: start from it
+        number = made.version
+        note = f"version {number} ({made.kind.value}) was made meanwhile, by another ingest"
+    elif len(targets) != 1 or None in targets:
         note = (f"no model: photogrammetry needs the images of one target, the catalog has "
                 f"{len(targets - {None})} ({', '.join(sorted(t for t in targets if t))})")
     else:
@@ -118,7 +122,7 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
                 number = photogrammetry_version(sessions, data_dir=data_dir, prior=ellipsoid.mesh())
             except ValueError as exc:
                 note = f"no model: stereo photogrammetry cannot work yet: {exc}"
-    if number is not None:
+    if number is not None and made is None:
         note = f"version {number} (photogrammetric) made from the images, with no model before"
     with session_scope(sessions) as session:
         session.get_one(Downlink, downlink_id).model_note = note

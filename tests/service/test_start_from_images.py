@@ -20,10 +20,12 @@ from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
 from service.cli import app
+from service.db import session_scope
 from service.models import Downlink, Image, ModelKind, ModelVersion
 from service.run import START_MODEL_NAME, run_directory
 from service.settings import get_settings
-from service.versions import get_version, version_mesh
+from service.spg import start_from_images
+from service.versions import get_version, import_model, version_mesh
 
 # A few maplets, seconds: about the survey's imaged centre, and the tiny site's
 SURVEY = RefinementConfig(nodes=16, tile_radius_km=0.1)
@@ -119,3 +121,20 @@ def test_a_start_model_delivered_later_is_taken_up(tiny_sim, catalog, tmp_path):
     assert run.plan.base_version == 1 and run.versions == [2, 3]
     with catalog() as session:
         assert get_version(session, 1).kind is ModelKind.START
+
+
+def test_a_version_made_meanwhile_is_started_from(tiny_sim, catalog, tmp_path):
+    """Two first ingests at once: the one that finds a version made meanwhile starts from it
+    instead of running photogrammetry again."""
+    data = tmp_path / "data"
+    bare = tmp_path / "bare"
+    shutil.copytree(tiny_sim / "downlink", bare, ignore=shutil.ignore_patterns(START_MODEL_NAME))
+    assert run_directory(catalog, bare, data_dir=data, config=SITE).plan.base_version is None
+    with session_scope(catalog) as session:
+        import_model(session, data_dir=data, kind=ModelKind.START, path=tiny_sim / "downlink" / START_MODEL_NAME)
+        downlink_id = session.scalars(select(Downlink.id)).one()
+    assert start_from_images(catalog, data_dir=data, downlink_id=downlink_id) == 1
+    with catalog() as session:
+        assert len(session.scalars(select(ModelVersion)).all()) == 1
+        assert session.get_one(Downlink, downlink_id).model_note == (
+            "version 1 (start) was made meanwhile, by another ingest")
