@@ -5,12 +5,14 @@ from pathlib import Path
 import matplotlib.image
 import numpy as np
 import pytest
+import trimesh
 from scipy.ndimage import gaussian_filter
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 import pwm
 from pwm.evaluate import plots
+from pwm.evaluate.completeness import completeness
 from pwm.evaluate.distance import ClosestPoint
 from pwm.evaluate.icp import register
 from pwm.evaluate.images import ncc, ssim
@@ -306,3 +308,19 @@ def test_figures_are_written(tmp_path, scene):
     plots.image_comparison(tmp_path / "images.png", image, image * 0.9, title="image 1")
     for name in ("error.png", "profiles.png", "images.png"):
         _assert_png(tmp_path / name)
+
+
+def test_completeness_sees_a_hole_that_distances_cannot():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.25)
+    whole = Mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces))
+    # the model lacks the cap above z = 0.8 R: a tenth of the sphere's area, (1 - cos) / 2
+    centroids = whole.vertices[whole.faces].mean(axis=1)
+    holed = Mesh(whole.vertices, whole.faces[centroids[:, 2] <= 0.8 * 0.25])
+    assert completeness(whole, whole, tolerance_km=1e-3) == 1.0
+    # what is modelled is exact: every model point lies on the truth, so distances see nothing
+    assert ClosestPoint(whole).query(holed.vertices)[0].max() < 1e-12
+    missing = 1.0 - completeness(whole, holed, tolerance_km=1e-3)
+    cap = (1.0 - 0.8) / 2.0
+    assert missing == pytest.approx(cap, abs=0.01)
+    with pytest.raises(ValueError, match="tolerance"):
+        completeness(whole, holed, tolerance_km=0.0)

@@ -29,6 +29,7 @@ from pwm.evaluate.classes import (
     rim_mask,
     shadow_share,
 )
+from pwm.evaluate.completeness import COMPLETENESS_GSD, completeness
 from pwm.evaluate.distance import ClosestPoint
 from pwm.evaluate.icp import RigidTransform, register
 from pwm.evaluate.images import ncc, ssim
@@ -84,6 +85,9 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     }
     result["rms_gsd"] = result["rms_m"] / result["gsd_m"]
     result["median_gsd"] = result["median_m"] / result["gsd_m"]
+    if whole_body:  # holes and missing parts: what distances from the model cannot see
+        result["completeness"] = completeness(truth.mesh, registered, tolerance_km=COMPLETENESS_GSD * gsd_km)
+        result["completeness_tolerance_gsd"] = COMPLETENESS_GSD
 
     plots_dir = Path(plots_dir) if plots_dir is not None else None
     if plots_dir is not None:
@@ -259,6 +263,9 @@ def format_table(result: dict) -> str:
             ("median", f"{result['median_m']:.4f} m = {result['median_gsd']:.3f} GSD"),
             ("height-error RMS", f"{result['height_error_rms_m']:.4f} m"),
             ("ICP", f"mean shift {result['icp']['shift_m']:.4f} m, rotation {result['icp']['rotation_rad']:.2e} rad")]
+    if "completeness" in result:
+        rows.append(("completeness", f"{result['completeness']:.3f} of the true surface within "
+                                     f"{result['completeness_tolerance_gsd']:g} GSD of the model"))
     if "ncc" in result:
         rows += [("NCC (held-out)", f"{result['ncc']:.4f}"), ("SSIM (held-out)", f"{result['ssim']:.4f}")]
     if result.get("boulder_height_ratio_median") is not None:
