@@ -325,6 +325,16 @@ class Image(Base):
     pose_ry_rad: Mapped[float | None]
     pose_rz_rad: Mapped[float | None]
     pose_corrected_at: Mapped[datetime | None]
+
+    def pose_correction_m_urad(self) -> tuple[list[float], list[float]] | None:
+        """The stored pose correction as (position offset in m, rotation vector in microradians),
+        or None when the image has none."""
+        if self.pose_corrected_at is None:
+            return None
+        position = [self.pose_dx_km, self.pose_dy_km, self.pose_dz_km]
+        rotation = [self.pose_rx_rad, self.pose_ry_rad, self.pose_rz_rad]
+        return ([(v or 0.0) * 1e3 for v in position], [(v or 0.0) * 1e6 for v in rotation])
+
     # When the image was weighed into the coverage rows of the maplets it sees (null: not yet).
     # An ingest with a shape weighs the images not yet weighed; clear it to have one weighed again.
     coverage_computed_at: Mapped[datetime | None]

@@ -107,6 +107,15 @@ class JobSubmitted(_Out):
     key: str = Field(description="the job's idempotency key; GET /jobs?key= finds it")
 
 
+class PoseCorrectionOut(_Out):
+    """An image's pose correction from bundle adjustment (service.spg), applied on top of its
+    kernels' pose: the camera's offset (body-fixed, m) and a small rotation (microradians)."""
+
+    position_m: list[float]
+    rotation_urad: list[float]
+    corrected_at: datetime
+
+
 class GeometryOut(_Out):
     camera_km: list[float]
     sun_direction: list[float]
@@ -137,6 +146,7 @@ class ImageOut(_Out):
     geometry_status: GeometryStatus
     geometry: GeometryOut | None
     pose_corrected: bool
+    pose_correction: PoseCorrectionOut | None = None
 
 
 class ImageDetail(ImageOut):

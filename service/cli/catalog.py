@@ -47,7 +47,10 @@ def images(
     status: str | None = typer.Option(None, help="accepted | rejected | conflict"),
     limit: int = typer.Option(50, min=1, help="at most this many rows"),
 ) -> None:
-    """List catalogued images: LIDVID, status, time, range and angles at the boresight intercept."""
+    """List catalogued images: LIDVID, status, time, range and angles at the boresight intercept,
+    and the pose correction photogrammetry stored (offset m, rotation microradians)."""
+    import math
+
     from sqlalchemy import select
 
     from service.catalog import open_catalog
@@ -63,7 +66,10 @@ def images(
                      f"pha {g.phase_deg:.1f}"
                      if g is not None and g.incidence_deg is not None
                      else (image.rejection_reason or image.geometry_unavailable_reason or ""))
-            typer.echo(f"{image.lidvid}  {image.status}  {image.start_utc}  {where}")
+            stored = image.pose_correction_m_urad()
+            corrected = ("" if stored is None else
+                         f"  corrected {math.hypot(*stored[0]):.2f} m, {math.hypot(*stored[1]):.0f} urad")
+            typer.echo(f"{image.lidvid}  {image.status}  {image.start_utc}  {where}{corrected}")
 
 
 @app.command()

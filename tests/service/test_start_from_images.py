@@ -11,6 +11,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 from sqlalchemy import select
 from typer.testing import CliRunner
 
@@ -19,6 +20,7 @@ from pwm.geometry import Ellipsoid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
+from service.api.routers.images import image_out
 from service.cli import app
 from service.db import session_scope
 from service.models import Downlink, Image, ModelKind, ModelVersion
@@ -49,7 +51,7 @@ def _radial_error_m(mesh: Mesh, truth: Mesh) -> float:
     return float(np.sqrt(np.nanmean((radii(mesh) - radii(truth)) ** 2)) * 1e3)
 
 
-def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_path):
+def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_path, monkeypatch):
     data = tmp_path / "data"
     downlink = global_tiny_sim / "downlink"
     assert not (downlink / START_MODEL_NAME).exists()
@@ -67,7 +69,24 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         # each image's pose correction is stored, and its coverage weighed against version 1
         assert len(images) == 12 and all(i.pose_corrected_at is not None for i in images)
         assert all(i.coverage_computed_at >= i.pose_corrected_at for i in images)
+        # the API shows each image's correction as stored, in m and microradians
+        shown = image_out(images[0]).pose_correction
+        assert shown is not None and shown.corrected_at == images[0].pose_corrected_at
+        assert shown.position_m == pytest.approx([images[0].pose_dx_km * 1e3, images[0].pose_dy_km * 1e3,
+                                                  images[0].pose_dz_km * 1e3])
+        assert shown.rotation_urad == pytest.approx([images[0].pose_rx_rad * 1e6, images[0].pose_ry_rad * 1e6,
+                                                     images[0].pose_rz_rad * 1e6])
+        assert any(np.linalg.norm(image_out(i).pose_correction.position_m) > 0 for i in images)
         photogrammetric = version_mesh(data, first)
+    # and so does `pwm images`
+    monkeypatch.setenv("PWM_DATA_DIR", str(data))
+    monkeypatch.setenv("PWM_DATABASE_URL", catalog.kw["bind"].url.render_as_string(hide_password=False))
+    get_settings.cache_clear()
+    try:
+        listed = CliRunner().invoke(app, ["images"])
+    finally:
+        get_settings.cache_clear()
+    assert listed.exit_code == 0 and listed.output.count(" urad") == 12, listed.output
     truth = load_truth(global_tiny_sim / "truth").mesh
     start = _radial_error_m(Ellipsoid(radii=BENNU_RADII_KM).mesh(), truth)
     made = _radial_error_m(photogrammetric, truth)

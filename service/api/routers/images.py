@@ -11,7 +11,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import selectinload
 
 from service.api.deps import MAX_ID, Id, PagingDep, SessionDep
-from service.api.schemas import GeometryOut, ImageDetail, ImageOut, Page, Problem
+from service.api.schemas import GeometryOut, ImageDetail, ImageOut, Page, PoseCorrectionOut, Problem
 from service.models import GeometryStatus, Image, ImageStatus
 from service.queries import maplets_seen_by
 
@@ -43,7 +43,15 @@ def image_out(image: Image) -> ImageOut:
                     instrument=image.instrument.name if image.instrument else None,
                     target=image.target, start_utc=image.start_utc, stop_utc=image.stop_utc,
                     geometry_status=image.geometry_status, geometry=geometry,
-                    pose_corrected=image.pose_corrected_at is not None)
+                    pose_corrected=image.pose_corrected_at is not None,
+                    pose_correction=_correction(image))
+
+
+def _correction(image: Image) -> PoseCorrectionOut | None:
+    stored = image.pose_correction_m_urad()
+    if stored is None or image.pose_corrected_at is None:
+        return None
+    return PoseCorrectionOut(position_m=stored[0], rotation_urad=stored[1], corrected_at=image.pose_corrected_at)
 
 
 @router.get("", response_model=Page[ImageOut])
