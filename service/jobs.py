@@ -22,7 +22,7 @@ The table, not the broker, is the truth about what must run next: every hand-ove
 is recorded (`mark_enqueued`, with its error when the broker could not take it), and
 `due_jobs` finds the jobs a reconciler must hand over again: queued or retryable ones whose
 message may be gone, lost attempts, and downlinks whose refinements are all done with no fusion
-job after them (`downlinks_awaiting_fusion`; a downlink fuses once per pass, `due_fusion`).
+job after them (`fusions_due`; a downlink fuses once per pass).
 Handing a job over twice is harmless: the claim makes every delivery after the first a no-op.
 
 Work is handed to whoever runs it through a JobQueue: the workers implement it
@@ -90,19 +90,6 @@ def fuse_key(downlink_id: int | None, nth: int = 1) -> str:
     """The key of the nth fusion of a downlink's refinements (None: the catalog's) into a new
     version: the first follows its ingest's refinements, each later one a later pass's."""
     return f"fuse:{downlink_id}" if nth == 1 else f"fuse:{downlink_id}:{nth}"
-
-
-def due_fusion(session: Session, downlink_id: int) -> str | None:
-    """The key of the downlink's next fusion when it is due: it has refine jobs, all done, and
-    no fusion job made after the last of them. None when not due."""
-    unfinished, last = session.execute(select(
-        func.count().filter(Job.status != JobStatus.DONE), func.max(Job.id)).where(
-        Job.kind == JobKind.REFINE, Job.downlink_id == downlink_id)).one()
-    fusions, latest = session.execute(select(func.count(), func.max(Job.id)).where(
-        Job.kind == JobKind.FUSE, Job.downlink_id == downlink_id)).one()
-    if last is None or unfinished or (latest is not None and latest > last):
-        return None
-    return fuse_key(downlink_id, fusions + 1)
 
 
 class JobBusy(Exception):
@@ -269,21 +256,26 @@ def due_jobs(session: Session, *, grace_s: float, requeue_after_s: float, retrie
     return due
 
 
-def downlinks_awaiting_fusion(session: Session) -> list[int]:
-    """The downlinks whose fusion is due (`due_fusion`) and was never made: their fan-in never
-    happened (the worker died between the two, or the fusion job was never made)."""
+def fusions_due(session: Session, *, downlink_id: int | None = None) -> dict[int, str]:
+    """The key of each downlink's next fusion (of `downlink_id` alone, if given) that is due and
+    was never made: the downlink has refine jobs, all done, and no fusion job made after the
+    last of them; the key counts the fusions made before (fuse_key). The fan-in asks for its
+    downlink's; the reconciler for all, whose fan-in never happened (the worker died between
+    the two, or the fusion job was never made)."""
+    mine = Job.downlink_id.is_not(None) if downlink_id is None else Job.downlink_id == downlink_id
     refines = (select(Job.downlink_id, func.max(Job.id).label("last"))
-               .where(Job.kind == JobKind.REFINE, Job.downlink_id.is_not(None))
+               .where(Job.kind == JobKind.REFINE, mine)
                .group_by(Job.downlink_id)
                .having(func.count().filter(Job.status != JobStatus.DONE) == 0).subquery())
-    fused = (select(Job.downlink_id, func.max(Job.id).label("latest"))
-             .where(Job.kind == JobKind.FUSE, Job.downlink_id.is_not(None))
+    fused = (select(Job.downlink_id, func.count().label("made"), func.max(Job.id).label("latest"))
+             .where(Job.kind == JobKind.FUSE, mine)
              .group_by(Job.downlink_id).subquery())
-    return list(session.scalars(
-        select(refines.c.downlink_id)
+    rows = session.execute(
+        select(refines.c.downlink_id, fused.c.made)
         .outerjoin(fused, fused.c.downlink_id == refines.c.downlink_id)
         .where(or_(fused.c.latest.is_(None), fused.c.latest < refines.c.last))
-        .order_by(refines.c.downlink_id)))
+        .order_by(refines.c.downlink_id))
+    return {d: fuse_key(d, (made or 0) + 1) for d, made in rows}
 
 
 def made_current(session: Session, *, downlink_id: int | None,

@@ -18,7 +18,7 @@ job's outcome is committed, so of refinements finishing together the last to com
 done; fan-ins that both see it submit the same fuse key, and the claim makes the second delivery a no-op.
 A fusion then submits, as refine jobs of the same downlink, the next pass of the maplets whose
 revisions it fused (RefinementConfig.passes), and their fan-in the downlink's next fusion
-(service.jobs.due_fusion): one version per pass, as `pwm run` publishes them.
+(service.jobs.fusions_due): one version per pass, as `pwm run` publishes them.
 
 The broker may lose what it was given (an outage, a restart without persistence) or refuse it:
 every hand-over goes through `_enqueue`, which records it in the job row (service.jobs
@@ -52,13 +52,12 @@ from service.jobs import (
     JobBusy,
     JobLost,
     claim_job,
-    downlinks_awaiting_fusion,
-    due_fusion,
     due_jobs,
     error_reason,
     fail_job,
     finish_job,
     fuse_key,
+    fusions_due,
     heartbeat,
     ingest_key,
     made_current,
@@ -311,10 +310,7 @@ def reconcile(sessions: sessionmaker[Session] | None = None) -> list[str]:
     waiting = _waiting_kinds()
     with session_scope(sessions) as session:
         sends: list[tuple[str, str, Callable[[], object]]] = []
-        for downlink_id in downlinks_awaiting_fusion(session):
-            key = due_fusion(session, downlink_id)
-            if key is None:
-                continue  # made since the list was read
+        for downlink_id, key in fusions_due(session).items():
             submit_job(session, kind=JobKind.FUSE, key=key, downlink_id=downlink_id)
             sends.append((key, "its downlink's refinements are all done, with no fusion",
                           _fuse_sender(downlink_id, key)))
@@ -364,13 +360,13 @@ def _fan_in(sessions: sessionmaker[Session], *, downlink_id: int | None, after: 
             ) -> str | None:
     """Submit and enqueue the fusion that follows the refine job `after` when it is due: a
     downlink's once none of its refine jobs is unfinished (failed ones count as unfinished) and
-    none was made since them (service.jobs.due_fusion), a requested refinement's at once. Its
+    none was made since them (service.jobs.fusions_due), a requested refinement's at once. Its
     key, or None when not due."""
     with session_scope(sessions) as session:
         if downlink_id is None:
             key = f"fuse:{after}"
         else:
-            due = due_fusion(session, downlink_id)
+            due = fusions_due(session, downlink_id=downlink_id).get(downlink_id)
             if due is None:
                 return None
             key = due

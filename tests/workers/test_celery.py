@@ -29,12 +29,12 @@ from service.jobs import (
     JobLost,
     JobState,
     claim_job,
-    downlinks_awaiting_fusion,
     due_jobs,
     fail_job,
     find_jobs,
     finish_job,
     fuse_key,
+    fusions_due,
     heartbeat,
     job_state,
     mark_enqueued,
@@ -375,14 +375,14 @@ def test_the_reconciler_finds_what_the_table_says_is_due(
     # Downlink 2's refinements are all done once its failed one is; with no fusion job, its
     # fusion is due; downlink 1's refinement still runs.
     with session_scope(jobs_db) as session:
-        assert downlinks_awaiting_fusion(session) == []
+        assert fusions_due(session) == {}
         retried = retry_job(session, failed.id, grace_s=grace_s)
         assert (retried.status, retried.attempts) == (JobStatus.QUEUED, 1)
         again = claim_job(session, kind=JobKind.REFINE, key=retried.key, grace_s=grace_s)
         finish_job(session, again, message="done")
-        assert downlinks_awaiting_fusion(session) == [dl2]
+        assert fusions_due(session) == {dl2: fuse_key(dl2)}
         submit_job(session, kind=JobKind.FUSE, key=fuse_key(dl2), downlink_id=dl2)
-        assert downlinks_awaiting_fusion(session) == []
+        assert fusions_due(session) == {}
         with pytest.raises(ValueError, match="only failed or lost"):
             retry_job(session, again.id, grace_s=grace_s)
         with pytest.raises(LookupError):
