@@ -35,6 +35,8 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
+from pwm.camera import PoseCorrection
+
 # Explicit constraint names keep migrations identical on both databases and let Alembic's
 # SQLite batch mode find constraints again.
 NAMING_CONVENTION = {
@@ -326,14 +328,16 @@ class Image(Base):
     pose_rz_rad: Mapped[float | None]
     pose_corrected_at: Mapped[datetime | None]
 
-    def pose_correction_m_urad(self) -> tuple[list[float], list[float]] | None:
-        """The stored pose correction as (position offset in m, rotation vector in microradians),
-        or None when the image has none."""
-        if self.pose_corrected_at is None:
+    def pose_correction(self) -> PoseCorrection | None:
+        """The stored pose correction (a component not set counts as 0), or None when no
+        component is set."""
+        position = (self.pose_dx_km, self.pose_dy_km, self.pose_dz_km)
+        rotation = (self.pose_rx_rad, self.pose_ry_rad, self.pose_rz_rad)
+        if all(v is None for v in position + rotation):
             return None
-        position = [self.pose_dx_km, self.pose_dy_km, self.pose_dz_km]
-        rotation = [self.pose_rx_rad, self.pose_ry_rad, self.pose_rz_rad]
-        return ([(v or 0.0) * 1e3 for v in position], [(v or 0.0) * 1e6 for v in rotation])
+        dx, dy, dz = (v or 0.0 for v in position)
+        rx, ry, rz = (v or 0.0 for v in rotation)
+        return PoseCorrection(position_km=(dx, dy, dz), rotation_rad=(rx, ry, rz))
 
     # When the image was weighed into the coverage rows of the maplets it sees (null: not yet).
     # An ingest with a shape weighs the images not yet weighed; clear it to have one weighed again.

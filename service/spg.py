@@ -134,10 +134,9 @@ def _store_correction(image: Image, new: PoseCorrection) -> None:
     """Compose `new` (estimated about the image's corrected pose) onto its stored correction:
     positions add; rotations compose as R(total) = R(new) R(stored), so that
     rotation @ R(total)^T = (rotation @ R(stored)^T) @ R(new)^T (pwm.camera.corrected_pose)."""
-    stored_dp = np.array([image.pose_dx_km, image.pose_dy_km, image.pose_dz_km], dtype=float)
-    stored_w = np.array([image.pose_rx_rad, image.pose_ry_rad, image.pose_rz_rad], dtype=float)
-    dp = np.nan_to_num(stored_dp) + np.asarray(new.position_km)
+    stored = image.pose_correction() or PoseCorrection(position_km=(0.0, 0.0, 0.0), rotation_rad=(0.0, 0.0, 0.0))
+    dp = np.asarray(stored.position_km) + np.asarray(new.position_km)
     w = (Rotation.from_rotvec(np.asarray(new.rotation_rad))
-         * Rotation.from_rotvec(np.nan_to_num(stored_w))).as_rotvec()
+         * Rotation.from_rotvec(np.asarray(stored.rotation_rad))).as_rotvec()
     image.pose_dx_km, image.pose_dy_km, image.pose_dz_km = map(float, dp)
     image.pose_rx_rad, image.pose_ry_rad, image.pose_rz_rad = map(float, w)

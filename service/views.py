@@ -14,7 +14,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
-from pwm.camera import Camera, Pose, corrected_pose
+from pwm.camera import Camera, Pose
 from pwm.io.pds4 import read_array, read_image_label
 from pwm.views import View
 from service.models import GeometryStatus, Image, ImageStatus
@@ -29,11 +29,8 @@ def image_pose(image: Image) -> Pose:
         raise ValueError(f"image {image.lidvid} has no geometry")
     pose = Pose(position=np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
                 rotation=np.asarray(g.camera_rotation, float).reshape(3, 3))
-    offset = [image.pose_dx_km, image.pose_dy_km, image.pose_dz_km]
-    turn = [image.pose_rx_rad, image.pose_ry_rad, image.pose_rz_rad]
-    if all(v is None for v in offset + turn):
-        return pose
-    return corrected_pose(pose, np.array([v or 0.0 for v in offset]), np.array([v or 0.0 for v in turn]))
+    correction = image.pose_correction()
+    return pose if correction is None else correction.apply(pose)
 
 
 def catalog_views(session: Session, *, image_ids: Collection[int] | None = None,

@@ -66,9 +66,9 @@ def images(
                      f"pha {g.phase_deg:.1f}"
                      if g is not None and g.incidence_deg is not None
                      else (image.rejection_reason or image.geometry_unavailable_reason or ""))
-            stored = image.pose_correction_m_urad()
-            corrected = ("" if stored is None else
-                         f"  corrected {math.hypot(*stored[0]):.2f} m, {math.hypot(*stored[1]):.0f} urad")
+            stored = image.pose_correction()
+            corrected = ("" if stored is None else f"  corrected {math.hypot(*stored.position_km) * 1e3:.2f} m, "
+                                                   f"{math.hypot(*stored.rotation_rad) * 1e6:.0f} urad")
             typer.echo(f"{image.lidvid}  {image.status}  {image.start_utc}  {where}{corrected}")
 
 

@@ -48,10 +48,12 @@ def image_out(image: Image) -> ImageOut:
 
 
 def _correction(image: Image) -> PoseCorrectionOut | None:
-    stored = image.pose_correction_m_urad()
+    stored = image.pose_correction()
     if stored is None or image.pose_corrected_at is None:
         return None
-    return PoseCorrectionOut(position_m=stored[0], rotation_urad=stored[1], corrected_at=image.pose_corrected_at)
+    return PoseCorrectionOut(position_m=[v * 1e3 for v in stored.position_km],
+                             rotation_urad=[v * 1e6 for v in stored.rotation_rad],
+                             corrected_at=image.pose_corrected_at)
 
 
 @router.get("", response_model=Page[ImageOut])
