@@ -82,11 +82,12 @@ def local_verticals(mesh: Mesh, *, scale_km: float) -> np.ndarray:
         raise ValueError(f"the mesh spans over 2**21 cubes of {scale_km} km along an axis")
     sums = np.column_stack([np.bincount(inverse, weights=own[:, c] * area, minlength=len(keys))
                             for c in range(3)] + [np.bincount(inverse, weights=area, minlength=len(keys))])
-    code = _cell_code(keys, keys.min(axis=0) - 1)
+    low = keys.min(axis=0) - 1  # the lowest neighbour cell codes to 0
+    code = _cell_code(keys, low)
     order = np.argsort(code)
     total = np.zeros_like(sums)
     for step in itertools.product((-1, 0, 1), repeat=3):
-        wanted = _cell_code(keys + np.array(step), keys.min(axis=0) - 1)
+        wanted = _cell_code(keys + np.array(step), low)
         at = np.minimum(np.searchsorted(code, wanted, sorter=order), len(code) - 1)
         found = code[order[at]] == wanted
         total[found] += sums[order[at[found]]]
