@@ -60,3 +60,14 @@ class Mesh:
         v = self.vertices[self.faces]
         e = np.linalg.norm(v - np.roll(v, 1, axis=1), axis=2)
         return float(e.mean())
+
+
+def grid_faces(ny: int, nx: int) -> np.ndarray:
+    """(2 (ny - 1)(nx - 1), 3) faces of a grid of ny x nx vertices stored row by row, two
+    triangles per cell, counter-clockwise seen from the side the rows and columns make
+    right-handed (a height field's outside, +z)."""
+    corner = np.arange(ny * nx, dtype=np.int64).reshape(ny, nx)[:-1, :-1]
+    faces = np.empty((ny - 1, nx - 1, 2, 3), dtype=np.int64)
+    for k, offset in enumerate((0, 1, nx + 1, 0, nx + 1, nx)):
+        faces[:, :, k // 3, k % 3] = corner + offset
+    return faces.reshape(-1, 3)

@@ -21,7 +21,7 @@ from pwm.alignment import align, register
 from pwm.camera import Camera, Pose, look_at, project
 from pwm.frames import latlon_to_unit, local_frame
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, grid_faces
 from pwm.photoclinometry import (
     MapletImages,
     Refinement,
@@ -74,12 +74,8 @@ def _albedo(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def _grid_mesh(maplet: MapletGrid, axis: np.ndarray) -> Mesh:
     """The true surface as a grid mesh on `axis` (km) in the maplet's frame, two faces a cell."""
     x, y = np.meshgrid(axis, axis)
-    m = len(axis)
-    corner = np.arange(m * m).reshape(m, m)[:-1, :-1].ravel()
-    faces = np.concatenate([np.stack([corner, corner + 1, corner + m + 1], axis=1),
-                            np.stack([corner, corner + m + 1, corner + m], axis=1)])
     vertices = maplet.frame.to_body(np.stack([x, y, _heights(x, y)], axis=-1).reshape(-1, 3))
-    return Mesh(vertices, faces, albedo=_albedo(x, y).ravel())
+    return Mesh(vertices, grid_faces(len(axis), len(axis)), albedo=_albedo(x, y).ravel())
 
 
 def _scene(suns: tuple[tuple[float, float], ...], seed: int = 0) -> Scene:

@@ -7,7 +7,7 @@ import pytest
 
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame, unit_to_latlon
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, grid_faces
 from pwm.raytrace import RayTracer
 from pwm.visibility import Visibility, node_visibility
 from pwm.weights import (
@@ -159,10 +159,7 @@ def test_node_factors_exclude_occluded_and_shadow_and_soften_shadow_edges():
 
 def grid_mesh(maplet: MapletGrid) -> Mesh:
     """The maplet's nodes as a mesh, two triangles per cell, outward along its z."""
-    n = maplet.n
-    c = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
-    faces = np.vstack([np.column_stack([c, c + 1, c + n + 1]), np.column_stack([c, c + n + 1, c + n])])
-    return Mesh(maplet.nodes_body().reshape(-1, 3), faces)
+    return Mesh(maplet.nodes_body().reshape(-1, 3), grid_faces(maplet.n, maplet.n))
 
 
 def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():

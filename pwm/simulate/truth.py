@@ -20,7 +20,7 @@ from trimesh.remesh import subdivide_loop
 
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame
 from pwm.io.meshio import read_ply, write_ply
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, grid_faces
 from pwm.raytrace import RayTracer
 from pwm.simulate.terrain import (
     Boulder,
@@ -242,15 +242,6 @@ def _blend_weight(x_km: np.ndarray, y_km: np.ndarray, zero_band_km: float, site_
     return t**3 * (10 - 15 * t + 6 * t**2)
 
 
-def _grid_faces(ny: int, nx: int) -> np.ndarray:
-    """Two triangles per grid cell, counter-clockwise seen from local +z (outside)."""
-    corner = np.arange(ny * nx, dtype=np.int64).reshape(ny, nx)[:-1, :-1]
-    faces = np.empty((ny - 1, nx - 1, 2, 3), dtype=np.int64)
-    for k, offset in enumerate((0, 1, nx + 1, 0, nx + 1, nx)):
-        faces[:, :, k // 3, k % 3] = corner + offset
-    return faces.reshape(-1, 3)
-
-
 def _grid_vertices(frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray, height_km: np.ndarray) -> np.ndarray:
     """Body-fixed positions (km) of the grid nodes, row-major: `frame.to_body` done axis by axis,
     because a BLAS product with an inner size of 3 is several times slower on millions of nodes."""
@@ -365,7 +356,7 @@ def build_truth(
     albedo = ground_albedo * np.exp(weight * log_albedo)
 
     mesh = Mesh(np.vstack([cut.vertices, _grid_vertices(frame, axis, axis, height)]),
-                np.vstack([cut.faces, _grid_faces(*height.shape) + len(cut.vertices)]),
+                np.vstack([cut.faces, grid_faces(*height.shape) + len(cut.vertices)]),
                 np.concatenate([cut.albedo, albedo.ravel()]))
     params = dict(site_lat_deg=site_lat_deg, site_lon_deg=site_lon_deg, site_size_km=site_size_km,
                   resolution_km=resolution_km, seed=seed, base_edge_km=base_edge_km,
@@ -443,7 +434,7 @@ def _with_patch(truth: Truth, x_km: np.ndarray, y_km: np.ndarray, height_km: np.
     albedo per node, the base keeps its own."""
     base = truth.base_mesh()
     return Mesh(np.vstack([base.vertices, _grid_vertices(truth.site_frame, x_km, y_km, height_km)]),
-                np.vstack([base.faces, _grid_faces(len(y_km), len(x_km)) + len(base.vertices)]),
+                np.vstack([base.faces, grid_faces(len(y_km), len(x_km)) + len(base.vertices)]),
                 None if albedo is None else np.concatenate([base.albedo, albedo.ravel()]))
 
 

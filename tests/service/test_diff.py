@@ -10,7 +10,7 @@ import trimesh
 
 from pwm.compare import height_change
 from pwm.io.meshio import write_obj
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, grid_faces
 from service.db import session_scope
 from service.diff import diff_versions
 from service.versions import import_model
@@ -45,9 +45,7 @@ def _plane(heights_m: np.ndarray, spacing_m: float) -> Mesh:
     ny, nx = heights_m.shape
     y, x = np.mgrid[0:ny, 0:nx] * spacing_m * 1e-3
     vertices = np.column_stack([x.ravel(), y.ravel(), 0.3 + heights_m.ravel() * 1e-3])
-    k = np.arange(ny * nx).reshape(ny, nx)[:-1, :-1].ravel()
-    faces = np.concatenate([np.column_stack([k, k + 1, k + nx + 1]), np.column_stack([k, k + nx + 1, k + nx])])
-    return Mesh(vertices, faces)
+    return Mesh(vertices, grid_faces(ny, nx))
 
 
 def test_a_boulder_with_steep_walls_changes_by_its_height():
