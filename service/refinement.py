@@ -126,19 +126,21 @@ def stale_maplets(session: Session, *, config: RefinementConfig = DEFAULTS,
     revision not fused yet is awaited: its next pass starts from the model that holds it."""
     inputs = _inputs(session, config, maplet_ids)
     latest = latest_version(session)
-    fused = set() if latest is None else set(session.scalars(
-        select(model_version_maplet_revisions.c.maplet_revision_id).where(
-            model_version_maplet_revisions.c.model_version_id == latest.id)))
+    held = model_version_maplet_revisions.c
+    # whether the latest version holds the current revision, for these maplets alone
     rows = session.execute(
-        select(Maplet.id, Maplet.name, MapletRevision.id, MapletRevision.input_hash)
+        select(Maplet.id, Maplet.name, MapletRevision.input_hash, held.maplet_revision_id.is_not(None))
         .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
+        .outerjoin(model_version_maplet_revisions,
+                   (held.maplet_revision_id == MapletRevision.id)
+                   & (held.model_version_id == (None if latest is None else latest.id)))
         .where(Maplet.id.in_(list(inputs))).order_by(Maplet.id))
     work = []
-    for m, name, revision_id, current in rows:
+    for m, name, current, fused in rows:
         if len(inputs[m].image_ids) < config.min_images:
             continue
         done = inputs[m].pass_of(current)
-        if done == config.passes or (done is not None and revision_id not in fused):
+        if done == config.passes or (done is not None and not fused):
             continue
         due = 1 if done is None else done + 1
         work.append(MapletWork(maplet_id=m, name=name, input_hash=inputs[m].hashes[due - 1],
