@@ -19,14 +19,15 @@ fused region except within a margin of its border, where base faces overlap the 
 (as for the proving-ground patch, pwm.simulate.truth): no gap, but a thin doubly covered band.
 
 Limits: overhangs and surfaces steeper than the parameterisation allows (beyond 90 deg from the
-region normal, or not star-shaped from the body centre) are averaged into one layer; the base
+region normal, or not star-shaped from the body centre) are averaged into one layer (a whole
+body whose lattice is affordable is fused by pwm.volume instead, which keeps them); the base
 facets near the region must be smaller than the region, else none is removed and the fused
 surface only overlays the base. Lengths in km.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, cKDTree
@@ -34,6 +35,7 @@ from scipy.spatial import ConvexHull, Delaunay, cKDTree
 from pwm.frames import LocalFrame, local_frame
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
+from pwm.voxels import SparseSums, pack, sum_by_key
 from pwm.weights import raised_cosine
 
 MAX_EDGE_VOXELS = 4.0
@@ -43,8 +45,6 @@ PLANE_MAX_TILT_DEG = 60.0
 
 _W, _P, _N, _WA, _A = 0, slice(1, 4), slice(4, 7), 7, 8
 _COLUMNS = 9
-_KEY_BITS = 21
-_KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
 
 def edge_taper(n: int, spacing_km: float, fraction: float) -> np.ndarray:
@@ -69,45 +69,15 @@ class FusedPoints:
 
 
 @dataclass
-class VoxelGrid:
-    """Sparse weighted sums per voxel of side voxel_km, keyed by sorted int64 voxel keys.
+class VoxelGrid(SparseSums):
+    """Sparse weighted sums of the maplets' nodes per voxel of side voxel_km (pwm.voxels).
 
     sums columns: weight, weighted position (3), weighted normal (3), albedo weight, weighted
-    albedo; count: number of nodes per voxel (a voxel goes when it drops to 0). taper_fraction:
-    the overlap fraction of the maplets (see `edge_taper`).
+    albedo; count: number of nodes per voxel. taper_fraction: the overlap fraction of the maplets
+    (see `edge_taper`).
     """
 
-    voxel_km: float
     taper_fraction: float = 0.25
-    keys: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
-    sums: np.ndarray = field(default_factory=lambda: np.empty((0, _COLUMNS)))
-    count: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
-
-    def add(self, maplet: MapletGrid, weight_sign: int = +1) -> None:
-        """Add the maplet's nodes (weight_sign=-1: remove them, see `subtract`)."""
-        if weight_sign not in (1, -1):
-            raise ValueError("weight_sign must be +1 or -1")
-        keys, sums, count = self._contribution(maplet)
-        pos = np.searchsorted(self.keys, keys)
-        found = pos < len(self.keys)
-        found[found] = self.keys[pos[found]] == keys[found]
-        if weight_sign < 0 and not found.all():
-            raise ValueError(f"maplet {maplet.name} was not added in this revision")
-        self.sums[pos[found]] += weight_sign * sums[found]
-        self.count[pos[found]] += weight_sign * count[found]
-        new = ~found
-        self.keys = np.insert(self.keys, pos[new], keys[new])
-        self.sums = np.insert(self.sums, pos[new], sums[new], axis=0)
-        self.count = np.insert(self.count, pos[new], count[new])
-        if (self.count < 0).any():
-            raise ValueError(f"maplet {maplet.name} was not added in this revision")
-        live = self.count > 0
-        if not live.all():
-            self.keys, self.sums, self.count = self.keys[live], self.sums[live], self.count[live]
-
-    def subtract(self, maplet: MapletGrid) -> None:
-        """Remove a maplet added earlier: the same revision (heights, albedo, weight) must be given."""
-        self.add(maplet, weight_sign=-1)
 
     def _contribution(self, maplet: MapletGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Voxel keys (sorted, unique), sums and node counts of one maplet."""
@@ -120,15 +90,7 @@ class VoxelGrid:
         if maplet.albedo is not None:
             cols[:, _WA] = w
             cols[:, _A] = w * maplet.albedo.ravel()
-        keys, inv = np.unique(self._keys(p), return_inverse=True)
-        sums = np.column_stack([np.bincount(inv, weights=cols[:, c], minlength=len(keys)) for c in range(_COLUMNS)])
-        return keys, sums, np.bincount(inv, minlength=len(keys))
-
-    def _keys(self, points: np.ndarray) -> np.ndarray:
-        idx = np.floor(points / self.voxel_km).astype(np.int64) + _KEY_OFFSET
-        if idx.min(initial=0) < 0 or idx.max(initial=0) >= 1 << _KEY_BITS:
-            raise ValueError(f"points beyond {_KEY_OFFSET} voxels of the body centre: voxel_km too small")
-        return (idx[:, 0] << 2 * _KEY_BITS) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
+        return sum_by_key(pack(np.floor(p / self.voxel_km)), cols)
 
     def points(self) -> FusedPoints:
         """The weighted average of each voxel."""

@@ -26,6 +26,7 @@ from pwm.raytrace import RayTracer
 from pwm.tiling import tile
 from pwm.views import View
 from pwm.visibility import Visibility, node_visibility
+from pwm.volume import DistanceGrid, grid_for
 from pwm.weights import (
     RULES,
     MapletGeometry,
@@ -222,9 +223,8 @@ def refine_region(start: Mesh, views: list[View], region: Region, *, config: Ref
     return model, results
 
 
-def fuse(maplets: list[MapletGrid], base: Mesh, *, overlap: float) -> tuple[Mesh, VoxelGrid]:
-    """Fuse refined maplets (voxels of one node spacing) and stitch them into `base`."""
-    grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=overlap)
-    for m in maplets:
-        grid.add(m)
+def fuse(maplets: list[MapletGrid], base: Mesh, *, overlap: float) -> tuple[Mesh, VoxelGrid | DistanceGrid]:
+    """Fuse refined maplets (voxels of one node spacing) with `base` (pwm.volume.grid_for)."""
+    grid = grid_for(base, voxel_km=maplets[0].spacing_km, taper_fraction=overlap)
+    grid.add_all(maplets)
     return grid.mesh(base), grid

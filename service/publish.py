@@ -4,8 +4,10 @@ The parent is the latest version. Its "grid" artifact holds the voxel sums (pwm.
 of the revisions in its lineage; the maplets whose current revision differs from the parent's
 have their old revision subtracted and their new one added, and the rest of the sums are left as
 they are. A parent without a grid (a start, imported or photogrammetric model) starts an empty
-one. The fused surface is stitched into the base: the nearest version up the lineage without a
-grid, the model that the refinements started from.
+one. The base is the nearest version up the lineage without a grid, the model that the
+refinements started from: where the lattice at the maplets' spacing is affordable over the whole
+body the fusion is one closed surface that the base closes (pwm.volume), else the fused region is
+stitched into it (pwm.fusion); pwm.volume.grid_for chooses.
 
 All of it runs under the publication lock (service.versions.publication_lock), taken before the
 parent is read, so two fusions never build on the same parent.
@@ -22,8 +24,8 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
-from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_grid, write_grid
+from pwm.volume import DistanceGrid, grid_for
 from service.console.documents import MeshRequest, mesh_document
 from service.db import session_scope
 from service.jobs import refined_downlinks
@@ -52,7 +54,8 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
     and the downlinks whose refine jobs made the revisions changed (service.jobs
     .refined_downlinks).
     Statistics: maplets changed, added, replaced and fused in all, images used, whether the
-    parent's sums were reused, the base version, voxels and seconds (with the mesh's own).
+    parent's sums were reused, the base version, the surface ("closed" or "stitched"), voxels and
+    seconds (with the mesh's own).
     The console's 3D document of the new version (service.console.mesh_document) is made too.
     """
     clock = time.perf_counter()
@@ -77,13 +80,14 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
         else:
             added = list(current.values())
             grid = None
-        maplets = [load_revision_maplet(data_dir, r) for r in added]
-        if grid is None:
-            grid = VoxelGrid(voxel_km=maplets[0].spacing_km, taper_fraction=config.overlap)
-        for maplet in maplets:
-            grid.add(maplet)
         base = _base(parent)
-        mesh = grid.mesh(version_mesh(data_dir, base))
+        base_mesh = version_mesh(data_dir, base)
+        if grid is None:
+            spacing_km = load_revision_maplet(data_dir, added[0]).spacing_km
+            grid = grid_for(base_mesh, voxel_km=spacing_km, taper_fraction=config.overlap)
+        # one at a time from disk: a whole body's maplets need not fit in memory together
+        grid.add_all(load_revision_maplet(data_dir, r) for r in added)
+        mesh = grid.mesh(base_mesh)
         scratch = scratch_path(data_dir, ".npz")
         write_grid(scratch, grid)
         downlinks = {d.id: d for d in parent.downlinks}
@@ -99,6 +103,7 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
             "maplets_replaced": sum(r.maplet_id in used for r in changed),
             "maplets_removed": len(gone), "maplets_fused": len(current), "images": len(images),
             "incremental": "grid" in parent.artifacts, "base_version": base.version,
+            "surface": "closed" if isinstance(grid, DistanceGrid) else "stitched",
             "voxels": len(grid.keys), "fusion_seconds": time.perf_counter() - clock}
         version = publish_version(session, data_dir=data_dir, mesh=mesh, kind=ModelKind.REFINED,
                                   parent=parent, statistics=statistics,

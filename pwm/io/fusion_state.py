@@ -1,5 +1,6 @@
 """What incremental fusion keeps between model versions, as numpy .npz files: a refined maplet
-(frame, spacing, heights, albedo, region weight) and the voxel sums of a pwm.fusion.VoxelGrid.
+(frame, spacing, heights, albedo, region weight) and the sums of a fusion (pwm.fusion.VoxelGrid
+or pwm.volume.DistanceGrid).
 
 Arrays are stored exactly (float64, int64), so a maplet read back subtracts from a grid exactly
 what it added. Lengths in km, body-fixed frame.
@@ -14,6 +15,9 @@ import numpy as np
 from pwm.frames import LocalFrame
 from pwm.fusion import VoxelGrid
 from pwm.maplets import MapletGrid
+from pwm.volume import DistanceGrid
+
+_KINDS: dict[str, type[VoxelGrid] | type[DistanceGrid]] = {"points": VoxelGrid, "distances": DistanceGrid}
 
 
 def write_maplet(path: str | Path, maplet: MapletGrid) -> None:
@@ -37,17 +41,19 @@ def read_maplet(path: str | Path) -> MapletGrid:
                           weight=float(data["weight"]))
 
 
-def write_grid(path: str | Path, grid: VoxelGrid) -> None:
-    """Save a voxel grid's sums."""
+def write_grid(path: str | Path, grid: VoxelGrid | DistanceGrid) -> None:
+    """Save a fusion's sums: a VoxelGrid's (kind "points") or a DistanceGrid's ("distances")."""
+    kind = next(k for k, cls in _KINDS.items() if type(grid) is cls)
     with open(path, "wb") as stream:
-        np.savez(stream, voxel_km=np.array(grid.voxel_km),
+        np.savez(stream, kind=np.array(kind), voxel_km=np.array(grid.voxel_km),
                  taper_fraction=np.array(grid.taper_fraction), keys=grid.keys, sums=grid.sums,
                  count=grid.count)
 
 
-def read_grid(path: str | Path) -> VoxelGrid:
-    """A voxel grid saved by `write_grid`."""
+def read_grid(path: str | Path) -> VoxelGrid | DistanceGrid:
+    """A fusion's sums saved by `write_grid` (those saved before kinds were written are points)."""
     with np.load(path, allow_pickle=False) as data:
-        return VoxelGrid(voxel_km=float(data["voxel_km"]),
+        cls = _KINDS[str(data["kind"])] if "kind" in data else VoxelGrid
+        return cls(voxel_km=float(data["voxel_km"]),
                          taper_fraction=float(data["taper_fraction"]), keys=data["keys"],
                          sums=data["sums"], count=data["count"])

@@ -14,7 +14,6 @@ import numpy as np
 from sqlalchemy import func, select
 
 from pwm.config import RefinementConfig
-from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_grid
 from pwm.io.pds4 import MISSING_DN, read_image_product, write_image_product
 from service.models import Coverage, Maplet, MapletRevision, ModelKind
@@ -121,7 +120,7 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
         kept = {r.maplet_id: r.id for r in v3.maplet_revisions if r.maplet_id not in changed}
         assert kept and all(current[m].id == r for m, r in kept.items())
         incremental = read_grid(artifact_path(data, v5.artifacts["grid"], verify=True))
-        scratch = VoxelGrid(voxel_km=incremental.voxel_km, taper_fraction=CONFIG.overlap)
+        scratch = type(incremental)(voxel_km=incremental.voxel_km, taper_fraction=CONFIG.overlap)
         for revision in sorted(current.values(), key=lambda r: r.maplet_id):
             scratch.add(load_revision_maplet(data, revision))
         # Version 1 is as it was published, and still readable.

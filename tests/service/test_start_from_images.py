@@ -16,6 +16,7 @@ from sqlalchemy import select
 from typer.testing import CliRunner
 
 from pwm.config import RefinementConfig
+from pwm.evaluate.closure import closure
 from pwm.geometry import Ellipsoid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
@@ -78,6 +79,11 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
                                                      images[0].pose_rz_rad * 1e6])
         assert any(np.linalg.norm(image_out(i).pose_correction.position_m) > 0 for i in images)
         photogrammetric = version_mesh(data, first)
+        # the refined survey is one closed surface: the maplets where they reach, version 1 elsewhere
+        refined = get_version(session, 3)
+        assert refined.statistics["surface"] == "closed"
+        checks = closure(version_mesh(data, refined))
+        assert checks.closed, checks
     # and so does `pwm images`
     monkeypatch.setenv("PWM_DATA_DIR", str(data))
     monkeypatch.setenv("PWM_DATABASE_URL", catalog.kw["bind"].url.render_as_string(hide_password=False))

@@ -1,0 +1,324 @@
+"""Volumetric fusion of maplets into one closed surface of the whole body (METHOD.md 6).
+
+Each maplet adds, at the lattice points (multiples of voxel_km along the body axes) within
+TRUNCATION_VOXELS of its surface, the signed distance to that surface (positive outside: along the
+maplet's z), weighted by w_PWM times the edge taper of pwm.fusion (so that overlapping maplets
+cross-fade), and its albedo. The sums are pwm.voxels.SparseSums: a maplet's revision is
+subtracted exactly as it was added, and its new one added, without re-fusing the rest.
+
+The surface is the zero set of the weighted mean distance, extracted by marching cubes block by
+block, so no dense volume of the body is ever held. A base mesh fills the places no maplet
+reaches: its signed distances, bent to meet the maplets at their borders, are added with
+BASE_WEIGHT at the lattice points that no maplet touched, so the surface closes over what the
+images did not see with the base's shape. Of what
+marching cubes makes, the largest connected piece is the body; smaller pieces (bubbles inside,
+specks outside, where maplets disagree by more than the truncation) are dropped.
+
+Unlike the height fields of pwm.fusion, nothing here is parameterised over a plane or over the
+directions from the centre: overhangs, and bodies that rays from their centre cross several
+times (a contact binary's neck), keep their shape. A maplet itself is a height field over its
+plane; what it cannot hold, its neighbours at other orientations do.
+
+Limits: parts thinner than about two truncations are thinned by the distances from their two
+sides; where the base and the maplets disagree, the base is bent over FADE_VOXELS, which is a
+slope on the scale of the disagreement. Lengths in km.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes
+
+from pwm.fusion import VoxelGrid, edge_taper
+from pwm.maplets import MapletGrid
+from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
+from pwm.voxels import SparseSums, pack, sum_by_key, unpack
+from pwm.weights import raised_cosine
+
+TRUNCATION_VOXELS = 4.0
+"""Half-width of the band of lattice points about a surface that takes its signed distance."""
+BASE_WEIGHT = 1e-3
+"""Weight of the base's distances, against w_PWM in (0, 1] times a taper of at most 1."""
+FADE_VOXELS = 16.0
+"""Distance beyond the maplets' band over which the base's bend towards them fades out."""
+BLOCK = 32
+"""Side, in lattice steps, of the blocks marching cubes works on."""
+MAX_SURFACE_CELLS = 4_000_000
+"""The most lattice cells of a base's surface (its area over voxel_km squared) fused as one
+closed surface; beyond, maplets are fused as a region stitched into the base (pwm.fusion)."""
+
+_BEND_NEIGHBOURS = 8
+_INSIDE_RAY = np.array([0.4472, 0.7746, 0.4472]) / np.linalg.norm([0.4472, 0.7746, 0.4472])
+_W, _WD, _WA, _A = 0, 1, 2, 3
+_COLUMNS = 4
+_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
+
+
+@dataclass
+class DistanceGrid(SparseSums):
+    """Weighted sums of signed distances at lattice points of spacing voxel_km (pwm.voxels).
+
+    sums columns: weight, weighted distance (km), albedo weight, weighted albedo; count: the
+    maplets' contributions per point. taper_fraction: the maplets' overlap (pwm.fusion.edge_taper).
+    """
+
+    taper_fraction: float = 0.25
+
+    @property
+    def truncation_km(self) -> float:
+        return TRUNCATION_VOXELS * self.voxel_km
+
+    def _contribution(self, maplet: MapletGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nodes = maplet.nodes_body().reshape(-1, 3)
+        normals = maplet.normals_body().reshape(-1, 3)
+        index = unpack(self._band(nodes, normals))
+        local = maplet.frame.to_local(index * self.voxel_km)
+        c = 0.5 * (maplet.n - 1)
+        grid = np.stack([local[:, 1] / maplet.spacing_km + c, local[:, 0] / maplet.spacing_km + c])
+        inside = ((grid >= 0) & (grid <= maplet.n - 1)).all(axis=0)
+        index, local, grid = index[inside], local[inside], grid[:, inside]
+        dz_dy, dz_dx = np.gradient(maplet.heights, maplet.spacing_km)
+        h, gx, gy, taper = (ndimage.map_coordinates(a, grid, order=1, mode="nearest") for a in
+                            (maplet.heights, dz_dx, dz_dy,
+                             edge_taper(maplet.n, maplet.spacing_km, self.taper_fraction)))
+        distance = (local[:, 2] - h) / np.sqrt(1.0 + gx ** 2 + gy ** 2)
+        near = np.abs(distance) <= self.truncation_km
+        w = maplet.weight * taper[near]
+        cols = np.zeros((int(near.sum()), _COLUMNS))
+        cols[:, _W] = w
+        cols[:, _WD] = w * distance[near]
+        if maplet.albedo is not None:
+            cols[:, _WA] = w
+            cols[:, _A] = w * ndimage.map_coordinates(maplet.albedo, grid[:, near], order=1, mode="nearest")
+        return sum_by_key(pack(index[near]), cols)
+
+    def _band(self, points: np.ndarray, normals: np.ndarray, truncation_km: float | None = None) -> np.ndarray:
+        """Sorted unique keys of the lattice points about the surface through `points` with unit
+        `normals`, out to the truncation (this grid's by default) on both sides: the corners of
+        the cells that the points stepped along their normals fall in."""
+        reach = self.truncation_km if truncation_km is None else truncation_km
+        keys = []
+        for t in np.arange(-reach, reach + 0.5 * self.voxel_km, self.voxel_km):
+            cell = np.floor((points + t * normals) / self.voxel_km).astype(np.int64)
+            keys.append(np.unique(pack((cell[:, None, :] + _CORNERS[None]).reshape(-1, 3))))
+        return np.unique(np.concatenate(keys))
+
+    def _base_sums(self, base: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The base's signed distances, bent to meet the maplets, at the lattice points about it
+        that no maplet touched.
+
+        Distances to the base come from the nearest of samples at most a lattice step apart on
+        its faces. Where the base and the maplets disagree (by delta at a maplet's point near its
+        surface), the base's distances take delta off, fully within the truncation of the
+        maplets' points and fading to none over FADE_VOXELS: so the base meets the maplets at
+        their borders (no tear, no step) and crosses zero under them nowhere else (no second
+        layer). Its band is widened by the largest delta so that it reaches the maplets' band.
+        """
+        points, normals, albedo = _surface_samples(base, self.voxel_km)
+        distance_to_base = _MeshDistance(base, points, normals, self.voxel_km)
+        maplet_sums = self.sums[:, _W] > 0
+        maplet_distance = self.sums[maplet_sums, _WD] / self.sums[maplet_sums, _W]
+        surface = np.abs(maplet_distance) <= 0.5 * self.truncation_km
+        at = unpack(self.keys[maplet_sums][surface]) * self.voxel_km
+        delta = distance_to_base(at)[0] - maplet_distance[surface]
+        reach = self.truncation_km + float(np.abs(delta).max(initial=0.0))
+        keys = self._band(points, normals, reach)
+        keys = keys[~np.isin(keys, self.keys, assume_unique=True)]
+        x = unpack(keys) * self.voxel_km
+        distance, nearest = distance_to_base(x)
+        if len(at):
+            # the mean disagreement of the nearest maplet points, so that one maplet's outlier
+            # does not bend the base alone; none beyond the fade (a bound that also keeps the
+            # tree's search on a regular lattice fast)
+            fade = FADE_VOXELS * self.voxel_km
+            gap, which = cKDTree(at).query(x, k=min(_BEND_NEIGHBOURS, len(at)),
+                                           distance_upper_bound=fade + self.truncation_km)
+            gap, which = gap.reshape(len(x), -1), which.reshape(len(x), -1)
+            found = np.isfinite(gap)
+            mean = (np.append(delta, 0.0)[which] * found).sum(axis=1) / np.maximum(found.sum(axis=1), 1)
+            distance -= mean * raised_cosine((fade + self.truncation_km - gap[:, 0]) / fade)
+        cols = np.zeros((len(keys), _COLUMNS))
+        cols[:, _W] = BASE_WEIGHT
+        cols[:, _WD] = BASE_WEIGHT * np.clip(distance, -reach, reach)
+        if albedo is not None:
+            cols[:, _WA] = BASE_WEIGHT
+            cols[:, _A] = BASE_WEIGHT * albedo[nearest]
+        return keys, cols, np.ones(len(keys), dtype=np.int64)
+
+    def mesh(self, base: Mesh | None = None) -> Mesh:
+        """The zero set of the fused distances as one closed, outward-wound mesh with per-vertex
+        albedo (where any contribution had one); with `base`, the places no maplet reached are
+        the base's (see the module docstring). Without one, the maplets must enclose the body."""
+        if not len(self.keys):
+            raise ValueError("nothing fused")
+        sums = SparseSums(self.voxel_km, self.keys.copy(), self.sums.copy(), self.count.copy())
+        if base is not None:
+            sums.merge(*self._base_sums(base), sign=+1, name="the base")
+        vertices, faces, albedo = _extract(sums)
+        if not len(faces):
+            raise ValueError("the fused distances have no zero crossing")
+        keep = _largest_piece(len(vertices), faces)
+        used = np.zeros(len(vertices), dtype=bool)
+        used[faces[keep]] = True
+        renumber = np.cumsum(used) - 1
+        albedo = albedo[used]
+        return Mesh(vertices[used] * self.voxel_km, renumber[faces[keep]],
+                    None if np.isnan(albedo).all() else _fill_missing(albedo, vertices[used]))
+
+
+def grid_for(base: Mesh, *, voxel_km: float, taper_fraction: float) -> VoxelGrid | DistanceGrid:
+    """The fusion for maplets of spacing voxel_km over `base`: one closed surface of the whole
+    body (DistanceGrid) where its lattice is affordable (MAX_SURFACE_CELLS), else a region
+    stitched into the base (pwm.fusion.VoxelGrid), as a site's centimetre maplets on a whole
+    asteroid are."""
+    if base.face_areas().sum() / voxel_km ** 2 <= MAX_SURFACE_CELLS:
+        return DistanceGrid(voxel_km=voxel_km, taper_fraction=taper_fraction)
+    return VoxelGrid(voxel_km=voxel_km, taper_fraction=taper_fraction)
+
+
+class _MeshDistance:
+    """Signed distance (km, positive outside) from points to a closed mesh: its size from the
+    nearest of dense samples on the faces (to that sample's face plane when the point lies over
+    it), its sign from the facing of the first face met along a fixed direction, which does not
+    err at concave creases as a face plane's side does."""
+
+    def __init__(self, mesh: Mesh, points: np.ndarray, normals: np.ndarray, spacing_km: float) -> None:
+        self.tracer = RayTracer(mesh)
+        self.samples = cKDTree(points)
+        self.points, self.normals, self.spacing_km = points, normals, spacing_km
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Signed distances (N,) and the index of each point's nearest sample."""
+        euclid, nearest = self.samples.query(x)
+        plane = np.abs(np.einsum("ij,ij->i", x - self.points[nearest], self.normals[nearest]))
+        size = np.where(euclid ** 2 - plane ** 2 <= self.spacing_km ** 2, plane, euclid)
+        direction = np.broadcast_to(_INSIDE_RAY, x.shape)
+        hits = self.tracer.intersect(x, direction)
+        inside = hits.hit & (self.tracer.face_normals[np.where(hits.hit, hits.face, 0)] @ _INSIDE_RAY > 0)
+        return np.where(inside, -size, size), nearest
+
+
+def _surface_samples(mesh: Mesh, spacing_km: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Points on every face of `mesh` at most spacing_km apart (a barycentric grid per face),
+    their face's unit normal, and the mesh's albedo interpolated there (None without one)."""
+    tri = mesh.vertices[mesh.faces]
+    normals = mesh.face_normals()
+    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
+    splits = np.maximum(1, np.ceil(longest / spacing_km)).astype(np.int64)
+    points, point_normals, albedo = [], [], []
+    for k in np.unique(splits):
+        faces = np.flatnonzero(splits == k)
+        i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
+        keep = i + j <= k
+        bary = np.column_stack([i[keep], j[keep], k - i[keep] - j[keep]]) / k
+        points.append(np.einsum("bk,fkc->fbc", bary, tri[faces]).reshape(-1, 3))
+        point_normals.append(np.repeat(normals[faces], len(bary), axis=0))
+        if mesh.albedo is not None:
+            albedo.append((mesh.albedo[mesh.faces[faces]] @ bary.T).ravel())
+    return (np.vstack(points), np.vstack(point_normals),
+            np.concatenate(albedo) if mesh.albedo is not None else None)
+
+
+def _extract(sums: SparseSums) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marching cubes over the lattice points with weight, block by block: vertices (in lattice
+    steps) merged across blocks, faces wound outwards, albedo per vertex (nan without)."""
+    index = unpack(sums.keys)
+    weight = sums.sums[:, _W]
+    valid = weight > 0
+    index, s = index[valid], sums.sums[valid]
+    distance = s[:, _WD] / s[:, _W]
+    # a distance of exactly zero at a lattice point makes degenerate triangles meeting there
+    distance[distance == 0.0] = 1e-9
+    with np.errstate(invalid="ignore", divide="ignore"):
+        albedo = np.where(s[:, _WA] > 1e-9 * s[:, _W], s[:, _A] / s[:, _WA], np.nan)
+    block = index // BLOCK
+    order = np.lexsort(block.T[::-1])
+    index, distance, albedo, block = index[order], distance[order], albedo[order], block[order]
+    starts = np.flatnonzero(np.r_[True, (np.diff(block, axis=0) != 0).any(axis=1)])
+    lookup = {tuple(b): (a, z) for b, a, z in zip(block[starts], starts, np.r_[starts[1:], len(block)], strict=True)}
+    all_vertices, all_faces, all_albedo, n = [], [], [], 0
+    for b in lookup:
+        origin = np.array(b) * BLOCK
+        # the block's points and those of its upper neighbours' first layer, which close its cells
+        volume = np.full((BLOCK + 1,) * 3, np.nan)
+        shade = np.full((BLOCK + 1,) * 3, np.nan)
+        for offset in _CORNERS:
+            span = lookup.get(tuple(np.array(b) + offset))
+            if span is None:
+                continue
+            rel = index[span[0]:span[1]] - origin
+            fits = (rel <= BLOCK).all(axis=1)
+            volume[tuple(rel[fits].T)] = distance[span[0]:span[1]][fits]
+            shade[tuple(rel[fits].T)] = albedo[span[0]:span[1]][fits]
+        mask = _cube_mask(np.isfinite(volume))
+        if not mask.any() or np.nanmin(volume) > 0 or np.nanmax(volume) < 0:
+            continue
+        filled = np.where(np.isfinite(volume), volume, 1.0)
+        try:
+            vertices, faces, _, _ = marching_cubes(filled, level=0.0, mask=mask, gradient_direction="descent",
+                                                   allow_degenerate=False)
+        except RuntimeError:  # no crossing within the cells whose corners all have a distance
+            continue
+        if not len(faces):
+            continue
+        all_vertices.append(vertices + origin)
+        all_faces.append(faces + n)
+        all_albedo.append(_interpolate(shade, vertices))
+        n += len(vertices)
+    if not all_faces:
+        return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64), np.empty(0)
+    vertices, faces, albedo = np.vstack(all_vertices), np.vstack(all_faces), np.concatenate(all_albedo)
+    # a vertex on a face shared by two blocks was made by both, from the same two values
+    _, first, inverse = np.unique(np.round(vertices * 2 ** 20), axis=0, return_index=True, return_inverse=True)
+    faces = inverse.ravel()[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    return vertices[first], faces, albedo[first]
+
+
+def _cube_mask(valid: np.ndarray) -> np.ndarray:
+    """The mask marching_cubes takes for the cells whose eight corners are all `valid`: it looks at
+    one entry per cell, the cell's upper corner (index + 1 on every axis)."""
+    cells = np.ones(tuple(n - 1 for n in valid.shape), dtype=bool)
+    for a, b, c in _CORNERS:
+        cells &= valid[a:a + cells.shape[0], b:b + cells.shape[1], c:c + cells.shape[2]]
+    mask = np.zeros_like(valid)
+    mask[1:, 1:, 1:] = cells
+    return mask
+
+
+def _interpolate(values: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """values (a 3-D array, nan where missing) linearly interpolated at fractional indices `at`,
+    from the finite ones of the two lattice points of the edge each vertex lies on."""
+    lo = np.floor(at).astype(np.int64)
+    frac = at - lo
+    hi = np.minimum(lo + (frac > 0), np.array(values.shape) - 1)
+    a, b = values[tuple(lo.T)], values[tuple(hi.T)]
+    t = frac.max(axis=1)
+    out = np.where(np.isnan(a), b, np.where(np.isnan(b), a, (1 - t) * a + t * b))
+    return out
+
+
+def _largest_piece(n_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """Mask of the faces of the largest edge-connected piece (by faces)."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
+    _, labels = connected_components(graph, directed=False)
+    face_label = labels[faces[:, 0]]
+    return face_label == np.bincount(face_label).argmax()
+
+
+def _fill_missing(albedo: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """albedo with each nan replaced by the nearest vertex's value."""
+    missing = np.isnan(albedo)
+    if not missing.any():
+        return albedo
+    out = albedo.copy()
+    out[missing] = albedo[~missing][cKDTree(at[~missing]).query(at[missing])[1]]
+    return out
