@@ -33,8 +33,8 @@ class RefinementConfig:
     maplet once per input, against the current published model). search_px: how far (px) the
     images may be off the maplets, from the pose knowledge; beyond a pixel they are registered
     first (pwm.pipeline.refine_maplet). min_images: fewest usable images a maplet is refined
-    from; with fewer it keeps its start. tile_radius_km: radius of the disc tiled about the
-    centre of the region the images look at (None: that region's, pwm.pipeline.imaged_region).
+    from; with fewer it keeps its start. tile_radius_km: the operations tile each place the images
+    see (pwm.footprints) only within this of its centre (None: all of it).
     rules: the weighting (pwm.weights.Rules); solver: the iteration (pwm.photoclinometry.Solver).
     """
 

@@ -11,7 +11,10 @@ Maplets of side L = (nodes - 1) * spacing sit (1 - overlap) * L apart:
   row), projected radially onto the outermost surface. Rows keep neighbouring squares aligned
   (x is east for all), which covers with far fewer gaps than a hexagonal or spiral layout.
 
-Either way, surface samples every twentieth of a side that no maplet covers (with a margin of
+- about given surface points (a place the images see, pwm.footprints): the disc's or the whole
+  body's centres and samples near those points.
+
+Each way, surface samples every twentieth of a side that no maplet covers (with a margin of
 half a sample spacing) get maplets of their own, one per patch of them, so the tiling covers
 every part of the region visible radially (whole body) or from above (region); surface under
 overhangs is not tiled. Names encode the planetocentric latitude and east longitude of the
@@ -45,10 +48,13 @@ _NEAR = 2.0 * np.sqrt(3.0)
 
 def tile(
     mesh: Mesh, *, spacing_km: float, nodes: int, overlap: float = 0.25, centre_lat_deg: float | None = None,
-    centre_lon_deg: float | None = None, radius_km: float | None = None,
+    centre_lon_deg: float | None = None, radius_km: float | None = None, where: np.ndarray | None = None,
 ) -> list[MapletGrid]:
     """Square maplets of nodes x nodes heights every spacing_km covering the whole body, or the
-    disc of radius_km about (centre_lat_deg, centre_lon_deg) when all three are given.
+    disc of radius_km about (centre_lat_deg, centre_lon_deg) when all three are given, or the
+    surface about the points `where` (N, 3; a place seen by images, pwm.footprints): those of the
+    whole body's or of the disc's maplets that reach within a sample gap of them, completed until
+    every surface sample near them is covered.
 
     overlap: fraction of a maplet's side shared with each neighbour. Albedo is sampled from the
     mesh where it has one. meta["filled_nodes"] counts the nodes whose ray missed the mesh and
@@ -57,13 +63,17 @@ def tile(
     region = (centre_lat_deg, centre_lon_deg, radius_km)
     if any(v is None for v in region) and any(v is not None for v in region):
         raise ValueError("give centre_lat_deg, centre_lon_deg and radius_km together, or none of them")
+    if where is not None and centre_lat_deg is not None:
+        raise ValueError("give a disc or points to tile about, not both")
     if nodes < 2 or spacing_km <= 0 or not 0.0 <= overlap < 1.0:
         raise ValueError("need nodes >= 2, spacing_km > 0 and 0 <= overlap < 1")
     surface = _Surface(mesh)
     half = 0.5 * (nodes - 1) * spacing_km
     step = (1.0 - overlap) * 2.0 * half
     fine = 2.0 * half / COVERAGE_SAMPLES_PER_SIDE
-    if centre_lat_deg is None or centre_lon_deg is None or radius_km is None:  # all None, checked above
+    if where is not None:
+        centres, samples = _centres_about(surface, where, step, half, fine)
+    elif centre_lat_deg is None or centre_lon_deg is None or radius_km is None:  # all None, checked above
         centres, samples = _body_centres(surface, step, fine)
     else:
         centres, samples = _region_centres(surface, centre_lat_deg, centre_lon_deg, radius_km, step, half, fine)
@@ -149,6 +159,27 @@ def _body_centres(surface: _Surface, step: float, fine: float) -> tuple[np.ndarr
     centres = surface.outer_points(_latitude_rows(step / radius))
     samples = surface.outer_points(_latitude_rows(fine / radius))
     return centres[np.isfinite(centres[:, 0])], samples[np.isfinite(samples[:, 0])]
+
+
+def _centres_about(surface: _Surface, where: np.ndarray, step: float, half: float,
+                   fine: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centres and coverage samples about the points `where`: of the disc that holds them, or of
+    the whole body when that disc would reach round it; kept where they lie within a sample gap
+    of a point (the centres, within a half-side more)."""
+    if not len(where):
+        raise ValueError("no points to tile about")
+    centre = where[np.argmin(np.linalg.norm(where - where.mean(axis=0), axis=1))]
+    extent = float(np.linalg.norm(where - centre, axis=1).max())
+    body_radius = np.sqrt(surface.mesh.face_areas().sum() / (4.0 * np.pi))
+    if extent + half > 0.5 * body_radius:
+        centres, samples = _body_centres(surface, step, fine)
+    else:
+        lat, lon = unit_to_latlon(centre)
+        centres, samples = _region_centres(surface, float(lat), float(lon), extent + half, step, half, fine)
+    near = cKDTree(where)
+    gap = max(fine, 1.5 * float(np.median(near.query(where, k=2)[0][:, 1]))) if len(where) > 1 else fine
+    return (centres[near.query(centres)[0] <= gap + half],
+            samples[near.query(samples)[0] <= gap])
 
 
 def _region_centres(surface: _Surface, lat: float, lon: float, radius: float, step: float, half: float,

@@ -1,8 +1,10 @@
 """The image-maplet coverage rows of the catalog: which maplets the accepted images see, and how.
 
 After a downlink's images are in, and given the current shape model (body-fixed, km):
-1. when the catalog has no maplets over the region the downlink's images look at
-   (pwm.pipeline.imaged_region), that region of the shape is tiled (pwm.tiling.tile) and stored;
+1. the places that the downlink's images look at and that enough catalogued images see usably
+   (pwm.footprints: a whole body for a survey, one place per site), where no catalogued maplet
+   lies yet, are tiled (pwm.tiling.tile), each at the spacing of the images that see it, and
+   stored; places no image sees stay untiled;
 2. every maplet that one of the downlink's images may see is weighed against every catalogued
    image that may see it, with the refinement's own rules (pwm.pipeline.views_over_maplet,
    pwm.weights.weigh_maplet): visibility by Embree against the shape (in frame, not occluded,
@@ -16,27 +18,27 @@ repeated ingest changes nothing; rows of images that no longer see a maplet are 
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from pwm.camera import project
 from pwm.config import DEFAULTS, RefinementConfig
+from pwm.footprints import places, seen_samples
 from pwm.frames import LocalFrame, unit_to_latlon
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
-from pwm.pipeline import imaged_region, views_over_maplet
+from pwm.pipeline import views_over_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_heights, tile
 from pwm.views import View
 from pwm.weights import weigh_maplet
 from service.models import Coverage, CoverageRole, Image, Maplet, utcnow
-from service.queries import list_maplets
 from service.views import catalog_views
 
 log = logging.getLogger(__name__)
@@ -68,8 +70,8 @@ def unweighed_images(session: Session) -> set[int]:
 def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = None,
                     image_ids: Collection[int] | None = None, config: RefinementConfig = DEFAULTS,
                     sample_nodes: int = SAMPLE_NODES) -> CoverageReport:
-    """Tile the region the new images look at if no maplet covers it, then weigh every maplet
-    that a new image may see against all catalogued images that may see it.
+    """Tile the places the new images look at where no maplet covers them, then weigh every
+    maplet that a new image may see against all catalogued images that may see it.
 
     New images: the accepted images with geometry of image_ids if given, else of downlink
     `downlink_id` (all such images when None); their coverage_computed_at is set. config: how
@@ -84,7 +86,8 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     if not new:
         return report
     tracer = RayTracer(shape)
-    report.maplets_added = _tile_if_bare(session, shape, [views[i] for i in sorted(new)], config=config)
+    report.maplets_added = _tile_seen(session, tracer, [views[i] for i in sorted(new)], list(views.values()),
+                                      config=config)
     ids = sorted(views)
     for maplet in session.scalars(select(Maplet).order_by(Maplet.id)).all():
         grid = _subsample(maplet, tracer, sample_nodes)
@@ -103,25 +106,32 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     return report
 
 
-def _tile_if_bare(session: Session, shape: Mesh, views: list[View], *, config: RefinementConfig) -> int:
-    """Tile and store the region the views look at (within config.tile_radius_km of its centre,
-    if given) when no catalogued maplet lies in it; the number of maplets added."""
-    try:
-        region = imaged_region(views, shape)
-    except ValueError:  # no boresight meets the shape: nothing to tile
-        return 0
-    region = dataclasses.replace(region, spacing_km=config.spacing_gsd * region.spacing_km)
-    if config.tile_radius_km is not None:
-        region = dataclasses.replace(region, radius_km=config.tile_radius_km)
-    if list_maplets(session, lat_deg=region.lat_deg, lon_deg=region.lon_deg,
-                    radius_km=region.radius_km, limit=1):
-        return 0
-    maplets = tile(shape, spacing_km=region.spacing_km, nodes=config.nodes, overlap=config.overlap,
-                   centre_lat_deg=region.lat_deg, centre_lon_deg=region.lon_deg,
-                   radius_km=region.radius_km)
-    taken = set(session.scalars(select(Maplet.name).where(
-        Maplet.name.in_([m.name for m in maplets]))))
-    added = [m for m in maplets if m.name not in taken]
+def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: list[View], *,
+               config: RefinementConfig) -> int:
+    """Tile and store the places that the new views look at, that enough catalogued views see
+    usably (pwm.footprints), and that no catalogued maplet covers yet, each at the spacing its
+    images support (within config.tile_radius_km of each place's centre, if given); the number of
+    maplets added."""
+    seen = seen_samples(tracer, new, judged_by=views, rules=config.rules, min_images=config.min_images)
+    added: list[MapletGrid] = []
+    # places of all that is seen, covered or not, so that a place and its centre stay where they
+    # were when a later downlink sees it again
+    for place in places(seen, nodes=config.nodes, spacing_gsd=config.spacing_gsd):
+        points = place.points
+        if config.tile_radius_km is not None:
+            points = points[np.linalg.norm(points - place.centre, axis=1) <= config.tile_radius_km]
+        points = points[~_covered(session, points)]
+        if not len(points):
+            continue
+        maplets = tile(tracer.mesh, spacing_km=place.spacing_km, nodes=config.nodes, overlap=config.overlap,
+                       where=points)
+        taken = set(session.scalars(select(Maplet.name).where(
+            Maplet.name.in_([m.name for m in maplets])))) | {m.name for m in added}
+        new_here = [m for m in maplets if m.name not in taken]
+        lat, lon = unit_to_latlon(place.centre)
+        log.info("tiled %d maplets of %d nodes at %.3f m over a place about (%.4f, %.4f) seen at %d samples",
+                 len(new_here), config.nodes, place.spacing_km * 1e3, lat, lon, len(points))
+        added += new_here
     for m in added:
         lat, lon = unit_to_latlon(m.frame.origin)
         x, y, z = (float(v) for v in m.frame.origin)
@@ -131,10 +141,24 @@ def _tile_if_bare(session: Session, shape: Mesh, views: list[View], *, config: R
                            size_km=(m.n - 1) * m.spacing_km, gsd_m=m.spacing_km * 1e3,
                            nodes_per_side=m.n))
     session.flush()
-    log.info("tiled %d maplets of %d nodes at %.3f m about (%.4f, %.4f) within %.1f m",
-             len(added), config.nodes, region.spacing_km * 1e3, region.lat_deg, region.lon_deg,
-             region.radius_km * 1e3)
     return len(added)
+
+
+def _covered(session: Session, points: np.ndarray) -> np.ndarray:
+    """Which points lie over a catalogued maplet's square (within its half-size of its plane)."""
+    covered = np.zeros(len(points), dtype=bool)
+    rows = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
+                                  Maplet.rotation, Maplet.size_km)).all()
+    if not rows or not len(points):
+        return covered
+    tree = cKDTree(points)
+    for x, y, z, rotation, size in rows:
+        origin = np.array([x, y, z])
+        idx = np.asarray(tree.query_ball_point(origin, np.sqrt(3.0) * 0.5 * size), dtype=np.int64)
+        if len(idx):
+            local = (points[idx] - origin) @ np.asarray(rotation, float).reshape(3, 3).T
+            covered[idx[np.all(np.abs(local) <= 0.5 * size, axis=1)]] = True
+    return covered
 
 
 def _subsample(maplet: Maplet, tracer: RayTracer, sample_nodes: int) -> MapletGrid:

@@ -7,13 +7,19 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from sqlalchemy import delete, select
 
+from pwm.config import RefinementConfig
+from pwm.footprints import places, seen_samples
 from pwm.io.meshio import read_mesh
+from pwm.raytrace import RayTracer
+from pwm.simulate.truth import load as load_truth
 from service.coverage import update_coverage
 from service.ingest import ingest_directory
 from service.models import Coverage, CoverageRole, Image, Maplet
 from service.queries import list_maplets, maplet_coverage
+from service.views import catalog_views
 
 
 def _nadir(plan: dict) -> bool:
@@ -92,3 +98,31 @@ def test_ingest_with_a_shape_fills_the_coverage_of_the_site(tiny_sim, catalog):
         session.commit()
         assert dropped > 0 and added.rows_added == dropped and added.rows_updated == 0
         assert _rows(session) == before and _maplets(session) == maplets
+
+
+def test_a_survey_is_tiled_wherever_its_images_see_enough_and_nowhere_else(global_tiny_sim, catalog):
+    """Issue 15.2: no disc about a mean intercept; the places that at least min_images images
+    see usably, over the whole body, at the images' pixel scale."""
+    truth = load_truth(global_tiny_sim / "truth").mesh
+    config = RefinementConfig(nodes=16)
+    report = ingest_directory(catalog, global_tiny_sim / "downlink", shape=truth, config=config)
+    with catalog() as session:
+        views = list(catalog_views(session).values())
+        maplets = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
+                                         Maplet.size_km, Maplet.gsd_m)).all()
+    assert report.coverage.maplets_added == len(maplets) > 0
+    seen = seen_samples(RayTracer(truth), views, rules=config.rules, min_images=config.min_images)
+    origins = np.array([m[:3] for m in maplets])
+    # the survey's places lie round the body, far apart (Bennu's radius is 0.25 km): not one disc
+    assert len(places(seen, nodes=16, spacing_gsd=1.0)) > 1
+    assert max(np.linalg.norm(origins - o, axis=1).max() for o in origins) > 0.3
+    # every seen sample lies under a maplet, and every maplet over seen ground
+    size = maplets[0][3]
+    assert cKDTree(origins).query(seen.points)[0].max() <= np.sqrt(0.5) * size
+    assert cKDTree(seen.points).query(origins)[0].max() <= size
+    # at the pixel scale of the images that see it (4 m; none coarser than twice the finest)
+    gsd = np.array([m[4] for m in maplets])
+    assert np.allclose(gsd, np.median(seen.pixel_km) * 1e3, rtol=0.25)
+    # and a good part of the body is seen too little to be tiled (which makes the above a test)
+    far = cKDTree(seen.points).query(truth.vertices)[0] > size
+    assert far.mean() > 0.15

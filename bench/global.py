@@ -1,0 +1,133 @@
+"""Scale of a whole-body model: tiling, fusion and refinement of about 100, 400 and 1300 maplets
+of 100 x 100 nodes over the whole of Bennu, on the cores given (issue 15.5).
+
+    .venv/bin/python bench/global.py [--maplets 100 400 1300] [--survey SIM] [--sample 8] [--workers 2]
+
+Fusion, per size: the whole shape (pwm's Bennu radar model) is tiled at the spacing that gives
+about N maplets, each maplet's heights get 1 cm of noise (so that fusion has disagreements to
+average), and they are fused, streamed from disk one at a time as the catalog's fusion does, into
+one closed surface (pwm.volume.DistanceGrid) closed by the shape; each size runs in a process of
+its own, whose peak resident memory is reported. Refinement: `--sample` maplets of a survey
+simulation (SIM, e.g. `pwm simulate SIM --scenario global-coarse --with-start-model`), at its
+images' pixel scale, are refined from its images against its start model on `--workers`
+processes; a maplet's cost depends on its nodes and images, not on how many others there are,
+so maplets per hour carry over to every size. The table gives the hours for each size and for
+the PWM paper's 1300-maplet Bennu model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pwm.config import DEFAULTS  # noqa: E402
+
+SHAPE = Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
+
+
+def fuse_once(maplets: int, nodes: int) -> dict:
+    """Tile, store and fuse about `maplets` maplets over the whole shape; figures as a dict."""
+    from pwm.evaluate.closure import closure
+    from pwm.io.fusion_state import read_maplet, write_maplet
+    from pwm.io.meshio import read_obj
+    from pwm.tiling import tile
+    from pwm.volume import DistanceGrid
+
+    shape = read_obj(SHAPE)
+    area = shape.face_areas().sum()
+    spacing = np.sqrt(area / maplets) / ((1 - DEFAULTS.overlap) * (nodes - 1))
+    clock = time.perf_counter()
+    tiled = tile(shape, spacing_km=spacing, nodes=nodes, overlap=DEFAULTS.overlap)
+    tiling_s = time.perf_counter() - clock
+    rng = np.random.default_rng(0)
+    with tempfile.TemporaryDirectory() as scratch:
+        paths = []
+        for k, m in enumerate(tiled):
+            m.heights = m.heights + 1e-5 * rng.standard_normal(m.heights.shape)
+            paths.append(Path(scratch) / f"{k}.npz")
+            write_maplet(paths[-1], m)
+        count = len(tiled)
+        del tiled
+        clock = time.perf_counter()
+        grid = DistanceGrid(voxel_km=spacing, taper_fraction=DEFAULTS.overlap)
+        grid.add_all(read_maplet(p) for p in paths)
+        add_s = time.perf_counter() - clock
+    clock = time.perf_counter()
+    mesh = grid.mesh(shape)
+    mesh_s = time.perf_counter() - clock
+    closed = closure(mesh)
+    return {"maplets": count, "spacing_m": spacing * 1e3, "tiling_s": tiling_s, "add_s": add_s, "mesh_s": mesh_s,
+            "lattice_points": len(grid.keys), "faces": len(mesh.faces), "closed": closed.closed,
+            "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+
+
+def refine_sample(sim: Path, sample: int, nodes: int, workers: int) -> dict:
+    """Refine `sample` maplets of the survey at its pixel scale; maplets per hour."""
+    from pwm.footprints import places, seen_samples
+    from pwm.io.downlink import read_downlink
+    from pwm.io.meshio import read_mesh
+    from pwm.pipeline import refine_maplets
+    from pwm.raytrace import RayTracer
+    from pwm.tiling import tile
+
+    views = read_downlink(sim / "downlink").views
+    start = read_mesh(sim / "downlink" / "start_model.obj")
+    seen = seen_samples(RayTracer(start), views, rules=DEFAULTS.rules, min_images=DEFAULTS.min_images)
+    place = places(seen, nodes=nodes, spacing_gsd=DEFAULTS.spacing_gsd)[0]
+    maplets = tile(start, spacing_km=place.spacing_km, nodes=nodes, overlap=DEFAULTS.overlap, where=place.points)
+    chosen = [maplets[k] for k in np.linspace(0, len(maplets) - 1, min(sample, len(maplets))).astype(int)]
+    clock = time.perf_counter()
+    results = refine_maplets(chosen, views, start, config=DEFAULTS, workers=workers)
+    wall = time.perf_counter() - clock
+    return {"maplets": len(results), "spacing_m": place.spacing_km * 1e3, "wall_s": wall,
+            "images_mean": float(np.mean([len(r.images) for r in results])),
+            "per_hour": 3600.0 * len(results) / wall}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--maplets", type=int, nargs="+", default=[100, 400, 1300])
+    parser.add_argument("--nodes", type=int, default=DEFAULTS.nodes)
+    parser.add_argument("--survey", type=Path, help="a survey simulation (with --with-start-model) to refine")
+    parser.add_argument("--sample", type=int, default=8)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a size in a process of its own
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(fuse_once(args.one, args.nodes)))
+        return
+
+    refined = refine_sample(args.survey, args.sample, args.nodes, args.workers) if args.survey else None
+    if refined:
+        print(f"refinement: {refined['maplets']} maplets of {args.nodes} nodes at {refined['spacing_m']:.2f} m, "
+              f"{refined['images_mean']:.1f} images each, {refined['wall_s']:.0f} s on {args.workers} processes: "
+              f"{refined['per_hour']:.0f} maplets per hour")
+    print("\n| maplets | spacing m | tiling s | fusion: add s | mesh s | lattice points | faces | closed "
+          "| peak GiB | refinement h (at the rate above) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for n in args.maplets:
+        out = subprocess.run([sys.executable, __file__, "--one", str(n), "--nodes", str(args.nodes)],
+                             capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+        if out.returncode:
+            print(f"| {n} | failed: {out.stderr.strip().splitlines()[-1] if out.stderr.strip() else out.returncode} |")
+            continue
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        hours = f"{r['maplets'] / refined['per_hour']:.1f}" if refined else "-"
+        print(f"| {r['maplets']} | {r['spacing_m']:.2f} | {r['tiling_s']:.0f} | {r['add_s']:.0f} | {r['mesh_s']:.0f} "
+              f"| {r['lattice_points']:,} | {r['faces']:,} | {'yes' if r['closed'] else 'no'} | {r['peak_gib']:.2f} "
+              f"| {hours} |")
+
+
+if __name__ == "__main__":
+    main()

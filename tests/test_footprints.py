@@ -1,0 +1,97 @@
+"""Where the images see well enough to refine, and how finely (pwm.footprints), and the tiling of
+such places (pwm.tiling.tile(where=...))."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from pwm.camera import Camera, look_at
+from pwm.footprints import places, seen_samples
+from pwm.frames import latlon_to_unit, unit_to_latlon
+from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
+from pwm.tiling import tile
+from pwm.views import View
+from pwm.weights import RULES
+
+R = 0.25
+CAMERA = Camera(width=200, height=200, fx=2000.0, fy=2000.0, cx=99.5, cy=99.5)  # 5.7 deg field
+
+
+@pytest.fixture(scope="module")
+def tracer() -> RayTracer:
+    s = trimesh.creation.icosphere(subdivisions=5, radius=R)
+    return RayTracer(Mesh(np.asarray(s.vertices), np.asarray(s.faces)))
+
+
+def views_of(lat: float, lon: float, range_km: float, tilts: list[tuple[float, float]], name: str) -> list[View]:
+    """Images of the point (lat, lon) from range_km, each from a direction tilted by (dlat, dlon) deg,
+    with the Sun overhead."""
+    target = R * latlon_to_unit(lat, lon)
+    out = []
+    for k, (dlat, dlon) in enumerate(tilts):
+        position = target + range_km * latlon_to_unit(lat + dlat, lon + dlon)
+        out.append(View(name=f"{name}{k}", image=np.zeros((CAMERA.height, CAMERA.width)), camera=CAMERA,
+                        pose=look_at(position, target, np.array([0.0, 0.0, 1.0])),
+                        sun=latlon_to_unit(lat, lon), et=0.0))
+    return out
+
+
+TILTS = [(0.0, 0.0), (15.0, 0.0), (-15.0, 0.0), (0.0, 15.0), (0.0, -15.0)]
+
+
+def test_two_sites_seen_at_two_scales_are_two_places(tracer):
+    # site A from 1 km (0.5 m pixels), site B from 0.25 km (12.5 cm pixels), a lone image elsewhere
+    a = views_of(10.0, 40.0, 1.0, TILTS, "a")
+    b = views_of(-30.0, 200.0, 0.25, TILTS, "b")
+    lone = views_of(60.0, 300.0, 1.0, TILTS[:1], "lone")
+    seen = seen_samples(tracer, a + b + lone, rules=RULES, min_images=3)
+    lat, lon = unit_to_latlon(seen.points)
+    at_a = np.hypot(lat - 10.0, (lon - 40.0) * np.cos(np.radians(10.0))) < 30.0
+    at_b = np.hypot(lat + 30.0, (lon - 200.0) * np.cos(np.radians(30.0))) < 30.0
+    assert at_a.any() and at_b.any() and (at_a | at_b).all()  # the lone image's ground is not seen enough
+    # each sample's pixel scale is its images' range over focal length
+    assert np.allclose(seen.pixel_km[at_a], 1.0 / 2000.0, rtol=0.05)
+    assert np.allclose(seen.pixel_km[at_b], 0.25 / 2000.0, rtol=0.05)
+    found = places(seen, nodes=20, spacing_gsd=1.0)
+    assert len(found) == 2
+    by_site = sorted(found, key=lambda p: -p.spacing_km)
+    assert by_site[0].spacing_km == pytest.approx(5e-4, rel=0.05)
+    assert by_site[1].spacing_km == pytest.approx(1.25e-4, rel=0.05)
+    # with fewer images required, the lone image's ground is a third place
+    assert len(places(seen_samples(tracer, a + b + lone, rules=RULES, min_images=1), nodes=20, spacing_gsd=1.0)) == 3
+
+
+def test_a_place_is_tiled_over_what_is_seen_and_no_farther(tracer):
+    views = views_of(10.0, 40.0, 1.0, TILTS, "a")
+    place = places(seen_samples(tracer, views, rules=RULES, min_images=3), nodes=20, spacing_gsd=1.0)[0]
+    maplets = tile(tracer.mesh, spacing_km=place.spacing_km, nodes=20, overlap=0.25, where=place.points)
+    half = maplets[0].axis_km[-1]
+    inside = np.zeros(len(place.points), dtype=bool)
+    for m in maplets:
+        inside |= np.all(np.abs(m.frame.to_local(place.points)) <= half, axis=1)
+        # every maplet reaches a seen sample (none tiled where no image looks)
+        assert np.linalg.norm(place.points - m.frame.origin, axis=1).min() <= 2 * half
+    assert inside.all()
+    with pytest.raises(ValueError, match="not both"):
+        tile(tracer.mesh, spacing_km=place.spacing_km, nodes=20, where=place.points, centre_lat_deg=0.0,
+             centre_lon_deg=0.0, radius_km=0.01)
+
+
+def test_a_survey_is_one_place_round_the_body(tracer):
+    # twelve images round the equator and four over the poles, from 2 km with a wide field
+    wide = Camera(width=200, height=200, fx=150.0, fy=150.0, cx=99.5, cy=99.5)
+    views = []
+    for k, (lat, lon) in enumerate([(0.0, 30.0 * j) for j in range(12)] + [(70.0, 0.0), (70.0, 180.0),
+                                                                            (-70.0, 0.0), (-70.0, 180.0)]):
+        position = 2.0 * latlon_to_unit(lat, lon)
+        views.append(View(name=f"s{k}", image=np.zeros((200, 200)), camera=wide,
+                          pose=look_at(position, np.zeros(3), np.array([0.0, 0.0, 1.0])),
+                          sun=latlon_to_unit(0.0, 30.0 * k), et=0.0))
+    seen = seen_samples(tracer, views, rules=RULES, min_images=2)
+    found = places(seen, nodes=20, spacing_gsd=1.0)
+    assert len(found) == 1
+    lat, lon = unit_to_latlon(found[0].points)
+    assert np.ptp(lon) > 300.0 and lat.min() < -45.0 and lat.max() > 45.0
