@@ -7,7 +7,8 @@ Fusion, per size: the whole shape (pwm's Bennu radar model) is tiled at the spac
 about N maplets, each maplet's heights get 1 cm of noise (so that fusion has disagreements to
 average), and they are fused, streamed from disk one at a time as the catalog's fusion does, into
 one closed surface (pwm.volume.DistanceGrid) closed by the shape; each size runs in a process of
-its own, whose peak resident memory is reported. Refinement: `--sample` maplets of a survey
+its own, whose peak resident memory up to the mesh is reported (the closed-surface checks after
+it cost their own), with the size of the sums a version keeps. Refinement: `--sample` maplets of a survey
 simulation (SIM, e.g. `pwm simulate SIM --scenario global-coarse --with-start-model`), at its
 images' pixel scale, are refined from its images against its start model on `--workers`
 processes; a maplet's cost depends on its nodes and images, not on how many others there are,
@@ -39,7 +40,7 @@ SHAPE = Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes" / "bennu
 def fuse_once(maplets: int, nodes: int) -> dict:
     """Tile, store and fuse about `maplets` maplets over the whole shape; figures as a dict."""
     from pwm.evaluate.closure import closure
-    from pwm.io.fusion_state import read_maplet, write_maplet
+    from pwm.io.fusion_state import read_maplet, write_grid, write_maplet
     from pwm.io.meshio import read_obj
     from pwm.tiling import tile
     from pwm.volume import DistanceGrid
@@ -66,10 +67,15 @@ def fuse_once(maplets: int, nodes: int) -> dict:
     clock = time.perf_counter()
     mesh = grid.mesh(shape)
     mesh_s = time.perf_counter() - clock
+    peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # before the checks' own
+    with tempfile.TemporaryDirectory() as scratch:
+        write_grid(Path(scratch) / "grid.npz", grid)
+        grid_mib = (Path(scratch) / "grid.npz").stat().st_size / 2**20
+    clock = time.perf_counter()
     closed = closure(mesh)
     return {"maplets": count, "spacing_m": spacing * 1e3, "tiling_s": tiling_s, "add_s": add_s, "mesh_s": mesh_s,
-            "lattice_points": len(grid.keys), "faces": len(mesh.faces), "closed": closed.closed,
-            "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+            "lattice_points": len(grid.keys), "grid_mib": grid_mib, "faces": len(mesh.faces),
+            "closed": closed.closed, "check_s": time.perf_counter() - clock, "peak_gib": peak_gib}
 
 
 def refine_sample(sim: Path, sample: int, nodes: int, workers: int) -> dict:
@@ -113,9 +119,9 @@ def main() -> None:
         print(f"refinement: {refined['maplets']} maplets of {args.nodes} nodes at {refined['spacing_m']:.2f} m, "
               f"{refined['images_mean']:.1f} images each, {refined['wall_s']:.0f} s on {args.workers} processes: "
               f"{refined['per_hour']:.0f} maplets per hour")
-    print("\n| maplets | spacing m | tiling s | fusion: add s | mesh s | lattice points | faces | closed "
-          "| peak GiB | refinement h (at the rate above) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("\n| maplets | spacing m | tiling s | fusion: add s | mesh s | fusion peak GiB | lattice points "
+          "| sums MiB | faces | closed (check s) | refinement h (at the rate above) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for n in args.maplets:
         out = subprocess.run([sys.executable, __file__, "--one", str(n), "--nodes", str(args.nodes)],
                              capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
@@ -125,8 +131,8 @@ def main() -> None:
         r = json.loads(out.stdout.strip().splitlines()[-1])
         hours = f"{r['maplets'] / refined['per_hour']:.1f}" if refined else "-"
         print(f"| {r['maplets']} | {r['spacing_m']:.2f} | {r['tiling_s']:.0f} | {r['add_s']:.0f} | {r['mesh_s']:.0f} "
-              f"| {r['lattice_points']:,} | {r['faces']:,} | {'yes' if r['closed'] else 'no'} | {r['peak_gib']:.2f} "
-              f"| {hours} |")
+              f"| {r['peak_gib']:.2f} | {r['lattice_points']:,} | {r['grid_mib']:.0f} | {r['faces']:,} "
+              f"| {'yes' if r['closed'] else 'no'} ({r['check_s']:.0f}) | {hours} |")
 
 
 if __name__ == "__main__":

@@ -119,7 +119,8 @@ class DistanceGrid(SparseSums):
         surface), the base's distances take delta off, fully within the truncation of the
         maplets' points and fading to none over FADE_VOXELS: so the base meets the maplets at
         their borders (no tear, no step) and crosses zero under them nowhere else (no second
-        layer). Its band is widened by the largest delta so that it reaches the maplets' band.
+        layer). Its band is widened by the largest delta so that it reaches the maplets' band,
+        and left out where the base runs within a lattice step of the maplets' surface.
         """
         points, normals, albedo = _surface_samples(base, self.voxel_km)
         distance_to_base = _MeshDistance(base, points, normals, self.voxel_km)
@@ -129,17 +130,25 @@ class DistanceGrid(SparseSums):
         at = unpack(self.keys[maplet_sums][surface]) * self.voxel_km
         delta = distance_to_base(at)[0] - maplet_distance[surface]
         reach = self.truncation_km + float(np.abs(delta).max(initial=0.0))
-        keys = self._band(points, normals, reach)
+        maplet_surface = cKDTree(at) if len(at) else None
+        # where the base runs within a lattice step of the maplets' surface, and is not near
+        # where it does not (a border), the maplets hold the surface alone
+        bare = np.ones(len(points), dtype=bool) if maplet_surface is None else (
+            maplet_surface.query(points, distance_upper_bound=self.voxel_km)[0] > self.voxel_km)
+        if bare.any() and not bare.all():
+            margin = reach + 2.0 * self.voxel_km
+            bare = cKDTree(points[bare]).query(points, distance_upper_bound=margin)[0] <= margin
+        keys = self._band(points[bare], normals[bare], reach) if bare.any() else np.empty(0, dtype=np.int64)
         keys = keys[~np.isin(keys, self.keys, assume_unique=True)]
         x = unpack(keys) * self.voxel_km
         distance, nearest = distance_to_base(x)
-        if len(at):
+        if maplet_surface is not None and len(x):
             # the mean disagreement of the nearest maplet points, so that one maplet's outlier
             # does not bend the base alone; none beyond the fade (a bound that also keeps the
             # tree's search on a regular lattice fast)
             fade = FADE_VOXELS * self.voxel_km
-            gap, which = cKDTree(at).query(x, k=min(_BEND_NEIGHBOURS, len(at)),
-                                           distance_upper_bound=fade + self.truncation_km)
+            gap, which = maplet_surface.query(x, k=min(_BEND_NEIGHBOURS, len(at)),
+                                              distance_upper_bound=fade + self.truncation_km)
             gap, which = gap.reshape(len(x), -1), which.reshape(len(x), -1)
             found = np.isfinite(gap)
             mean = (np.append(delta, 0.0)[which] * found).sum(axis=1) / np.maximum(found.sum(axis=1), 1)

@@ -34,6 +34,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from pwm.config import DEFAULTS
+from pwm.evaluate.closure import closure
 from pwm.simulate.windows import window_downlink
 from service.db import session_scope
 from service.models import Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision, ModelKind, ModelVersion
@@ -49,10 +50,10 @@ DOWNLINK_TIMEOUT_S = 150.0
 @pytest.fixture
 def settings(request: pytest.FixtureRequest, broker_url: str, postgres_url: str,
              tmp_path: Path) -> WorkerSettings:
-    """The end-to-end settings; parametrized indirectly, the number of refinement passes."""
-    passes = {"refine_passes": request.param} if hasattr(request, "param") else {}
+    """The end-to-end settings; parametrized indirectly, a dict of settings to override."""
+    overrides = request.param if hasattr(request, "param") else {}
     return end_to_end_settings(broker_url=broker_url, database_url=postgres_url,
-                               data_dir=tmp_path / "data", **passes)
+                               data_dir=tmp_path / "data", **overrides)
 
 
 @pytest.fixture
@@ -249,7 +250,7 @@ def test_downlinks_dropped_into_the_watched_folder_become_versions(
     assert again.returncode != 0 and "nothing new to refine" in again.stderr
 
 
-@pytest.mark.parametrize("settings", [2], indirect=True)
+@pytest.mark.parametrize("settings", [{"refine_passes": 2}], indirect=True)
 def test_each_pass_of_a_downlink_is_fused_into_a_version_of_its_own(
         tiny_sim: Path, catalog: sessionmaker[Session], settings: WorkerSettings, client: Celery,
         start_worker: Callable[..., Worker]) -> None:
@@ -290,6 +291,32 @@ def test_each_pass_of_a_downlink_is_fused_into_a_version_of_its_own(
     time.sleep(3 * RECONCILE_INTERVAL_S)
     assert len(_versions(catalog)) == 3 and len(_jobs(catalog, JobKind.FUSE)) == 2
     assert len(_jobs(catalog, JobKind.REFINE)) == len(refines)
+
+
+# A survey's maplets: 16 nodes, within 60 m of each place's centre (issue 15: the whole flow)
+@pytest.mark.parametrize("settings", [{"maplet_nodes": 16, "tile_radius_km": 0.06}], indirect=True)
+def test_a_first_survey_with_no_model_becomes_a_closed_global_model(
+        global_tiny_sim: Path, catalog: sessionmaker[Session], settings: WorkerSettings, client: Celery,
+        start_worker: Callable[..., Worker]) -> None:
+    worker = start_worker(lambda name: pwm_worker_command(name, 2))
+    downlink = global_tiny_sim / "downlink"
+    client.send_task(ingest_downlink.name, args=[str(downlink)], kwargs={"key": ingest_key(downlink)})
+    _wait_for_version(catalog, 2, [worker])
+    photogrammetric, refined = _versions(catalog)[:2]
+    # version 1 made from the images, with no model before; version 2 refined from it
+    assert (photogrammetric.kind, photogrammetric.parent) == (ModelKind.PHOTOGRAMMETRIC, None)
+    assert (refined.kind, refined.parent.version) == (ModelKind.REFINED, photogrammetric.version)
+    with catalog() as session:
+        assert session.scalars(select(Downlink.model_note)).one() == (
+            "version 1 (photogrammetric) made from the images, with no model before")
+        assert session.scalar(select(func.count()).select_from(Image).where(
+            Image.pose_corrected_at.is_(None))) == 0
+    # the survey's places round the body were tiled and refined, and fused into one closed surface
+    maplets = _image_sets(catalog)
+    assert len(maplets) > 1 and {r.maplet_id for r in refined.maplet_revisions} == maplets.keys()
+    assert refined.statistics["surface"] == "closed"
+    checks = closure(version_mesh(Path(settings.data_dir), refined))
+    assert checks.closed, checks
 
 
 def test_a_refinement_lost_with_its_pool_process_is_redelivered_and_done_once(
