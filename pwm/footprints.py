@@ -1,10 +1,11 @@
 """Where on the surface the images see well enough to refine, and how finely (METHOD.md 4).
 
-Each image's footprint is sampled by rays through a grid of FOOTPRINT_SAMPLES x FOOTPRINT_SAMPLES
-of its pixels onto the shape; every sample is then judged in every image as a maplet's node
-would be (pwm.weights.Rules): in the frame, in front, facing the camera within the SPC emission
-rule, lit, not occluded. A sample that at least min_images images see so is seen; its pixel
-scale is the median of theirs (range over focal length).
+Each image's footprint is sampled by rays through a grid of up to FOOTPRINT_SAMPLES x
+FOOTPRINT_SAMPLES of its pixels onto the shape (ground that several images sample is kept
+once, at half the finest spacing of any footprint's samples); every sample is then judged in
+every image as a maplet's node would be (pwm.weights.Rules): in the frame, in front, facing
+the camera within the SPC emission rule, lit, not occluded. A sample that at least min_images
+images see so is seen; its pixel scale is the median of theirs (range over focal length).
 
 Seen samples are grouped into places: samples of one octave of pixel scale, linked within two
 maplet sides at that scale; each place is tiled at spacing_gsd times its median pixel scale. A
@@ -28,7 +29,9 @@ from pwm.views import View
 from pwm.weights import Rules
 
 FOOTPRINT_SAMPLES = 48
-"""Rays per side of an image's pixel grid that sample its footprint."""
+"""Rays per side of an image's pixel grid that sample its footprint, at most ..."""
+SAMPLE_PX = 8
+"""... and at least this many pixels apart (a small detector window gets few)."""
 
 
 @dataclass(frozen=True)
@@ -61,7 +64,7 @@ def seen_samples(tracer: RayTracer, views: Sequence[View], *, judged_by: Sequenc
     sampled = [_footprint(tracer, v) for v in views]
     if not sum(len(p) for p, _ in sampled):
         return Seen(np.empty((0, 3)), np.empty(0))
-    points, normals = np.vstack([p for p, _ in sampled]), np.vstack([n for _, n in sampled])
+    points, normals = _once(sampled)
     lifted = points + tracer.offset * normals
     pixel = np.full((len(judges), len(points)), np.nan)
     cos_emission = np.cos(np.radians(rules.max_emission_deg))
@@ -104,8 +107,8 @@ def places(seen: Seen, *, nodes: int, spacing_gsd: float) -> list[Place]:
 def _footprint(tracer: RayTracer, view: View) -> tuple[np.ndarray, np.ndarray]:
     """Surface points under a grid of the view's pixels (misses left out), and the shape's unit
     normals there (its vertex normals interpolated)."""
-    samples = np.linspace(0, view.camera.width - 1, FOOTPRINT_SAMPLES)
-    lines = np.linspace(0, view.camera.height - 1, FOOTPRINT_SAMPLES)
+    samples = np.linspace(0, view.camera.width - 1, _count(view.camera.width))
+    lines = np.linspace(0, view.camera.height - 1, _count(view.camera.height))
     s, line = np.meshgrid(samples, lines)
     directions = view.pose.to_body_directions(view.camera.pixel_directions(s.ravel(), line.ravel()))
     origins = np.broadcast_to(view.pose.position, directions.shape)
@@ -113,3 +116,20 @@ def _footprint(tracer: RayTracer, view: View) -> tuple[np.ndarray, np.ndarray]:
     normals = tracer.interpolate(tracer.vertex_normals, hits)[hits.hit]
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     return tracer.hit_points(origins, directions, hits)[hits.hit], normals
+
+
+def _once(sampled: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """The footprints' points and normals, with ground that several images sample (repeats,
+    overlaps) kept once: one sample per cell of half the finest spacing of any footprint's samples."""
+    points, normals = np.vstack([p for p, _ in sampled]), np.vstack([n for _, n in sampled])
+    spacings = [float(np.median(np.linalg.norm(np.diff(p, axis=0), axis=1))) for p, _ in sampled if len(p) > 1]
+    if not spacings:
+        return points, normals
+    _, first = np.unique(np.floor(points / (0.5 * min(spacings))).astype(np.int64), axis=0, return_index=True)
+    first.sort()
+    return points[first], normals[first]
+
+
+def _count(pixels: int) -> int:
+    """Samples along a side of `pixels` pixels (see FOOTPRINT_SAMPLES, SAMPLE_PX)."""
+    return int(min(FOOTPRINT_SAMPLES, max(2, np.ceil((pixels - 1) / SAMPLE_PX) + 1)))

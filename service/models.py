@@ -36,6 +36,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
 from pwm.camera import PoseCorrection
+from pwm.spg.uncertainty import PoseSigma
 
 # Explicit constraint names keep migrations identical on both databases and let Alembic's
 # SQLite batch mode find constraints again.
@@ -327,6 +328,9 @@ class Image(Base):
     pose_ry_rad: Mapped[float | None]
     pose_rz_rad: Mapped[float | None]
     pose_corrected_at: Mapped[datetime | None]
+    # The latest adjustment's 1-sigma figures of the pose, {"prior": {...}, "posterior": {...}},
+    # each pwm.spg.uncertainty.PoseSigma's fields (m, urad, px).
+    pose_sigma: Mapped[dict[str, Any] | None]
 
     def pose_correction(self) -> PoseCorrection | None:
         """The stored pose correction (a component not set counts as 0), or None when no
@@ -338,6 +342,12 @@ class Image(Base):
         dx, dy, dz = (v or 0.0 for v in position)
         rx, ry, rz = (v or 0.0 for v in rotation)
         return PoseCorrection(position_km=(dx, dy, dz), rotation_rad=(rx, ry, rz))
+
+    def pose_sigmas(self) -> tuple[PoseSigma, PoseSigma] | None:
+        """The latest adjustment's prior and posterior 1-sigma figures, or None before any."""
+        if not self.pose_sigma:
+            return None
+        return PoseSigma(**self.pose_sigma["prior"]), PoseSigma(**self.pose_sigma["posterior"])
 
     # When the image was weighed into the coverage rows of the maplets it sees (null: not yet).
     # An ingest with a shape weighs the images not yet weighed; clear it to have one weighed again.

@@ -76,6 +76,8 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
         now = utcnow()
         for image in images:
             _store_correction(image, result.corrections[views[image.id].name])
+            sigma_before, sigma_after = result.sigmas[views[image.id].name]
+            image.pose_sigma = {"prior": sigma_before.as_dict(), "posterior": sigma_after.as_dict()}
             image.pose_corrected_at = now
             # weighed again, with the corrected pose, at the next ingest with a shape
             image.coverage_computed_at = None

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from pwm.camera import Camera, corrected_pose, look_at, project
@@ -16,7 +17,7 @@ from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.features import fundamental
 from pwm.spg.surface import fit_surface, subdivide
 from pwm.spg.triangulation import Tracks, build_tracks, triangulate
-from pwm.spg.uncertainty import pose_uncertainty
+from pwm.spg.uncertainty import DETERMINED, determined, image_sigmas, pose_uncertainty
 from service.cli import app
 
 CAMERA = Camera(width=1024, height=1024, fx=14729.4, fy=14729.4, cx=511.5, cy=511.5)
@@ -131,6 +132,13 @@ def test_narrow_field_fixes_the_line_of_sight_not_the_pointing():
     assert u["lateral_pointing_correlation"] > 0.99
     # with its position known too, the same image would fix its pointing
     assert u["pointing_alone_urad"] < 0.1 * u["pointing_urad_prior"]
+    # each image's own figures: what the images determined is its line of sight, not the split
+    priors, posteriors = image_sigmas(result, cameras, truth, np.full(len(truth), 1.47), noise_px=0.2)
+    assert np.median([p.los_px for p in posteriors]) == pytest.approx(u["los_px_posterior"])
+    for prior, posterior in zip(priors, posteriors, strict=True):
+        assert posterior.los_px < DETERMINED * prior.los_px
+        assert posterior.pointing_urad > DETERMINED * prior.pointing_urad
+        assert "los_px" in determined(prior, posterior) and "pointing_urad" not in determined(prior, posterior)
 
 
 def test_surface_follows_points_and_keeps_the_model_elsewhere():

@@ -21,7 +21,7 @@ from pwm.spg.features import Features, extract, match_guided
 from pwm.spg.pairs import Pair, choose_pairs, footprints
 from pwm.spg.surface import at_resolution, fit_surface, point_spacing
 from pwm.spg.triangulation import Tracks, build_tracks, rays, reprojection_errors, triangulate
-from pwm.spg.uncertainty import pose_uncertainty
+from pwm.spg.uncertainty import PoseSigma, image_sigmas, pose_uncertainty
 from pwm.views import View
 
 log = logging.getLogger(__name__)
@@ -32,14 +32,16 @@ FOOTPRINT_GRID = 32
 
 @dataclass
 class SpgResult:
-    """The photogrammetric model (km, body-fixed), per-image-name pose corrections, the adjusted
-    points (km) and figures of the run (counts, residuals, seconds)."""
+    """The photogrammetric model (km, body-fixed), per-image-name pose corrections and their prior
+    and posterior 1-sigma figures, the adjusted points (km) and figures of the run (counts,
+    residuals, seconds)."""
 
     mesh: Mesh
     corrections: dict[str, PoseCorrection]
     points: np.ndarray
     pairs: list[Pair]
     stats: dict = field(default_factory=dict)
+    sigmas: dict[str, tuple[PoseSigma, PoseSigma]] = field(default_factory=dict)
 
 
 @dataclass
@@ -138,8 +140,9 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_k
     good_point = angle >= np.radians(min_angle_deg) / 2
     stats.update(pairs=len(pairs), tracks=tracks.n_points, observations=len(tracks.image), points=int(good_point.sum()),
                  residual_rms_px=float(np.sqrt(np.mean(residual**2))), iterations=adjusted.iterations)
-    stats["uncertainty"] = pose_uncertainty(adjusted, cameras, poses, ranges,
-                                            noise_px=max(stats["residual_rms_px"], 0.1) / np.sqrt(2))
+    noise_px = max(stats["residual_rms_px"], 0.1) / np.sqrt(2)
+    stats["uncertainty"] = pose_uncertainty(adjusted, cameras, poses, ranges, noise_px=noise_px)
+    priors, posteriors = image_sigmas(adjusted, cameras, poses, ranges, noise_px=noise_px)
     points = points[good_point]
     spacing = point_spacing(points)
     surface = fit_surface(at_resolution(previous, 2.0 * spacing, points), points, radius_km=2.0 * spacing)
@@ -149,7 +152,8 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_k
                    for i, v in enumerate(views)}
     log.info("SPG: %d points at %.2f m spacing, residual %.2f px RMS, %d vertices (%.1f s)", len(points), spacing * 1e3,
              stats["residual_rms_px"], len(surface.vertices), stats["seconds"])
-    return SpgResult(mesh=surface, corrections=corrections, points=points, pairs=pairs, stats=stats)
+    sigmas = {v.name: (priors[i], posteriors[i]) for i, v in enumerate(views)}
+    return SpgResult(mesh=surface, corrections=corrections, points=points, pairs=pairs, stats=stats, sigmas=sigmas)
 
 
 def _triple(values: np.ndarray) -> tuple[float, float, float]:

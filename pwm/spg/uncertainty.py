@@ -10,10 +10,57 @@ positions were known.
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
+
 import numpy as np
 
 from pwm.camera import Camera, Pose, corrected_pose, project
 from pwm.spg.adjustment import Adjustment
+
+
+@dataclass(frozen=True)
+class PoseSigma:
+    """1-sigma figures of one camera pose: lateral position (m, RSS over the two axes across the
+    boresight), position along the boresight (m), pointing (urad, RSS over the two axes across
+    the boresight) and line of sight (px, the image motion of the boresight's ground point)."""
+
+    lateral_m: float
+    along_m: float
+    pointing_urad: float
+    los_px: float
+
+    def as_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+DETERMINED = 0.5
+"""A pose figure counts as determined by the images when its posterior sigma is under this
+fraction of its prior."""
+
+
+def determined(prior: PoseSigma, posterior: PoseSigma) -> list[str]:
+    """The figures (PoseSigma field names) that the images determined (see DETERMINED)."""
+    return [name for name, value in posterior.as_dict().items() if value < DETERMINED * getattr(prior, name)]
+
+
+def image_sigmas(adjusted: Adjustment, cameras: list[Camera], poses: list[Pose], ranges_km: np.ndarray, *,
+                 noise_px: float) -> tuple[list[PoseSigma], list[PoseSigma]]:
+    """Each image's prior and posterior 1-sigma figures (see `PoseSigma`), for image
+    measurements with `noise_px` (px per axis) and the ground at `ranges_km` along each
+    boresight; a posterior well under its prior is what the images determined."""
+    posterior = adjusted.covariance(noise_px)
+    prior = np.diag(np.tile(adjusted.sigma**2, len(poses)))
+    out: tuple[list[PoseSigma], list[PoseSigma]] = ([], [])
+    for which, cov in enumerate((prior, posterior)):
+        for i, (camera, pose, r) in enumerate(zip(cameras, poses, ranges_km, strict=True)):
+            own = cov[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+            c = _to_camera(own, pose)
+            jac = _los_jacobian(camera, pose, float(r))
+            out[which].append(PoseSigma(lateral_m=float(np.sqrt(c[0, 0] + c[1, 1])) * 1e3,
+                                        along_m=float(np.sqrt(c[2, 2])) * 1e3,
+                                        pointing_urad=float(np.sqrt(c[3, 3] + c[4, 4])) * 1e6,
+                                        los_px=float(np.sqrt(np.trace(jac @ own @ jac.T)))))
+    return out
 
 
 def pose_uncertainty(adjusted: Adjustment, cameras: list[Camera], poses: list[Pose], ranges_km: np.ndarray, *,
@@ -29,22 +76,13 @@ def pose_uncertainty(adjusted: Adjustment, cameras: list[Camera], poses: list[Po
     ("los_one_image_px"), its pointing with its position free ("pointing_one_image_urad") and
     with its position known too ("pointing_alone_urad"), and the |correlation| of lateral
     position with the pointing that mimics it ("lateral_pointing_correlation")."""
-    n = len(poses)
-    posterior = adjusted.covariance(noise_px)
-    prior = np.diag(np.tile(adjusted.sigma**2, n))
-    out: dict[str, list[float]] = {f"{k}_{which}": [] for k in ("lateral_m", "along_m", "pointing_urad", "los_px")
-                                   for which in ("prior", "posterior")}
+    priors, posteriors = image_sigmas(adjusted, cameras, poses, ranges_km, noise_px=noise_px)
+    out: dict[str, list[float]] = {f"{k}_{which}": [getattr(s, k) for s in sigmas]
+                                   for k in ("lateral_m", "along_m", "pointing_urad", "los_px")
+                                   for which, sigmas in (("prior", priors), ("posterior", posteriors))}
     for k in ("los_one_image_px", "pointing_one_image_urad", "pointing_alone_urad", "lateral_pointing_correlation"):
         out[k] = []
     jac = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km, strict=True)]
-    for which, cov in (("prior", prior), ("posterior", posterior)):
-        for i, pose in enumerate(poses):
-            own = cov[6 * i:6 * i + 6, 6 * i:6 * i + 6]
-            c = _to_camera(own, pose)
-            out[f"lateral_m_{which}"].append(float(np.sqrt(c[0, 0] + c[1, 1])) * 1e3)
-            out[f"along_m_{which}"].append(float(np.sqrt(c[2, 2])) * 1e3)
-            out[f"pointing_urad_{which}"].append(float(np.sqrt(c[3, 3] + c[4, 4])) * 1e6)
-            out[f"los_px_{which}"].append(float(np.sqrt(np.trace(jac[i] @ own @ jac[i].T))))
     for i, pose in enumerate(poses):
         block = adjusted.information[6 * i:6 * i + 6, 6 * i:6 * i + 6] / noise_px**2 + np.eye(6)  # sigma units
         one_body = np.linalg.inv(block) * np.outer(adjusted.sigma, adjusted.sigma)

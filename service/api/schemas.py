@@ -107,13 +107,28 @@ class JobSubmitted(_Out):
     key: str = Field(description="the job's idempotency key; GET /jobs?key= finds it")
 
 
+class PoseSigmaOut(_Out):
+    """1-sigma figures of a pose (pwm.spg.uncertainty.PoseSigma): lateral position and position
+    along the boresight (m), pointing (microradians), line of sight (pixels)."""
+
+    lateral_m: float
+    along_m: float
+    pointing_urad: float
+    los_px: float
+
+
 class PoseCorrectionOut(_Out):
     """An image's pose correction from bundle adjustment (service.spg), applied on top of its
-    kernels' pose: the camera's offset (body-fixed, m) and a small rotation (microradians)."""
+    kernels' pose: the camera's offset (body-fixed, m) and a small rotation (microradians); the
+    latest adjustment's 1-sigma figures before (the navigation knowledge) and after it, and which
+    of them the images determined (the posterior under half the prior)."""
 
     position_m: list[float]
     rotation_urad: list[float]
     corrected_at: datetime
+    sigma_prior: PoseSigmaOut | None = None
+    sigma_posterior: PoseSigmaOut | None = None
+    determined: list[str] = []
 
 
 class GeometryOut(_Out):

@@ -53,6 +53,7 @@ def images(
 
     from sqlalchemy import select
 
+    from pwm.spg.uncertainty import determined
     from service.catalog import open_catalog
     from service.models import Image
 
@@ -69,6 +70,13 @@ def images(
             stored = image.pose_correction()
             corrected = ("" if stored is None else f"  corrected {math.hypot(*stored.position_km) * 1e3:.2f} m, "
                                                    f"{math.hypot(*stored.rotation_rad) * 1e6:.0f} urad")
+            sigmas = image.pose_sigmas()
+            if sigmas is not None:
+                prior, posterior = sigmas
+                corrected += (f"  sigma: line of sight {prior.los_px:.1f}>{posterior.los_px:.1f} px, lateral "
+                              f"{prior.lateral_m:.2f}>{posterior.lateral_m:.2f} m, pointing "
+                              f"{prior.pointing_urad:.0f}>{posterior.pointing_urad:.0f} urad "
+                              f"(determined: {', '.join(determined(prior, posterior)) or 'none'})")
             typer.echo(f"{image.lidvid}  {image.status}  {image.start_utc}  {where}{corrected}")
 
 

@@ -21,6 +21,7 @@ from pwm.geometry import Ellipsoid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
+from pwm.spg.uncertainty import DETERMINED
 from service.api.routers.images import image_out
 from service.cli import app
 from service.db import session_scope
@@ -78,6 +79,12 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         assert shown.rotation_urad == pytest.approx([images[0].pose_rx_rad * 1e6, images[0].pose_ry_rad * 1e6,
                                                      images[0].pose_rz_rad * 1e6])
         assert any(np.linalg.norm(image_out(i).pose_correction.position_m) > 0 for i in images)
+        # with its 1-sigma figures before and after the adjustment, and what the images determined
+        assert shown.sigma_prior is not None and shown.sigma_posterior is not None
+        before, after = shown.sigma_prior.model_dump(), shown.sigma_posterior.model_dump()
+        assert all(after[k] <= before[k] * (1 + 1e-9) for k in before) and after["los_px"] < before["los_px"]
+        # (from the ellipsoid, with a few dozen points, no figure is halved: the rule says so)
+        assert shown.determined == [k for k in before if after[k] < DETERMINED * before[k]]
         photogrammetric = version_mesh(data, first)
         # the refined survey is one closed surface: the maplets where they reach, version 1 elsewhere
         refined = get_version(session, 3)
@@ -92,7 +99,7 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         listed = CliRunner().invoke(app, ["images"])
     finally:
         get_settings.cache_clear()
-    assert listed.exit_code == 0 and listed.output.count(" urad") == 12, listed.output
+    assert listed.exit_code == 0 and listed.output.count("sigma: line of sight") == 12, listed.output
     truth = load_truth(global_tiny_sim / "truth").mesh
     start = _radial_error_m(Ellipsoid(radii=BENNU_RADII_KM).mesh(), truth)
     made = _radial_error_m(photogrammetric, truth)

@@ -10,8 +10,17 @@ from pydantic import AfterValidator, AwareDatetime
 from sqlalchemy import func, select
 from sqlalchemy.orm import selectinload
 
+from pwm.spg.uncertainty import determined
 from service.api.deps import MAX_ID, Id, PagingDep, SessionDep
-from service.api.schemas import GeometryOut, ImageDetail, ImageOut, Page, PoseCorrectionOut, Problem
+from service.api.schemas import (
+    GeometryOut,
+    ImageDetail,
+    ImageOut,
+    Page,
+    PoseCorrectionOut,
+    PoseSigmaOut,
+    Problem,
+)
 from service.models import GeometryStatus, Image, ImageStatus
 from service.queries import maplets_seen_by
 
@@ -51,9 +60,16 @@ def _correction(image: Image) -> PoseCorrectionOut | None:
     stored = image.pose_correction()
     if stored is None or image.pose_corrected_at is None:
         return None
-    return PoseCorrectionOut(position_m=[v * 1e3 for v in stored.position_km],
-                             rotation_urad=[v * 1e6 for v in stored.rotation_rad],
-                             corrected_at=image.pose_corrected_at)
+    out = PoseCorrectionOut(position_m=[v * 1e3 for v in stored.position_km],
+                            rotation_urad=[v * 1e6 for v in stored.rotation_rad],
+                            corrected_at=image.pose_corrected_at)
+    sigmas = image.pose_sigmas()
+    if sigmas is not None:
+        prior, posterior = sigmas
+        out.sigma_prior = PoseSigmaOut(**prior.as_dict())
+        out.sigma_posterior = PoseSigmaOut(**posterior.as_dict())
+        out.determined = determined(prior, posterior)
+    return out
 
 
 @router.get("", response_model=Page[ImageOut])
