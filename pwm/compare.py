@@ -22,6 +22,7 @@ import numpy as np
 
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
+from pwm.voxels import pack, sum_by_key, unpack
 
 VERTICAL_SCALE_KM = 0.005
 """Distance (km) over which the normals are averaged into the local vertical: a few metres, so
@@ -75,34 +76,22 @@ def local_verticals(mesh: Mesh, *, scale_km: float) -> np.ndarray:
         raise ValueError(f"scale_km must be > 0, got {scale_km}")
     own = mesh.vertex_normals()
     area = vertex_areas(mesh)
-    cells = np.floor(mesh.vertices / scale_km).astype(np.int64)
-    keys, inverse = np.unique(cells, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    if (keys.max(axis=0) - keys.min(axis=0) + 3 >= 1 << 21).any():
-        raise ValueError(f"the mesh spans over 2**21 cubes of {scale_km} km along an axis")
-    sums = np.column_stack([np.bincount(inverse, weights=own[:, c] * area, minlength=len(keys))
-                            for c in range(3)] + [np.bincount(inverse, weights=area, minlength=len(keys))])
-    low = keys.min(axis=0) - 1  # the lowest neighbour cell codes to 0
-    code = _cell_code(keys, low)
-    order = np.argsort(code)
+    cells = pack(np.floor(mesh.vertices / scale_km))
+    code, sums, _ = sum_by_key(cells, np.column_stack([own * area[:, None], area]))
+    inverse = np.searchsorted(code, cells)
+    keys = unpack(code)
     total = np.zeros_like(sums)
     for step in itertools.product((-1, 0, 1), repeat=3):
-        wanted = _cell_code(keys + np.array(step), low)
-        at = np.minimum(np.searchsorted(code, wanted, sorter=order), len(code) - 1)
-        found = code[order[at]] == wanted
-        total[found] += sums[order[at[found]]]
+        wanted = pack(keys + np.array(step))
+        at = np.minimum(np.searchsorted(code, wanted), len(code) - 1)
+        found = code[at] == wanted
+        total[found] += sums[at[found]]
     vertical = total[inverse, :3]
     length = np.linalg.norm(vertical, axis=1)
     kept = length > 0.25 * total[inverse, 3]  # nearly cancelled: both sides of a thin wall
     vertical[kept] /= length[kept, None]
     vertical[~kept] = own[~kept]
     return vertical
-
-
-def _cell_code(cells: np.ndarray, low: np.ndarray) -> np.ndarray:
-    """One int64 per cell (21 bits per axis from `low`)."""
-    shifted = cells - low
-    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
 
 
 def height_change(old: Mesh, new: Mesh, *, max_distance_km: float = 0.01,

@@ -34,7 +34,7 @@ from scipy.spatial import ConvexHull, Delaunay, cKDTree
 
 from pwm.frames import LocalFrame, local_frame
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, compact
 from pwm.voxels import SparseSums, pack, sum_by_key
 from pwm.weights import raised_cosine
 
@@ -116,10 +116,10 @@ class VoxelGrid(SparseSums):
         faces = faces[(edges <= MAX_EDGE_VOXELS * self.voxel_km).all(axis=1)]
         if not len(faces):
             raise ValueError("the fused points are too sparse to mesh at this voxel size")
-        used, faces = _compact(len(q), faces)
+        used, faces = compact(len(q), faces)
         points, q, albedo = fused.points[used], q[used], fused.albedo[used]
-        if np.isnan(albedo).any() and not np.isnan(albedo).all():
-            albedo = _fill_nearest(albedo, q, q[~np.isnan(albedo)], albedo[~np.isnan(albedo)])
+        if not np.isnan(albedo).all():
+            albedo = fill_gaps(albedo, q)
         if base is None:
             return Mesh(points, faces, None if np.isnan(albedo).all() else albedo)
         return _stitch(base, points, faces, albedo, param, q, self.voxel_km)
@@ -141,6 +141,13 @@ def _fill_nearest(values: np.ndarray, at: np.ndarray, donors: np.ndarray, donor_
     missing = np.isnan(out)
     out[missing] = donor_values[cKDTree(donors).query(at[missing])[1]]
     return out
+
+
+def fill_gaps(values: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Per-point values (some finite) with each nan replaced by the nearest finite one's, points
+    `at` (N, k)."""
+    known = ~np.isnan(values)
+    return values if known.all() else _fill_nearest(values, at, at[known], values[known])
 
 
 @dataclass
@@ -213,7 +220,7 @@ def _stitch(base: Mesh, points: np.ndarray, faces: np.ndarray, albedo: np.ndarra
     interior = inside.copy()
     if len(border) and inside.any():
         interior[inside] = cKDTree(q[border]).query(qb[inside])[0] >= margin
-    used, kept = _compact(len(base.vertices), base.faces[~interior[base.faces].all(axis=1)])
+    used, kept = compact(len(base.vertices), base.faces[~interior[base.faces].all(axis=1)])
     n_base = int(used.sum())
     vertices = np.vstack([base.vertices[used], points])
     faces = np.vstack([kept, faces + n_base])
@@ -224,13 +231,6 @@ def _stitch(base: Mesh, points: np.ndarray, faces: np.ndarray, albedo: np.ndarra
     if not fused_has and base.albedo is not None:  # without either, returned above
         albedo = _fill_nearest(albedo, points, base.vertices, base.albedo)
     return Mesh(vertices, faces, np.concatenate([base_albedo, albedo]))
-
-
-def _compact(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(mask of the vertices the faces use, faces renumbered over those vertices)."""
-    used = np.zeros(n_vertices, dtype=bool)
-    used[faces] = True
-    return used, (np.cumsum(used) - 1)[faces]
 
 
 def _border_vertices(faces: np.ndarray) -> np.ndarray:

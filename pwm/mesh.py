@@ -71,3 +71,10 @@ def grid_faces(ny: int, nx: int) -> np.ndarray:
     for k, offset in enumerate((0, 1, nx + 1, 0, nx + 1, nx)):
         faces[:, :, k // 3, k % 3] = corner + offset
     return faces.reshape(-1, 3)
+
+
+def compact(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mask of the n_vertices vertices the faces use, faces renumbered over those vertices)."""
+    used = np.zeros(n_vertices, dtype=bool)
+    used[faces] = True
+    return used, (np.cumsum(used) - 1)[faces]

@@ -35,9 +35,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
-from pwm.fusion import VoxelGrid, edge_taper
+from pwm.fusion import VoxelGrid, edge_taper, fill_gaps
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, compact
 from pwm.raytrace import RayTracer
 from pwm.voxels import SparseSums, pack, sum_by_key, unpack
 from pwm.weights import raised_cosine
@@ -173,13 +173,10 @@ class DistanceGrid(SparseSums):
         vertices, faces, albedo = _extract(sums)
         if not len(faces):
             raise ValueError("the fused distances have no zero crossing")
-        keep = _largest_piece(len(vertices), faces)
-        used = np.zeros(len(vertices), dtype=bool)
-        used[faces[keep]] = True
-        renumber = np.cumsum(used) - 1
-        albedo = albedo[used]
-        return Mesh(vertices[used] * self.voxel_km, renumber[faces[keep]],
-                    None if np.isnan(albedo).all() else _fill_missing(albedo, vertices[used]))
+        used, faces = compact(len(vertices), faces[_largest_piece(len(vertices), faces)])
+        vertices, albedo = vertices[used], albedo[used]
+        return Mesh(vertices * self.voxel_km, faces,
+                    None if np.isnan(albedo).all() else fill_gaps(albedo, vertices))
 
 
 def grid_for(base: Mesh, *, voxel_km: float, taper_fraction: float) -> VoxelGrid | DistanceGrid:
@@ -321,13 +318,3 @@ def _largest_piece(n_vertices: int, faces: np.ndarray) -> np.ndarray:
     _, labels = connected_components(graph, directed=False)
     face_label = labels[faces[:, 0]]
     return face_label == np.bincount(face_label).argmax()
-
-
-def _fill_missing(albedo: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """albedo with each nan replaced by the nearest vertex's value."""
-    missing = np.isnan(albedo)
-    if not missing.any():
-        return albedo
-    out = albedo.copy()
-    out[missing] = albedo[~missing][cKDTree(at[~missing]).query(at[missing])[1]]
-    return out

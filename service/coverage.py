@@ -19,8 +19,9 @@ repeated ingest changes nothing; rows of images that no longer see a maplet are 
 from __future__ import annotations
 
 import logging
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -114,13 +115,15 @@ def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: list
     maplets added."""
     seen = seen_samples(tracer, new, judged_by=views, rules=config.rules, min_images=config.min_images)
     added: list[MapletGrid] = []
+    catalogued = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
+                                        Maplet.rotation, Maplet.size_km)).all()
     # places of all that is seen, covered or not, so that a place and its centre stay where they
     # were when a later downlink sees it again
     for place in places(seen, nodes=config.nodes, spacing_gsd=config.spacing_gsd):
         points = place.points
         if config.tile_radius_km is not None:
             points = points[np.linalg.norm(points - place.centre, axis=1) <= config.tile_radius_km]
-        points = points[~_covered(session, points)]
+        points = points[~_covered(catalogued, points)]
         if not len(points):
             continue
         maplets = tile(tracer.mesh, spacing_km=place.spacing_km, nodes=config.nodes, overlap=config.overlap,
@@ -144,15 +147,14 @@ def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: list
     return len(added)
 
 
-def _covered(session: Session, points: np.ndarray) -> np.ndarray:
-    """Which points lie over a catalogued maplet's square (within its half-size of its plane)."""
+def _covered(maplets: Sequence[Sequence[Any]], points: np.ndarray) -> np.ndarray:
+    """Which points lie over one of the maplets' squares (within its half-size of its plane);
+    maplets: rows of origin x, y, z (km), rotation and size (km)."""
     covered = np.zeros(len(points), dtype=bool)
-    rows = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
-                                  Maplet.rotation, Maplet.size_km)).all()
-    if not rows or not len(points):
+    if not maplets or not len(points):
         return covered
     tree = cKDTree(points)
-    for x, y, z, rotation, size in rows:
+    for x, y, z, rotation, size in maplets:
         origin = np.array([x, y, z])
         idx = np.asarray(tree.query_ball_point(origin, np.sqrt(3.0) * 0.5 * size), dtype=np.int64)
         if len(idx):

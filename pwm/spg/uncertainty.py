@@ -50,12 +50,12 @@ def image_sigmas(adjusted: Adjustment, cameras: list[Camera], poses: list[Pose],
     boresight; a posterior well under its prior is what the images determined."""
     posterior = adjusted.covariance(noise_px)
     prior = np.diag(np.tile(adjusted.sigma**2, len(poses)))
+    jacobians = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km, strict=True)]
     out: tuple[list[PoseSigma], list[PoseSigma]] = ([], [])
     for which, cov in enumerate((prior, posterior)):
-        for i, (camera, pose, r) in enumerate(zip(cameras, poses, ranges_km, strict=True)):
+        for i, (pose, jac) in enumerate(zip(poses, jacobians, strict=True)):
             own = cov[6 * i:6 * i + 6, 6 * i:6 * i + 6]
             c = _to_camera(own, pose)
-            jac = _los_jacobian(camera, pose, float(r))
             out[which].append(PoseSigma(lateral_m=float(np.sqrt(c[0, 0] + c[1, 1])) * 1e3,
                                         along_m=float(np.sqrt(c[2, 2])) * 1e3,
                                         pointing_urad=float(np.sqrt(c[3, 3] + c[4, 4])) * 1e6,
