@@ -78,3 +78,14 @@ def compact(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     used = np.zeros(n_vertices, dtype=bool)
     used[faces] = True
     return used, (np.cumsum(used) - 1)[faces]
+
+
+def surface_points(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
+    """`count` points (count, 3) drawn uniformly over the mesh's area."""
+    areas = mesh.face_areas()
+    faces = rng.choice(len(areas), size=count, p=areas / areas.sum())
+    u, v = rng.random(count), rng.random(count)
+    flip = u + v > 1.0
+    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
+    corners = mesh.vertices[mesh.faces[faces]]
+    return corners[:, 0] + u[:, None] * (corners[:, 1] - corners[:, 0]) + v[:, None] * (corners[:, 2] - corners[:, 0])

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from pwm.evaluate.distance import ClosestPoint
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, surface_points
 
 COMPLETENESS_GSD = 2.0
 """The tolerance, in GSD, within which a true surface point counts as modelled."""
@@ -15,21 +15,16 @@ SAMPLES = 50_000
 """Points drawn uniformly over the truth's area: the fraction is good to about 0.5%."""
 
 
-def surface_points(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:
-    """`count` points (count, 3) drawn uniformly over the mesh's area."""
-    areas = mesh.face_areas()
-    faces = rng.choice(len(areas), size=count, p=areas / areas.sum())
-    u, v = rng.random(count), rng.random(count)
-    flip = u + v > 1.0
-    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
-    corners = mesh.vertices[mesh.faces[faces]]
-    return corners[:, 0] + u[:, None] * (corners[:, 1] - corners[:, 0]) + v[:, None] * (corners[:, 2] - corners[:, 0])
+def truth_gaps(truth: Mesh, model: Mesh, *, samples: int = SAMPLES, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Points (samples, 3) drawn uniformly over the truth's area, and each one's distance (km) to
+    the model's surface."""
+    points = surface_points(truth, samples, np.random.default_rng(seed))
+    distance, _, _ = ClosestPoint(model).query(points)
+    return points, distance
 
 
 def completeness(truth: Mesh, model: Mesh, *, tolerance_km: float, samples: int = SAMPLES, seed: int = 0) -> float:
     """The fraction of the truth's area that lies within tolerance_km of the model's surface."""
     if not tolerance_km > 0:
         raise ValueError(f"tolerance_km must be > 0, got {tolerance_km}")
-    points = surface_points(truth, samples, np.random.default_rng(seed))
-    distance, _, _ = ClosestPoint(model).query(points)
-    return float(np.mean(distance <= tolerance_km))
+    return float(np.mean(truth_gaps(truth, model, samples=samples, seed=seed)[1] <= tolerance_km))

@@ -138,6 +138,27 @@ def image_comparison(
     fig.savefig(path, dpi=120)
 
 
+def body_map(path: str | os.PathLike[str], points_km: np.ndarray, values: np.ndarray, *, title: str,
+             label: str) -> None:
+    """Values at body-fixed points (N, 3) on a map of planetocentric longitude and latitude,
+    coloured from the 1st to the 99th percentile (a whole body's errors or coverage at a glance)."""
+    p = np.asarray(points_km, float)
+    lon = np.degrees(np.arctan2(p[:, 1], p[:, 0])) % 360.0
+    lat = np.degrees(np.arcsin(np.clip(p[:, 2] / np.linalg.norm(p, axis=1), -1.0, 1.0)))
+    v = np.asarray(values, float)
+    low, high = np.percentile(v, [1, 99]) if v.size else (0.0, 1.0)
+    fig = _figure(8.0, 4.2)
+    ax = fig.add_subplot()
+    dots = ax.scatter(lon, lat, c=v, s=1.0, cmap="viridis", vmin=low, vmax=max(high, low + 1e-12), linewidths=0)
+    fig.colorbar(dots, ax=ax, label=label)
+    ax.set_xlim(0, 360)
+    ax.set_ylim(-90, 90)
+    ax.set_xlabel("east longitude (deg)")
+    ax.set_ylabel("latitude (deg)")
+    ax.set_title(title)
+    fig.savefig(path, dpi=120)
+
+
 def _figure(width_in: float, height_in: float) -> Figure:
     fig = Figure(figsize=(width_in, height_in), layout="constrained")
     FigureCanvasAgg(fig)

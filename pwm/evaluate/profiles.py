@@ -18,11 +18,14 @@ def boulder_height_ratio(
     centres_km: np.ndarray,
     diameters_km: np.ndarray,
     annulus_diameters: tuple[float, float] = (1.0, 1.5),
+    curved: bool = False,
 ) -> np.ndarray:
     """Model relief over truth relief for each boulder, (B,).
 
     A boulder's relief is the highest node within its radius minus the median of the ring of
     nodes between annulus_diameters[0] and [1] diameters from its centre (its surroundings).
+    curved: the surroundings are a quadric fitted to the ring instead, for boulders large beside
+    the body's radius of curvature, whose ring lies metres below their foot.
     centres_km: (B, 2) local x, y; diameters_km: (B,). nan nodes (no model) are ignored; a
     boulder whose disc or ring has no valid node, or whose truth relief is not positive, gives nan.
     """
@@ -43,16 +46,22 @@ def boulder_height_ratio(
         r = np.hypot(x[cols][None, :] - cx, y[rows][:, None] - cy)
         disc = r <= 0.5 * diameter
         ring = (r >= annulus_diameters[0] * diameter) & (r <= reach)
-        truth_relief = _relief(truth[rows, cols], disc, ring)
-        model_relief = _relief(model[rows, cols], disc, ring)
+        dx, dy = np.meshgrid(x[cols] - cx, y[rows] - cy)
+        basis = np.stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], axis=-1) if curved else None
+        truth_relief = _relief(truth[rows, cols], disc, ring, basis)
+        model_relief = _relief(model[rows, cols], disc, ring, basis)
         if truth_relief > 0:
             ratios[i] = model_relief / truth_relief
     return ratios
 
 
-def _relief(heights: np.ndarray, disc: np.ndarray, ring: np.ndarray) -> float:
-    top = heights[disc & np.isfinite(heights)]
-    surroundings = heights[ring & np.isfinite(heights)]
-    if top.size == 0 or surroundings.size == 0:
+def _relief(heights: np.ndarray, disc: np.ndarray, ring: np.ndarray, basis: np.ndarray | None) -> float:
+    """Highest node of the disc above its surroundings: the ring's median, or with a basis (per
+    node, the quadric's terms) the quadric fitted to the ring by least squares."""
+    on_disc, on_ring = disc & np.isfinite(heights), ring & np.isfinite(heights)
+    if not on_disc.any() or on_ring.sum() < (1 if basis is None else 6):
         return np.nan
-    return float(top.max() - np.median(surroundings))
+    if basis is None:
+        return float(heights[on_disc].max() - np.median(heights[on_ring]))
+    coefficients = np.linalg.lstsq(basis[on_ring], heights[on_ring], rcond=None)[0]
+    return float(np.max(heights[on_disc] - basis[on_disc] @ coefficients))

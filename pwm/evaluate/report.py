@@ -29,7 +29,7 @@ from pwm.evaluate.classes import (
     rim_mask,
     shadow_share,
 )
-from pwm.evaluate.completeness import COMPLETENESS_GSD, completeness
+from pwm.evaluate.completeness import COMPLETENESS_GSD, truth_gaps
 from pwm.evaluate.distance import ClosestPoint
 from pwm.evaluate.icp import RigidTransform, register
 from pwm.evaluate.images import ncc, ssim
@@ -39,6 +39,7 @@ from pwm.io.meshio import read_mesh
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.render import render
+from pwm.simulate.terrain import Boulder
 from pwm.simulate.truth import Truth, load as load_truth, sampled
 from pwm.site import slope_deg
 
@@ -52,15 +53,32 @@ ICP_REACH_GSD = 20.0
 """Point pairs farther apart than this many GSD are left out of the ICP steps."""
 
 
+SCOPES = ("site", "global")
+BOULDERS_JUDGED = 10
+"""A global model is judged on this many of the body's highest boulders."""
+
+
 def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | Path | None = None,
-             maplets: list[MapletFootprint] | None = None) -> dict:
+             maplets: list[MapletFootprint] | None = None, scope: str | None = None) -> dict:
     """Figures of merit of the model at `model_path` against the truth in `truth_dir`; with the
-    maplets the model was made of, the error at their edges too."""
+    maplets the model was made of, the error at their edges too.
+
+    scope: "site" (the site disc of a site downlink's truth) or "global" (the whole body, against
+    a survey's truth: coverage, held-out views over the whole disc, the highest boulders); by
+    default the one the truth's downlink was made for."""
     truth_dir = Path(truth_dir)
     truth = load_truth(truth_dir)
     manifest = json.loads((truth_dir / "manifest.json").read_text())
     gsd_km = manifest["scenario"]["gsd_km"]
-    whole_body = bool(manifest["scenario"]["global_views"])
+    survey = bool(manifest["scenario"]["global_views"])
+    scope = scope or ("global" if survey else "site")
+    if scope not in SCOPES:
+        raise ValueError(f"unknown scope {scope!r}; choose one of {', '.join(SCOPES)}")
+    if (scope == "global") != survey:
+        raise ValueError(f"{truth_dir} is the truth of a {'survey' if survey else 'site'} downlink "
+                         f"({manifest['scenario']['name']}); scope {scope!r} needs "
+                         f"{'a site' if survey else 'a survey'} downlink's truth")
+    whole_body = scope == "global"
     model = read_mesh(model_path)
 
     region = np.ones(len(model.vertices), bool) if whole_body else in_site(model.vertices, truth)
@@ -74,6 +92,7 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
 
     result = {
         "model": str(model_path),
+        "scope": scope,
         "gsd_m": gsd_km * 1e3,
         "region": "whole body" if whole_body else f"site disc of radius {truth.eval_radius_km * 1e3:g} m",
         "vertices_evaluated": int(region.sum()),
@@ -85,19 +104,62 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     }
     result["rms_gsd"] = result["rms_m"] / result["gsd_m"]
     result["median_gsd"] = result["median_m"] / result["gsd_m"]
-    if whole_body:  # holes and missing parts: what distances from the model cannot see
-        result["completeness"] = completeness(truth.mesh, registered, tolerance_km=COMPLETENESS_GSD * gsd_km)
-        result["completeness_tolerance_gsd"] = COMPLETENESS_GSD
 
     plots_dir = Path(plots_dir) if plots_dir is not None else None
     if plots_dir is not None:
         plots_dir.mkdir(parents=True, exist_ok=True)
     tracer = RayTracer(registered)
-    suns = np.array([image["sun_direction"] for image in manifest["images"]], float)
-    result.update(_heights(truth, tracer, gsd_km=gsd_km, plots_dir=plots_dir, suns_body=suns, maplets=maplets))
+    if whole_body:
+        result.update(_whole_body(truth, registered, tracer, vertex_error_km=distance, gsd_km=gsd_km,
+                                  plots_dir=plots_dir))
+    else:
+        suns = np.array([image["sun_direction"] for image in manifest["images"]], float)
+        result.update(_heights(truth, tracer, gsd_km=gsd_km, plots_dir=plots_dir, suns_body=suns,
+                               maplets=maplets))
     if model.albedo is not None:
-        result.update(_views(manifest, truth_dir, tracer, plots_dir=plots_dir))
+        result.update(_views(manifest, truth_dir, tracer, plots_dir=plots_dir, whole_body=whole_body))
     return result
+
+
+def _whole_body(truth: Truth, model: Mesh, tracer: RayTracer, *, vertex_error_km: np.ndarray, gsd_km: float,
+                plots_dir: Path | None) -> dict:
+    """Coverage (holes and missing parts, which distances from the model cannot see) and the
+    highest boulders' heights; maps of both errors over latitude and longitude."""
+    tolerance_km = COMPLETENESS_GSD * gsd_km
+    samples, gap = truth_gaps(truth.mesh, model)
+    out: dict = {"completeness": float(np.mean(gap <= tolerance_km)), "completeness_tolerance_gsd": COMPLETENESS_GSD}
+    boulders = sorted(((f, f.shape) for f in truth.landforms if isinstance(f.shape, Boulder)),
+                      key=lambda pair: -pair[1].height_km)[:BOULDERS_JUDGED]
+    if boulders:
+        truth_tracer = RayTracer(truth.mesh)
+        entries = [{"origin_km": list(form.origin_km), "diameter_m": shape.diameter_km * 1e3,
+                    "height_m": shape.height_km * 1e3, "steep": shape.steep,
+                    "height_ratio": _boulder_height_ratio(form.frame, shape, truth_tracer, tracer, gsd_km=gsd_km)}
+                   for form, shape in boulders]
+        ratios = np.array([e["height_ratio"] for e in entries], float)
+        out["boulders"] = entries
+        out["boulder_height_ratio_median"] = float(np.nanmedian(ratios))
+        out["boulder_height_ratio_min"] = float(np.nanmin(ratios))
+    if plots_dir is not None:
+        plots.body_map(plots_dir / "vertex_error.png", model.vertices, vertex_error_km * 1e3,
+                       title="model to truth distance (m)", label="m")
+        plots.body_map(plots_dir / "coverage.png", samples, (gap <= tolerance_km).astype(float),
+                       title=f"truth within {COMPLETENESS_GSD:g} GSD of the model (1) or not (0)", label="covered")
+    return out
+
+
+def _boulder_height_ratio(frame: LocalFrame, boulder: Boulder, truth: RayTracer, model: RayTracer, *,
+                          gsd_km: float) -> float:
+    """Model relief over truth relief of a boulder centred on its frame, both measured the same
+    way (profiles.boulder_height_ratio) on a grid of that frame at half a GSD or finer."""
+    diameter = boulder.diameter_km
+    step = min(0.5 * gsd_km, diameter / 20)
+    axis = np.arange(-1.5 * diameter, 1.5 * diameter + step / 2, step)
+    top = boulder.height_km + diameter
+    truth_h = heights_in_frame(truth, frame, axis, axis, top_km=top, nudge_km=1e-3 * step)
+    model_h = heights_in_frame(model, frame, axis, axis, top_km=top, nudge_km=1e-3 * step)
+    return float(boulder_height_ratio(axis, axis, truth_h, model_h, centres_km=np.zeros((1, 2)),
+                                      diameters_km=np.array([diameter]), curved=True)[0])
 
 
 def maplet_footprints(report: dict) -> list[MapletFootprint]:
@@ -140,19 +202,24 @@ def register_to_truth(model: Mesh, truth: Truth, *, region: np.ndarray, gsd_km: 
 def sample_heights(tracer: RayTracer, truth: Truth, x_km: np.ndarray, y_km: np.ndarray) -> np.ndarray:
     """Heights (km) of the tracer's surface along the site frame's z at grid nodes, nan where missed.
 
-    Rays come down the -z axis from above the highest truth relief, so the first hit is the top.
-    They pass a thousandth of a grid step beside the nodes: a mesh with vertices exactly on the
-    nodes (the truth itself) would otherwise put rays on edges, where single precision lets some
-    slip through the surface.
+    Rays come down from above the highest truth relief (heights_in_frame), passing a thousandth
+    of a truth grid step beside the nodes.
     """
-    frame = truth.site_frame
-    top = float(np.nanmax(truth.height_km)) + 0.05
-    nudge = 1e-3 * truth.resolution_km
-    gx, gy = np.meshgrid(np.asarray(x_km) + 1.3 * nudge, np.asarray(y_km) + 0.7 * nudge)
-    origins = frame.to_body(np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, top)]))
+    return heights_in_frame(tracer, truth.site_frame, x_km, y_km, top_km=float(np.nanmax(truth.height_km)) + 0.05,
+                            nudge_km=1e-3 * truth.resolution_km)
+
+
+def heights_in_frame(tracer: RayTracer, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray, *, top_km: float,
+                     nudge_km: float) -> np.ndarray:
+    """Heights (km) along the frame's z of the tracer's surface at the grid nodes (len(y), len(x)),
+    nan where missed. Rays come down the -z axis from top_km, so the first hit is the top; they
+    pass nudge_km beside the nodes, because a mesh with vertices exactly on the nodes (a truth
+    grid) would otherwise put rays on edges, where single precision lets some slip through."""
+    gx, gy = np.meshgrid(np.asarray(x_km) + 1.3 * nudge_km, np.asarray(y_km) + 0.7 * nudge_km)
+    origins = frame.to_body(np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, top_km)]))
     directions = np.broadcast_to(-frame.normal, origins.shape)
     hits = tracer.intersect(origins, directions)
-    return np.where(hits.hit, top - hits.t, np.nan).reshape(gx.shape)
+    return np.where(hits.hit, top_km - hits.t, np.nan).reshape(gx.shape)
 
 
 def _heights(truth: Truth, tracer: RayTracer, *, gsd_km: float, plots_dir: Path | None, suns_body: np.ndarray,
@@ -220,10 +287,11 @@ def _profile(boulder, x: np.ndarray, y: np.ndarray, truth_h: np.ndarray, model_h
     return ((x[cols] - boulder.x_km) * 1e3, truth_h[row, cols] * 1e3, model_h[row, cols] * 1e3, label)
 
 
-def _views(manifest: dict, truth_dir: Path, tracer: RayTracer, *, plots_dir: Path | None) -> dict:
+def _views(manifest: dict, truth_dir: Path, tracer: RayTracer, *, plots_dir: Path | None, whole_body: bool) -> dict:
     """NCC and SSIM of the model rendered with its albedo against each held-out truth view,
-    over the site pixels lit and seen in both. The model image is first scaled to the truth's
-    brightness by least squares: a model's albedo is only known up to the images' calibration."""
+    over the pixels lit and seen in both (on the site, or anywhere on the body). The model image
+    is first scaled to the truth's brightness by least squares: a model's albedo is only known up
+    to the images' calibration."""
     c = manifest["camera"]
     camera = Camera(width=c["width"], height=c["height"], fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"])
     scores = []
@@ -232,7 +300,8 @@ def _views(manifest: dict, truth_dir: Path, tracer: RayTracer, *, plots_dir: Pat
         pose = Pose(position=data["position"], rotation=data["rotation"])
         model = render(tracer, camera=camera, pose=pose, sun_direction=data["sun"])
         truth_img = data["reflectance"].astype(float)
-        mask = data["in_site"] & data["hit"] & ~data["shadow"] & model.hit & ~model.shadow
+        seen = data["hit"] if whole_body else data["in_site"] & data["hit"]
+        mask = seen & ~data["shadow"] & model.hit & ~model.shadow
         if mask.sum() < 100:
             log.warning("view %s: only %d comparable pixels; skipped", view["name"], mask.sum())
             continue
@@ -261,15 +330,19 @@ def format_table(result: dict) -> str:
     rows = [("model", result["model"]), ("region", result["region"]), ("vertices", str(result["vertices_evaluated"])),
             ("RMS", f"{result['rms_m']:.4f} m = {result['rms_gsd']:.3f} GSD"),
             ("median", f"{result['median_m']:.4f} m = {result['median_gsd']:.3f} GSD"),
-            ("height-error RMS", f"{result['height_error_rms_m']:.4f} m"),
             ("ICP", f"mean shift {result['icp']['shift_m']:.4f} m, rotation {result['icp']['rotation_rad']:.2e} rad")]
     if "completeness" in result:
-        rows.append(("completeness", f"{result['completeness']:.3f} of the true surface within "
-                                     f"{result['completeness_tolerance_gsd']:g} GSD of the model"))
+        rows.append(("coverage", f"{result['completeness']:.3f} of the true surface within "
+                                 f"{result['completeness_tolerance_gsd']:g} GSD of the model"))
+    if "height_error_rms_m" in result:
+        rows.append(("height-error RMS", f"{result['height_error_rms_m']:.4f} m"))
     if "ncc" in result:
         rows += [("NCC (held-out)", f"{result['ncc']:.4f}"), ("SSIM (held-out)", f"{result['ssim']:.4f}")]
     if result.get("boulder_height_ratio_median") is not None:
         rows.append(("boulder height ratio", f"{result['boulder_height_ratio_median']:.3f} (median)"))
+    if result.get("boulder_height_ratio_min") is not None:
+        rows.append((f"highest {len(result['boulders'])} boulders",
+                     f"{result['boulder_height_ratio_min']:.3f} of their height (least)"))
     if result.get("steep_boulder_height_ratio_median") is not None:
         rows.append(("steep boulders", f"{result['steep_boulder_height_ratio_median']:.3f} (median)"))
     rows += [(f"band {name}", f"{rms:.4f} m") for name, rms in result.get("bands_rms_m", {}).items()]

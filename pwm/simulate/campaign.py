@@ -37,11 +37,22 @@ from pwm.raytrace import RayTracer
 from pwm.render import render_supersampled
 from pwm.simulate.detector import choose_exposure, to_dn
 from pwm.simulate.knowledge import EXACT, IndependentErrors, KnowledgeErrors, manifest_entries, perturb
+from pwm.simulate.landforms import Clearing, Landform, apply_landforms, sample_landforms
 from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
 from pwm.simulate.optics import blur, flat_field
 from pwm.simulate.plan import Observation, plan_global, plan_site, sun_states
-from pwm.simulate.scenarios import Scenario
-from pwm.simulate.truth import Truth, build_base, build_truth, low_pass, save as save_truth, undulations
+from pwm.simulate.scenarios import Campaign, Scenario
+from pwm.simulate.truth import (
+    SiteSpec,
+    Truth,
+    build_base,
+    build_truth,
+    low_pass,
+    save as save_truth,
+    site_frame,
+    stitch_sites,
+    undulations,
+)
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +62,8 @@ WINDOW_S = 60.0  # each image sits in the middle of a short observation window o
 EXPOSURE_S = 0.004  # labels carry start and stop; the geometry is at mid-exposure
 OPTICS_STREAM = 21  # the random stream of the camera's flat field
 KNOWLEDGE_STREAM = 22  # the random stream of navigation-like knowledge errors
+CAMPAIGN_STREAM = 23  # a campaign's downlinks each draw from their own stream
+LANDFORM_STREAM = 24  # the craters and boulders over a campaign's body
 
 
 def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
@@ -66,18 +79,8 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
     the same for a seed whatever the errors.
     """
     out = Path(out)
-    downlink, truth_dir = out / "downlink", out / "truth"
-    for d in (downlink, truth_dir):
-        if d.exists():
-            shutil.rmtree(d)
-    rng = np.random.default_rng(seed)
     clock = time.perf_counter()
-
-    mission = MISSIONS[scenario.mission]
-    fixed = _copy_fixed_kernels(downlink / "kernels", mission)
-    if mission.write_kernels is not None:
-        fixed += mission.write_kernels(downlink / "kernels")
-    base = read_obj(SHAPES_DIR / mission.shape)
+    base = read_obj(SHAPES_DIR / MISSIONS[scenario.mission].shape)
     log.info("building the truth asteroid (%s)", scenario.name)
     truth = build_truth(
         base=base, site_lat_deg=scenario.site_lat_deg, site_lon_deg=scenario.site_lon_deg,
@@ -88,6 +91,88 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
     )
     log.info("truth: %d vertices, %d faces (%.1f s)", len(truth.mesh.vertices), len(truth.mesh.faces),
              time.perf_counter() - clock)
+    start = start_model(truth, scenario=scenario, base=base, seed=seed) if with_start_model else None
+    return _downlink(out / "downlink", out / "truth", scenario=scenario, truth=truth, seed=seed, knowledge=knowledge,
+                     start=start, rng=np.random.default_rng(seed))
+
+
+def simulate_campaign(out: str | Path, *, campaign: Campaign, seed: int = 0, knowledge: KnowledgeErrors = EXACT,
+                      with_start_model: bool = False) -> dict:
+    """Write a campaign: OUT/downlinks/K-NAME/ in time order (the survey first, then each site)
+    and OUT/truth/K-NAME/ beside each, all of one truth asteroid; OUT/truth/campaign.json lists
+    them. Returns that list.
+
+    The survey's truth directory holds the whole body with the sites' patches thinned to the
+    body's own spacing (what a metre-scale model is judged against; its images saw the full
+    patches); each site's holds the whole truth with that site's patch last. with_start_model:
+    the survey downlink brings a start model; the sites never do (the catalog's model is theirs).
+    """
+    out = Path(out)
+    clock = time.perf_counter()
+    survey = campaign.survey
+    base = read_obj(SHAPES_DIR / MISSIONS[survey.mission].shape)
+    log.info("building the campaign's truth asteroid (%s)", campaign.name)
+    body = build_base(base, base_edge_km=survey.base_edge_km, seed=seed, global_roughness_km=survey.global_roughness_km)
+    sites = [SiteSpec(lat_deg=s.site_lat_deg, lon_deg=s.site_lon_deg, size_km=s.site_size_km,
+                      resolution_km=s.truth_resolution_km, n_craters=s.n_craters, n_boulders=s.n_boulders,
+                      steep_boulders=s.steep_boulders, cobble_cover=s.cobble_cover) for s in campaign.sites]
+    landforms = _landforms(body, campaign=campaign, sites=sites, seed=seed)
+    body = apply_landforms(body, landforms)
+    params = dict(base_edge_km=survey.base_edge_km, global_roughness_km=survey.global_roughness_km,
+                  campaign=campaign.name)
+    truths = stitch_sites(body, sites, seed=seed, params=params, landforms=landforms)
+    thin = stitch_sites(body, sites, seed=seed, params=params, landforms=landforms,
+                        thin_to_km=survey.base_edge_km)[0]
+    log.info("truth: %d vertices, %d faces (%.1f s)", len(truths[0].mesh.vertices), len(truths[0].mesh.faces),
+             time.perf_counter() - clock)
+    entries = []
+    for k, scenario in enumerate(campaign.downlinks):
+        name = f"{k + 1}-{scenario.name}"
+        start = (start_model(thin, scenario=scenario, base=base, seed=seed)
+                 if with_start_model and scenario.global_views else None)
+        # every downlink's images come from the full truth; the survey's is judged on the thinned one
+        manifest = _downlink(out / "downlinks" / name, out / "truth" / name, scenario=scenario,
+                             truth=truths[max(k - 1, 0)], saved=thin if k == 0 else None, seed=seed,
+                             knowledge=knowledge, start=start, rng=np.random.default_rng([seed, CAMPAIGN_STREAM, k]))
+        entries.append({"name": name, "downlink": f"downlinks/{name}", "truth": f"truth/{name}",
+                        "scope": "global" if scenario.global_views else "site", "images": manifest["image_count"],
+                        "gsd_m": manifest["gsd_m"], "start_utc": scenario.start_utc})
+    summary = {"campaign": campaign.model_dump(mode="json"), "seed": seed, "downlinks": entries,
+               "elapsed_s": round(time.perf_counter() - clock, 2)}
+    (out / "truth" / "campaign.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def _landforms(body: Mesh, *, campaign: Campaign, sites: list[SiteSpec], seed: int) -> list[Landform]:
+    """The campaign's craters and boulders over the body, clear of every site's square and margin."""
+    max_edge = body.mean_edge_length() * 4
+    clearings = [Clearing(centre_km=site_frame(body, lat_deg=s.lat_deg, lon_deg=s.lon_deg, radius_km=s.size_km / 2,
+                                               max_edge_km=max_edge).origin, radius_km=s.clear_radius_km)
+                 for s in sites]
+    return sample_landforms(body, np.random.default_rng([seed, LANDFORM_STREAM]), n_craters=campaign.craters,
+                            n_boulders=campaign.boulders, n_steep=campaign.steep_boulders,
+                            crater_diameter_km=_km(campaign.crater_diameter_m),
+                            boulder_diameter_km=_km(campaign.boulder_diameter_m),
+                            clearings=clearings)
+
+
+def _km(range_m: tuple[float, float]) -> tuple[float, float]:
+    return range_m[0] * 1e-3, range_m[1] * 1e-3
+
+
+def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Truth, seed: int,
+              knowledge: KnowledgeErrors, start: Mesh | None, rng: np.random.Generator,
+              saved: Truth | None = None) -> dict:
+    """Render one downlink of `scenario` from `truth` into `downlink`, and write what the proving
+    ground knows of it (`saved`, by default the truth itself, and the manifest) into truth_dir."""
+    for d in (downlink, truth_dir):
+        if d.exists():
+            shutil.rmtree(d)
+    clock = time.perf_counter()
+    mission = MISSIONS[scenario.mission]
+    fixed = _copy_fixed_kernels(downlink / "kernels", mission)
+    if mission.write_kernels is not None:
+        fixed += mission.write_kernels(downlink / "kernels")
 
     with kernel_pool(fixed):
         detector = camera_from_kernel(scenario.instrument_id)
@@ -142,15 +227,16 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
             path = truth_dir / "validation" / f"{obs.name}.npz"
             path.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(path, reflectance=view.reflectance.astype(np.float32), hit=view.hit, shadow=view.shadow,
-                                in_site=_in_site(view.points, truth), position=pose.position, rotation=pose.rotation,
+                                in_site=view.hit if scenario.global_views else _in_site(view.points, truth),
+                                position=pose.position, rotation=pose.rotation,
                                 sun=sun)
             held_out.append({"name": obs.name, "file": f"validation/{obs.name}.npz",
                              **_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera)})
 
     wavelength_km = 30.0 * scenario.gsd_km
-    if with_start_model:
-        write_obj(downlink / "start_model.obj", start_model(truth, scenario=scenario, base=base, seed=seed))
-    save_truth(truth, truth_dir)
+    if start is not None:
+        write_obj(downlink / "start_model.obj", start)
+    save_truth(saved or truth, truth_dir)
 
     manifest = {
         "scenario": scenario.model_dump(mode="json"),
@@ -161,7 +247,7 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
         "subframe": None if window is None else {"first_line": window[0], "first_sample": window[1]},
         "camera": {"instrument_id": scenario.instrument_id, "width": camera.width, "height": camera.height,
                    "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy},
-        "start_model": {"file": "downlink/start_model.obj" if with_start_model else None,
+        "start_model": {"file": "downlink/start_model.obj" if start is not None else None,
                         "low_pass_wavelength_m": wavelength_km * 1e3,
                         "vertex_spacing_m": 10.0 * scenario.gsd_km * 1e3,
                         "undulation_rms_m": scenario.start_error_rms_gsd * scenario.gsd_km * 1e3,

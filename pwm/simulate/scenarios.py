@@ -1,6 +1,9 @@
-"""Named proving-ground scenarios: the truth asteroid, the observation plan and the camera."""
+"""Named proving-ground scenarios: the truth asteroid, the observation plan and the camera; and
+campaigns, sequences of downlinks of one truth asteroid."""
 
 from __future__ import annotations
+
+from datetime import datetime, timedelta
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
@@ -154,6 +157,78 @@ SCENARIOS: dict[str, Scenario] = {
             gsd_km=4.0e-3, truth_resolution_km=1.0e-4, base_edge_km=2.0e-3, global_roughness_km=1.0e-3,
             global_views=True, n_nadir=0, emissions_deg=(0.0,), n_azimuths=12, subframe_px=320,
             incidences_deg=(30.0, 50.0), n_validation=1, campaign_days=5.0,
+        ),
+    ]
+}
+
+
+class Campaign(BaseModel):
+    """A mission's sequence of downlinks over one truth asteroid: a global survey, then sites.
+
+    The body (its base, roughness and the landforms over it) is the survey's; each site keeps its
+    own design (place, size, truth resolution, images) from its scenario. Lengths in m here, as
+    landform sizes are spoken of.
+    """
+
+    name: str
+    description: str
+    survey: Scenario
+    sites: tuple[Scenario, ...]
+    craters: int = Field(description="craters placed over the whole body")
+    crater_diameter_m: tuple[float, float]
+    boulders: int = Field(description="boulders placed over the whole body, clear of the sites")
+    steep_boulders: int
+    boulder_diameter_m: tuple[float, float]
+
+    @model_validator(mode="after")
+    def _one_body_in_time_order(self) -> Campaign:
+        if not self.survey.global_views or any(s.global_views for s in self.sites):
+            raise ValueError("a campaign is one global survey followed by site downlinks")
+        for s in self.sites:
+            if (s.mission, s.target, s.body_frame) != (self.survey.mission, self.survey.target, self.survey.body_frame):
+                raise ValueError(f"site {s.name} is not of the survey's mission and body")
+        # a downlink's kernels span a day before its first image to two after its last
+        downlinks = (self.survey, *self.sites)
+        for before, after in zip(downlinks, downlinks[1:], strict=False):
+            end = datetime.fromisoformat(before.start_utc) + timedelta(days=before.campaign_days + 2)
+            if datetime.fromisoformat(after.start_utc) - timedelta(days=1) <= end:
+                raise ValueError(f"{after.name} starts before the kernels of {before.name} end")
+        if len({s.name for s in downlinks}) != len(downlinks):
+            raise ValueError("the downlinks' scenarios need distinct names (they name products and kernels)")
+        return self
+
+    @property
+    def downlinks(self) -> list[Scenario]:
+        """The scenarios of the downlinks in time order."""
+        return [self.survey, *self.sites]
+
+
+def _campaign_part(scenario: str, **changes: object) -> Scenario:
+    return Scenario.model_validate({**SCENARIOS[scenario].model_dump(), **changes})
+
+
+CAMPAIGNS: dict[str, Campaign] = {
+    c.name: c
+    for c in [
+        Campaign(
+            name="campaign",
+            description="global-coarse's survey of a Bennu with craters and boulders everywhere (2 m GSD, a 0.5 m "
+                        "truth), then site's and site-polar's reconnaissance (10 cm GSD) at two places of it",
+            survey=_campaign_part("global-coarse", name="campaign-survey"),
+            sites=(_campaign_part("site", name="campaign-site-a", start_utc="2019-03-14T00:00:00"),
+                   _campaign_part("site-polar", name="campaign-site-b", start_utc="2019-03-28T00:00:00")),
+            craters=30, crater_diameter_m=(10.0, 80.0), boulders=60, steep_boulders=15,
+            boulder_diameter_m=(6.0, 30.0),
+        ),
+        Campaign(
+            name="campaign-tiny",
+            description="campaign's design for tests, seconds: global-tiny's survey (4 m GSD, 12 images) of a body "
+                        "with 20-60 m craters and 12-30 m boulders, then two tiny sites (5 cm GSD, 6 images each)",
+            survey=_campaign_part("global-tiny", name="campaign-tiny-survey"),
+            sites=(_campaign_part("tiny", name="campaign-tiny-site-a", start_utc="2019-03-14T00:00:00"),
+                   _campaign_part("tiny", name="campaign-tiny-site-b", start_utc="2019-03-20T00:00:00",
+                                  site_lat_deg=-30.0, site_lon_deg=200.0)),
+            craters=6, crater_diameter_m=(20.0, 60.0), boulders=8, steep_boulders=2, boulder_diameter_m=(12.0, 30.0),
         ),
     ]
 }

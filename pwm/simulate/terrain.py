@@ -125,7 +125,7 @@ def gaussian_sigma_km(cutoff_km: float) -> float:
     return cutoff_km * np.sqrt(2 * np.log(2.0)) / (2 * np.pi)
 
 
-def _power_law(rng: np.random.Generator, n: int, lo: float | np.ndarray, hi: float | np.ndarray,
+def power_law(rng: np.random.Generator, n: int, lo: float | np.ndarray, hi: float | np.ndarray,
                slope: float) -> np.ndarray:
     """Sizes between lo and hi with a cumulative distribution N(>D) ~ D**-slope."""
     u = rng.uniform(0.0, 1.0, n)
@@ -137,7 +137,7 @@ def sample_craters(rng: np.random.Generator, *, n: int, site_size_km: float, res
     at least 20 grid spacings and at most half the site across; depth/diameter 0.1-0.2."""
     d_min = max(3e-3, 20 * resolution_km)
     d_max = max(min(15e-3, site_size_km / 2), d_min)
-    diameter = _power_law(rng, n, d_min, d_max, 2.0)
+    diameter = power_law(rng, n, d_min, d_max, 2.0)
     centre = rng.uniform(-site_size_km / 2, site_size_km / 2, (n, 2))
     depth = diameter * rng.uniform(0.1, 0.2, n)
     return [Crater(x_km=float(c[0]), y_km=float(c[1]), diameter_km=float(d), depth_km=float(h),
@@ -160,7 +160,7 @@ def sample_boulders(
     d_lo = np.where(steep, 1e-3, 2e-3)
     d_lo = np.minimum(np.maximum(d_lo, 16 * resolution_km), cap)
     d_hi = np.maximum(min(6e-3, cap), d_lo)
-    diameter = _power_law(rng, n, d_lo, d_hi, 2.5)
+    diameter = power_law(rng, n, d_lo, d_hi, 2.5)
     ratio = np.where(steep, rng.uniform(0.6, 1.0, n), rng.uniform(0.3, 0.5, n))
     height = np.clip(ratio * diameter / 2, 5e-4, 3e-3)
     height = np.minimum(height, np.where(steep, 1.0, 0.5) * diameter / 2)
@@ -259,9 +259,9 @@ def cobble_relief(rng: np.random.Generator, x_km: np.ndarray, y_km: np.ndarray, 
     """
     d_lo = max(3e-4, 12 * resolution_km)
     d_hi = max(3.0e-3, d_lo)
-    mean_area = np.pi / 4 * np.mean(_power_law(np.random.default_rng(0), 4096, d_lo, d_hi, 2.5) ** 2)
+    mean_area = np.pi / 4 * np.mean(power_law(np.random.default_rng(0), 4096, d_lo, d_hi, 2.5) ** 2)
     n = int(round(cover * site_size_km**2 / mean_area))
-    diameter = _power_law(rng, n, d_lo, d_hi, 2.5)
+    diameter = power_law(rng, n, d_lo, d_hi, 2.5)
     height = diameter / 2 * rng.uniform(0.6, 1.0, n)
     centre = rng.uniform(-site_size_km / 2, site_size_km / 2, (n, 2))
     relief = np.zeros((len(y_km), len(x_km)))

@@ -22,6 +22,7 @@ from pwm.frames import LocalFrame, latlon_to_unit, local_frame
 from pwm.io.meshio import read_ply, write_ply
 from pwm.mesh import Mesh, grid_faces
 from pwm.raytrace import RayTracer
+from pwm.simulate.landforms import Landform
 from pwm.simulate.terrain import (
     Boulder,
     Crater,
@@ -55,9 +56,10 @@ _STREAMS = {"roughness": 1, "albedo": 2, "site_roughness": 3, "site_albedo": 4, 
             "boulders": 6, "patches": 7, "cobbles": 8, "start_error": 9}
 
 
-def _rng(seed: int, stream: str) -> np.random.Generator:
-    """Independent generator per component, so adding craters leaves the roughness unchanged."""
-    return np.random.default_rng([seed, _STREAMS[stream]])
+def _rng(seed: int, stream: str, site: int = 0) -> np.random.Generator:
+    """Independent generator per component (and per site after the first), so adding craters
+    leaves the roughness unchanged and a second site leaves the first as it was."""
+    return np.random.default_rng([seed, _STREAMS[stream]] + ([site] if site else []))
 
 
 @dataclass
@@ -74,6 +76,7 @@ class Truth:
     zero_band_km: width of the patch border where the detail is zero (the patch lies on the base);
     the detail then ramps up to full weight at the edge of the site square.
     craters, boulders: the features placed, in site-frame coordinates.
+    landforms: the craters and boulders placed over the whole body (pwm.simulate.landforms).
     params: the build_truth arguments other than the base shape, for provenance.
     """
 
@@ -89,6 +92,7 @@ class Truth:
     boulders: list[Boulder]
     n_base_vertices: int
     n_base_faces: int
+    landforms: list[Landform] = field(default_factory=list)
     params: dict = field(default_factory=dict)
 
     @property
@@ -293,7 +297,7 @@ def _cut(base: Mesh, frame: LocalFrame, half_km: float) -> tuple[Mesh, float]:
     return Mesh(base.vertices[used], new_id[faces], base.require_albedo()[used]), reach
 
 
-def _site_detail(seed: int, axis_km: np.ndarray, site_size_km: float, craters: list[Crater],
+def _site_detail(seed: int, site: int, axis_km: np.ndarray, site_size_km: float, craters: list[Crater],
                  boulders: list[Boulder], cobble_cover: float) -> tuple[np.ndarray, np.ndarray]:
     """Relief along z (km) and log-albedo of the site on the square grid with this axis."""
     shape = (len(axis_km), len(axis_km))
@@ -303,12 +307,63 @@ def _site_detail(seed: int, axis_km: np.ndarray, site_size_km: float, craters: l
     relief, log_albedo = boulder_relief(axis_km, axis_km, boulders)
     relief += crater_relief(axis_km, axis_km, craters)
     if cobble_cover > 0:
-        relief += cobble_relief(_rng(seed, "cobbles"), axis_km, axis_km, cover=cobble_cover,
+        relief += cobble_relief(_rng(seed, "cobbles", site), axis_km, axis_km, cover=cobble_cover,
                                 site_size_km=site_size_km, resolution_km=spacing)
-    relief += SITE_ROUGHNESS_KM * fractal_grid(_rng(seed, "site_roughness"), **band)
-    log_albedo += SITE_ALBEDO_LOG_RMS * fractal_grid(_rng(seed, "site_albedo"), **band)
-    log_albedo += albedo_patches(_rng(seed, "patches"), axis_km, axis_km, site_size_km=site_size_km)
+    relief += SITE_ROUGHNESS_KM * fractal_grid(_rng(seed, "site_roughness", site), **band)
+    log_albedo += SITE_ALBEDO_LOG_RMS * fractal_grid(_rng(seed, "site_albedo", site), **band)
+    log_albedo += albedo_patches(_rng(seed, "patches", site), axis_km, axis_km, site_size_km=site_size_km)
     return relief, log_albedo
+
+
+@dataclass(frozen=True)
+class SiteSpec:
+    """A site of the truth: the square of side size_km centred at planetocentric (lat, lon),
+    sampled every resolution_km over the site plus margin_km per side (default a quarter of the
+    site size) where the detail blends into the body. steep_boulders of the n_boulders have side
+    slopes above 60 degrees; cobble_cover is the fraction of the site strewn with sub-metre rocks."""
+
+    lat_deg: float
+    lon_deg: float
+    size_km: float
+    resolution_km: float
+    n_craters: int
+    n_boulders: int
+    steep_boulders: int
+    cobble_cover: float = 0.0
+    margin_km: float | None = None
+
+    @property
+    def margin(self) -> float:
+        return 0.25 * self.size_km if self.margin_km is None else self.margin_km
+
+    @property
+    def clear_radius_km(self) -> float:
+        """The radius of the disc that holds the site's square and its margin."""
+        return float(np.sqrt(2.0) * (self.size_km / 2 + self.margin))
+
+
+@dataclass
+class _Patch:
+    """A site's grid as stitched into the body: its frame, axis (x and y alike), heights and albedo
+    per node, zero band, and the landforms drawn on it."""
+
+    spec: SiteSpec
+    frame: LocalFrame
+    axis: np.ndarray
+    height: np.ndarray
+    albedo: np.ndarray
+    zero_band: float
+    craters: list[Crater]
+    boulders: list[Boulder]
+
+    def thinned(self, spacing_km: float) -> _Patch:
+        """The same patch on every k-th node, k such that the spacing is at most spacing_km; the
+        outermost nodes are kept, so it still covers the same square."""
+        step = max(1, int(spacing_km / (self.axis[1] - self.axis[0])))
+        keep = np.unique(np.r_[np.arange(0, len(self.axis), step), len(self.axis) - 1])
+        return _Patch(spec=self.spec, frame=self.frame, axis=self.axis[keep], height=self.height[np.ix_(keep, keep)],
+                      albedo=self.albedo[np.ix_(keep, keep)], zero_band=self.zero_band, craters=self.craters,
+                      boulders=self.boulders)
 
 
 def build_truth(
@@ -316,24 +371,34 @@ def build_truth(
     seed: int, base_edge_km: float, global_roughness_km: float = 0.0, n_craters: int, n_boulders: int,
     steep_boulders: int, cobble_cover: float = 0.0, margin_km: float | None = None,
 ) -> Truth:
-    """Build the truth asteroid (see the module docstring). Lengths in km, angles in degrees.
-
-    base: the input shape (km); the site is the square of side site_size_km centred at the
-    planetocentric (lat, lon), sampled every resolution_km over the site plus margin_km per side
-    (default a quarter of the site size) where the detail blends into the base. Deterministic for
-    a given seed. steep_boulders of the n_boulders have side slopes above 60 degrees;
-    cobble_cover is the fraction of the site strewn with sub-metre rocks.
-    """
-    margin = 0.25 * site_size_km if margin_km is None else margin_km
+    """Build the truth asteroid with one site (see the module docstring and SiteSpec). Lengths
+    in km, angles in degrees; deterministic for a given seed."""
     body = build_base(base, base_edge_km=base_edge_km, seed=seed, global_roughness_km=global_roughness_km)
-    max_edge = _longest_edges(body, np.ones(len(body.faces), dtype=bool)).max()
-    frame = site_frame(body, lat_deg=site_lat_deg, lon_deg=site_lon_deg, radius_km=site_size_km / 2,
-                       max_edge_km=max_edge)
+    site = SiteSpec(lat_deg=site_lat_deg, lon_deg=site_lon_deg, size_km=site_size_km, resolution_km=resolution_km,
+                    n_craters=n_craters, n_boulders=n_boulders, steep_boulders=steep_boulders,
+                    cobble_cover=cobble_cover, margin_km=margin_km)
+    extra = dict(base_edge_km=base_edge_km, global_roughness_km=global_roughness_km)
+    return stitch_sites(body, [site], seed=seed, params=extra)[0]
 
-    n = int(np.ceil((site_size_km / 2 + margin) / resolution_km - 1e-9))
-    axis = np.arange(-n, n + 1) * resolution_km
-    half = float(axis[-1])
-    ground, ground_albedo = _drape(body, frame, axis, axis, max_edge_km=max_edge)
+
+def stitch_sites(body: Mesh, sites: list[SiteSpec], *, seed: int, params: dict | None = None,
+                 landforms: list[Landform] | None = None, thin_to_km: float | None = None) -> list[Truth]:
+    """The body with a site patch stitched in for each of `sites` (far enough apart that their
+    squares and margins do not meet); one Truth per site, each the same surface with that site's
+    patch last (so that each site is evaluated as a lone site would be).
+
+    thin_to_km: patches sampled at about this spacing instead of their own (a global survey's
+    truth, where centimetre nodes would only cost memory). landforms: those on the body, recorded.
+    The first site draws what a lone site of the same seed draws.
+    """
+    max_edge = _longest_edges(body, np.ones(len(body.faces), dtype=bool)).max()
+    frames, axes, grounds = [], [], []
+    for site in sites:
+        frames.append(site_frame(body, lat_deg=site.lat_deg, lon_deg=site.lon_deg, radius_km=site.size_km / 2,
+                                 max_edge_km=max_edge))
+        n = int(np.ceil((site.size_km / 2 + site.margin) / site.resolution_km - 1e-9))
+        axes.append(np.arange(-n, n + 1) * site.resolution_km)
+        grounds.append(_drape(body, frames[-1], axes[-1], axes[-1], max_edge_km=max_edge))
 
     # The patch replaces the base faces lying wholly over it; base faces crossing its border stay
     # and overlap it by at most their size. The detail is zero over that overlap, so there the
@@ -341,30 +406,54 @@ def build_truth(
     # spacing): no gap and no visible seam, at the price of a thin doubly covered band outside the
     # site. Clipping base triangles against the grid would avoid the overlap but not improve any
     # image. Refining the base near the border keeps the band within a third of the margin.
-    refined = _refine_near(body, frame.origin, np.sqrt(2) * half, margin / 3)
-    cut, reach = _cut(refined, frame, half)
-    zero_band = reach + 2 * resolution_km
-    if zero_band >= margin:
-        raise ValueError(f"margin {margin * 1e3:g} m is too narrow for grid spacing {resolution_km * 1e3:g} m")
-    weight = _blend_weight(axis, axis, zero_band, site_size_km)
+    cut = body
+    for site, frame, axis in zip(sites, frames, axes, strict=True):
+        cut = _refine_near(cut, frame.origin, np.sqrt(2) * float(axis[-1]), site.margin / 3)
+    patches = []
+    for k, (site, frame, axis, (ground, ground_albedo)) in enumerate(zip(sites, frames, axes, grounds, strict=True)):
+        cut, reach = _cut(cut, frame, float(axis[-1]))
+        zero_band = reach + 2 * site.resolution_km
+        if zero_band >= site.margin:
+            raise ValueError(f"margin {site.margin * 1e3:g} m is too narrow for grid spacing "
+                             f"{site.resolution_km * 1e3:g} m")
+        weight = _blend_weight(axis, axis, zero_band, site.size_km)
+        craters = sample_craters(_rng(seed, "craters", k), n=site.n_craters, site_size_km=site.size_km,
+                                 resolution_km=site.resolution_km)
+        boulders = sample_boulders(_rng(seed, "boulders", k), n=site.n_boulders, n_steep=site.steep_boulders,
+                                   site_size_km=site.size_km, resolution_km=site.resolution_km)
+        detail, log_albedo = _site_detail(seed, k, axis, site.size_km, craters, boulders, site.cobble_cover)
+        patches.append(_Patch(spec=site, frame=frame, axis=axis, height=ground + weight * detail,
+                              albedo=ground_albedo * np.exp(weight * log_albedo), zero_band=zero_band,
+                              craters=craters, boulders=boulders))
+    if thin_to_km is not None:
+        patches = [p.thinned(thin_to_km) for p in patches]
+    truths = []
+    for k in range(len(patches)):
+        order = [p for j, p in enumerate(patches) if j != k] + [patches[k]]
+        truths.append(_compose(cut, order, seed=seed, params=params or {}, landforms=landforms or []))
+    return truths
 
-    craters = sample_craters(_rng(seed, "craters"), n=n_craters, site_size_km=site_size_km, resolution_km=resolution_km)
-    boulders = sample_boulders(_rng(seed, "boulders"), n=n_boulders, n_steep=steep_boulders,
-                               site_size_km=site_size_km, resolution_km=resolution_km)
-    detail, log_albedo = _site_detail(seed, axis, site_size_km, craters, boulders, cobble_cover)
-    height = ground + weight * detail
-    albedo = ground_albedo * np.exp(weight * log_albedo)
 
-    mesh = Mesh(np.vstack([cut.vertices, _grid_vertices(frame, axis, axis, height)]),
-                np.vstack([cut.faces, grid_faces(*height.shape) + len(cut.vertices)]),
-                np.concatenate([cut.albedo, albedo.ravel()]))
-    params = dict(site_lat_deg=site_lat_deg, site_lon_deg=site_lon_deg, site_size_km=site_size_km,
-                  resolution_km=resolution_km, seed=seed, base_edge_km=base_edge_km,
-                  global_roughness_km=global_roughness_km, n_craters=n_craters, n_boulders=n_boulders,
-                  steep_boulders=steep_boulders, cobble_cover=cobble_cover, margin_km=margin)
-    return Truth(mesh=mesh, site_frame=frame, site_size_km=site_size_km, x_km=axis, y_km=axis.copy(),
-                 height_km=height, eval_radius_km=site_size_km / 2, zero_band_km=zero_band, craters=craters,
-                 boulders=boulders, n_base_vertices=len(cut.vertices), n_base_faces=len(cut.faces), params=params)
+def _compose(cut: Mesh, patches: list[_Patch], *, seed: int, params: dict, landforms: list[Landform]) -> Truth:
+    """The Truth of the cut body with the patches stitched in, the last one its site."""
+    vertices, faces, albedo = [cut.vertices], [cut.faces], [cut.require_albedo()]
+    count = len(cut.vertices)
+    for patch in patches:
+        vertices.append(_grid_vertices(patch.frame, patch.axis, patch.axis, patch.height))
+        faces.append(grid_faces(len(patch.axis), len(patch.axis)) + count)
+        albedo.append(patch.albedo.ravel())
+        count += len(vertices[-1])
+    site = patches[-1]
+    spec = site.spec
+    params = dict(site_lat_deg=spec.lat_deg, site_lon_deg=spec.lon_deg, site_size_km=spec.size_km,
+                  resolution_km=spec.resolution_km, seed=seed, n_craters=spec.n_craters, n_boulders=spec.n_boulders,
+                  steep_boulders=spec.steep_boulders, cobble_cover=spec.cobble_cover, margin_km=spec.margin,
+                  **params)
+    return Truth(mesh=Mesh(np.vstack(vertices), np.vstack(faces), np.concatenate(albedo)), site_frame=site.frame,
+                 site_size_km=spec.size_km, x_km=site.axis, y_km=site.axis.copy(), height_km=site.height,
+                 eval_radius_km=spec.size_km / 2, zero_band_km=site.zero_band, craters=site.craters,
+                 boulders=site.boulders, n_base_vertices=count - len(site.axis) ** 2,
+                 n_base_faces=sum(len(f) for f in faces[:-1]), landforms=landforms, params=params)
 
 
 def low_pass_heights(truth: Truth, *, wavelength_km: float) -> np.ndarray:
@@ -448,7 +537,8 @@ def save(truth: Truth, directory: str | Path) -> None:
                 site_size_km=truth.site_size_km, eval_radius_km=truth.eval_radius_km,
                 zero_band_km=truth.zero_band_km, n_base_vertices=truth.n_base_vertices,
                 n_base_faces=truth.n_base_faces, craters=[asdict(c) for c in truth.craters],
-                boulders=[asdict(b) for b in truth.boulders], params=truth.params)
+                boulders=[asdict(b) for b in truth.boulders], params=truth.params,
+                landforms=[_landform_json(f) for f in truth.landforms])
     (d / "truth.json").write_text(json.dumps(meta, indent=1))
 
 
@@ -462,4 +552,16 @@ def load(directory: str | Path) -> Truth:
                  x_km=grid["x_km"], y_km=grid["y_km"], height_km=grid["height_km"],
                  eval_radius_km=meta["eval_radius_km"], zero_band_km=meta["zero_band_km"],
                  craters=[Crater(**c) for c in meta["craters"]], boulders=[Boulder(**b) for b in meta["boulders"]],
-                 n_base_vertices=meta["n_base_vertices"], n_base_faces=meta["n_base_faces"], params=meta["params"])
+                 n_base_vertices=meta["n_base_vertices"], n_base_faces=meta["n_base_faces"],
+                 landforms=[_landform(f) for f in meta.get("landforms", [])], params=meta["params"])
+
+
+def _landform_json(form: Landform) -> dict:
+    return {"origin_km": list(form.origin_km), "normal": list(form.normal),
+            "kind": "crater" if isinstance(form.shape, Crater) else "boulder", **asdict(form.shape)}
+
+
+def _landform(entry: dict) -> Landform:
+    fields = {k: v for k, v in entry.items() if k not in ("origin_km", "normal", "kind")}
+    shape = Crater(**fields) if entry["kind"] == "crater" else Boulder(**fields)
+    return Landform(origin_km=tuple(entry["origin_km"]), normal=tuple(entry["normal"]), shape=shape)

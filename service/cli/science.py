@@ -54,7 +54,8 @@ def _start_error(value: str) -> dict:
 def simulate(
     out: Path = typer.Argument(..., help="output directory (downlink/ and truth/ are written in it)"),
     scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-hard | site-polar | global-coarse "
-                                              "| global-tiny"),
+                                              "| global-tiny; or a campaign of downlinks in time order under "
+                                              "OUT/downlinks/: campaign | campaign-tiny"),
     seed: int = typer.Option(0, help="random seed: the same seed gives the same products"),
     knowledge_error: str | None = typer.Option(
         None, help="errors of the kernels' poses (the images are rendered from the truth). POS_M,POINT_RAD: "
@@ -77,31 +78,45 @@ def simulate(
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Simulate a mission downlink (PDS4 images, SPICE kernels, and with --with-start-model a start
-    model) from a truth asteroid; the options change the scenario's photometry, camera and
-    start-model error."""
+    model) from a truth asteroid, or a campaign's downlinks of one; the options change the
+    scenarios' photometry, camera and start-model error."""
     from pydantic import ValidationError
 
-    from pwm.simulate.campaign import simulate as run_simulation
-    from pwm.simulate.scenarios import Scenario, get_scenario
+    from pwm.simulate.campaign import simulate as run_simulation, simulate_campaign
+    from pwm.simulate.scenarios import CAMPAIGNS, Scenario, get_scenario
 
     setup_logging(verbose)
     errors = _knowledge_error(knowledge_error)
+    campaign = CAMPAIGNS.get(scenario)
     try:
-        sc = get_scenario(scenario)
+        parts = campaign.downlinks if campaign is not None else [get_scenario(scenario)]
     except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from None
+        raise typer.BadParameter(f"{exc}, or a campaign: {', '.join(CAMPAIGNS)}") from None
     changes: dict = {"photometry": photometry, "supersample": supersample}
     optics = {"psf_sigma_px": psf_px, "smear_px": smear_px, "flat_field_rms": flat_field}
-    changes["optics"] = {**sc.optics.model_dump(), **{k: v for k, v in optics.items() if v is not None}}
     if start_error is not None:
         changes |= _start_error(start_error)
+
+    def changed(sc: Scenario) -> Scenario:
+        fields = {**changes, "optics": {**sc.optics.model_dump(), **{k: v for k, v in optics.items() if v is not None}}}
+        return Scenario.model_validate({**sc.model_dump(), **{k: v for k, v in fields.items() if v is not None}})
+
     try:
-        sc = Scenario.model_validate({**sc.model_dump(), **{k: v for k, v in changes.items() if v is not None}})
+        parts = [changed(sc) for sc in parts]
     except ValidationError as exc:
         raise typer.BadParameter("; ".join(": ".join(filter(None, (".".join(map(str, e["loc"])), e["msg"])))
                                            for e in exc.errors())) from None
-    manifest = run_simulation(out, scenario=sc, seed=seed, knowledge=errors, with_start_model=with_start_model)
-    typer.echo(f"{manifest['image_count']} images, GSD {manifest['gsd_m']:.3f} m -> {out}")
+    if campaign is None:
+        manifest = run_simulation(out, scenario=parts[0], seed=seed, knowledge=errors,
+                                  with_start_model=with_start_model)
+        typer.echo(f"{manifest['image_count']} images, GSD {manifest['gsd_m']:.3f} m -> {out}")
+        return
+    campaign = campaign.model_copy(update={"survey": parts[0], "sites": tuple(parts[1:])})
+    summary = simulate_campaign(out, campaign=campaign, seed=seed, knowledge=errors,
+                                with_start_model=with_start_model)
+    for entry in summary["downlinks"]:
+        typer.echo(f"{entry['downlink']}: {entry['images']} images, GSD {entry['gsd_m']:.3f} m "
+                   f"({entry['scope']}; truth in {entry['truth']})")
 
 
 @app.command()
@@ -113,10 +128,13 @@ def evaluate(
     maplets: Path | None = typer.Option(None, exists=True, dir_okay=False,
                                         help="maplets.json of the `pwm refine` that made MODEL: the error at "
                                              "maplet edges too"),
+    scope: str | None = typer.Option(None, help="site (the site disc of a site downlink's truth) | global (the "
+                                                "whole body against a survey's truth); default: the truth's own"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
-    """Measure a model against the truth: ICP, RMS and median error, NCC/SSIM, boulder heights, the
-    error by wavelength band and where it lies (walls, rims, maplet edges, shadow, elsewhere)."""
+    """Measure a model against the truth: ICP, RMS and median error, NCC/SSIM, boulder heights;
+    for a site, the error by wavelength band and where it lies (walls, rims, maplet edges,
+    shadow, elsewhere); for the whole body, the coverage of the true surface."""
     from pwm.evaluate.report import evaluate as run_evaluation, format_table, maplet_footprints
 
     setup_logging(verbose)
@@ -127,7 +145,10 @@ def evaluate(
         except (ValueError, KeyError, TypeError) as exc:
             raise typer.BadParameter(f"{maplets}: not a maplets.json of pwm refine ({exc})",
                                      param_hint="--maplets") from None
-    result = run_evaluation(model, truth_dir=truth, plots_dir=plots, maplets=footprints)
+    try:
+        result = run_evaluation(model, truth_dir=truth, plots_dir=plots, maplets=footprints, scope=scope)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
     typer.echo(format_table(result))
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
