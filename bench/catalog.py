@@ -1,14 +1,17 @@
 """Benchmark the catalog: latency of the maplet-indexed queries (service.queries) on a
-mission-sized catalog in PostgreSQL, and the ingest rate of PDS4 products with SPICE geometry
-on SQLite and PostgreSQL. Prints two tables.
+mission-sized catalog in PostgreSQL, the ingest rate of PDS4 products with SPICE geometry on
+SQLite and PostgreSQL, and the ingest of a 30-image downlink with its coverage planning (tiling
+and weighing against the shape) into the mission-sized catalog. Prints three tables.
 
     .venv/bin/python bench/catalog.py [--images 100000] [--maplets 5000] [--per-image 20]
                                       [--calls 500] [--products 300] [--explain]
 
 The catalog: maplets from pwm.tiling on the bundled Bennu radar shape, images looking at random
 maplets from 0.7-4.5 km with their geometry, and coverage rows for the maplets nearest each
-image's aim point, bulk-loaded with COPY and analysed. Each timed call opens its own session, as
-an API request would. Targets: p95 < 50 ms per query, >= 50 products/s ingested.
+image's aim point, bulk-loaded with COPY and analysed; every image already weighed. Each timed
+call opens its own session, as an API request would. The downlink: `tiny`'s design with 30
+images (pwm.simulate), over the catalog's start model. Targets: p95 < 50 ms per query, >= 50
+products/s ingested, the 30-image downlink in < 60 s.
 
 The PostgreSQL server is the tests' throwaway cluster (the `postgres_server` fixture of
 tests/conftest.py, run as a context manager), and the products and kernels are those of
@@ -38,15 +41,19 @@ from sqlalchemy.orm import Session, sessionmaker
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from pwm.camera import Camera  # noqa: E402
 from pwm.config import DEFAULTS  # noqa: E402
 from pwm.frames import latlon_to_unit, unit_to_latlon  # noqa: E402
 from pwm.io.meshio import read_obj  # noqa: E402
 from pwm.io.spice_kernels import bundled_kernels, kernel_pool  # noqa: E402
 from pwm.maplets import MapletGrid  # noqa: E402
+from pwm.simulate.campaign import simulate  # noqa: E402
+from pwm.simulate.scenarios import get_scenario  # noqa: E402
 from pwm.tiling import tile  # noqa: E402
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
 from service.ingest import ingest_directory  # noqa: E402
 from service.queries import images_covering, list_maplets, maplet_coverage, maplets_seen_by  # noqa: E402
+from service.versions import import_model  # noqa: E402
 from tests import conftest as test_servers  # noqa: E402
 from tests.service import test_ingest  # noqa: E402
 
@@ -56,8 +63,11 @@ IFOV_RAD = 8.5e-3 / 125.20  # MapCam pixel pitch over focal length
 RANGE_KM = (0.7, 4.5)
 MAX_EMISSION_DEG = 45.0
 T0 = datetime(2019, 3, 4, tzinfo=UTC)
+ET0 = 605_016_069.18  # T0 in ephemeris seconds past J2000
 CAMPAIGN_S = 200 * 86400.0
 ROTATION_S = 4.296 * 3600.0  # Bennu's sidereal rotation period
+MAPCAM = Camera(width=1024, height=1024, fx=125.2 / 8.5e-3, fy=125.2 / 8.5e-3, cx=511.5, cy=511.5)
+MAPCAM_ID = -64361
 ROLE_AXES = {"east": (0, 1.0), "west": (0, -1.0), "north": (1, 1.0), "south": (1, -1.0),
              "nadir": (2, 1.0)}
 NEAR_RADIUS_KM = 0.01
@@ -149,12 +159,21 @@ def load_catalog(connection: psycopg.Connection, *, n_images: int, n_maplets: in
     start = [T0 + timedelta(seconds=float(s)) for s in seconds]
     lidvids = [f"urn:nasa:pds:orex.ocams:data_calibrated:bench{k:06d}::1.0"
                for k in range(n_images)]
+    _copy(connection, "instruments",
+          ["id", "naif_id", "name", "spacecraft_id", "frame_name", "width_px", "height_px", "fx_px",
+           "fy_px", "cx_px", "cy_px", "focal_length_source"],
+          [(1, MAPCAM_ID, "ORX_OCAMS_MAPCAM", -64, "ORX_OCAMS_MAPCAM", MAPCAM.width, MAPCAM.height,
+            MAPCAM.fx, MAPCAM.fx, MAPCAM.cx, MAPCAM.cy, "bench")])
     _copy(connection, "images",
           ["id", "lidvid", "lid", "vid", "label_path", "data_path", "sha256", "size_bytes",
-           "status", "geometry_status", "target", "start_utc", "stop_utc"],
+           "status", "geometry_status", "target", "start_utc", "stop_utc", "start_et", "stop_et", "instrument_id",
+           "window_first_line", "window_first_sample", "window_lines", "window_samples",
+           "coverage_computed_at"],
           ((k + 1, lidvids[k], lidvids[k].removesuffix("::1.0"), "1.0", f"bench{k:06d}.xml",
             f"bench{k:06d}.img", f"{k:064x}", 2_113_536, "accepted", "computed", "BENNU",
-            start[k], start[k] + timedelta(milliseconds=10)) for k in range(n_images)))
+            start[k], start[k] + timedelta(milliseconds=10), ET0 + seconds[k], ET0 + seconds[k] + 0.01, 1, 0, 0,
+            MAPCAM.height, MAPCAM.width, T0)
+           for k in range(n_images)))
     # pwm.camera.look_at with up = +Z, for all images at once
     boresight = -view
     x = _unit(np.cross(boresight, [0.0, 0.0, -1.0]))
@@ -162,15 +181,17 @@ def load_catalog(connection: psycopg.Connection, *, n_images: int, n_maplets: in
     phase = _acos_deg(np.einsum("ni,ni->n", sun, view))
     incidence = _acos_deg(np.einsum("ni,ni->n", sun, normal))
     emission = _acos_deg(np.einsum("ni,ni->n", view, normal))
+    half_angle = float(np.arctan(np.hypot(MAPCAM.width, MAPCAM.height) / 2 / MAPCAM.fx))
     _copy(connection, "image_geometry",
           ["image_id", "camera_x_km", "camera_y_km", "camera_z_km", "camera_rotation", "sun_x",
            "sun_y", "sun_z", "range_km", "intercept_range_km", "pixel_scale_m", "phase_deg",
            "incidence_deg", "emission_deg", "intercept_lat_deg", "intercept_lon_deg",
+           "cone_axis_x", "cone_axis_y", "cone_axis_z", "cone_half_angle_rad",
            "body_frame", "abcorr", "computed_at"],
           ((k + 1, *camera[k].tolist(), json.dumps(rotation[k].tolist()), *sun[k].tolist(),
             float(np.linalg.norm(camera[k])), distance_km[k], distance_km[k] * IFOV_RAD * 1e3,
-            phase[k], incidence[k], emission[k], lat[aim[k]], lon[aim[k]], "IAU_BENNU", "LT+S",
-            T0) for k in range(n_images)))
+            phase[k], incidence[k], emission[k], lat[aim[k]], lon[aim[k]], *boresight[k].tolist(),
+            half_angle, "IAU_BENNU", "LT+S", T0) for k in range(n_images)))
 
     # Coverage: the maplets nearest each aim point, with their own angles.
     _, nearest = cKDTree(origins).query(origins[aim], k=per_image)
@@ -206,6 +227,9 @@ def load_catalog(connection: psycopg.Connection, *, n_images: int, n_maplets: in
     connection.execute(
         "UPDATE coverage SET role = r.role FROM unnest(%s::int[], %s::text[]) AS r(id, role)"
         " WHERE coverage.id = r.id", [list(roles), list(roles.values())])
+    # rows added later (the downlink's) take ids after those copied in
+    for table in ("instruments", "images", "maplets", "coverage"):
+        connection.execute(f"SELECT setval(pg_get_serial_sequence('{table}', 'id'), (SELECT max(id) FROM {table}))")
     connection.execute("VACUUM ANALYZE")
     return {"maplets": names, "lidvids": lidvids}
 
@@ -320,6 +344,29 @@ def ingest_rate(url: str, kernel_dir: Path, product_dir: Path) -> tuple[int, flo
     return report.images.accepted, elapsed
 
 
+def downlink_into_catalog(url: str, root: Path) -> dict:
+    """Seconds and figures of ingesting a simulated 30-image downlink, with its coverage planning
+    against the catalog's start model, into the catalog at `url` (which gets that model first)."""
+    scenario = get_scenario("tiny").model_copy(update={"name": "bench-30", "n_azimuths": 28, "n_validation": 0})
+    simulate(root / "sim", scenario=scenario, seed=3, with_start_model=True)
+    downlink = root / "sim" / "downlink"
+    shape = read_obj(downlink / "start_model.obj")
+    engine = make_engine(url)
+    sessions = make_sessionmaker(engine)
+    try:
+        with sessions.begin() as session:
+            import_model(session, data_dir=root / "data", path=downlink / "start_model.obj")
+        clock = time.perf_counter()
+        report = ingest_directory(sessions, downlink, shape=shape)
+        elapsed = time.perf_counter() - clock
+    finally:
+        engine.dispose()
+    if report.failed or report.images.accepted != scenario.n_images or report.coverage is None:
+        raise RuntimeError(f"ingest went wrong: {report.summary()}")
+    return {"images": report.images.accepted, "seconds": elapsed, "tiled": report.coverage.maplets_added,
+            "weighed": report.coverage.maplets_weighed, "rows": report.coverage.rows_added}
+
+
 # ---------------------------------------------------------------------------------------------
 
 
@@ -371,6 +418,7 @@ def main() -> None:
             seconds, sizes = time_calls(sessions, call, arguments)
             rows.append((name, *percentiles_ms(seconds), float(np.mean(sizes))))
         engine.dispose()
+        downlink = downlink_into_catalog(url, Path(tmp))
         # Timings stretch when other work shares the cores: print the load beside them.
         print(f"\nPostgreSQL, {args.calls} random calls each (target p95 < 50 ms), "
               f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
@@ -387,6 +435,11 @@ def main() -> None:
     print(f"{'database':<12}{'products':>10}{'seconds':>10}{'products/s':>12}")
     for name, products, seconds in rates:
         print(f"{name:<12}{products:>10}{seconds:>10.2f}{products / seconds:>12.1f}")
+    print(f"\nA downlink into the catalog of {counts['images']} images and {counts['maplets']} maplets "
+          "(PostgreSQL; ingest, tiling and weighing; target < 60 s)")
+    print(f"{'images':>8}{'seconds':>10}{'maplets tiled':>15}{'weighed':>9}{'rows added':>12}")
+    print(f"{downlink['images']:>8}{downlink['seconds']:>10.2f}{downlink['tiled']:>15}{downlink['weighed']:>9}"
+          f"{downlink['rows']:>12}")
 
 
 if __name__ == "__main__":

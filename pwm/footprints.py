@@ -25,13 +25,15 @@ from scipy.spatial import cKDTree
 
 from pwm.camera import project
 from pwm.raytrace import RayTracer
-from pwm.views import View
+from pwm.views import Cones, View
 from pwm.weights import Rules
 
 FOOTPRINT_SAMPLES = 48
 """Rays per side of an image's pixel grid that sample its footprint, at most ..."""
 SAMPLE_PX = 8
 """... and at least this many pixels apart (a small detector window gets few)."""
+CELLS_PER_SIDE = 16
+"""Cells along the longest extent of the samples, by which judges choose what they may see."""
 
 
 @dataclass(frozen=True)
@@ -56,33 +58,71 @@ class Seen:
     pixel_km: np.ndarray
 
 
+@dataclass(frozen=True)
+class Samples:
+    """Surface samples (N, 3) of footprints and the shape's unit normals there (N, 3)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+
+    def cells(self) -> tuple[np.ndarray, float, np.ndarray]:
+        """The samples binned into cubes, CELLS_PER_SIDE along their longest extent: the cubes'
+        centres (C, 3), the radius of the ball about each that holds its cube (km), and each
+        sample's cube (N,) -- to choose the views that may see them by their cones."""
+        if not len(self.points):
+            return np.empty((0, 3)), 0.0, np.empty(0, dtype=np.int64)
+        low = self.points.min(axis=0)
+        side = max(float(np.ptp(self.points, axis=0).max()) / CELLS_PER_SIDE, 1e-9)
+        # the farthest samples lie on the last cubes' far faces, not in cubes beyond
+        index = np.minimum(np.floor((self.points - low) / side), CELLS_PER_SIDE - 1).astype(np.int64)
+        keys, inverse = np.unique(index, axis=0, return_inverse=True)
+        return low + (keys + 0.5) * side, 0.5 * np.sqrt(3.0) * side, inverse.reshape(-1)
+
+
 def seen_samples(tracer: RayTracer, views: Sequence[View], *, judged_by: Sequence[View] | None = None,
                  rules: Rules, min_images: int) -> Seen:
     """The samples of the views' footprints on the shape that at least min_images of the views
     `judged_by` (by default the same) see usably (see the module docstring)."""
-    judges = views if judged_by is None else judged_by
+    return judge_samples(tracer, footprint_samples(tracer, views), views if judged_by is None else judged_by,
+                         rules=rules, min_images=min_images)
+
+
+def footprint_samples(tracer: RayTracer, views: Sequence[View]) -> Samples:
+    """The views' footprints on the shape, sampled by rays (see the module docstring)."""
     sampled = [_footprint(tracer, v) for v in views]
     if not sum(len(p) for p, _ in sampled):
+        return Samples(np.empty((0, 3)), np.empty((0, 3)))
+    return Samples(*_once(sampled))
+
+
+def judge_samples(tracer: RayTracer, samples: Samples, judges: Sequence[View], *, rules: Rules,
+                  min_images: int) -> Seen:
+    """The samples that at least min_images of the judges see usably, with the median pixel
+    scale there. Each judge looks only at the cells of samples its cone meets (pwm.views.Cones),
+    so that a catalog of many images judges a downlink's footprints in proportion to the images
+    that look there."""
+    points, normals = samples.points, samples.normals
+    if not len(points):
         return Seen(np.empty((0, 3)), np.empty(0))
-    points, normals = _once(sampled)
+    centres, radius, cell = samples.cells()
+    in_cone = Cones.of(judges).seeing(centres, radius) if judges else np.zeros((0, len(centres)), bool)
     lifted = points + tracer.offset * normals
     pixel = np.full((len(judges), len(points)), np.nan)
     cos_emission = np.cos(np.radians(rules.max_emission_deg))
     cos_lit = np.cos(np.radians(rules.incidence_zero_deg))
     for k, view in enumerate(judges):
-        to_camera = view.pose.position - points
+        idx = np.flatnonzero(in_cone[k][cell])
+        to_camera = view.pose.position - points[idx]
         distance = np.linalg.norm(to_camera, axis=1)
         to_camera /= distance[:, None]
-        usable = (np.einsum("ij,ij->i", normals, to_camera) >= cos_emission) & (normals @ view.sun > cos_lit)
-        ahead = usable & (view.pose.to_camera(points)[:, 2] > 0)
-        px = np.full((len(points), 2), -1.0)
-        px[ahead] = project(points[ahead], view.camera, view.pose)
-        usable = ahead & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0) & (
-            px[:, 1] <= view.camera.height - 1)
-        idx = np.flatnonzero(usable)
-        blocked = tracer.occluded(lifted[idx], to_camera[idx], distance[idx])
-        idx = idx[~blocked]
-        pixel[k, idx] = distance[idx] / view.camera.fx
+        usable = (np.einsum("ij,ij->i", normals[idx], to_camera) >= cos_emission) & (normals[idx] @ view.sun > cos_lit)
+        usable &= view.pose.to_camera(points[idx])[:, 2] > 0
+        px = project(points[idx[usable]], view.camera, view.pose)
+        usable[usable] = ((px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0)
+                          & (px[:, 1] <= view.camera.height - 1))
+        idx, to_camera, distance = idx[usable], to_camera[usable], distance[usable]
+        blocked = tracer.occluded(lifted[idx], to_camera, distance)
+        pixel[k, idx[~blocked]] = distance[~blocked] / view.camera.fx
     enough = np.isfinite(pixel).sum(axis=0) >= min_images
     return Seen(points[enough], np.nanmedian(pixel[:, enough], axis=0) if enough.any() else np.empty(0))
 

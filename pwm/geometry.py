@@ -93,6 +93,18 @@ class ViewGeometry:
     intercept_lat_deg: float | None
     intercept_lon_deg: float | None
     footprint: list[tuple[float, float] | None]
+    cone_axis: np.ndarray
+    cone_half_angle_rad: float
+
+
+def view_cone(camera: Camera, pose: Pose) -> tuple[np.ndarray, float]:
+    """The cone that holds every ray of the array, apex at the camera: its body-fixed unit axis
+    through the array's centre, and the half-angle (rad) to the farthest outer corner."""
+    centre = camera.pixel_directions(np.array((camera.width - 1) / 2), np.array((camera.height - 1) / 2))
+    corners = image_corners(camera)
+    rays = camera.pixel_directions(corners[:, 0], corners[:, 1])
+    half = float(np.max(np.arccos(np.clip(rays @ centre, -1.0, 1.0))))
+    return pose.to_body_directions(centre), half
 
 
 def image_corners(camera: Camera) -> np.ndarray:
@@ -124,9 +136,10 @@ def view_geometry(*, pose: Pose, sun: np.ndarray, camera: Camera, surface: Surfa
     latlon = np.column_stack([lat, lon]).tolist()
     missed = np.isnan(points).any(axis=1)
     footprint = [None if m else (lat, lon) for m, (lat, lon) in zip(missed[1:], latlon[1:], strict=True)]
+    axis, half = view_cone(camera, pose)
     base: dict[str, Any] = dict(position_km=np.asarray(pose.position, float), rotation=np.asarray(pose.rotation),
                                 sun=np.asarray(sun, float), range_km=float(np.linalg.norm(pose.position)),
-                                footprint=footprint)
+                                footprint=footprint, cone_axis=axis, cone_half_angle_rad=half)
     if missed[0]:
         return ViewGeometry(**base, intercept_range_km=None, pixel_scale_m=None, phase_deg=None,
                             incidence_deg=None, emission_deg=None, intercept_lat_deg=None,

@@ -30,20 +30,23 @@ from sqlalchemy.orm import Session
 
 from pwm.camera import project
 from pwm.config import DEFAULTS, RefinementConfig
-from pwm.footprints import places, seen_samples
+from pwm.footprints import Samples, footprint_samples, judge_samples, places
 from pwm.frames import LocalFrame, unit_to_latlon
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.pipeline import views_over_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_heights, tile
-from pwm.views import View
+from pwm.views import Cones, View
 from pwm.weights import weigh_maplet
 from service.models import Coverage, CoverageRole, Image, Maplet, utcnow
-from service.views import catalog_views
+from service.views import catalog_cones, catalog_views
 
 log = logging.getLogger(__name__)
 
+FACING_COS = -0.5
+"""Cameras more than 120 deg from a maplet's normal, seen from its origin, cannot see it (its
+relief and its curvature allowed for): they look at the other side of the body."""
 SAMPLE_NODES = 25
 """Nodes per side on which visibility is traced: enough for the fractions, fast for the catalog."""
 
@@ -78,42 +81,88 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     `downlink_id` (all such images when None); their coverage_computed_at is set. config: how
     maplets are tiled here (nodes, overlap, spacing in the images' median pixel scale, tile
     radius) and weighed (rules); sample_nodes: nodes per side on which visibility is traced.
+
+    The work grows with the new images and the maplets and images about them, not with the
+    catalog: the catalogued images are chosen by their stored cones (service.views.catalog_cones)
+    and made views of only when their cone meets a place in question.
     """
     report = CoverageReport()
-    views = catalog_views(session)
-    new = {i for i, d in session.execute(select(Image.id, Image.downlink_id))
-           if i in views and (downlink_id is None or d == downlink_id)
-           and (image_ids is None or i in image_ids)}
-    if not new:
+    ids, cones = catalog_cones(session)
+    query = select(Image.id)
+    if downlink_id is not None:
+        query = query.where(Image.downlink_id == downlink_id)
+    if image_ids is not None:
+        query = query.where(Image.id.in_(list(image_ids)))
+    wanted = set(session.scalars(query)).intersection(ids.tolist())
+    if not wanted:
         return report
+    views = _Views(session, ids, cones)
+    new = views.get(sorted(wanted))
     tracer = RayTracer(shape)
-    report.maplets_added = _tile_seen(session, tracer, [views[i] for i in sorted(new)], list(views.values()),
-                                      config=config)
-    ids = sorted(views)
-    for maplet in session.scalars(select(Maplet).order_by(Maplet.id)).all():
+    report.maplets_added = _tile_seen(session, tracer, new, views, config=config)
+    rows = session.execute(select(Maplet.id, Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
+                                  Maplet.size_km).order_by(Maplet.id)).all()
+    if rows:
+        table = np.array([row[1:] for row in rows], float)
+        # a maplet's square lies within its half-diagonal of its origin, its relief within a side
+        balls = table[:, :3], np.sqrt(1.5) * table[:, 3]
+        candidates = np.flatnonzero(Cones.of(new).seeing(*balls).any(axis=0))
+    else:
+        candidates = np.empty(0, dtype=np.int64)
+    for m in candidates.tolist():
+        maplet = session.get_one(Maplet, rows[m][0])
         grid = _subsample(maplet, tracer, sample_nodes)
-        points = grid.nodes_body().reshape(-1, 3)
-        seen = [i for i in ids if _may_see(points, views[i])]
-        if not new.intersection(seen):
+        corners = _box(grid.nodes_body().reshape(-1, 3))
+        # none of the new images sees it: it stays as it was
+        if not any(_facing(grid, v.pose.position[None])[0] and _may_see(corners, v) for v in new):
+            continue
+        # a cone passes through the body: the cameras on the side the maplet faces
+        facing = _facing(grid, cones.apex)
+        near = views.get(ids[cones.seeing(balls[0][m], balls[1][m])[:, 0] & facing].tolist())
+        seen = [v for v in near if _may_see(corners, v)]
+        if not wanted.intersection(views.id_of[v.name] for v in seen):
             continue
         report.maplets_weighed += 1
-        _store(session, maplet, grid, seen, [views[i] for i in seen], tracer, report, config=config)
-    session.execute(update(Image).where(Image.id.in_(sorted(new))).values(
+        _store(session, maplet, grid, [views.id_of[v.name] for v in seen], seen, tracer, report, config=config)
+    session.execute(update(Image).where(Image.id.in_(sorted(wanted))).values(
         coverage_computed_at=utcnow()))
     session.flush()
-    log.info("coverage: %d maplets tiled, %d weighed; rows %d added, %d updated, %d deleted",
-             report.maplets_added, report.maplets_weighed, report.rows_added, report.rows_updated,
-             report.rows_deleted)
+    log.info("coverage: %d maplets tiled, %d weighed of %d catalogued; rows %d added, %d updated, %d deleted; "
+             "%d of %d images made views", report.maplets_added, report.maplets_weighed, len(rows),
+             report.rows_added, report.rows_updated, report.rows_deleted, len(views.made), len(ids))
     return report
 
 
-def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: list[View], *,
+class _Views:
+    """The catalogued images as views, made once each and only when asked for."""
+
+    def __init__(self, session: Session, ids: np.ndarray, cones: Cones) -> None:
+        self.session, self.ids, self.cones = session, ids, cones
+        self.made: dict[int, View] = {}
+        self.id_of: dict[str, int] = {}
+
+    def get(self, image_ids: Sequence[int]) -> list[View]:
+        missing = [i for i in image_ids if i not in self.made]
+        if missing:
+            for i, view in catalog_views(self.session, image_ids=missing).items():
+                self.made[i] = view
+                self.id_of[view.name] = i
+        return [self.made[i] for i in image_ids]
+
+    def seeing(self, samples: Samples) -> list[View]:
+        """The views whose cones meet a cell of the samples."""
+        centres, radius, _ = samples.cells()
+        return self.get(self.ids[self.cones.seeing(centres, radius).any(axis=1)].tolist())
+
+
+def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Views, *,
                config: RefinementConfig) -> int:
     """Tile and store the places that the new views look at, that enough catalogued views see
     usably (pwm.footprints), and that no catalogued maplet covers yet, each at the spacing its
     images support (within config.tile_radius_km of each place's centre, if given); the number of
     maplets added."""
-    seen = seen_samples(tracer, new, judged_by=views, rules=config.rules, min_images=config.min_images)
+    samples = footprint_samples(tracer, new)
+    seen = judge_samples(tracer, samples, views.seeing(samples), rules=config.rules, min_images=config.min_images)
     added: list[MapletGrid] = []
     catalogued = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
                                         Maplet.rotation, Maplet.size_km)).all()
@@ -175,13 +224,27 @@ def _subsample(maplet: Maplet, tracer: RayTracer, sample_nodes: int) -> MapletGr
     return grid
 
 
+def _facing(grid: MapletGrid, cameras_km: np.ndarray) -> np.ndarray:
+    """Which cameras (N, 3) lie on the side of the body the maplet faces (FACING_COS)."""
+    to_camera = cameras_km - grid.frame.origin
+    return to_camera @ grid.frame.normal > FACING_COS * np.linalg.norm(to_camera, axis=1)
+
+
+def _box(points: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) of the axis-aligned box of the points: whatever of the points a
+    camera sees ahead of it projects within what the corners do."""
+    low, high = np.nanmin(points, axis=0), np.nanmax(points, axis=0)
+    return np.array([[(low, high)[i][0], (low, high)[j][1], (low, high)[k][2]]
+                     for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
 def _may_see(points: np.ndarray, view: View) -> bool:
-    """Whether the image's frame meets the box of the points (body-fixed, km) in front of it,
-    projected: a cheap test before any ray is traced."""
+    """Whether the image's frame meets the box of the points (body-fixed, km) projected, when all
+    are in front of it: a cheap test before any ray is traced."""
     ahead = view.pose.to_camera(points)[:, 2] > 0
-    if not ahead.any():
-        return False
-    px = project(points[ahead], view.camera, view.pose)
+    if not ahead.all():  # about the camera's plane: let the ray tracing judge
+        return bool(ahead.any())
+    px = project(points, view.camera, view.pose)
     return bool(px[:, 0].max() >= 0 and px[:, 0].min() <= view.camera.width - 1
                 and px[:, 1].max() >= 0 and px[:, 1].min() <= view.camera.height - 1)
 

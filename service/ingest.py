@@ -665,6 +665,9 @@ def _apply(image: Image, identity: _Identity, label: Path, outcome: _Outcome) ->
     image.start_utc, image.stop_utc, image.start_et, image.stop_et = (
         outcome.times or (None, None, None, None))
     image.instrument_id = outcome.instrument_id
+    if product is not None:
+        image.window_first_line, image.window_first_sample = product.first_line, product.first_sample
+        image.window_lines, image.window_samples = product.lines, product.samples
     image.status, image.rejection_code = outcome.status, outcome.code
     image.rejection_reason = outcome.reason
     image.geometry_status = outcome.geometry_status
@@ -796,4 +799,6 @@ def _geometry_row(view: ViewGeometry, body_frame: str) -> ImageGeometry:
         emission_deg=view.emission_deg, intercept_lat_deg=view.intercept_lat_deg,
         intercept_lon_deg=view.intercept_lon_deg,
         footprint=[None if c is None else list(c) for c in view.footprint],
+        cone_axis_x=float(view.cone_axis[0]), cone_axis_y=float(view.cone_axis[1]),
+        cone_axis_z=float(view.cone_axis[2]), cone_half_angle_rad=view.cone_half_angle_rad,
         body_frame=body_frame, abcorr=ABCORR)

@@ -349,6 +349,21 @@ class Image(Base):
             return None
         return PoseSigma(**self.pose_sigma["prior"]), PoseSigma(**self.pose_sigma["posterior"])
 
+    # The detector window of the array (zero-based first line and sample, size), as the label
+    # gives it; null for images catalogued before it was kept (their label is read instead).
+    window_first_line: Mapped[int | None]
+    window_first_sample: Mapped[int | None]
+    window_lines: Mapped[int | None]
+    window_samples: Mapped[int | None]
+
+    def window(self) -> tuple[int, int, int, int] | None:
+        """(first_line, first_sample, lines, samples) of the array, or None when not kept."""
+        values = (self.window_first_line, self.window_first_sample, self.window_lines, self.window_samples)
+        if any(v is None for v in values):
+            return None
+        first_line, first_sample, lines, samples = (int(v) for v in values if v is not None)
+        return first_line, first_sample, lines, samples
+
     # When the image was weighed into the coverage rows of the maplets it sees (null: not yet).
     # An ingest with a shape weighs the images not yet weighed; clear it to have one weighed again.
     coverage_computed_at: Mapped[datetime | None]
@@ -394,6 +409,13 @@ class ImageGeometry(Base):
     # first line first sample, first line last sample, last line last sample, last line first
     # sample); null for a corner whose ray misses the body.
     footprint: Mapped[list[Any] | None]
+    # The cone that holds what the array can see (pwm.views.Cones): unit body-fixed axis through
+    # the array's centre and half-angle to its farthest corner, apex at the camera; null before
+    # it was kept (such an image may see anything).
+    cone_axis_x: Mapped[float | None]
+    cone_axis_y: Mapped[float | None]
+    cone_axis_z: Mapped[float | None]
+    cone_half_angle_rad: Mapped[float | None]
     body_frame: Mapped[str] = mapped_column(String(64))
     abcorr: Mapped[str] = mapped_column(String(16))
     computed_at: Mapped[datetime] = mapped_column(default=utcnow)

@@ -16,8 +16,8 @@ from sqlalchemy.orm import Session, selectinload
 
 from pwm.camera import Camera, Pose
 from pwm.io.pds4 import read_array, read_image_label
-from pwm.views import View
-from service.models import GeometryStatus, Image, ImageStatus
+from pwm.views import Cones, View
+from service.models import GeometryStatus, Image, ImageGeometry, ImageStatus
 from service.settings import get_settings
 
 
@@ -46,22 +46,42 @@ def catalog_views(session: Session, *, image_ids: Collection[int] | None = None,
     return {image.id: image_view(image, pixels=pixels) for image in session.scalars(query)}
 
 
+def catalog_cones(session: Session) -> tuple[np.ndarray, Cones]:
+    """The ids (N,) of the accepted images with geometry and their stored cones (pwm.views.Cones;
+    nan half-angle where none was stored), in one query of plain columns: what coverage planning
+    selects images by, for a catalog of any size."""
+    g = ImageGeometry
+    rows = session.execute(select(
+        Image.id, g.camera_x_km, g.camera_y_km, g.camera_z_km, g.cone_axis_x, g.cone_axis_y, g.cone_axis_z,
+        g.cone_half_angle_rad).join(g, g.image_id == Image.id).where(
+        Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED,
+        Image.instrument_id.is_not(None)).order_by(Image.id)).all()
+    table = np.array([[np.nan if v is None else v for v in row] for row in rows], float).reshape(-1, 8)
+    axis = np.nan_to_num(table[:, 4:7], nan=0.0)
+    axis[~np.isfinite(table[:, 7])] = (0.0, 0.0, 1.0)
+    return table[:, 0].astype(np.int64), Cones(apex=table[:, 1:4], axis=axis, half_angle=table[:, 7])
+
+
 def image_view(image: Image, *, pixels: bool = False) -> View:
     """One catalogued image (accepted, with geometry) as a view; see `catalog_views`."""
     g, inst = image.geometry, image.instrument
     if g is None or inst is None or image.start_et is None or image.stop_et is None:
         raise ValueError(f"image {image.lidvid} lacks its geometry, instrument or times")
-    # The catalog keeps the detector, not the array's window: the label gives it. Read within
-    # the limits ingest accepted it under; the array only when asked for.
-    limits = get_settings().ingest_limits()
-    label = read_image_label(Path(image.label_path), max_label_bytes=limits.max_label_bytes,
-                             max_pixels=limits.max_pixels)
-    product = read_array(label) if pixels else None
+    # The label is read for the array, or for the window of an image catalogued before the
+    # window was kept; within the limits ingest accepted it under.
+    window = image.window()
+    data = None
+    if pixels or window is None:
+        limits = get_settings().ingest_limits()
+        label = read_image_label(Path(image.label_path), max_label_bytes=limits.max_label_bytes,
+                                 max_pixels=limits.max_pixels)
+        window = (label.first_line, label.first_sample, label.lines, label.samples)
+        data = read_array(label).data if pixels else None
+    first_line, first_sample, lines, samples = window
     camera = Camera(width=inst.width_px, height=inst.height_px, fx=inst.fx_px, fy=inst.fy_px,
                     cx=inst.cx_px, cy=inst.cy_px).subframe(
-        first_sample=label.first_sample, first_line=label.first_line,
-        samples=label.samples, lines=label.lines)
+        first_sample=first_sample, first_line=first_line, samples=samples, lines=lines)
     sun = np.array([g.sun_x, g.sun_y, g.sun_z])
-    return View(name=image.lidvid, image=np.empty((0, 0)) if product is None else product.data,
+    return View(name=image.lidvid, image=np.empty((0, 0)) if data is None else data,
                 camera=camera, pose=image_pose(image), sun=sun / np.linalg.norm(sun),
                 et=0.5 * (image.start_et + image.stop_et))

@@ -78,7 +78,8 @@ def test_two_sites_are_one_surface_and_the_first_is_what_a_lone_site_draws():
     site_b = SiteSpec(lat_deg=-30.0, lon_deg=200.0, size_km=0.01, resolution_km=5e-4, n_craters=1, n_boulders=3,
                       steep_boulders=1)
     body = build_base(base, base_edge_km=0.008, seed=4)
-    a, b = stitch_sites(body, [site_a, site_b], seed=4)
+    stitched = stitch_sites(body, [site_a, site_b], seed=4)
+    a, b = stitched.truth(0), stitched.truth(1)
     lone = build_truth(base=base, site_lat_deg=10.0, site_lon_deg=40.0, site_size_km=0.01, resolution_km=5e-4,
                        seed=4, base_edge_km=0.008, n_craters=1, n_boulders=3, steep_boulders=1)
     np.testing.assert_array_equal(a.height_km, lone.height_km)

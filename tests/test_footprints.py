@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from pwm.camera import Camera, look_at
-from pwm.footprints import places, seen_samples
+from pwm import footprints
+from pwm.camera import Camera, look_at, project
+from pwm.footprints import footprint_samples, judge_samples, places, seen_samples
 from pwm.frames import latlon_to_unit, unit_to_latlon
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
-from pwm.views import View
+from pwm.views import Cones, View
 from pwm.weights import RULES
 
 R = 0.25
@@ -95,3 +96,43 @@ def test_a_survey_is_one_place_round_the_body(tracer):
     assert len(found) == 1
     lat, lon = unit_to_latlon(found[0].points)
     assert np.ptp(lon) > 300.0 and lat.min() < -45.0 and lat.max() > 45.0
+
+
+def test_a_cone_holds_all_that_its_view_sees_and_little_else():
+    camera = Camera(width=320, height=200, fx=1000.0, fy=1000.0, cx=200.0, cy=90.0)  # off-centre window
+    pose = look_at(np.array([1.0, 0.5, 0.3]), np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
+    view = View(name="a", image=np.empty((0, 0)), camera=camera, pose=pose, sun=np.array([1.0, 0, 0]), et=0.0)
+    cones = Cones.of([view])
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-0.6, 0.6, (20000, 3))
+    ahead = pose.to_camera(points)[:, 2] > 0
+    px = np.full((len(points), 2), -1e9)
+    px[ahead] = project(points[ahead], camera, pose)
+    framed = ahead & (px[:, 0] >= -0.5) & (px[:, 0] <= 319.5) & (px[:, 1] >= -0.5) & (px[:, 1] <= 199.5)
+    inside = cones.seeing(points, 0.0)[0]
+    assert framed.sum() > 100 and inside[framed].all()
+    # the cone is the frame's circumscribed one, plus a small margin: it holds few points beyond
+    assert inside.sum() < 3 * framed.sum()
+    assert not inside[~ahead].any()
+    # a ball reaching into the cone counts; an unknown cone holds everything
+    off = points[~inside][0]
+    assert cones.seeing(off[None], np.linalg.norm(off - pose.position))[0, 0]
+    unknown = Cones(apex=cones.apex, axis=cones.axis, half_angle=np.array([np.nan]))
+    assert unknown.seeing(points, 0.0).all()
+
+
+def test_judging_by_cells_changes_nothing_but_the_work(tracer, monkeypatch):
+    """Each judge looks only at the cells its cone meets: the same samples are seen as when every
+    judge looks at every sample (one cell holding them all)."""
+    site = views_of(10.0, 40.0, 1.0, [(0, 0), (5, 0), (0, 5), (-5, 0), (0, -5)], "site")
+    elsewhere = views_of(-30.0, 200.0, 1.0, [(0, 0), (5, 0), (0, 5)], "far")
+    survey = views_of(0.0, 100.0, 3.0, [(0, 0), (20, 0), (0, 20), (-20, 0)], "wide")
+    judges = site + elsewhere + survey
+    samples = footprint_samples(tracer, site + survey)
+    judged = judge_samples(tracer, samples, judges, rules=RULES, min_images=2)
+    monkeypatch.setattr(footprints, "CELLS_PER_SIDE", 1)
+    assert len(samples.cells()[0]) == 1
+    everything = judge_samples(tracer, samples, judges, rules=RULES, min_images=2)
+    assert len(judged.points) > 100
+    np.testing.assert_array_equal(judged.points, everything.points)
+    np.testing.assert_array_equal(judged.pixel_km, everything.pixel_km)

@@ -70,8 +70,8 @@ def write_ply(path: str | Path, mesh: Mesh) -> None:
     header += [f"element face {m}", "property list uchar int vertex_indices", "end_header"]
     with open(path, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
-        fh.write(vert.tobytes())
-        fh.write(face.tobytes())
+        vert.tofile(fh)
+        face.tofile(fh)
 
 
 _PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",

@@ -120,20 +120,21 @@ def simulate_campaign(out: str | Path, *, campaign: Campaign, seed: int = 0, kno
     body = apply_landforms(body, landforms)
     params = dict(base_edge_km=survey.base_edge_km, global_roughness_km=survey.global_roughness_km,
                   campaign=campaign.name)
-    truths = stitch_sites(body, sites, seed=seed, params=params, landforms=landforms)
-    thin = stitch_sites(body, sites, seed=seed, params=params, landforms=landforms,
-                        thin_to_km=survey.base_edge_km)[0]
-    log.info("truth: %d vertices, %d faces (%.1f s)", len(truths[0].mesh.vertices), len(truths[0].mesh.faces),
-             time.perf_counter() - clock)
+    stitched = stitch_sites(body, sites, seed=seed, params=params, landforms=landforms)
+    del body
+    log.info("truth built (%.1f s)", time.perf_counter() - clock)
     entries = []
     for k, scenario in enumerate(campaign.downlinks):
         name = f"{k + 1}-{scenario.name}"
-        start = (start_model(thin, scenario=scenario, base=base, seed=seed)
-                 if with_start_model and scenario.global_views else None)
         # every downlink's images come from the full truth; the survey's is judged on the thinned one
-        manifest = _downlink(out / "downlinks" / name, out / "truth" / name, scenario=scenario,
-                             truth=truths[max(k - 1, 0)], saved=thin if k == 0 else None, seed=seed,
-                             knowledge=knowledge, start=start, rng=np.random.default_rng([seed, CAMPAIGN_STREAM, k]))
+        truth = stitched.truth(max(k - 1, 0))
+        thin = stitched.truth(0, thin_to_km=survey.base_edge_km) if k == 0 else None
+        start = (start_model(thin, scenario=scenario, base=base, seed=seed)
+                 if with_start_model and thin is not None else None)
+        manifest = _downlink(out / "downlinks" / name, out / "truth" / name, scenario=scenario, truth=truth,
+                             saved=thin, seed=seed, knowledge=knowledge, start=start,
+                             rng=np.random.default_rng([seed, CAMPAIGN_STREAM, k]))
+        del truth, thin
         entries.append({"name": name, "downlink": f"downlinks/{name}", "truth": f"truth/{name}",
                         "scope": "global" if scenario.global_views else "site", "images": manifest["image_count"],
                         "gsd_m": manifest["gsd_m"], "start_utc": scenario.start_utc})
@@ -184,6 +185,7 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
         sp.furnsh(str(sun_spk))
         observations, validation = _plan(scenario, truth=truth, camera=detector, start_et=start_et,
                                          campaign_s=campaign_s, rng=rng)
+        _apart(observations + validation)
         for obs in observations + validation:
             # on the millisecond grid of the labels' UTC times, so that mid-exposure is exact
             obs.et = sp.utc2et(sp.et2utc(obs.et, "ISOC", 3))
@@ -332,6 +334,16 @@ def _plan(scenario: Scenario, *, truth: Truth, camera: Camera, start_et: float, 
                                 max(scenario.n_validation, 1)))
     return (plan_site(start_et=start_et, views=views, incidences_deg=scenario.incidences_deg, prefix="img", **kw),
             plan_site(start_et=start_et + 0.41 * 86400.0, views=val_views, incidences_deg=val_inc, prefix="val", **kw))
+
+
+def _apart(observations: list[Observation]) -> None:
+    """Move any image planned within two kernel windows of the one before it (an image and a
+    held-out view may seek the same Sun in overlapping searches) to just after that: the camera
+    stays where it was planned, the Sun turns by a few degrees."""
+    previous = -np.inf
+    for obs in sorted(observations, key=lambda o: o.et):
+        obs.et = max(obs.et, previous + 2 * WINDOW_S + 1.0)
+        previous = obs.et
 
 
 def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Mission,

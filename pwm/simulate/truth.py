@@ -378,18 +378,15 @@ def build_truth(
                     n_craters=n_craters, n_boulders=n_boulders, steep_boulders=steep_boulders,
                     cobble_cover=cobble_cover, margin_km=margin_km)
     extra = dict(base_edge_km=base_edge_km, global_roughness_km=global_roughness_km)
-    return stitch_sites(body, [site], seed=seed, params=extra)[0]
+    return stitch_sites(body, [site], seed=seed, params=extra).truth(0)
 
 
 def stitch_sites(body: Mesh, sites: list[SiteSpec], *, seed: int, params: dict | None = None,
-                 landforms: list[Landform] | None = None, thin_to_km: float | None = None) -> list[Truth]:
+                 landforms: list[Landform] | None = None) -> Stitched:
     """The body with a site patch stitched in for each of `sites` (far enough apart that their
-    squares and margins do not meet); one Truth per site, each the same surface with that site's
-    patch last (so that each site is evaluated as a lone site would be).
-
-    thin_to_km: patches sampled at about this spacing instead of their own (a global survey's
-    truth, where centimetre nodes would only cost memory). landforms: those on the body, recorded.
-    The first site draws what a lone site of the same seed draws.
+    squares and margins do not meet), from which each site's Truth is composed on demand.
+    landforms: those on the body, recorded. The first site draws what a lone site of the same
+    seed draws.
     """
     max_edge = _longest_edges(body, np.ones(len(body.faces), dtype=bool)).max()
     frames, axes, grounds = [], [], []
@@ -425,13 +422,27 @@ def stitch_sites(body: Mesh, sites: list[SiteSpec], *, seed: int, params: dict |
         patches.append(_Patch(spec=site, frame=frame, axis=axis, height=ground + weight * detail,
                               albedo=ground_albedo * np.exp(weight * log_albedo), zero_band=zero_band,
                               craters=craters, boulders=boulders))
-    if thin_to_km is not None:
-        patches = [p.thinned(thin_to_km) for p in patches]
-    truths = []
-    for k in range(len(patches)):
-        order = [p for j, p in enumerate(patches) if j != k] + [patches[k]]
-        truths.append(_compose(cut, order, seed=seed, params=params or {}, landforms=landforms or []))
-    return truths
+    return Stitched(cut=cut, patches=patches, seed=seed, params=params or {}, landforms=landforms or [])
+
+
+@dataclass
+class Stitched:
+    """A body cut for its sites' patches, and the patches: each site's Truth is composed from
+    them when asked for, as one site's truth of tens of millions of faces is memory enough."""
+
+    cut: Mesh
+    patches: list[_Patch]
+    seed: int
+    params: dict
+    landforms: list[Landform]
+
+    def truth(self, site: int, *, thin_to_km: float | None = None) -> Truth:
+        """The whole surface with `site`'s patch last (so that each site is evaluated as a lone
+        site would be). thin_to_km: every patch sampled at about this spacing instead of its own
+        (a global survey's truth, where centimetre nodes would only cost memory)."""
+        patches = self.patches if thin_to_km is None else [p.thinned(thin_to_km) for p in self.patches]
+        order = [p for j, p in enumerate(patches) if j != site] + [patches[site]]
+        return _compose(self.cut, order, seed=self.seed, params=self.params, landforms=self.landforms)
 
 
 def _compose(cut: Mesh, patches: list[_Patch], *, seed: int, params: dict, landforms: list[Landform]) -> Truth:

@@ -17,7 +17,7 @@ from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
 from service.coverage import update_coverage
 from service.ingest import ingest_directory
-from service.models import Coverage, CoverageRole, Image, Maplet
+from service.models import Coverage, CoverageRole, Image, ImageGeometry, Maplet
 from service.queries import list_maplets, maplet_coverage
 from service.views import catalog_views
 
@@ -126,3 +126,45 @@ def test_a_survey_is_tiled_wherever_its_images_see_enough_and_nowhere_else(globa
     # and a good part of the body is seen too little to be tiled (which makes the above a test)
     far = cKDTree(seen.points).query(truth.vertices)[0] > size
     assert far.mean() > 0.15
+
+
+def test_coverage_makes_views_only_of_the_images_that_may_see_the_new_ones_place(tiny_sim, catalog, caplog):
+    """Issue 16.4: the work of a downlink's coverage grows with the images about its place, not
+    with the catalog: images looking elsewhere are never made views, and no view needs its label."""
+    shape = read_mesh(tiny_sim / "downlink" / "start_model.obj")
+    ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
+    with catalog() as session:
+        images = session.scalars(select(Image).order_by(Image.id)).all()
+        assert all(image.window() == (image.window()[0], image.window()[1], 320, 320) for image in images)
+        g = images[0].geometry
+        axis = np.array([g.cone_axis_x, g.cone_axis_y, g.cone_axis_z])
+        assert axis @ np.asarray(g.camera_rotation)[2] > 0.999  # about the boresight
+        assert 0 < g.cone_half_angle_rad < 0.1
+        before = _rows(session)
+    with catalog.begin() as session:
+        # far-side images whose labels are gone: making a view of one would fail
+        template = session.get_one(Image, images[0].id)
+        for k in range(40):
+            twin = Image(lidvid=f"urn:nasa:pds:far:side{k}::1.0", lid=f"urn:nasa:pds:far:side{k}", vid="1.0",
+                         label_path="/nonexistent/label.xml", data_path="/nonexistent/data.img", sha256="0" * 64,
+                         size_bytes=1, instrument_id=template.instrument_id, target=template.target,
+                         start_utc=template.start_utc, stop_utc=template.stop_utc, start_et=template.start_et,
+                         stop_et=template.stop_et, status=template.status, geometry_status=template.geometry_status,
+                         coverage_computed_at=template.coverage_computed_at)
+            position = -np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km])
+            twin.geometry = ImageGeometry(
+                camera_x_km=position[0], camera_y_km=position[1], camera_z_km=position[2],
+                camera_rotation=(-np.asarray(g.camera_rotation)).tolist(), sun_x=g.sun_x, sun_y=g.sun_y,
+                sun_z=g.sun_z, range_km=g.range_km, cone_axis_x=-axis[0], cone_axis_y=-axis[1],
+                cone_axis_z=-axis[2], cone_half_angle_rad=g.cone_half_angle_rad, body_frame=g.body_frame,
+                abcorr=g.abcorr)
+            session.add(twin)
+    # the site's images weighed again, as after a pose correction, with the far side catalogued
+    with catalog.begin() as session:
+        session.execute(delete(Coverage))
+        caplog.set_level("INFO", logger="service.coverage")
+        report = update_coverage(session, shape, image_ids=[image.id for image in images])
+    assert report.maplets_weighed > 0
+    assert f"{len(images)} of {len(images) + 40} images made views" in caplog.text
+    with catalog() as session:
+        assert _rows(session) == before
