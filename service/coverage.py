@@ -97,7 +97,7 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     if not wanted:
         return report
     views = _Views(session, ids, cones)
-    new = views.get(sorted(wanted))
+    new = list(views.get(sorted(wanted)).values())
     tracer = RayTracer(shape)
     report.maplets_added = _tile_seen(session, tracer, new, views, config=config)
     rows = session.execute(select(Maplet.id, Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
@@ -119,11 +119,11 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
         # a cone passes through the body: the cameras on the side the maplet faces
         facing = _facing(grid, cones.apex)
         near = views.get(ids[cones.seeing(balls[0][m], balls[1][m])[:, 0] & facing].tolist())
-        seen = [v for v in near if _may_see(corners, v)]
-        if not wanted.intersection(views.id_of[v.name] for v in seen):
+        seen = {i: v for i, v in near.items() if _may_see(corners, v)}
+        if not wanted.intersection(seen):
             continue
         report.maplets_weighed += 1
-        _store(session, maplet, grid, [views.id_of[v.name] for v in seen], seen, tracer, report, config=config)
+        _store(session, maplet, grid, list(seen), list(seen.values()), tracer, report, config=config)
     session.execute(update(Image).where(Image.id.in_(sorted(wanted))).values(
         coverage_computed_at=utcnow()))
     session.flush()
@@ -139,20 +139,18 @@ class _Views:
     def __init__(self, session: Session, ids: np.ndarray, cones: Cones) -> None:
         self.session, self.ids, self.cones = session, ids, cones
         self.made: dict[int, View] = {}
-        self.id_of: dict[str, int] = {}
 
-    def get(self, image_ids: Sequence[int]) -> list[View]:
+    def get(self, image_ids: Sequence[int]) -> dict[int, View]:
+        """The views of image_ids, by id, in their order."""
         missing = [i for i in image_ids if i not in self.made]
         if missing:
-            for i, view in catalog_views(self.session, image_ids=missing).items():
-                self.made[i] = view
-                self.id_of[view.name] = i
-        return [self.made[i] for i in image_ids]
+            self.made.update(catalog_views(self.session, image_ids=missing))
+        return {i: self.made[i] for i in image_ids}
 
     def seeing(self, samples: Samples) -> list[View]:
         """The views whose cones meet a cell of the samples."""
         centres, radius, _ = samples.cells()
-        return self.get(self.ids[self.cones.seeing(centres, radius).any(axis=1)].tolist())
+        return list(self.get(self.ids[self.cones.seeing(centres, radius).any(axis=1)].tolist()).values())
 
 
 def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Views, *,

@@ -49,7 +49,7 @@ from pwm.simulate.truth import (
     build_truth,
     low_pass,
     save as save_truth,
-    site_frame,
+    site_frames,
     stitch_sites,
     undulations,
 )
@@ -146,10 +146,8 @@ def simulate_campaign(out: str | Path, *, campaign: Campaign, seed: int = 0, kno
 
 def _landforms(body: Mesh, *, campaign: Campaign, sites: list[SiteSpec], seed: int) -> list[Landform]:
     """The campaign's craters and boulders over the body, clear of every site's square and margin."""
-    max_edge = body.mean_edge_length() * 4
-    clearings = [Clearing(centre_km=site_frame(body, lat_deg=s.lat_deg, lon_deg=s.lon_deg, radius_km=s.size_km / 2,
-                                               max_edge_km=max_edge).origin, radius_km=s.clear_radius_km)
-                 for s in sites]
+    clearings = [Clearing(centre_km=frame.origin, radius_km=s.clear_radius_km)
+                 for s, frame in zip(sites, site_frames(body, sites), strict=True)]
     return sample_landforms(body, np.random.default_rng([seed, LANDFORM_STREAM]), n_craters=campaign.craters,
                             n_boulders=campaign.boulders, n_steep=campaign.steep_boulders,
                             crater_diameter_km=_km(campaign.crater_diameter_m),
@@ -229,8 +227,7 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
             path = truth_dir / "validation" / f"{obs.name}.npz"
             path.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(path, reflectance=view.reflectance.astype(np.float32), hit=view.hit, shadow=view.shadow,
-                                in_site=view.hit if scenario.global_views else _in_site(view.points, truth),
-                                position=pose.position, rotation=pose.rotation,
+                                in_site=_in_site(view.points, truth), position=pose.position, rotation=pose.rotation,
                                 sun=sun)
             held_out.append({"name": obs.name, "file": f"validation/{obs.name}.npz",
                              **_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera)})

@@ -8,6 +8,7 @@ computation on meshes; lengths in km.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,7 +54,7 @@ class Clearing:
 def sample_landforms(
     mesh: Mesh, rng: np.random.Generator, *, n_craters: int, n_boulders: int, n_steep: int,
     crater_diameter_km: tuple[float, float], boulder_diameter_km: tuple[float, float],
-    clearings: list[Clearing] = [],  # noqa: B006 - never mutated
+    clearings: Sequence[Clearing] = (),
 ) -> list[Landform]:
     """Craters (cumulative size slope 2, depth/diameter 0.1-0.2) and boulders (slope 2.5; the
     first n_steep with near-vertical sides, height/radius 0.6-1, the others rounded caps at

@@ -381,6 +381,17 @@ def build_truth(
     return stitch_sites(body, [site], seed=seed, params=extra).truth(0)
 
 
+def site_frames(body: Mesh, sites: list[SiteSpec]) -> list[LocalFrame]:
+    """Each site's local frame on the body (`site_frame`)."""
+    max_edge = _max_edge(body)
+    return [site_frame(body, lat_deg=s.lat_deg, lon_deg=s.lon_deg, radius_km=s.size_km / 2, max_edge_km=max_edge)
+            for s in sites]
+
+
+def _max_edge(mesh: Mesh) -> float:
+    return float(_longest_edges(mesh, np.ones(len(mesh.faces), dtype=bool)).max())
+
+
 def stitch_sites(body: Mesh, sites: list[SiteSpec], *, seed: int, params: dict | None = None,
                  landforms: list[Landform] | None = None) -> Stitched:
     """The body with a site patch stitched in for each of `sites` (far enough apart that their
@@ -388,14 +399,12 @@ def stitch_sites(body: Mesh, sites: list[SiteSpec], *, seed: int, params: dict |
     landforms: those on the body, recorded. The first site draws what a lone site of the same
     seed draws.
     """
-    max_edge = _longest_edges(body, np.ones(len(body.faces), dtype=bool)).max()
-    frames, axes, grounds = [], [], []
-    for site in sites:
-        frames.append(site_frame(body, lat_deg=site.lat_deg, lon_deg=site.lon_deg, radius_km=site.size_km / 2,
-                                 max_edge_km=max_edge))
+    max_edge = _max_edge(body)
+    frames, axes, grounds = site_frames(body, sites), [], []
+    for site, frame in zip(sites, frames, strict=True):
         n = int(np.ceil((site.size_km / 2 + site.margin) / site.resolution_km - 1e-9))
         axes.append(np.arange(-n, n + 1) * site.resolution_km)
-        grounds.append(_drape(body, frames[-1], axes[-1], axes[-1], max_edge_km=max_edge))
+        grounds.append(_drape(body, frame, axes[-1], axes[-1], max_edge_km=max_edge))
 
     # The patch replaces the base faces lying wholly over it; base faces crossing its border stay
     # and overlap it by at most their size. The detail is zero over that overlap, so there the
