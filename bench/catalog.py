@@ -215,6 +215,7 @@ def load_catalog(connection: psycopg.Connection, *, n_images: int, n_maplets: in
         "phase_deg": _acos_deg(np.einsum("ni,ni->n", v_local, s_local)),
         # from local north towards east, as pwm.weights measures it
         "sun_azimuth_deg": np.degrees(np.arctan2(s_local[:, 0], s_local[:, 1])) % 360.0,
+        "camera_azimuth_deg": np.degrees(np.arctan2(v_local[:, 0], v_local[:, 1])) % 360.0,
         "resolution_m_per_px": range_km * IFOV_RAD * 1e3, "weight": weight})
     # Each role goes to the weighted image seen furthest along its axis (nadir, the last, along
     # z), one role per row.
@@ -364,7 +365,8 @@ def downlink_into_catalog(url: str, root: Path) -> dict:
     if report.failed or report.images.accepted != scenario.n_images or report.coverage is None:
         raise RuntimeError(f"ingest went wrong: {report.summary()}")
     return {"images": report.images.accepted, "seconds": elapsed, "tiled": report.coverage.maplets_added,
-            "weighed": report.coverage.maplets_weighed, "rows": report.coverage.rows_added}
+            "weighed": report.coverage.maplets_weighed, "traced": report.coverage.pairs_traced,
+            "rows": report.coverage.rows_added}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -437,9 +439,9 @@ def main() -> None:
         print(f"{name:<12}{products:>10}{seconds:>10.2f}{products / seconds:>12.1f}")
     print(f"\nA downlink into the catalog of {counts['images']} images and {counts['maplets']} maplets "
           "(PostgreSQL; ingest, tiling and weighing; target < 60 s)")
-    print(f"{'images':>8}{'seconds':>10}{'maplets tiled':>15}{'weighed':>9}{'rows added':>12}")
+    print(f"{'images':>8}{'seconds':>10}{'maplets tiled':>15}{'weighed':>9}{'pairs traced':>14}{'rows added':>12}")
     print(f"{downlink['images']:>8}{downlink['seconds']:>10.2f}{downlink['tiled']:>15}{downlink['weighed']:>9}"
-          f"{downlink['rows']:>12}")
+          f"{downlink['traced']:>14}{downlink['rows']:>12}")
 
 
 if __name__ == "__main__":

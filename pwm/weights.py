@@ -129,20 +129,26 @@ class FiveViews:
 
 
 @dataclass
-class MapletWeights:
-    """Weights of K images for one maplet. image: (K,) image weights (0 where dropped); keep: (K,)
-    images kept by the SPC rules, reasons: why each was dropped; pixel: (K, n, n) per-node weights
-    (image weight times node factor); views: the five-view selection; sun_spread_deg: Sun azimuth
-    spread of the kept images; region: w_PWM, and factors: its factors (see `region_weight`)."""
+class ImageWeights:
+    """Weights of K images for one maplet, from their geometry alone. image: (K,) image weights
+    (0 where dropped); keep: (K,) images kept by the SPC rules, reasons: why each was dropped;
+    views: the five-view selection; sun_spread_deg: Sun azimuth spread of the kept images; region:
+    w_PWM, and factors: its factors (see `region_weight`)."""
 
     image: np.ndarray
     keep: np.ndarray
     reasons: list[list[str]]
-    pixel: np.ndarray
     views: FiveViews
     sun_spread_deg: float
     region: float
     factors: dict = field(default_factory=dict)
+
+
+@dataclass(kw_only=True)
+class MapletWeights(ImageWeights):
+    """ImageWeights with pixel: (K, n, n) per-node weights (image weight times node factor)."""
+
+    pixel: np.ndarray
 
 
 def maplet_geometry(
@@ -292,14 +298,22 @@ def region_weight(geom: MapletGeometry, image_weight: np.ndarray, keep: np.ndarr
     return max(rules.min_region_weight, float(np.prod(list(factors.values())))), factors
 
 
+def weigh_images(geom: MapletGeometry, rules: Rules = RULES) -> ImageWeights:
+    """The weights of K images over one maplet that need only their geometry: what the catalog
+    keeps of each image and maplet (service.coverage)."""
+    keep, reasons = select_images(geom, rules)
+    image = np.where(keep, image_weights(geom, rules), 0.0)
+    views = five_views(geom, image, keep, rules)
+    region, factors = region_weight(geom, image, keep, views, rules)
+    return ImageWeights(image=image, keep=keep, reasons=reasons, views=views,
+                        sun_spread_deg=azimuth_spread_deg(geom.sun_azimuth_deg[keep]), region=region, factors=factors)
+
+
 def weigh_maplet(maplet: MapletGrid, vis: Visibility, geom: MapletGeometry, *, in_frame: np.ndarray | None = None,
                  rules: Rules = RULES) -> MapletWeights:
     """All the weights of one maplet seen in K images. vis: visibility of its nodes in row-major
     order (maplet.nodes_body().reshape(-1, 3)); geom: from `maplet_geometry`; in_frame (K, n*n)."""
-    keep, reasons = select_images(geom, rules)
-    image = np.where(keep, image_weights(geom, rules), 0.0)
-    pixel = image[:, None, None] * node_factors(vis, maplet.heights, maplet.spacing_km, in_frame=in_frame, rules=rules)
-    views = five_views(geom, image, keep, rules)
-    region, factors = region_weight(geom, image, keep, views, rules)
-    return MapletWeights(image=image, keep=keep, reasons=reasons, pixel=pixel, views=views,
-                         sun_spread_deg=azimuth_spread_deg(geom.sun_azimuth_deg[keep]), region=region, factors=factors)
+    weights = weigh_images(geom, rules)
+    pixel = weights.image[:, None, None] * node_factors(vis, maplet.heights, maplet.spacing_km, in_frame=in_frame,
+                                                        rules=rules)
+    return MapletWeights(**vars(weights), pixel=pixel)

@@ -5,10 +5,12 @@ After a downlink's images are in, and given the current shape model (body-fixed,
    (pwm.footprints: a whole body for a survey, one place per site), where no catalogued maplet
    lies yet, are tiled (pwm.tiling.tile), each at the spacing of the images that see it, and
    stored; places no image sees stay untiled;
-2. every maplet that one of the downlink's images may see is weighed against every catalogued
-   image that may see it, with the refinement's own rules (pwm.pipeline.views_over_maplet,
-   pwm.weights.weigh_maplet): visibility by Embree against the shape (in frame, not occluded,
-   lit) on a subsample of the maplet's nodes, angles at the maplet origin in its frame, image
+2. every maplet that one of the downlink's images may see is weighed with the refinement's own
+   rules (pwm.pipeline.views_over_maplet, pwm.weights.weigh_images): the new images are traced
+   by Embree against the shape (in frame, not occluded, lit) on a subsample of the maplet's
+   nodes, angles at the maplet origin in its frame; the images already catalogued bring their
+   stored rows, so that the work grows with the downlink, not with the catalog (a maplet tiled
+   now is traced in every catalogued image that may see it). From the rows of all: image
    weights (0 where the SPC rules drop the image), the five-view roles and the region weight
    w_PWM, which is stored on the maplet.
 
@@ -38,7 +40,7 @@ from pwm.pipeline import views_over_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_heights, tile
 from pwm.views import Cones, View
-from pwm.weights import weigh_maplet
+from pwm.weights import MapletGeometry, weigh_images
 from service.models import Coverage, CoverageRole, Image, Maplet, utcnow
 from service.views import catalog_cones, catalog_views
 
@@ -50,16 +52,20 @@ relief and its curvature allowed for): they look at the other side of the body."
 SAMPLE_NODES = 25
 """Nodes per side on which visibility is traced: enough for the fractions, fast for the catalog."""
 
-_COLUMNS = ("visible_fraction", "shadowed_fraction", "incidence_deg", "emission_deg",
-            "phase_deg", "sun_azimuth_deg", "resolution_m_per_px", "weight", "role")
+_GEOMETRY = ("visible_fraction", "shadowed_fraction", "incidence_deg", "emission_deg", "phase_deg",
+             "sun_azimuth_deg", "camera_azimuth_deg", "resolution_m_per_px")
+"""The columns of a coverage row that the image's geometry over the maplet gives; weight and role
+follow from those of all the maplet's images (pwm.weights.weigh_images)."""
 
 
 @dataclass
 class CoverageReport:
-    """What one coverage update did: maplets tiled and weighed, coverage rows written."""
+    """What one coverage update did: maplets tiled and weighed, images traced over a maplet
+    (each image and maplet once), coverage rows written."""
 
     maplets_added: int = 0
     maplets_weighed: int = 0
+    pairs_traced: int = 0
     rows_added: int = 0
     rows_updated: int = 0
     rows_deleted: int = 0
@@ -75,7 +81,7 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
                     image_ids: Collection[int] | None = None, config: RefinementConfig = DEFAULTS,
                     sample_nodes: int = SAMPLE_NODES) -> CoverageReport:
     """Tile the places the new images look at where no maplet covers them, then weigh every
-    maplet that a new image may see against all catalogued images that may see it.
+    maplet that a new image may see: the new images traced, with the stored rows of the others.
 
     New images: the accepted images with geometry of image_ids if given, else of downlink
     `downlink_id` (all such images when None); their coverage_computed_at is set. config: how
@@ -99,7 +105,8 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     views = _Views(session, ids, cones)
     new = list(views.get(sorted(wanted)).values())
     tracer = RayTracer(shape)
-    report.maplets_added = _tile_seen(session, tracer, new, views, config=config)
+    added = _tile_seen(session, tracer, new, views, config=config)
+    report.maplets_added = len(added)
     rows = session.execute(select(Maplet.id, Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
                                   Maplet.size_km).order_by(Maplet.id)).all()
     if rows:
@@ -109,27 +116,40 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
         candidates = np.flatnonzero(Cones.of(new).seeing(*balls).any(axis=0))
     else:
         candidates = np.empty(0, dtype=np.int64)
+    chosen = session.scalars(select(Maplet).where(Maplet.id.in_([rows[m][0] for m in candidates.tolist()])))
+    by_id = {maplet.id: maplet for maplet in chosen}
     for m in candidates.tolist():
-        maplet = session.get_one(Maplet, rows[m][0])
+        maplet = by_id[rows[m][0]]
         grid = _subsample(maplet, tracer, sample_nodes)
         corners = _box(grid.nodes_body().reshape(-1, 3))
         # none of the new images sees it: it stays as it was
         if not any(_facing(grid, v.pose.position[None])[0] and _may_see(corners, v) for v in new):
             continue
+        stored = {row.image_id: row for row in session.scalars(
+            select(Coverage).where(Coverage.maplet_id == maplet.id))}
+        # Traced: the new images; all of a new maplet's; and those of rows that lack a column.
+        # The other stored rows stand: their image's pose and the shape they were traced on
+        # are those of their day, and weighing them again is what made a downlink's work grow
+        # with the catalog.
+        again = wanted | {i for i, row in stored.items() if row.camera_azimuth_deg is None}
         # a cone passes through the body: the cameras on the side the maplet faces
-        facing = _facing(grid, cones.apex)
-        near = views.get(ids[cones.seeing(balls[0][m], balls[1][m])[:, 0] & facing].tolist())
-        seen = {i: v for i, v in near.items() if _may_see(corners, v)}
-        if not wanted.intersection(seen):
+        near = ids[cones.seeing(balls[0][m], balls[1][m])[:, 0] & _facing(grid, cones.apex)]
+        if maplet.id not in added:
+            near = near[np.isin(near, list(again))]
+        traced = {i: v for i, v in views.get(near.tolist()).items() if _may_see(corners, v)}
+        if not wanted.intersection(traced):
             continue
         report.maplets_weighed += 1
-        _store(session, maplet, grid, list(seen), list(seen.values()), tracer, report, config=config)
+        report.pairs_traced += len(traced)
+        kept = {i: row for i, row in stored.items() if i not in again and i not in traced}
+        _store(session, maplet, grid, traced, stored, kept, tracer, report, config=config)
     session.execute(update(Image).where(Image.id.in_(sorted(wanted))).values(
         coverage_computed_at=utcnow()))
     session.flush()
-    log.info("coverage: %d maplets tiled, %d weighed of %d catalogued; rows %d added, %d updated, %d deleted; "
-             "%d of %d images made views", report.maplets_added, report.maplets_weighed, len(rows),
-             report.rows_added, report.rows_updated, report.rows_deleted, len(views.made), len(ids))
+    log.info("coverage: %d maplets tiled, %d weighed of %d catalogued (%d image-maplet pairs traced); rows %d "
+             "added, %d updated, %d deleted; %d of %d images made views", report.maplets_added,
+             report.maplets_weighed, len(rows), report.pairs_traced, report.rows_added, report.rows_updated,
+             report.rows_deleted, len(views.made), len(ids))
     return report
 
 
@@ -154,16 +174,19 @@ class _Views:
 
 
 def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Views, *,
-               config: RefinementConfig) -> int:
+               config: RefinementConfig) -> set[int]:
     """Tile and store the places that the new views look at, that enough catalogued views see
     usably (pwm.footprints), and that no catalogued maplet covers yet, each at the spacing its
-    images support (within config.tile_radius_km of each place's centre, if given); the number of
+    images support (within config.tile_radius_km of each place's centre, if given); the ids of the
     maplets added."""
     samples = footprint_samples(tracer, new)
-    seen = judge_samples(tracer, samples, views.seeing(samples), rules=config.rules, min_images=config.min_images)
-    added: list[MapletGrid] = []
     catalogued = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
                                         Maplet.rotation, Maplet.size_km)).all()
+    # nothing to tile: spare judging the footprints in the many images of a well-imaged place
+    if _covered(catalogued, samples.points).all():
+        return set()
+    seen = judge_samples(tracer, samples, views.seeing(samples), rules=config.rules, min_images=config.min_images)
+    added: list[MapletGrid] = []
     # places of all that is seen, covered or not, so that a place and its centre stay where they
     # were when a later downlink sees it again
     for place in places(seen, nodes=config.nodes, spacing_gsd=config.spacing_gsd):
@@ -182,16 +205,16 @@ def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Vie
         log.info("tiled %d maplets of %d nodes at %.3f m over a place about (%.4f, %.4f) seen at %d samples",
                  len(new_here), config.nodes, place.spacing_km * 1e3, lat, lon, len(points))
         added += new_here
+    records = []
     for m in added:
         lat, lon = unit_to_latlon(m.frame.origin)
         x, y, z = (float(v) for v in m.frame.origin)
-        session.add(Maplet(name=m.name, center_lat_deg=float(lat), center_lon_deg=float(lon),
-                           origin_x_km=x, origin_y_km=y, origin_z_km=z,
-                           rotation=m.frame.rotation.tolist(),
-                           size_km=(m.n - 1) * m.spacing_km, gsd_m=m.spacing_km * 1e3,
-                           nodes_per_side=m.n))
+        records.append(Maplet(name=m.name, center_lat_deg=float(lat), center_lon_deg=float(lon),
+                              origin_x_km=x, origin_y_km=y, origin_z_km=z, rotation=m.frame.rotation.tolist(),
+                              size_km=(m.n - 1) * m.spacing_km, gsd_m=m.spacing_km * 1e3, nodes_per_side=m.n))
+    session.add_all(records)
     session.flush()
-    return len(added)
+    return {m.id for m in records}
 
 
 def _covered(maplets: Sequence[Sequence[Any]], points: np.ndarray) -> np.ndarray:
@@ -247,33 +270,49 @@ def _may_see(points: np.ndarray, view: View) -> bool:
                 and px[:, 1].max() >= 0 and px[:, 1].min() <= view.camera.height - 1)
 
 
-def _store(session: Session, maplet: Maplet, grid: MapletGrid, image_ids: list[int],
-           views: list[View], tracer: RayTracer, report: CoverageReport, *, config: RefinementConfig) -> None:
-    """Weigh the maplet in the views and upsert its coverage rows and region weight."""
+def _store(session: Session, maplet: Maplet, grid: MapletGrid, traced: dict[int, View],
+           stored: dict[int, Coverage], kept: dict[int, Coverage], tracer: RayTracer, report: CoverageReport, *,
+           config: RefinementConfig) -> None:
+    """Trace the maplet in the `traced` views, weigh them together with the `kept` rows (of
+    `stored`, the maplet's rows by image id), and upsert the rows and the region weight; stored
+    rows neither kept nor seen in a traced view are deleted."""
     spacing_km = maplet.gsd_m * 1e-3
-    vis, in_frame, geom = views_over_maplet(grid, views, tracer, spacing_km=spacing_km)
-    weights = weigh_maplet(grid, vis, geom, in_frame=in_frame, rules=config.rules)
-    roles = {k: CoverageRole(name) for name, k in vars(weights.views).items() if k is not None}
-    existing = {row.image_id: row for row in session.scalars(
-        select(Coverage).where(Coverage.maplet_id == maplet.id))}
-    for k, image_id in enumerate(image_ids):
-        if geom.visible_fraction[k] <= 0:
-            continue
-        values = dict(zip(_COLUMNS, (
-            float(geom.visible_fraction[k]), float(geom.shadow_fraction[k]),
-            float(geom.incidence_deg[k]), float(geom.emission_deg[k]), float(geom.phase_deg[k]),
-            float(geom.sun_azimuth_deg[k]), float(geom.resolution_ratio[k] * spacing_km * 1e3),
-            float(weights.image[k]), roles.get(k)), strict=True))
-        row = existing.pop(image_id, None)
+    values: dict[int, dict[str, Any]] = {i: {c: getattr(row, c) for c in _GEOMETRY} for i, row in kept.items()}
+    if traced:
+        _, _, geom = views_over_maplet(grid, list(traced.values()), tracer, spacing_km=spacing_km)
+        for k, image_id in enumerate(traced):
+            if geom.visible_fraction[k] > 0:
+                values[image_id] = dict(zip(_GEOMETRY, (float(v) for v in (
+                    geom.visible_fraction[k], geom.shadow_fraction[k], geom.incidence_deg[k], geom.emission_deg[k],
+                    geom.phase_deg[k], geom.sun_azimuth_deg[k], geom.camera_azimuth_deg[k],
+                    geom.resolution_ratio[k] * spacing_km * 1e3)), strict=True))
+    order = sorted(values)
+    weights = weigh_images(_geometry([values[i] for i in order], gsd_m=maplet.gsd_m), config.rules)
+    roles = {order[k]: CoverageRole(name) for name, k in vars(weights.views).items() if k is not None}
+    for k, image_id in enumerate(order):
+        row_values = values[image_id] | {"weight": float(weights.image[k]), "role": roles.get(image_id)}
+        row = stored.pop(image_id, None)
         if row is None:
-            session.add(Coverage(image_id=image_id, maplet_id=maplet.id, **values))
+            session.add(Coverage(image_id=image_id, maplet_id=maplet.id, **row_values))
             report.rows_added += 1
-        elif any(getattr(row, c) != v for c, v in values.items()):
-            for column, value in values.items():
+        elif any(getattr(row, c) != v for c, v in row_values.items()):
+            for column, value in row_values.items():
                 setattr(row, column, value)
             report.rows_updated += 1
-    for row in existing.values():
+    for row in stored.values():
         session.delete(row)
         report.rows_deleted += 1
     if maplet.region_weight != weights.region:
         maplet.region_weight = float(weights.region)
+
+
+def _geometry(rows: list[dict[str, Any]], *, gsd_m: float) -> MapletGeometry:
+    """The images' geometry over a maplet of spacing gsd_m from their coverage rows' values (new
+    and stored alike, so that weighing them again gives the same weights)."""
+    def column(name: str) -> np.ndarray:
+        return np.array([row[name] for row in rows], float)
+    return MapletGeometry(
+        incidence_deg=column("incidence_deg"), emission_deg=column("emission_deg"), phase_deg=column("phase_deg"),
+        camera_azimuth_deg=column("camera_azimuth_deg"), sun_azimuth_deg=column("sun_azimuth_deg"),
+        resolution_ratio=column("resolution_m_per_px") / gsd_m, visible_fraction=column("visible_fraction"),
+        shadow_fraction=column("shadowed_fraction"))

@@ -486,6 +486,8 @@ class Coverage(Base):
     emission_deg: Mapped[float]
     phase_deg: Mapped[float]
     sun_azimuth_deg: Mapped[float]
+    # null in rows weighed before migration 0010: their image is traced again (service.coverage)
+    camera_azimuth_deg: Mapped[float | None]
     resolution_m_per_px: Mapped[float]
     weight: Mapped[float]
     role: Mapped[CoverageRole | None] = mapped_column(_enum(CoverageRole, "coverage_role"))

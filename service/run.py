@@ -77,8 +77,7 @@ class RunReport:
 def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_dir: Path,
                     start: Path | None = None, config: RefinementConfig = DEFAULTS) -> Plan:
     """Ingest a downlink against the current model and list the maplets whose input changed:
-    those its images weigh into, and those its coverage update re-weighed against the current
-    model (the shape moved, and with it which images they keep) or a stopped run left stale.
+    those its images weigh into (their image sets changed), and those a stopped run left stale.
 
     The current model is the latest version; a catalog without one first imports `start` (or
     DIRECTORY/start_model.obj when present) as a version of kind start, and with neither makes

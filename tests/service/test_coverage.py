@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from sqlalchemy import delete, select
+from sqlalchemy import delete, select, update
 
 from pwm.config import RefinementConfig
 from pwm.footprints import places, seen_samples
@@ -31,7 +31,7 @@ def _nadir(plan: dict) -> bool:
 def _rows(session) -> list[tuple]:
     """Every coverage row's values, by image and maplet."""
     return sorted((c.image_id, c.maplet_id, c.visible_fraction, c.shadowed_fraction,
-                   c.incidence_deg, c.emission_deg, c.phase_deg, c.sun_azimuth_deg,
+                   c.incidence_deg, c.emission_deg, c.phase_deg, c.sun_azimuth_deg, c.camera_azimuth_deg,
                    c.resolution_m_per_px, c.weight, c.role)
                   for c in session.scalars(select(Coverage)))
 
@@ -168,3 +168,35 @@ def test_coverage_makes_views_only_of_the_images_that_may_see_the_new_ones_place
     assert f"{len(images)} of {len(images) + 40} images made views" in caplog.text
     with catalog() as session:
         assert _rows(session) == before
+
+
+def test_a_later_downlink_is_weighed_into_the_stored_rows_as_weighing_all_again_would(tiny_sim, catalog):
+    """Issue 16.4: a maplet's catalogued images bring their stored rows; only the new images are
+    traced, and the weights, roles and w_PWM come out as those of weighing every image again."""
+    shape = read_mesh(tiny_sim / "downlink" / "start_model.obj")
+    full = ingest_directory(catalog, tiny_sim / "downlink", shape=shape).coverage
+    with catalog() as session:
+        before, maplets = _rows(session), _maplets(session)
+        ids = sorted(session.scalars(select(Image.id)))
+    later, earlier = ids[1::2], ids[0::2]
+    with catalog.begin() as session:
+        # the later half arrives after the earlier half was weighed; the earlier half's weights,
+        # roles and w_PWM are those of a catalog without it, here scrambled to show that they
+        # are weighed again from the stored geometry
+        session.execute(delete(Coverage).where(Coverage.image_id.in_(later)))
+        session.execute(update(Coverage).values(weight=0.5, role=None))
+        session.execute(update(Maplet).values(region_weight=0.5))
+        # a row weighed before its camera azimuth was kept: its image is traced again
+        legacy = session.scalars(select(Coverage).where(Coverage.image_id == earlier[0])).first()
+        legacy.camera_azimuth_deg = None
+        session.execute(update(Image).where(Image.id.in_(later)).values(coverage_computed_at=None))
+    with catalog.begin() as session:
+        report = update_coverage(session, shape, image_ids=later)
+    assert report.maplets_added == 0 and report.rows_deleted == 0
+    assert report.maplets_weighed == full.maplets_weighed
+    # the later half and the one legacy row traced, not the earlier half
+    assert report.pairs_traced <= len(later) * report.maplets_weighed + 1
+    assert report.pairs_traced < 0.6 * full.pairs_traced
+    with catalog() as session:
+        assert _rows(session) == before
+        assert _maplets(session) == maplets
