@@ -49,7 +49,7 @@ from pwm.io.spice_kernels import bundled_kernels, kernel_pool  # noqa: E402
 from pwm.maplets import MapletGrid  # noqa: E402
 from pwm.simulate.campaign import simulate  # noqa: E402
 from pwm.simulate.scenarios import get_scenario  # noqa: E402
-from pwm.tiling import tile  # noqa: E402
+from pwm.tiling import level_of, tile  # noqa: E402
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
 from service.ingest import ingest_directory  # noqa: E402
 from service.queries import images_covering, list_maplets, maplet_coverage, maplets_seen_by  # noqa: E402
@@ -138,9 +138,9 @@ def load_catalog(connection: psycopg.Connection, *, n_images: int, n_maplets: in
     lat, lon = unit_to_latlon(origins)
     _copy(connection, "maplets",
           ["id", "name", "center_lat_deg", "center_lon_deg", "origin_x_km", "origin_y_km",
-           "origin_z_km", "rotation", "size_km", "gsd_m", "nodes_per_side", "region_weight"],
+           "origin_z_km", "rotation", "size_km", "gsd_m", "level", "nodes_per_side", "region_weight"],
           ((k + 1, names[k], lat[k], lon[k], *origins[k].tolist(),
-            json.dumps(rotations[k].ravel().tolist()), size_km, GSD_M,
+            json.dumps(rotations[k].ravel().tolist()), size_km, GSD_M, int(level_of(GSD_M * 1e-3)),
             int(round(size_km * 1e3 / GSD_M)) + 1, 1.0) for k in range(len(maplets))))
 
     # Images: each aims at a random maplet from within MAX_EMISSION_DEG of its normal; the Sun

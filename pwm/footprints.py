@@ -5,12 +5,16 @@ FOOTPRINT_SAMPLES of its pixels onto the shape (ground that several images sampl
 once, at half the finest spacing of any footprint's samples); every sample is then judged in
 every image as a maplet's node would be (pwm.weights.Rules): in the frame, in front, facing
 the camera within the SPC emission rule, lit, not occluded. A sample that at least min_images
-images see so is seen; its pixel scale is the median of theirs (range over focal length).
+images see so is seen; its pixel scale (range over focal length) is the median of the finest of
+those images that are enough: those no more than twice as coarse as the min_images-th finest
+(SPC's rule that no image be over twice as coarse as the maplet), so that where a site's close
+images and a survey's far ones both look, the site's decide.
 
-Seen samples are grouped into places: samples of one octave of pixel scale, linked within two
-maplet sides at that scale; each place is tiled at spacing_gsd times its median pixel scale. A
-global survey makes one place of the whole body, a downlink over two sites two places, a
-downlink with a survey and a close pass two places of different spacings. Lengths in km.
+Seen samples are grouped into places: samples of one level (pwm.tiling.level_of: an octave of
+node spacing, spacing_gsd times the pixel scale), linked within two maplet sides at that scale;
+each place is tiled at spacing_gsd times its median pixel scale. A global survey makes one place
+of the whole body, a downlink over two sites two places, a downlink with a survey and a close
+pass two places of different levels. Lengths in km.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from scipy.spatial import cKDTree
 
 from pwm.camera import project
 from pwm.raytrace import RayTracer
+from pwm.tiling import level_of
 from pwm.views import Cones, View
 from pwm.weights import Rules
 
@@ -42,6 +47,11 @@ class Place:
 
     points: np.ndarray
     spacing_km: float
+
+    @property
+    def level(self) -> int:
+        """The level of the place's spacing (pwm.tiling.level_of)."""
+        return int(level_of(self.spacing_km))
 
     @property
     def centre(self) -> np.ndarray:
@@ -124,15 +134,19 @@ def judge_samples(tracer: RayTracer, samples: Samples, judges: Sequence[View], *
         blocked = tracer.occluded(lifted[idx], to_camera, distance)
         pixel[k, idx[~blocked]] = distance[~blocked] / view.camera.fx
     enough = np.isfinite(pixel).sum(axis=0) >= min_images
-    return Seen(points[enough], np.nanmedian(pixel[:, enough], axis=0) if enough.any() else np.empty(0))
+    if not enough.any():
+        return Seen(np.empty((0, 3)), np.empty(0))
+    ranked = np.sort(pixel[:, enough], axis=0)  # per sample, finest first, nan (not seen) last
+    finest = np.where(ranked <= 2.0 * ranked[min_images - 1], ranked, np.nan)
+    return Seen(points[enough], np.nanmedian(finest, axis=0))
 
 
 def places(seen: Seen, *, nodes: int, spacing_gsd: float) -> list[Place]:
     """The seen samples grouped into places (see the module docstring), largest first."""
     out = []
-    octave = np.floor(np.log2(seen.pixel_km)).astype(np.int64)
-    for o in np.unique(octave):
-        member = np.flatnonzero(octave == o)
+    level = level_of(spacing_gsd * seen.pixel_km)
+    for k in np.unique(level):
+        member = np.flatnonzero(level == k)
         points, pixel = seen.points[member], seen.pixel_km[member]
         link = 2.0 * (nodes - 1) * spacing_gsd * float(np.median(pixel))
         pairs = cKDTree(points).query_pairs(link, output_type="ndarray")

@@ -18,7 +18,8 @@ Each way, surface samples every twentieth of a side that no maplet covers (with 
 half a sample spacing) get maplets of their own, one per patch of them, so the tiling covers
 every part of the region visible radially (whole body) or from above (region); surface under
 overhangs is not tiled. Names encode the planetocentric latitude and east longitude of the
-origin, so re-tiling the same mesh with the same parameters gives the same names. Lengths in km,
+origin and the level of the spacing (`level_of`), so re-tiling the same mesh with the same
+parameters gives the same names, and maplets of two levels never share one. Lengths in km,
 angles in degrees.
 """
 
@@ -44,6 +45,14 @@ COVERAGE_MARGIN = 0.5
 gaps between samples are covered too."""
 _NEAR = 2.0 * np.sqrt(3.0)
 """Radius, in half-sizes, of the ball about a maplet's origin holding the box that `_top_km` searches."""
+
+
+def level_of(spacing_km: float | np.ndarray) -> np.ndarray:
+    """The level of node spacings: level k holds the spacings within a factor sqrt(2) of 2^k m
+    (the nearest power of two), so that the round spacings of a plan (10 cm, 2 m) lie mid-level.
+    A survey's maplets and the finer ones of a site nested in it fall into levels apart, two
+    sites imaged alike into one."""
+    return np.rint(np.log2(np.asarray(spacing_km, float) * 1e3)).astype(np.int64)
 
 
 def tile(
@@ -80,11 +89,12 @@ def tile(
     frames = [local_frame(p, n) for p, n in zip(centres, surface.regional_normals(centres, half), strict=True)]
     frames += _complete(surface, frames, samples, half, margin=COVERAGE_MARGIN * fine, link=1.5 * fine)
     axis = (np.arange(nodes) - (nodes - 1) / 2) * spacing_km
+    level = int(level_of(spacing_km))
     maplets = []
     for frame in frames:
         lat, lon = unit_to_latlon(frame.origin)
         heights, albedo, filled = _drop(surface.tracer, frame, axis, surface.near_vertices(frame.origin, half), half)
-        maplets.append(MapletGrid(name=f"M{lat:+08.4f}E{lon:08.4f}", frame=frame, spacing_km=spacing_km,
+        maplets.append(MapletGrid(name=f"M{lat:+08.4f}E{lon:08.4f}L{level:+d}", frame=frame, spacing_km=spacing_km,
                                   heights=heights, albedo=albedo, meta={"filled_nodes": filled}))
     if len({m.name for m in maplets}) != len(maplets):
         raise ValueError("two maplet origins share a name: spacing too fine for the name's 1e-4 degree grid")

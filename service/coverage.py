@@ -3,8 +3,10 @@
 After a downlink's images are in, and given the current shape model (body-fixed, km):
 1. the places that the downlink's images look at and that enough catalogued images see usably
    (pwm.footprints: a whole body for a survey, one place per site), where no catalogued maplet
-   lies yet, are tiled (pwm.tiling.tile), each at the spacing of the images that see it, and
-   stored; places no image sees stay untiled;
+   as fine as their images support (within a factor two) lies yet, are tiled (pwm.tiling.tile),
+   each at the spacing of the finest images enough to refine it, and stored: a site imaged at
+   10 cm inside a survey tiled at 2 m gets maplets of its own level (pwm.tiling.level_of),
+   nested under the survey's, which stay; places no image sees stay untiled;
 2. every maplet that one of the downlink's images may see is weighed with the refinement's own
    rules (pwm.pipeline.views_over_maplet, pwm.weights.weigh_images): the new images are traced
    by Embree against the shape (in frame, not occluded, lit) on a subsample of the maplet's
@@ -176,14 +178,19 @@ class _Views:
 def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Views, *,
                config: RefinementConfig) -> set[int]:
     """Tile and store the places that the new views look at, that enough catalogued views see
-    usably (pwm.footprints), and that no catalogued maplet covers yet, each at the spacing its
-    images support (within config.tile_radius_km of each place's centre, if given); the ids of the
-    maplets added."""
+    usably (pwm.footprints), and that no catalogued maplet about as fine covers yet (`_about`:
+    a finer level nests under a coarser one), each at the spacing its images support (within
+    config.tile_radius_km of each place's centre, if given); the ids of the maplets added."""
     samples = footprint_samples(tracer, new)
+    if not len(samples.points):
+        return set()
     catalogued = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
-                                        Maplet.rotation, Maplet.size_km)).all()
-    # nothing to tile: spare judging the footprints in the many images of a well-imaged place
-    if _covered(catalogued, samples.points).all():
+                                        Maplet.rotation, Maplet.size_km, Maplet.gsd_m)).all()
+    # Nothing to tile where maplets as fine as the new images could make cover every sample:
+    # spare judging the footprints in the many images of a well-imaged place.
+    nearest_km = min(float(np.linalg.norm(samples.points - v.pose.position, axis=1).min()) / v.camera.fx
+                     for v in new)
+    if _covered(_about(catalogued, config.spacing_gsd * nearest_km), samples.points).all():
         return set()
     seen = judge_samples(tracer, samples, views.seeing(samples), rules=config.rules, min_images=config.min_images)
     added: list[MapletGrid] = []
@@ -193,7 +200,7 @@ def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Vie
         points = place.points
         if config.tile_radius_km is not None:
             points = points[np.linalg.norm(points - place.centre, axis=1) <= config.tile_radius_km]
-        points = points[~_covered(catalogued, points)]
+        points = points[~_covered(_about(catalogued, place.spacing_km), points)]
         if not len(points):
             continue
         maplets = tile(tracer.mesh, spacing_km=place.spacing_km, nodes=config.nodes, overlap=config.overlap,
@@ -202,8 +209,8 @@ def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Vie
             Maplet.name.in_([m.name for m in maplets])))) | {m.name for m in added}
         new_here = [m for m in maplets if m.name not in taken]
         lat, lon = unit_to_latlon(place.centre)
-        log.info("tiled %d maplets of %d nodes at %.3f m over a place about (%.4f, %.4f) seen at %d samples",
-                 len(new_here), config.nodes, place.spacing_km * 1e3, lat, lon, len(points))
+        log.info("tiled %d maplets of %d nodes at %.3f m (level %d) over a place about (%.4f, %.4f) seen at %d "
+                 "samples", len(new_here), config.nodes, place.spacing_km * 1e3, place.level, lat, lon, len(points))
         added += new_here
     records = []
     for m in added:
@@ -217,14 +224,21 @@ def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Vie
     return {m.id for m in records}
 
 
+def _about(maplets: Sequence[Sequence[Any]], spacing_km: float) -> list[Sequence[Any]]:
+    """The maplets (rows ending in gsd_m) within a factor two of spacing_km, or finer: a place is
+    tiled at a new level where its images are at least twice as fine as the maplets there, so
+    that two downlinks of about one spacing (on either side of a level's bound) share maplets."""
+    return [row for row in maplets if row[-1] < 2e3 * spacing_km]
+
+
 def _covered(maplets: Sequence[Sequence[Any]], points: np.ndarray) -> np.ndarray:
     """Which points lie over one of the maplets' squares (within its half-size of its plane);
-    maplets: rows of origin x, y, z (km), rotation and size (km)."""
+    maplets: rows of origin x, y, z (km), rotation and size (km), and what follows."""
     covered = np.zeros(len(points), dtype=bool)
     if not maplets or not len(points):
         return covered
     tree = cKDTree(points)
-    for x, y, z, rotation, size in maplets:
+    for x, y, z, rotation, size, *_ in maplets:
         origin = np.array([x, y, z])
         idx = np.asarray(tree.query_ball_point(origin, np.sqrt(3.0) * 0.5 * size), dtype=np.int64)
         if len(idx):

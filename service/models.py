@@ -37,6 +37,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, rela
 
 from pwm.camera import PoseCorrection
 from pwm.spg.uncertainty import PoseSigma
+from pwm.tiling import level_of
 
 # Explicit constraint names keep migrations identical on both databases and let Alembic's
 # SQLite batch mode find constraints again.
@@ -423,6 +424,10 @@ class ImageGeometry(Base):
     image: Mapped[Image] = relationship(back_populates="geometry")
 
 
+def _level(gsd_m: float) -> int:
+    return int(level_of(gsd_m * 1e-3))
+
+
 class Maplet(Base):
     """A square surface patch with its local frame: Pl = rotation (P - origin), z along the
     regional normal, x parallel to the equator."""
@@ -440,6 +445,8 @@ class Maplet(Base):
     rotation: Mapped[list[Any]]
     size_km: Mapped[float]
     gsd_m: Mapped[float]
+    # pwm.tiling.level_of the spacing, by default from gsd_m
+    level: Mapped[int] = mapped_column(default=lambda context: _level(context.get_current_parameters()["gsd_m"]))
     nodes_per_side: Mapped[int]
     # w_PWM: lower for a weak image set, which holds the maplet closer to the starting shape.
     region_weight: Mapped[float] = mapped_column(default=1.0)

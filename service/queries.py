@@ -107,6 +107,7 @@ class MapletInfo(_Result):
     center_lon_deg: float
     size_km: float
     gsd_m: float
+    level: int
     nodes_per_side: int
     region_weight: float
     current_revision: int | None
@@ -227,19 +228,19 @@ def maplet_coverage(
 
 def list_maplets(
     session: Session, *, lat_deg: float | None = None, lon_deg: float | None = None,
-    radius_km: float = 0.0, limit: int = 100, offset: int = 0,
+    radius_km: float = 0.0, level: int | None = None, limit: int = 100, offset: int = 0,
 ) -> list[MapletInfo]:
     """Maplets by name; or, given lat_deg and lon_deg, those holding that surface point or
-    within radius_km of it, nearest first."""
+    within radius_km of it, nearest first; of one level (pwm.tiling.level_of) if given."""
     if limit < 0 or offset < 0:
         raise ValueError("limit and offset must be >= 0")
     if (lat_deg is None) != (lon_deg is None):
         raise ValueError("give lat_deg and lon_deg together, or neither")
     if lat_deg is None or lon_deg is None:  # both, checked above
-        rows = session.execute(_maplet_rows().order_by(Maplet.name).limit(limit).offset(offset))
+        rows = session.execute(_maplet_rows(level).order_by(Maplet.name).limit(limit).offset(offset))
         page: Sequence[tuple[Row[Any], float | None]] = [(row, None) for row in rows]
     else:
-        near = _maplets_near(session, lat_deg=lat_deg, lon_deg=lon_deg, radius_km=radius_km)
+        near = _maplets_near(session, lat_deg=lat_deg, lon_deg=lon_deg, radius_km=radius_km, level=level)
         page = sorted(near, key=lambda item: (item[1], item[0].name))[offset:offset + limit]
     counts: dict[int, int] = {maplet_id: n for maplet_id, n in session.execute(
         select(Coverage.maplet_id, func.count())
@@ -247,7 +248,7 @@ def list_maplets(
         .group_by(Coverage.maplet_id))} if page else {}
     return [MapletInfo(
         id=row.id, name=row.name, center_lat_deg=row.center_lat_deg,
-        center_lon_deg=row.center_lon_deg, size_km=row.size_km, gsd_m=row.gsd_m,
+        center_lon_deg=row.center_lon_deg, size_km=row.size_km, gsd_m=row.gsd_m, level=row.level,
         nodes_per_side=row.nodes_per_side, region_weight=row.region_weight,
         current_revision=row.revision, image_count=counts.get(row.id, 0), distance_km=distance)
         for row, distance in page]
@@ -260,18 +261,20 @@ def _records(result: Result[Any]) -> Iterator[dict[str, Any]]:
     return (dict(zip(keys, row, strict=True)) for row in result)
 
 
-def _maplet_rows() -> Select[Any]:
-    return (select(Maplet.id, Maplet.name, Maplet.center_lat_deg, Maplet.center_lon_deg,
-                   Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km, Maplet.rotation,
-                   Maplet.size_km, Maplet.gsd_m, Maplet.nodes_per_side, Maplet.region_weight,
-                   MapletRevision.revision)
-            .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id))
+def _maplet_rows(level: int | None = None) -> Select[Any]:
+    query = (select(Maplet.id, Maplet.name, Maplet.center_lat_deg, Maplet.center_lon_deg,
+                    Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km, Maplet.rotation,
+                    Maplet.size_km, Maplet.gsd_m, Maplet.level, Maplet.nodes_per_side, Maplet.region_weight,
+                    MapletRevision.revision)
+             .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id))
+    return query if level is None else query.where(Maplet.level == level)
 
 
 def _maplets_near(
-    session: Session, *, lat_deg: float, lon_deg: float, radius_km: float
+    session: Session, *, lat_deg: float, lon_deg: float, radius_km: float, level: int | None = None
 ) -> list[tuple[Row[Any], float]]:
-    """Maplets holding the surface point, or within radius_km of it, with that distance (km)."""
+    """Maplets (of one level if given) holding the surface point, or within radius_km of it,
+    with that distance (km)."""
     if not -90.0 <= lat_deg <= 90.0 or not math.isfinite(lon_deg):
         raise ValueError(f"latitude {lat_deg} or longitude {lon_deg} out of range")
     if not radius_km >= 0.0:
@@ -281,7 +284,7 @@ def _maplets_near(
         return []
     direction = latlon_to_unit(lat_deg, lon_deg)
     near = []
-    for row in session.execute(_maplet_rows().where(prefilter)):
+    for row in session.execute(_maplet_rows(level).where(prefilter)):
         frame = LocalFrame(origin=np.array([row.origin_x_km, row.origin_y_km, row.origin_z_km]),
                            rotation=np.asarray(row.rotation, dtype=float).reshape(3, 3))
         distance = distance_to_square_km(frame, direction, row.size_km / 2)
@@ -375,11 +378,12 @@ def maplet_revisions(session: Session, *, maplet_id: int) -> list[RevisionInfo]:
                          current=r.id == current) for r in revisions]
 
 
-def count_maplets(session: Session, *, lat_deg: float | None = None,
-                  lon_deg: float | None = None, radius_km: float = 0.0) -> int:
+def count_maplets(session: Session, *, lat_deg: float | None = None, lon_deg: float | None = None,
+                  radius_km: float = 0.0, level: int | None = None) -> int:
     """How many maplets list_maplets pages through with the same arguments."""
     if (lat_deg is None) != (lon_deg is None):
         raise ValueError("give lat_deg and lon_deg together, or neither")
     if lat_deg is None or lon_deg is None:  # both, checked above
-        return session.scalar(select(func.count(Maplet.id))) or 0
-    return len(_maplets_near(session, lat_deg=lat_deg, lon_deg=lon_deg, radius_km=radius_km))
+        query = select(func.count(Maplet.id))
+        return session.scalar(query if level is None else query.where(Maplet.level == level)) or 0
+    return len(_maplets_near(session, lat_deg=lat_deg, lon_deg=lon_deg, radius_km=radius_km, level=level))

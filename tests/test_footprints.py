@@ -65,6 +65,24 @@ def test_two_sites_seen_at_two_scales_are_two_places(tracer):
     assert len(places(seen_samples(tracer, a + b + lone, rules=RULES, min_images=1), nodes=20, spacing_gsd=1.0)) == 3
 
 
+def test_where_close_and_far_images_look_the_close_ones_set_the_scale(tracer):
+    # a site from 1 km (0.5 m pixels) and again from 0.25 km (12.5 cm): five of each
+    far = views_of(10.0, 40.0, 1.0, TILTS, "far")
+    close = views_of(10.0, 40.0, 0.25, [(dlat / 4, dlon / 4) for dlat, dlon in TILTS], "close")
+    seen = seen_samples(tracer, far + close, rules=RULES, min_images=3)
+    target = R * latlon_to_unit(10.0, 40.0)
+    under_close = np.linalg.norm(seen.points - target, axis=1) < 0.004  # inside every close footprint
+    outside = np.linalg.norm(seen.points - target, axis=1) > 0.02  # beyond all of them
+    assert under_close.sum() > 20 and outside.sum() > 20
+    # not the median of all ten (between the two), but the close images'
+    assert np.allclose(seen.pixel_km[under_close], 0.25 / 2000.0, rtol=0.05)
+    assert np.allclose(seen.pixel_km[outside], 1.0 / 2000.0, rtol=0.05)
+    found = places(seen, nodes=20, spacing_gsd=1.0)
+    assert sorted(p.level for p in found) == [-3, -1]  # 12.5 cm and 50 cm
+    fine = next(p for p in found if p.level == -3)
+    assert np.linalg.norm(fine.points - target, axis=1).max() < 0.02
+
+
 def test_a_place_is_tiled_over_what_is_seen_and_no_farther(tracer):
     views = views_of(10.0, 40.0, 1.0, TILTS, "a")
     place = places(seen_samples(tracer, views, rules=RULES, min_images=3), nodes=20, spacing_gsd=1.0)[0]

@@ -14,7 +14,7 @@ from pwm.io.meshio import read_obj
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
-from pwm.tiling import sample_heights, sample_surface, tile
+from pwm.tiling import level_of, sample_heights, sample_surface, tile
 
 BENNU = Path(pwm.__file__).parent / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
 R = 0.25
@@ -83,6 +83,16 @@ def test_retiling_is_deterministic_and_names_are_unique(sphere):
                for p, q in zip(a, b, strict=True))
     lat = float(a[0].name[1:9])
     assert lat < -15.0 and a[0].name[9] == "E"
+    # the level closes the name: 1 m is level 0, and the same place at 25 cm is another maplet
+    assert a[0].name.endswith("L+0")
+    quarter = tile(sphere, **(kwargs | {"spacing_km": 0.00025, "nodes": 41}))
+    assert quarter[0].name.endswith("L-2") and not {m.name for m in quarter} & {m.name for m in a}
+
+
+def test_levels_are_the_nearest_powers_of_two():
+    spacing_m = np.array([0.05, 0.1, 0.125, 0.17, 0.18, 0.5, 0.7, 0.72, 1.0, 2.0, 2.8])
+    assert level_of(spacing_m * 1e-3).tolist() == [-4, -3, -3, -3, -2, -1, -1, 0, 0, 1, 1]
+    assert int(level_of(2e-3)) == 1
 
 
 def test_whole_body_is_covered(bennu):

@@ -116,28 +116,31 @@ def maplets(
     lat: float | None = typer.Option(None, min=-90.0, max=90.0, help="only maplets holding this latitude (deg) ..."),
     lon: float | None = typer.Option(None, help="... and east longitude (deg), nearest first"),
     radius: float = typer.Option(0.0, min=0.0, help="or within this distance of that point, km"),
+    level: int | None = typer.Option(
+        None, min=-64, max=64, help="only maplets of this level: node spacings within a factor sqrt(2) of 2^level m"),
     limit: int = typer.Option(50, min=1, help="at most this many rows"),
     offset: int = typer.Option(0, min=0, help="skip this many rows first"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
-    """List maplets by name, or those at a surface point: centre, size, region weight, revision, images that
-    see them."""
+    """List maplets by name, or those at a surface point: centre, size, spacing and level, region weight,
+    revision, images that see them."""
     from service.catalog import open_catalog
     from service.queries import list_maplets
 
     if (lat is None) != (lon is None):
         raise typer.BadParameter("give --lat and --lon together")
     with open_catalog()() as session:
-        rows = list_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius, limit=limit, offset=offset)
+        rows = list_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius, level=level, limit=limit,
+                            offset=offset)
     if json_out:
         echo_json([m.model_dump(mode="json") for m in rows])
         return
-    typer.echo(f"{'maplet':<20} {'lat':>8} {'lon':>8} {'size m':>7} {'gsd m':>6} {'nodes':>5} {'w_PWM':>6} {'rev':>4} "
-               f"{'images':>6} {'dist m':>7}")
+    typer.echo(f"{'maplet':<24} {'lat':>8} {'lon':>8} {'size m':>7} {'gsd m':>6} {'level':>5} {'nodes':>5} "
+               f"{'w_PWM':>6} {'rev':>4} {'images':>6} {'dist m':>7}")
     for m in rows:
         distance = "-" if m.distance_km is None else f"{m.distance_km * 1e3:.2f}"
-        typer.echo(f"{m.name:<20} {m.center_lat_deg:>8.3f} {m.center_lon_deg:>8.3f} {m.size_km * 1e3:>7.2f} "
-                   f"{m.gsd_m:>6.3f} {m.nodes_per_side:>5} "
+        typer.echo(f"{m.name:<24} {m.center_lat_deg:>8.3f} {m.center_lon_deg:>8.3f} {m.size_km * 1e3:>7.2f} "
+                   f"{m.gsd_m:>6.3f} {m.level:>5} {m.nodes_per_side:>5} "
                    f"{m.region_weight:>6.3f} {m.current_revision if m.current_revision is not None else '-':>4} "
                    f"{m.image_count:>6} {distance:>7}")
 

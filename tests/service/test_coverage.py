@@ -8,17 +8,19 @@ import json
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from sqlalchemy import delete, select, update
+from sqlalchemy import delete, func, select, update
 
 from pwm.config import RefinementConfig
 from pwm.footprints import places, seen_samples
+from pwm.frames import unit_to_latlon
 from pwm.io.meshio import read_mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
+from pwm.tiling import level_of, tile
 from service.coverage import update_coverage
 from service.ingest import ingest_directory
 from service.models import Coverage, CoverageRole, Image, ImageGeometry, Maplet
-from service.queries import list_maplets, maplet_coverage
+from service.queries import count_maplets, list_maplets, maplet_coverage
 from service.views import catalog_views
 
 
@@ -200,3 +202,49 @@ def test_a_later_downlink_is_weighed_into_the_stored_rows_as_weighing_all_again_
     with catalog() as session:
         assert _rows(session) == before
         assert _maplets(session) == maplets
+
+
+def _catalogue(session, maplets) -> None:
+    """Maplet rows for the grids, as an earlier downlink's tiling would have left them."""
+    for m in maplets:
+        lat, lon = unit_to_latlon(m.frame.origin)
+        session.add(Maplet(name=m.name, center_lat_deg=float(lat), center_lon_deg=float(lon),
+                           origin_x_km=float(m.frame.origin[0]), origin_y_km=float(m.frame.origin[1]),
+                           origin_z_km=float(m.frame.origin[2]), rotation=m.frame.rotation.tolist(),
+                           size_km=(m.n - 1) * m.spacing_km, gsd_m=m.spacing_km * 1e3, nodes_per_side=m.n))
+
+
+@pytest.mark.parametrize("coarser", [4.0, 1.5])
+def test_finer_images_nest_maplets_of_their_level_under_coarser_ones(tiny_sim, catalog, coarser):
+    """Issue 16.1: over maplets at least twice as coarse as a downlink's images (an earlier
+    survey's), the downlink tiles its place again at its own level; the coarse maplets stay, are
+    weighed too, and the levels are told apart by the queries. Over maplets less than twice as
+    coarse it tiles nothing."""
+    shape = read_mesh(tiny_sim / "downlink" / "start_model.obj")
+    manifest = json.loads((tiny_sim / "truth" / "manifest.json").read_text())
+    site = manifest["scenario"]
+    gsd_km = manifest["gsd_m"] * 1e-3
+    survey = tile(shape, spacing_km=coarser * gsd_km, nodes=40, centre_lat_deg=site["site_lat_deg"],
+                  centre_lon_deg=site["site_lon_deg"], radius_km=site["site_size_km"])
+    with catalog.begin() as session:
+        _catalogue(session, survey)
+    report = ingest_directory(catalog, tiny_sim / "downlink", shape=shape).coverage
+    fine, coarse = int(level_of(gsd_km)), int(level_of(coarser * gsd_km))
+    with catalog() as session:
+        levels = dict(session.execute(select(Maplet.level, func.count()).group_by(Maplet.level)).all())
+        assert levels[coarse] == len(survey)
+        site_point = dict(lat_deg=site["site_lat_deg"], lon_deg=site["site_lon_deg"])
+        if coarser < 2.0:
+            assert report.maplets_added == 0 and levels == {coarse: len(survey)}
+            return
+        assert fine != coarse and report.maplets_added == levels[fine] > 0
+        assert count_maplets(session, level=fine) == report.maplets_added
+        here = list_maplets(session, **site_point)
+        assert {m.level for m in here} == {fine, coarse}  # the site's maplet and the survey's above it
+        [finest] = list_maplets(session, **site_point, level=fine)
+        assert finest.gsd_m == pytest.approx(manifest["gsd_m"], rel=0.05) and finest.name.endswith(f"L{fine:+d}")
+        # both levels weighed in the new images: the coarse maplets with the images no more than
+        # twice as coarse as them, all of these
+        weighed = dict(session.execute(select(Maplet.level, func.count(Coverage.id)).join(Coverage)
+                                       .where(Coverage.weight > 0).group_by(Maplet.level)).all())
+        assert weighed[fine] > 0 and weighed[coarse] > 0

@@ -24,14 +24,16 @@ def list_maplets_near(
     = None,
     radius_km: Annotated[float, Query(ge=0, le=100, description="also maplets within this "
                                       "distance of the point, km")] = 0.0,
+    level: Annotated[int | None, Query(ge=-64, le=64, description="only maplets of this level: node "
+                                       "spacings within a factor sqrt(2) of 2^level m")] = None,
 ) -> Page[MapletInfo]:
     """Maplets by name; or, with lat and lon, those holding that surface point or within
-    radius_km of it, nearest first."""
+    radius_km of it, nearest first; of one level if given."""
     if (lat is None) != (lon is None):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "give lat and lon together")
-    items = list_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius_km,
+    items = list_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius_km, level=level,
                          **paging.model_dump())
-    total = count_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius_km)
+    total = count_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius_km, level=level)
     return Page(items=items, total=total, **paging.model_dump())
 
 
@@ -47,7 +49,7 @@ def get_maplet(session: SessionDep, maplet_id: Id) -> MapletDetail:
     current = next((r.revision for r in revisions if r.current), None)
     info = MapletInfo(id=maplet.id, name=maplet.name, center_lat_deg=maplet.center_lat_deg,
                       center_lon_deg=maplet.center_lon_deg, size_km=maplet.size_km,
-                      gsd_m=maplet.gsd_m, nodes_per_side=maplet.nodes_per_side,
+                      gsd_m=maplet.gsd_m, level=maplet.level, nodes_per_side=maplet.nodes_per_side,
                       region_weight=maplet.region_weight, current_revision=current,
                       image_count=len(images), distance_km=None)
     return MapletDetail(maplet=info,
