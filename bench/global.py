@@ -42,9 +42,10 @@ SHAPE = Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes" / "bennu
 def fuse_once(maplets: int, nodes: int) -> dict:
     """Tile, store and fuse about `maplets` maplets over the whole shape; figures as a dict."""
     from pwm.evaluate.closure import closure
-    from pwm.io.fusion_state import read_maplet, write_grid, write_maplet
+    from pwm.io.fusion_state import read_maplet, write_levels, write_maplet
     from pwm.io.meshio import read_obj
-    from pwm.tiling import tile
+    from pwm.levels import LevelGrids
+    from pwm.tiling import level_of, tile
     from pwm.volume import DistanceGrid
 
     shape = read_obj(SHAPE)
@@ -71,7 +72,7 @@ def fuse_once(maplets: int, nodes: int) -> dict:
     mesh_s = time.perf_counter() - clock
     peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # before the checks' own
     with tempfile.TemporaryDirectory() as scratch:
-        write_grid(Path(scratch) / "grid.npz", grid)
+        write_levels(Path(scratch) / "grid.npz", LevelGrids(DEFAULTS.overlap, {int(level_of(spacing)): grid}))
         grid_mib = (Path(scratch) / "grid.npz").stat().st_size / 2**20
     clock = time.perf_counter()
     # the self-intersection test holds every nearby pair of faces: beyond this, not checked here

@@ -216,7 +216,7 @@ def _stitch(base: Mesh, points: np.ndarray, faces: np.ndarray, albedo: np.ndarra
     touching = inside[base.faces].any(axis=1)
     tri = qb[base.faces[touching]]
     margin = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(initial=0.0)) + 3 * voxel
-    border = _border_vertices(faces)
+    border = border_vertices(faces)
     interior = inside.copy()
     if len(border) and inside.any():
         interior[inside] = cKDTree(q[border]).query(qb[inside])[0] >= margin
@@ -233,7 +233,7 @@ def _stitch(base: Mesh, points: np.ndarray, faces: np.ndarray, albedo: np.ndarra
     return Mesh(vertices, faces, np.concatenate([base_albedo, albedo]))
 
 
-def _border_vertices(faces: np.ndarray) -> np.ndarray:
+def border_vertices(faces: np.ndarray) -> np.ndarray:
     """Vertices on edges used by one face only."""
     a, b = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
     n = np.int64(faces.max() + 1)

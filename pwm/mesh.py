@@ -89,3 +89,51 @@ def surface_points(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarr
     u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
     corners = mesh.vertices[mesh.faces[faces]]
     return corners[:, 0] + u[:, None] * (corners[:, 1] - corners[:, 0]) + v[:, None] * (corners[:, 2] - corners[:, 0])
+
+
+def refine_faces(mesh: Mesh, selected: np.ndarray, *, max_edge_km: float) -> tuple[Mesh, np.ndarray]:
+    """The mesh with its selected faces (M,) bool split until none of their edges is longer than
+    max_edge_km, and which faces of the result came from selected ones. Conforming (red-green):
+    an edge split for a selected face is split for its neighbour too, which takes two or four
+    triangles, so a closed, manifold mesh stays closed and manifold. Albedo of a new vertex is
+    the mean of its edge's ends."""
+    vertices, faces, albedo = mesh.vertices, mesh.faces, mesh.albedo
+    selected = np.asarray(selected, dtype=bool)
+    while True:
+        pairs = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+        edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+        edge_of = inverse.reshape(-1, 3)  # edge k of a face joins its corners k and k + 1
+        long = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1) > max_edge_km
+        split = np.zeros(len(edges), dtype=bool)
+        split[edge_of[selected][long[edge_of[selected]]]] = True
+        if not split.any():
+            return Mesh(vertices, faces, albedo), selected
+        # a face with two edges split has its third split too, so each face is halved or quartered
+        while True:
+            two = split[edge_of].sum(axis=1) == 2
+            if not two.any():
+                break
+            split[edge_of[two]] = True
+        index = np.full(len(edges), -1, dtype=np.int64)
+        index[split] = len(vertices) + np.arange(split.sum())
+        ends = edges[split]
+        vertices = np.vstack([vertices, 0.5 * (vertices[ends[:, 0]] + vertices[ends[:, 1]])])
+        if albedo is not None:
+            albedo = np.concatenate([albedo, 0.5 * (albedo[ends[:, 0]] + albedo[ends[:, 1]])])
+        mid = index[edge_of]  # (M, 3) the midpoint of each face's edge k, or -1
+        count = split[edge_of].sum(axis=1)
+        a, b, c = faces.T
+        m0, m1, m2 = mid.T
+        quarter = count == 3
+        new = [faces[count == 0]]
+        new.append(np.concatenate([np.stack([a, m0, m2], 1)[quarter], np.stack([m0, b, m1], 1)[quarter],
+                                   np.stack([m2, m1, c], 1)[quarter], np.stack([m0, m1, m2], 1)[quarter]]))
+        # halved: from the split edge's midpoint to the opposite corner
+        for k, (p, q, r, m) in enumerate(((a, b, c, m0), (b, c, a, m1), (c, a, b, m2))):
+            half = (count == 1) & (mid[:, k] >= 0)
+            new.append(np.concatenate([np.stack([p, m, r], 1)[half], np.stack([m, q, r], 1)[half]]))
+        chosen = [selected[count == 0], np.tile(selected[quarter], 4)]
+        for k in range(3):
+            half = (count == 1) & (mid[:, k] >= 0)
+            chosen.append(np.tile(selected[half], 2))
+        faces, selected = np.concatenate(new).astype(np.int64), np.concatenate(chosen)

@@ -17,7 +17,7 @@ import numpy as np
 from pwm.alignment import register
 from pwm.camera import project
 from pwm.config import DEFAULTS, RefinementConfig
-from pwm.fusion import VoxelGrid
+from pwm.levels import LevelGrids
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.parallel import map_processes
@@ -26,7 +26,6 @@ from pwm.raytrace import RayTracer
 from pwm.tiling import tile
 from pwm.views import View
 from pwm.visibility import Visibility, node_visibility
-from pwm.volume import DistanceGrid, grid_for
 from pwm.weights import (
     RULES,
     MapletGeometry,
@@ -223,8 +222,8 @@ def refine_region(start: Mesh, views: list[View], region: Region, *, config: Ref
     return model, results
 
 
-def fuse(maplets: list[MapletGrid], base: Mesh, *, overlap: float) -> tuple[Mesh, VoxelGrid | DistanceGrid]:
-    """Fuse refined maplets (voxels of one node spacing) with `base` (pwm.volume.grid_for)."""
-    grid = grid_for(base, voxel_km=maplets[0].spacing_km, taper_fraction=overlap)
-    grid.add_all(maplets)
-    return grid.mesh(base), grid
+def fuse(maplets: list[MapletGrid], base: Mesh, *, overlap: float) -> tuple[Mesh, LevelGrids]:
+    """Fuse refined maplets, of any levels, with `base` (pwm.levels)."""
+    fusion = LevelGrids(taper_fraction=overlap)
+    fusion.add_all(maplets, base=base)
+    return fusion.mesh(base), fusion

@@ -1,13 +1,14 @@
 """Incremental fusion of the maplets' current revisions into a new model version.
 
-The parent is the latest version. Its "grid" artifact holds the voxel sums (pwm.fusion.VoxelGrid)
-of the revisions in its lineage; the maplets whose current revision differs from the parent's
-have their old revision subtracted and their new one added, and the rest of the sums are left as
-they are. A parent without a grid (a start, imported or photogrammetric model) starts an empty
-one. The base is the nearest version up the lineage without a grid, the model that the
-refinements started from: where the lattice at the maplets' spacing is affordable over the whole
-body the fusion is one closed surface that the base closes (pwm.volume), else the fused region is
-stitched into it (pwm.fusion); pwm.volume.grid_for chooses.
+The parent is the latest version. Its "grid" artifact holds the fusion sums of each level of
+maplets (pwm.levels.LevelGrids) of the revisions in its lineage; the maplets whose current
+revision differs from the parent's have their old revision subtracted and their new one added,
+and the rest of the sums are left as they are. A parent without a grid (a start, imported or
+photogrammetric model) starts an empty one. The base is the nearest version up the lineage
+without a grid, the model that the refinements started from: the coarsest level is one closed
+surface that the base closes where its lattice is affordable over the whole body (pwm.volume),
+else a region stitched into the base (pwm.fusion; pwm.volume.grid_for chooses); each finer level
+is laid onto the surface below it (pwm.levels).
 
 All of it runs under the publication lock (service.versions.publication_lock), taken before the
 parent is read, so two fusions never build on the same parent.
@@ -24,8 +25,8 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
-from pwm.io.fusion_state import read_grid, write_grid
-from pwm.volume import DistanceGrid, grid_for
+from pwm.io.fusion_state import read_levels, write_levels
+from pwm.levels import LevelGrids
 from service.console.documents import MeshRequest, mesh_document
 from service.db import session_scope
 from service.jobs import refined_downlinks
@@ -54,8 +55,9 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
     and the downlinks whose refine jobs made the revisions changed (service.jobs
     .refined_downlinks).
     Statistics: maplets changed, added, replaced and fused in all, images used, whether the
-    parent's sums were reused, the base version, the surface ("closed" or "stitched"), voxels and
-    seconds (with the mesh's own).
+    parent's sums were reused, the base version, the coarsest level's surface ("closed" or
+    "stitched"), voxels, each level's surface, voxel size and voxels, and seconds (with the
+    mesh's own).
     The console's 3D document of the new version (service.console.mesh_document) is made too.
     """
     clock = time.perf_counter()
@@ -73,23 +75,23 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
                      parent.version)
             return None
         if "grid" in parent.artifacts:
-            grid = read_grid(artifact_path(data_dir, parent.artifacts["grid"], verify=True))
+            fusion = read_levels(artifact_path(data_dir, parent.artifacts["grid"], verify=True))
             for old in [used[r.maplet_id] for r in changed if r.maplet_id in used] + gone:
-                grid.subtract(load_revision_maplet(data_dir, old))
+                fusion.subtract(load_revision_maplet(data_dir, old))
             added = changed
         else:
             added = list(current.values())
-            grid = None
+            fusion = LevelGrids(taper_fraction=config.overlap)
         base = _base(parent)
         base_mesh = version_mesh(data_dir, base)
-        if grid is None:
-            spacing_km = load_revision_maplet(data_dir, added[0]).spacing_km
-            grid = grid_for(base_mesh, voxel_km=spacing_km, taper_fraction=config.overlap)
-        # one at a time from disk: a whole body's maplets need not fit in memory together
-        grid.add_all(load_revision_maplet(data_dir, r) for r in added)
-        mesh = grid.mesh(base_mesh)
+        # coarsest level first, which makes it the level fused over the base (pwm.levels); a
+        # batch at a time from disk: a whole body's maplets need not fit in memory together
+        level = {maplet_id: k for maplet_id, k in session.execute(select(Maplet.id, Maplet.level))}
+        added = sorted(added, key=lambda r: (-level[r.maplet_id], r.maplet_id))
+        fusion.add_all((load_revision_maplet(data_dir, r) for r in added), base=base_mesh)
+        mesh = fusion.mesh(base_mesh)
         scratch = scratch_path(data_dir, ".npz")
-        write_grid(scratch, grid)
+        write_levels(scratch, fusion)
         downlinks = {d.id: d for d in parent.downlinks}
         # Every downlink whose refinements this version carries, besides those asked for: a
         # fusion may take up revisions whose own downlink's fusion has not run yet.
@@ -97,14 +99,15 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
             if downlink_id not in downlinks:
                 downlinks[downlink_id] = session.get_one(Downlink, downlink_id)
         images = {name for r in current.values() for name in r.statistics.get("images", [])}
+        levels = fusion.describe()
         statistics = {
             "maplets_changed": len(changed), "maplets_added": sum(r.maplet_id not in used
                                                                   for r in changed),
             "maplets_replaced": sum(r.maplet_id in used for r in changed),
             "maplets_removed": len(gone), "maplets_fused": len(current), "images": len(images),
             "incremental": "grid" in parent.artifacts, "base_version": base.version,
-            "surface": "closed" if isinstance(grid, DistanceGrid) else "stitched",
-            "voxels": len(grid.keys), "fusion_seconds": time.perf_counter() - clock}
+            "surface": next(iter(levels.values()))["surface"], "voxels": fusion.voxels, "levels": levels,
+            "fusion_seconds": time.perf_counter() - clock}
         version = publish_version(session, data_dir=data_dir, mesh=mesh, kind=ModelKind.REFINED,
                                   parent=parent, statistics=statistics,
                                   extra_artifacts={"grid": scratch},

@@ -1,6 +1,6 @@
 """What incremental fusion keeps between model versions, as numpy .npz files: a refined maplet
-(frame, spacing, heights, albedo, region weight) and the sums of a fusion (pwm.fusion.VoxelGrid
-or pwm.volume.DistanceGrid).
+(frame, spacing, heights, albedo, region weight) and the sums of a fusion, level by level
+(pwm.levels.LevelGrids of pwm.fusion.VoxelGrid and pwm.volume.DistanceGrid).
 
 Arrays are stored exactly (float64, int64), so a maplet read back subtracts from a grid exactly
 what it added. Lengths in km, body-fixed frame.
@@ -9,12 +9,15 @@ what it added. Lengths in km, body-fixed frame.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from pwm.frames import LocalFrame
 from pwm.fusion import VoxelGrid
+from pwm.levels import LevelGrids
 from pwm.maplets import MapletGrid
+from pwm.tiling import level_of
 from pwm.volume import DistanceGrid
 
 _KINDS: dict[str, type[VoxelGrid] | type[DistanceGrid]] = {"points": VoxelGrid, "distances": DistanceGrid}
@@ -41,19 +44,37 @@ def read_maplet(path: str | Path) -> MapletGrid:
                           weight=float(data["weight"]))
 
 
-def write_grid(path: str | Path, grid: VoxelGrid | DistanceGrid) -> None:
-    """Save a fusion's sums: a VoxelGrid's (kind "points") or a DistanceGrid's ("distances")."""
-    kind = next(k for k, cls in _KINDS.items() if type(grid) is cls)
+def write_levels(path: str | Path, fusion: LevelGrids) -> None:
+    """Save the sums of each level of a fusion (pwm.levels.LevelGrids): per level its kind
+    ("points" for a VoxelGrid, "distances" for a DistanceGrid), voxel size, taper, keys, sums and
+    counts, named with the level as a prefix."""
+    arrays: dict[str, np.ndarray] = {"levels": np.array(sorted(fusion.grids), dtype=np.int64),
+                                     "taper_fraction": np.array(fusion.taper_fraction)}
+    for level, grid in fusion.grids.items():
+        arrays |= {f"L{level}_{name}": value for name, value in _grid_arrays(grid).items()}
     with open(path, "wb") as stream:
-        np.savez(stream, kind=np.array(kind), voxel_km=np.array(grid.voxel_km),
-                 taper_fraction=np.array(grid.taper_fraction), keys=grid.keys, sums=grid.sums,
-                 count=grid.count)
+        np.savez(stream, **arrays)  # type: ignore[arg-type]  # as in write_maplet
 
 
-def read_grid(path: str | Path) -> VoxelGrid | DistanceGrid:
-    """A fusion's sums saved by `write_grid` (those saved before kinds were written are points)."""
+def read_levels(path: str | Path) -> LevelGrids:
+    """The sums saved by `write_levels`; a file of one grid (as versions made before levels were
+    kept hold) is that grid at its level."""
     with np.load(path, allow_pickle=False) as data:
-        cls = _KINDS[str(data["kind"])] if "kind" in data else VoxelGrid
-        return cls(voxel_km=float(data["voxel_km"]),
-                         taper_fraction=float(data["taper_fraction"]), keys=data["keys"],
-                         sums=data["sums"], count=data["count"])
+        if "levels" not in data:
+            grid = _grid(data, "")
+            return LevelGrids(taper_fraction=grid.taper_fraction, grids={int(level_of(grid.voxel_km)): grid})
+        return LevelGrids(taper_fraction=float(data["taper_fraction"]),
+                          grids={int(level): _grid(data, f"L{int(level)}_") for level in data["levels"]})
+
+
+def _grid_arrays(grid: VoxelGrid | DistanceGrid) -> dict[str, np.ndarray]:
+    kind = next(k for k, cls in _KINDS.items() if type(grid) is cls)
+    return {"kind": np.array(kind), "voxel_km": np.array(grid.voxel_km),
+            "taper_fraction": np.array(grid.taper_fraction), "keys": grid.keys, "sums": grid.sums, "count": grid.count}
+
+
+def _grid(data: Any, prefix: str) -> VoxelGrid | DistanceGrid:
+    """The grid whose arrays are named with `prefix` (those saved before kinds were written are points)."""
+    cls = _KINDS[str(data[prefix + "kind"])] if prefix + "kind" in data else VoxelGrid
+    return cls(voxel_km=float(data[prefix + "voxel_km"]), taper_fraction=float(data[prefix + "taper_fraction"]),
+               keys=data[prefix + "keys"], sums=data[prefix + "sums"], count=data[prefix + "count"])

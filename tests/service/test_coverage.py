@@ -12,7 +12,6 @@ from sqlalchemy import delete, func, select, update
 
 from pwm.config import RefinementConfig
 from pwm.footprints import places, seen_samples
-from pwm.frames import unit_to_latlon
 from pwm.io.meshio import read_mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
@@ -22,6 +21,7 @@ from service.ingest import ingest_directory
 from service.models import Coverage, CoverageRole, Image, ImageGeometry, Maplet
 from service.queries import count_maplets, list_maplets, maplet_coverage
 from service.views import catalog_views
+from tests.service.conftest import catalogue_maplets
 
 
 def _nadir(plan: dict) -> bool:
@@ -204,16 +204,6 @@ def test_a_later_downlink_is_weighed_into_the_stored_rows_as_weighing_all_again_
         assert _maplets(session) == maplets
 
 
-def _catalogue(session, maplets) -> None:
-    """Maplet rows for the grids, as an earlier downlink's tiling would have left them."""
-    for m in maplets:
-        lat, lon = unit_to_latlon(m.frame.origin)
-        session.add(Maplet(name=m.name, center_lat_deg=float(lat), center_lon_deg=float(lon),
-                           origin_x_km=float(m.frame.origin[0]), origin_y_km=float(m.frame.origin[1]),
-                           origin_z_km=float(m.frame.origin[2]), rotation=m.frame.rotation.tolist(),
-                           size_km=(m.n - 1) * m.spacing_km, gsd_m=m.spacing_km * 1e3, nodes_per_side=m.n))
-
-
 @pytest.mark.parametrize("coarser", [4.0, 1.5])
 def test_finer_images_nest_maplets_of_their_level_under_coarser_ones(tiny_sim, catalog, coarser):
     """Issue 16.1: over maplets at least twice as coarse as a downlink's images (an earlier
@@ -227,7 +217,7 @@ def test_finer_images_nest_maplets_of_their_level_under_coarser_ones(tiny_sim, c
     survey = tile(shape, spacing_km=coarser * gsd_km, nodes=40, centre_lat_deg=site["site_lat_deg"],
                   centre_lon_deg=site["site_lon_deg"], radius_km=site["site_size_km"])
     with catalog.begin() as session:
-        _catalogue(session, survey)
+        catalogue_maplets(session, survey)
     report = ingest_directory(catalog, tiny_sim / "downlink", shape=shape).coverage
     fine, coarse = int(level_of(gsd_km)), int(level_of(coarser * gsd_km))
     with catalog() as session:

@@ -6,6 +6,8 @@ fusion from scratch."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import re
 import shutil
 from pathlib import Path
@@ -14,12 +16,17 @@ import numpy as np
 from sqlalchemy import func, select
 
 from pwm.config import RefinementConfig
-from pwm.io.fusion_state import read_grid
+from pwm.io.fusion_state import read_levels
+from pwm.io.meshio import read_mesh
 from pwm.io.pds4 import MISSING_DN, read_image_product, write_image_product
+from pwm.mesh import Mesh, grid_faces
+from pwm.raytrace import RayTracer
+from pwm.tiling import level_of, tile
 from service.models import Coverage, Maplet, MapletRevision, ModelKind
 from service.refinement import load_revision_maplet
 from service.run import run_directory
 from service.versions import artifact_path, get_version, version_mesh
+from tests.service.conftest import catalogue_maplets
 
 CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008)  # a few maplets about the site's centre: seconds
 
@@ -120,7 +127,7 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
         # Unchanged maplets keep the revision version 3 used.
         kept = {r.maplet_id: r.id for r in v3.maplet_revisions if r.maplet_id not in changed}
         assert kept and all(current[m].id == r for m, r in kept.items())
-        incremental = read_grid(artifact_path(data, v5.artifacts["grid"], verify=True))
+        [incremental] = read_levels(artifact_path(data, v5.artifacts["grid"], verify=True)).grids.values()
         scratch = type(incremental)(voxel_km=incremental.voxel_km, taper_fraction=CONFIG.overlap)
         for revision in sorted(current.values(), key=lambda r: r.maplet_id):
             scratch.add(load_revision_maplet(data, revision))
@@ -130,3 +137,53 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
     np.testing.assert_array_equal(incremental.count, scratch.count)
     np.testing.assert_allclose(incremental.sums, scratch.sums, rtol=1e-9, atol=1e-12)
     np.testing.assert_array_equal(version_mesh(data, start).vertices, start_mesh.vertices)
+
+
+def test_a_site_level_under_a_survey_level_is_refined_and_laid_into_one_model(tiny_sim, sqlite_url, open_catalog_at,
+                                                                             tmp_path):
+    """Issue 16.1-16.2: over a survey's maplets four times as coarse, a downlink tiles its own
+    level nested under them; both levels are refined from its images and fused, each place
+    from the finest level that covers it."""
+    catalog = open_catalog_at(sqlite_url)
+    data = tmp_path / "data"
+    start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
+    manifest = json.loads((tiny_sim / "truth" / "manifest.json").read_text())
+    site, gsd_km = manifest["scenario"], manifest["gsd_m"] * 1e-3
+    survey = tile(start, spacing_km=4 * gsd_km, nodes=CONFIG.nodes, centre_lat_deg=site["site_lat_deg"],
+                  centre_lon_deg=site["site_lon_deg"], radius_km=CONFIG.tile_radius_km)
+    with catalog.begin() as session:
+        catalogue_maplets(session, survey)
+    config = dataclasses.replace(CONFIG, passes=1)
+    run = run_directory(catalog, shutil.copytree(tiny_sim / "downlink", tmp_path / "first"), data_dir=data,
+                        config=config)
+    fine, coarse = str(int(level_of(gsd_km))), str(int(level_of(4 * gsd_km)))
+    with catalog() as session:
+        [version] = [get_version(session, v) for v in run.versions]
+        levels = version.statistics["levels"]
+        assert list(levels) == [coarse, fine] and levels[fine]["surface"] == "laid"
+        refined = {m.level: [] for m in session.scalars(select(Maplet))}
+        for revision in version.maplet_revisions:
+            maplet = load_revision_maplet(data, revision)
+            refined[int(level_of(maplet.spacing_km))].append(maplet)
+        mesh = version_mesh(data, version)
+    assert len(refined[int(coarse)]) == len(survey) and len(refined[int(fine)]) >= 2
+    # Down the middle of the site's maplets: the model is the site level's surface, not the
+    # survey level's, which differs from it there.
+    tracer = RayTracer(mesh)
+    below = [RayTracer(Mesh(s.nodes_body().reshape(-1, 3), grid_faces(s.n, s.n))) for s in refined[int(coarse)]]
+    to_site, to_survey = [], []
+    for m in refined[int(fine)]:
+        middle = m.nodes_body()[10:-10, 10:-10].reshape(-1, 3)
+        down = np.broadcast_to(-m.frame.normal, middle.shape)
+        hits = tracer.intersect(middle - 20 * gsd_km * down, down)
+        assert hits.hit.all()
+        to_site.append(hits.t - 20 * gsd_km)
+        survey_t = np.full(len(middle), np.inf)
+        for t in below:
+            h = t.intersect(middle - 20 * gsd_km * down, down)
+            survey_t = np.where(h.hit & (h.t < survey_t), h.t, survey_t)
+        to_survey.append(survey_t[np.isfinite(survey_t)] - 20 * gsd_km)
+    to_site_km, to_survey_km = np.abs(np.concatenate(to_site)), np.abs(np.concatenate(to_survey))
+    # measured: 0.06 GSD from the site level (where its maplets overlap, the model is their
+    # blend), 0.97 GSD from the survey level's
+    assert np.median(to_site_km) < 0.1 * gsd_km and np.median(to_site_km) < 0.2 * np.median(to_survey_km)

@@ -1,0 +1,103 @@
+"""Fusion across levels (pwm.levels): a survey's closed surface with a site's finer maplets laid
+onto it, each place from the finest level that covers it, without a step at the site's border."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from pwm.frames import latlon_to_unit
+from pwm.fusion import VoxelGrid
+from pwm.io.fusion_state import read_levels, write_levels
+from pwm.levels import LevelGrids
+from pwm.maplets import MapletGrid
+from pwm.mesh import Mesh, refine_faces
+from pwm.raytrace import RayTracer
+from pwm.tiling import level_of, tile
+from pwm.volume import DistanceGrid
+
+R = 0.25
+SITE = (10.0, 40.0)
+BUMP_KM, BUMP_SIGMA_KM, OFFSET_KM = 2e-3, 3e-3, 0.5e-3
+
+
+@pytest.fixture(scope="module")
+def sphere() -> Mesh:
+    s = trimesh.creation.icosphere(subdivisions=5, radius=R)
+    return Mesh(np.asarray(s.vertices), np.asarray(s.faces), np.full(len(s.vertices), 0.1))
+
+
+def _site(maplet: MapletGrid) -> MapletGrid:
+    """The maplet raised by a hill at the site and by OFFSET_KM everywhere: the site level
+    disagrees with the survey at its border, which must fade, not step."""
+    centre = R * latlon_to_unit(*SITE)
+    r = np.linalg.norm(maplet.nodes_body() - centre, axis=-1)
+    maplet.heights = maplet.heights + OFFSET_KM + BUMP_KM * np.exp(-0.5 * (r / BUMP_SIGMA_KM) ** 2)
+    return maplet
+
+
+@pytest.fixture(scope="module")
+def levels(sphere) -> tuple[list[MapletGrid], list[MapletGrid]]:
+    survey = tile(sphere, spacing_km=0.01, nodes=12, overlap=0.25)
+    site = [_site(m) for m in tile(sphere, spacing_km=5e-4, nodes=21, overlap=0.25, centre_lat_deg=SITE[0],
+                                    centre_lon_deg=SITE[1], radius_km=0.008)]
+    return survey, site
+
+
+def _radius(mesh: Mesh, directions: np.ndarray) -> np.ndarray:
+    """Radius of the surface along unit directions from the centre (first hit from outside)."""
+    hits = RayTracer(mesh).intersect(2 * R * directions, -directions)
+    assert hits.hit.all()
+    return 2 * R - hits.t
+
+
+def test_refining_faces_keeps_a_closed_mesh_closed(sphere):
+    top = sphere.vertices[sphere.faces].mean(axis=1)[:, 2] > 0.2
+    refined, chosen = refine_faces(sphere, top, max_edge_km=0.004)
+    mesh = trimesh.Trimesh(refined.vertices, refined.faces, process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    corners = refined.vertices[refined.faces[chosen]]
+    assert np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max() <= 0.004
+    # the selected faces split, the rest only where they meet them (halved, to conform)
+    assert chosen.sum() >= 4 * top.sum() and (~chosen).sum() - (~top).sum() < 0.05 * len(sphere.faces)
+    assert np.array_equal(refined.vertices[: len(sphere.vertices)], sphere.vertices)
+    assert refined.albedo is not None and np.allclose(refined.albedo, 0.1)
+
+
+def test_a_site_level_is_laid_into_the_survey_without_a_step(sphere, levels, tmp_path):
+    survey, site = levels
+    assert int(level_of(survey[0].spacing_km)) == 3 and int(level_of(site[0].spacing_km)) == -1
+    fusion = LevelGrids(taper_fraction=0.25)
+    fusion.add_all(survey + site, base=sphere)
+    assert isinstance(fusion.grids[3], DistanceGrid) and isinstance(fusion.grids[-1], VoxelGrid)
+    mesh = fusion.mesh(sphere)
+    closed = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    assert closed.is_watertight and closed.is_winding_consistent and closed.volume > 0
+
+    # the site from its level: the hill's top, and the survey's sphere away from it
+    centre = latlon_to_unit(*SITE)
+    assert _radius(mesh, centre[None])[0] == pytest.approx(R + OFFSET_KM + BUMP_KM, abs=1e-4)
+    far = latlon_to_unit(np.array([-40.0, 60.0, 10.0]), np.array([200.0, 100.0, 80.0]))
+    assert np.allclose(_radius(mesh, far), R, atol=5e-4)
+
+    # across the site's border, 1 cm apart along a meridian: no slope steeper than 0.6, where
+    # the hill's steepest is 0.4 and the level's 0.5 m offset, laid without the blend, makes a
+    # step of slope 2.3 over one fine edge
+    lat = SITE[0] + np.degrees(np.arange(0.0, 0.016, 1e-5) / R)
+    profile = _radius(mesh, latlon_to_unit(lat, np.full(len(lat), SITE[1])))
+    assert profile[0] - profile[-1] > OFFSET_KM + 0.9 * BUMP_KM  # from the site onto the survey
+    assert np.abs(np.diff(profile)).max() < 0.6 * 1e-5
+
+    # the sums round trip through a file, and taking the site out leaves the survey's surface
+    write_levels(tmp_path / "levels.npz", fusion)
+    again = read_levels(tmp_path / "levels.npz")
+    assert np.array_equal(again.mesh(sphere).vertices, mesh.vertices)
+    for m in site:
+        again.subtract(m)
+    alone = LevelGrids(taper_fraction=0.25)
+    alone.add_all(survey, base=sphere)
+    assert np.array_equal(again.mesh(sphere).vertices, alone.mesh(sphere).vertices)
+    with pytest.raises(ValueError, match="level -2"):
+        again.subtract(tile(sphere, spacing_km=2.5e-4, nodes=5, centre_lat_deg=0.0, centre_lon_deg=0.0,
+                            radius_km=1e-4)[0])
