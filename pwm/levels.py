@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from pwm.fusion import VoxelGrid, border_vertices
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh, refine_faces
-from pwm.raytrace import RayTracer
+from pwm.raytrace import Hits, RayTracer
 from pwm.tiling import level_of
 from pwm.volume import DistanceGrid, grid_for
 from pwm.weights import raised_cosine
@@ -37,6 +37,9 @@ BATCH = 64
 BLEND_VOXELS = 12.0
 """Width, in a finer level's voxels, of the band inside its border over which it fades into the
 surface below it."""
+MAX_EDGE_VOXELS = float(np.sqrt(2.0))
+"""Longest edge, in a finer level's voxels, of the faces laid onto it: about as many vertices as
+the level has lattice points over the same ground."""
 REACH_VOXELS = 4.0
 """How far, in the next coarser level's voxels, a finer level's surface is looked for along the
 normals of the surface below it: about how far the coarser level may be off."""
@@ -104,29 +107,39 @@ class LevelGrids:
 
 
 def displace(surface: Mesh, grid: VoxelGrid, *, reach_km: float) -> Mesh:
-    """`surface` with the finer level of `grid` laid onto it (see the module docstring): its
-    faces within reach_km of the level's surface split to the level's voxel size, and their
-    vertices moved along their normals to the first crossing of the level's surface within
-    reach_km either way, in full at BLEND_VOXELS and more inside its border, fading to nothing at
-    it; albedo likewise."""
+    """`surface` with the finer level of `grid` laid onto it (see the module docstring): the
+    faces with a vertex that finds the level's surface along its normal within reach_km either
+    way split to MAX_EDGE_VOXELS; the vertices that find it moved to it, in full at BLEND_VOXELS
+    and more inside its border, fading to nothing at it; albedo likewise. A face of `surface`
+    across the level's border with no vertex over the level stays whole, and the level is laid
+    only up to it: its edges shared with split faces are split too, so it ramps from them to its
+    own corners, without a step."""
     level = grid.mesh()
-    near = cKDTree(level.vertices).query(surface.vertices, distance_upper_bound=reach_km)[0] < np.inf
-    refined, chosen = refine_faces(surface, near[surface.faces].any(axis=1), max_edge_km=grid.voxel_km)
+    tracer = RayTracer(level)
+    over = _crossing(tracer, surface.vertices, surface.vertex_normals(), reach_km)[0]
+    refined, chosen = refine_faces(surface, over[surface.faces].any(axis=1),
+                                   max_edge_km=MAX_EDGE_VOXELS * grid.voxel_km)
     moved = np.unique(refined.faces[chosen])
     normals = refined.vertex_normals()[moved]
-    below = refined.vertices[moved] - reach_km * normals
-    tracer = RayTracer(level)
-    hits = tracer.intersect(below, normals)
-    found = hits.hit & (hits.t <= 2.0 * reach_km)
-    at = tracer.hit_points(below, normals, hits)[found]
+    found, shift, hits = _crossing(tracer, refined.vertices[moved], normals, reach_km)
+    at = refined.vertices[moved[found]] + shift[found, None] * normals[found]
     edge = level.vertices[border_vertices(level.faces)]
     inside = cKDTree(edge).query(at)[0] if len(edge) else np.full(len(at), np.inf)
     share = raised_cosine(inside / (BLEND_VOXELS * grid.voxel_km))
     vertices = refined.vertices.copy()
     index = moved[found]
-    vertices[index] += (share * (hits.t[found] - reach_km))[:, None] * normals[found]
+    vertices[index] += (share * shift[found])[:, None] * normals[found]
     albedo = refined.albedo
     if albedo is not None and level.albedo is not None:
         albedo = albedo.copy()
         albedo[index] += share * (tracer.interpolate(level.albedo, hits)[found] - albedo[index])
     return Mesh(vertices, refined.faces, albedo)
+
+
+def _crossing(tracer: RayTracer, points: np.ndarray, normals: np.ndarray,
+              reach_km: float) -> tuple[np.ndarray, np.ndarray, Hits]:
+    """Where the tracer's surface crosses each point's normal line within reach_km either way
+    (the first crossing from below): whether it does, the signed shift along the normal (km),
+    and the hits."""
+    hits = tracer.intersect(points - reach_km * normals, normals)
+    return hits.hit & (hits.t <= 2.0 * reach_km), hits.t - reach_km, hits

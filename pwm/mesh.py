@@ -100,8 +100,10 @@ def refine_faces(mesh: Mesh, selected: np.ndarray, *, max_edge_km: float) -> tup
     vertices, faces, albedo = mesh.vertices, mesh.faces, mesh.albedo
     selected = np.asarray(selected, dtype=bool)
     while True:
-        pairs = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
-        edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+        a, b = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
+        n = np.int64(len(vertices))
+        keys, inverse = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True)
+        edges = np.stack([keys // n, keys % n], axis=1)
         edge_of = inverse.reshape(-1, 3)  # edge k of a face joins its corners k and k + 1
         long = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1) > max_edge_km
         split = np.zeros(len(edges), dtype=bool)

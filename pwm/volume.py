@@ -59,6 +59,7 @@ _INSIDE_RAY = np.array([0.4472, 0.7746, 0.4472]) / np.linalg.norm([0.4472, 0.774
 _W, _WD, _WA, _A = 0, 1, 2, 3
 _COLUMNS = 4
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
+_NEIGHBOURS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64)
 
 
 @dataclass
@@ -140,19 +141,39 @@ class DistanceGrid(SparseSums):
             bare = cKDTree(points[bare]).query(points, distance_upper_bound=margin)[0] <= margin
         keys = self._band(points[bare], normals[bare], reach) if bare.any() else np.empty(0, dtype=np.int64)
         keys = keys[~np.isin(keys, self.keys, assume_unique=True)]
-        x = unpack(keys) * self.voxel_km
-        distance, nearest = distance_to_base(x)
-        if maplet_surface is not None and len(x):
-            # the mean disagreement of the nearest maplet points, so that one maplet's outlier
-            # does not bend the base alone; none beyond the fade (a bound that also keeps the
-            # tree's search on a regular lattice fast)
-            fade = FADE_VOXELS * self.voxel_km
-            gap, which = maplet_surface.query(x, k=min(_BEND_NEIGHBOURS, len(at)),
-                                              distance_upper_bound=fade + self.truncation_km)
-            gap, which = gap.reshape(len(x), -1), which.reshape(len(x), -1)
-            found = np.isfinite(gap)
-            mean = (np.append(delta, 0.0)[which] * found).sum(axis=1) / np.maximum(found.sum(axis=1), 1)
-            distance -= mean * raised_cosine((fade + self.truncation_km - gap[:, 0]) / fade)
+
+        def bent(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            x = unpack(keys) * self.voxel_km
+            distance, nearest = distance_to_base(x)
+            if maplet_surface is not None and len(x):
+                # the mean disagreement of the nearest maplet points, so that one maplet's
+                # outlier does not bend the base alone; none beyond the fade (a bound that also
+                # keeps the tree's search on a regular lattice fast)
+                fade = FADE_VOXELS * self.voxel_km
+                gap, which = maplet_surface.query(x, k=min(_BEND_NEIGHBOURS, len(at)),
+                                                  distance_upper_bound=fade + self.truncation_km)
+                gap, which = gap.reshape(len(x), -1), which.reshape(len(x), -1)
+                found = np.isfinite(gap)
+                mean = (np.append(delta, 0.0)[which] * found).sum(axis=1) / np.maximum(found.sum(axis=1), 1)
+                distance -= mean * raised_cosine((fade + self.truncation_km - gap[:, 0]) / fade)
+            return distance, nearest
+
+        distance, nearest = bent(keys)
+        # The corners of the cells that samples a lattice step apart fall in can miss points
+        # where the base's coarse faces meet at an angle, and the maplets' bands end at their
+        # edges: a cell that the surface crosses there would lack a corner, and marching cubes
+        # leave a hole. Every lattice point next to one within a cell diagonal of the surface
+        # gets the base's distance too.
+        held = np.concatenate([self.keys[maplet_sums], keys])
+        close = np.abs(np.concatenate([maplet_distance, distance])) <= np.sqrt(3.0) * self.voxel_km
+        around = np.unique(pack((unpack(held[close])[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
+        missing = around[~np.isin(around, self.keys) & ~np.isin(around, keys)]
+        if len(missing):
+            more = bent(missing)
+            keys = np.concatenate([keys, missing])
+            distance, nearest = np.concatenate([distance, more[0]]), np.concatenate([nearest, more[1]])
+            order = np.argsort(keys)
+            keys, distance, nearest = keys[order], distance[order], nearest[order]
         cols = np.zeros((len(keys), _COLUMNS))
         cols[:, _W] = BASE_WEIGHT
         cols[:, _WD] = BASE_WEIGHT * np.clip(distance, -reach, reach)
