@@ -13,7 +13,7 @@ from pwm.fusion import VoxelGrid
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
-from pwm.tiling import sample_surface
+from pwm.tiling import sample_surface, tile
 from pwm.volume import DistanceGrid, grid_for
 
 # Two lobes of radius 0.1 km, 0.4 km apart, joined by a neck of radius 0.045 km: rays from the
@@ -107,6 +107,20 @@ def test_places_no_maplet_reaches_keep_the_base_and_the_surface_closes(truth, ma
     hits = RayTracer(fused).intersect(np.array([[0.0, 0, 0], [0.0, 0, 0]]), np.array([[1.0, 0, 0], [-1.0, 0, 0]]))
     assert hits.t[0] == pytest.approx(CENTRE + LOBE, abs=0.25 * SPACING)
     assert hits.t[1] == pytest.approx(CENTRE + LOBE + SPACING, abs=0.5 * SPACING)
+
+
+def test_a_rough_low_poly_base_still_closes():
+    # a start model's coarse faces meeting at sharp angles (radial noise of 10% on 1280 faces),
+    # under five maplets: lattice points between the base's samples once went without a
+    # distance, and cells the surface crossed there without a corner (not watertight with
+    # seeds 0-3 before)
+    rng = np.random.default_rng(0)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.25)
+    base = Mesh(np.asarray(sphere.vertices) * (1 + 0.1 * rng.uniform(-1, 1, (len(sphere.vertices), 1))),
+                np.asarray(sphere.faces))
+    grid = DistanceGrid(voxel_km=0.004, taper_fraction=0.25)
+    grid.add_all(tile(base, spacing_km=0.004, nodes=60, centre_lat_deg=0.0, centre_lon_deg=0.0, radius_km=0.1))
+    assert closure(grid.mesh(base)).closed
 
 
 def test_a_revision_is_replaced_exactly_and_the_choice_of_fusion_follows_the_lattice(truth, maplets):
