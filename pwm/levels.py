@@ -99,9 +99,11 @@ class LevelGrids:
     def describe(self) -> dict[str, dict]:
         """Per level (as text), coarsest first: how it makes the surface ("closed"; "stitched" into
         the base; "laid" onto the levels below), its voxel size (m) and lattice points."""
-        out = {}
-        for k, (level, grid) in enumerate(sorted(self.grids.items(), reverse=True)):
-            surface = "closed" if isinstance(grid, DistanceGrid) else "stitched" if k == 0 else "laid"
+        out: dict[str, dict] = {}
+        for level, grid in sorted(self.grids.items(), reverse=True):
+            # as `mesh` does: an empty level makes nothing, the first level with sums is stitched
+            below = any(d["voxels"] for d in out.values())
+            surface = "closed" if isinstance(grid, DistanceGrid) else "laid" if below else "stitched"
             out[str(level)] = {"surface": surface, "voxel_m": grid.voxel_km * 1e3, "voxels": len(grid.keys)}
         return out
 

@@ -71,6 +71,7 @@ def test_a_site_level_is_laid_into_the_survey_without_a_step(sphere, levels, tmp
     fusion = LevelGrids(taper_fraction=0.25)
     fusion.add_all(survey + site, base=sphere)
     assert isinstance(fusion.grids[3], DistanceGrid) and isinstance(fusion.grids[-1], VoxelGrid)
+    assert {k: d["surface"] for k, d in fusion.describe().items()} == {"3": "closed", "-1": "laid"}
     mesh = fusion.mesh(sphere)
     closed = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     assert closed.is_watertight and closed.is_winding_consistent and closed.volume > 0
@@ -93,6 +94,11 @@ def test_a_site_level_is_laid_into_the_survey_without_a_step(sphere, levels, tmp
     write_levels(tmp_path / "levels.npz", fusion)
     again = read_levels(tmp_path / "levels.npz")
     assert np.array_equal(again.mesh(sphere).vertices, mesh.vertices)
+    site_alone = read_levels(tmp_path / "levels.npz")
+    for m in survey:
+        site_alone.subtract(m)
+    # with the survey's sums empty, the site is stitched into the base, not laid on a level below
+    assert {k: d["surface"] for k, d in site_alone.describe().items()} == {"3": "closed", "-1": "stitched"}
     for m in site:
         again.subtract(m)
     alone = LevelGrids(taper_fraction=0.25)
