@@ -34,7 +34,7 @@ from scipy.spatial import ConvexHull, Delaunay, cKDTree
 
 from pwm.frames import LocalFrame, local_frame
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh, compact
+from pwm.mesh import Mesh, compact, edge_keys
 from pwm.voxels import SparseSums, pack, sum_by_key
 from pwm.weights import raised_cosine
 
@@ -235,8 +235,7 @@ def _stitch(base: Mesh, points: np.ndarray, faces: np.ndarray, albedo: np.ndarra
 
 def border_vertices(faces: np.ndarray) -> np.ndarray:
     """Vertices on edges used by one face only."""
-    a, b = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
-    n = np.int64(faces.max() + 1)
-    uniq, counts = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_counts=True)
+    n = int(faces.max()) + 1
+    uniq, counts = np.unique(edge_keys(faces, n), return_counts=True)
     once = uniq[counts == 1]
     return np.unique(np.concatenate([once // n, once % n]))

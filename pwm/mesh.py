@@ -91,51 +91,65 @@ def surface_points(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarr
     return corners[:, 0] + u[:, None] * (corners[:, 1] - corners[:, 0]) + v[:, None] * (corners[:, 2] - corners[:, 0])
 
 
+
+def edge_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(M, 3) undirected edge ids, edge k of a face joining its corners k and k + 1."""
+    a, b = faces, np.roll(faces, -1, axis=1)
+    return np.minimum(a, b) * np.int64(n_vertices) + np.maximum(a, b)
+
+
+def split_edges(mesh: Mesh, split: np.ndarray) -> tuple[Mesh, np.ndarray]:
+    """One red-green refinement step: the face edges marked in `split` (M, 3; edge k joins corners
+    k and k + 1) split at their midpoints, in every face that has them; a face left with two or
+    three split edges has all three split and goes 1-to-4 (red), one with one goes 1-to-2 (green).
+    Midpoints lie on the old facets, so the surface is unchanged and stays conforming (no
+    T-junctions); albedo of a midpoint is the mean of its edge's ends. Also returns each new
+    face's parent face (untouched faces first, then red children, then green ones)."""
+    n = len(mesh.vertices)
+    keys = edge_keys(mesh.faces, n)
+    uniq, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(keys.shape)
+    split_edge = np.zeros(len(uniq), dtype=bool)
+    split_edge[inv[np.asarray(split, dtype=bool)]] = True
+    while True:
+        count = split_edge[inv].sum(axis=1)
+        two = count == 2
+        if not two.any():
+            break
+        split_edge[inv[two]] = True
+    red, green = count == 3, count == 1
+    ends = np.stack([uniq // n, uniq % n], axis=1)[split_edge]
+    mid_id = np.full(len(uniq), -1, dtype=np.int64)
+    mid_id[split_edge] = n + np.arange(split_edge.sum())
+    vertices = np.vstack([mesh.vertices, 0.5 * (mesh.vertices[ends[:, 0]] + mesh.vertices[ends[:, 1]])])
+    albedo = None
+    if mesh.albedo is not None:
+        albedo = np.concatenate([mesh.albedo, 0.5 * (mesh.albedo[ends[:, 0]] + mesh.albedo[ends[:, 1]])])
+    f, m = mesh.faces[red], mid_id[inv[red]]
+    a, b, c = f.T
+    ab, bc, ca = m.T
+    children = [np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
+    f, m = mesh.faces[green], mid_id[inv[green]]
+    k = np.argmax(m >= 0, axis=1)
+    rows = np.arange(len(f))
+    p, q, o, mid = f[rows, k], f[rows, (k + 1) % 3], f[rows, (k + 2) % 3], m[rows, k]
+    children += [np.stack([p, mid, o], axis=1), np.stack([mid, q, o], axis=1)]
+    untouched = count == 0
+    faces = np.vstack([mesh.faces[untouched]] + children)
+    parent = np.concatenate([np.flatnonzero(untouched), np.tile(np.flatnonzero(red), 4),
+                             np.tile(np.flatnonzero(green), 2)])
+    return Mesh(vertices, faces, albedo), parent
+
+
 def refine_faces(mesh: Mesh, selected: np.ndarray, *, max_edge_km: float) -> tuple[Mesh, np.ndarray]:
-    """The mesh with its selected faces (M,) bool split until none of their edges is longer than
-    max_edge_km, and which faces of the result came from selected ones. Conforming (red-green):
-    an edge split for a selected face is split for its neighbour too, which takes two or four
-    triangles, so a closed, manifold mesh stays closed and manifold. Albedo of a new vertex is
-    the mean of its edge's ends."""
-    vertices, faces, albedo = mesh.vertices, mesh.faces, mesh.albedo
+    """The mesh with its selected faces (M,) bool split (`split_edges`, conforming) until none of
+    their edges is longer than max_edge_km, and which faces of the result came from selected
+    ones: a closed, manifold mesh stays closed and manifold."""
     selected = np.asarray(selected, dtype=bool)
     while True:
-        a, b = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
-        n = np.int64(len(vertices))
-        keys, inverse = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True)
-        edges = np.stack([keys // n, keys % n], axis=1)
-        edge_of = inverse.reshape(-1, 3)  # edge k of a face joins its corners k and k + 1
-        long = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1) > max_edge_km
-        split = np.zeros(len(edges), dtype=bool)
-        split[edge_of[selected][long[edge_of[selected]]]] = True
-        if not split.any():
-            return Mesh(vertices, faces, albedo), selected
-        # a face with two edges split has its third split too, so each face is halved or quartered
-        while True:
-            two = split[edge_of].sum(axis=1) == 2
-            if not two.any():
-                break
-            split[edge_of[two]] = True
-        index = np.full(len(edges), -1, dtype=np.int64)
-        index[split] = len(vertices) + np.arange(split.sum())
-        ends = edges[split]
-        vertices = np.vstack([vertices, 0.5 * (vertices[ends[:, 0]] + vertices[ends[:, 1]])])
-        if albedo is not None:
-            albedo = np.concatenate([albedo, 0.5 * (albedo[ends[:, 0]] + albedo[ends[:, 1]])])
-        mid = index[edge_of]  # (M, 3) the midpoint of each face's edge k, or -1
-        count = split[edge_of].sum(axis=1)
-        a, b, c = faces.T
-        m0, m1, m2 = mid.T
-        quarter = count == 3
-        new = [faces[count == 0]]
-        new.append(np.concatenate([np.stack([a, m0, m2], 1)[quarter], np.stack([m0, b, m1], 1)[quarter],
-                                   np.stack([m2, m1, c], 1)[quarter], np.stack([m0, m1, m2], 1)[quarter]]))
-        # halved: from the split edge's midpoint to the opposite corner
-        for k, (p, q, r, m) in enumerate(((a, b, c, m0), (b, c, a, m1), (c, a, b, m2))):
-            half = (count == 1) & (mid[:, k] >= 0)
-            new.append(np.concatenate([np.stack([p, m, r], 1)[half], np.stack([m, q, r], 1)[half]]))
-        chosen = [selected[count == 0], np.tile(selected[quarter], 4)]
-        for k in range(3):
-            half = (count == 1) & (mid[:, k] >= 0)
-            chosen.append(np.tile(selected[half], 2))
-        faces, selected = np.concatenate(new).astype(np.int64), np.concatenate(chosen)
+        tri = mesh.vertices[mesh.faces]
+        long = selected[:, None] & (np.linalg.norm(np.roll(tri, -1, axis=1) - tri, axis=2) > max_edge_km)
+        if not long.any():
+            return mesh, selected
+        mesh, parent = split_edges(mesh, long)
+        selected = selected[parent]

@@ -17,7 +17,7 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, edge_keys
 
 # Region codes of the closest point on a triangle (a, b, c): vertices, then edges ab, bc, ca
 # (edge j joins corners j and j+1), then the interior.
@@ -157,8 +157,7 @@ class ClosestPoint:
     def _edge_neighbours(self) -> np.ndarray:
         """Face across edge j (corners j, j+1) of each face, -1 on a boundary, (M, 3)."""
         faces = self.mesh.faces
-        start, end = faces.ravel(), np.roll(faces, -1, axis=1).ravel()
-        key = np.minimum(start, end) * len(self.mesh.vertices) + np.maximum(start, end)
+        key = edge_keys(faces, len(self.mesh.vertices)).ravel()
         order = np.argsort(key)
         pair = np.flatnonzero(key[order][1:] == key[order][:-1])
         out = np.full(len(key), -1)

@@ -20,7 +20,7 @@ from trimesh.remesh import subdivide_loop
 
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame
 from pwm.io.meshio import read_ply, write_ply
-from pwm.mesh import Mesh, grid_faces
+from pwm.mesh import Mesh, grid_faces, split_edges
 from pwm.raytrace import RayTracer
 from pwm.simulate.landforms import Landform
 from pwm.simulate.terrain import (
@@ -172,51 +172,6 @@ def site_frame(mesh: Mesh, *, lat_deg: float, lon_deg: float, radius_km: float, 
     return local_frame(origin, normal)
 
 
-def _edge_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """(M, 3) undirected edge ids, edge k joining corners k and k+1."""
-    a = faces
-    b = np.roll(faces, -1, axis=1)
-    return np.minimum(a, b) * n_vertices + np.maximum(a, b)
-
-
-def _split(mesh: Mesh, red: np.ndarray) -> Mesh:
-    """One red-green refinement step: `red` faces split 1-to-4 at edge midpoints; faces left with
-    one split edge split 1-to-2, faces with more become red. Midpoints lie on the old facets, so
-    the surface is unchanged and stays conforming (no T-junctions)."""
-    n = len(mesh.vertices)
-    keys = _edge_keys(mesh.faces, n)
-    uniq, inv = np.unique(keys, return_inverse=True)
-    inv = inv.reshape(keys.shape)
-    red = red.copy()
-    while True:
-        split_edge = np.zeros(len(uniq), dtype=bool)
-        split_edge[inv[red]] = True
-        count = split_edge[inv].sum(axis=1)
-        grown = red | (count >= 2)
-        if np.array_equal(grown, red):
-            break
-        red = grown
-    green = ~red & (count == 1)
-    ends = np.stack([uniq // n, uniq % n], axis=1)[split_edge]
-    mid_id = np.full(len(uniq), -1, dtype=np.int64)
-    mid_id[split_edge] = n + np.arange(split_edge.sum())
-    vertices = np.vstack([mesh.vertices, 0.5 * (mesh.vertices[ends[:, 0]] + mesh.vertices[ends[:, 1]])])
-    albedo = None
-    if mesh.albedo is not None:
-        albedo = np.concatenate([mesh.albedo, 0.5 * (mesh.albedo[ends[:, 0]] + mesh.albedo[ends[:, 1]])])
-    f, m = mesh.faces[red], mid_id[inv[red]]
-    a, b, c = f.T
-    ab, bc, ca = m.T
-    children = [np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
-    f, m = mesh.faces[green], mid_id[inv[green]]
-    k = np.argmax(m >= 0, axis=1)
-    rows = np.arange(len(f))
-    p, q, o, mid = f[rows, k], f[rows, (k + 1) % 3], f[rows, (k + 2) % 3], m[rows, k]
-    children += [np.stack([p, mid, o], axis=1), np.stack([mid, q, o], axis=1)]
-    faces = np.vstack([mesh.faces[~red & ~green]] + children)
-    return Mesh(vertices, faces, albedo)
-
-
 def _refine_near(mesh: Mesh, centre: np.ndarray, radius_km: float, max_edge_km: float) -> Mesh:
     """Refine the faces with a vertex within radius_km of centre (plus a ring of their largest
     edge) until none of them has an edge longer than max_edge_km; the surface is unchanged."""
@@ -229,7 +184,7 @@ def _refine_near(mesh: Mesh, centre: np.ndarray, radius_km: float, max_edge_km: 
             return mesh
         red = np.zeros(len(mesh.faces), dtype=bool)
         red[near] = longest > 0.5 * max_edge_km
-        mesh = _split(mesh, red)
+        mesh = split_edges(mesh, np.repeat(red[:, None], 3, axis=1))[0]
 
 
 def _longest_edges(mesh: Mesh, face_mask: np.ndarray) -> np.ndarray:
