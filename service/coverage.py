@@ -143,8 +143,7 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
             continue
         report.maplets_weighed += 1
         report.pairs_traced += len(traced)
-        kept = {i: row for i, row in stored.items() if i not in again and i not in traced}
-        _store(session, maplet, grid, traced, stored, kept, tracer, report, config=config)
+        _store(session, maplet, grid, traced, stored, again, tracer, report, config=config)
     session.execute(update(Image).where(Image.id.in_(sorted(wanted))).values(
         coverage_computed_at=utcnow()))
     session.flush()
@@ -212,13 +211,7 @@ def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Vie
         log.info("tiled %d maplets of %d nodes at %.3f m (level %d) over a place about (%.4f, %.4f) seen at %d "
                  "samples", len(new_here), config.nodes, place.spacing_km * 1e3, place.level, lat, lon, len(points))
         added += new_here
-    records = []
-    for m in added:
-        lat, lon = unit_to_latlon(m.frame.origin)
-        x, y, z = (float(v) for v in m.frame.origin)
-        records.append(Maplet(name=m.name, center_lat_deg=float(lat), center_lon_deg=float(lon),
-                              origin_x_km=x, origin_y_km=y, origin_z_km=z, rotation=m.frame.rotation.tolist(),
-                              size_km=(m.n - 1) * m.spacing_km, gsd_m=m.spacing_km * 1e3, nodes_per_side=m.n))
+    records = [Maplet.of(m) for m in added]
     session.add_all(records)
     session.flush()
     return {m.id for m in records}
@@ -285,21 +278,21 @@ def _may_see(points: np.ndarray, view: View) -> bool:
 
 
 def _store(session: Session, maplet: Maplet, grid: MapletGrid, traced: dict[int, View],
-           stored: dict[int, Coverage], kept: dict[int, Coverage], tracer: RayTracer, report: CoverageReport, *,
+           stored: dict[int, Coverage], again: set[int], tracer: RayTracer, report: CoverageReport, *,
            config: RefinementConfig) -> None:
-    """Trace the maplet in the `traced` views, weigh them together with the `kept` rows (of
-    `stored`, the maplet's rows by image id), and upsert the rows and the region weight; stored
-    rows neither kept nor seen in a traced view are deleted."""
+    """Trace the maplet in the `traced` views, weigh them together with the rows of `stored` (the
+    maplet's rows by image id) whose image is neither traced nor to be traced `again`, and upsert
+    the rows and the region weight; stored rows of images traced and not seen are deleted."""
     spacing_km = maplet.gsd_m * 1e-3
-    values: dict[int, dict[str, Any]] = {i: {c: getattr(row, c) for c in _GEOMETRY} for i, row in kept.items()}
-    if traced:
-        _, _, geom = views_over_maplet(grid, list(traced.values()), tracer, spacing_km=spacing_km)
-        for k, image_id in enumerate(traced):
-            if geom.visible_fraction[k] > 0:
-                values[image_id] = dict(zip(_GEOMETRY, (float(v) for v in (
-                    geom.visible_fraction[k], geom.shadow_fraction[k], geom.incidence_deg[k], geom.emission_deg[k],
-                    geom.phase_deg[k], geom.sun_azimuth_deg[k], geom.camera_azimuth_deg[k],
-                    geom.resolution_ratio[k] * spacing_km * 1e3)), strict=True))
+    values: dict[int, dict[str, Any]] = {i: {c: getattr(row, c) for c in _GEOMETRY} for i, row in stored.items()
+                                         if i not in again and i not in traced}
+    _, _, geom = views_over_maplet(grid, list(traced.values()), tracer, spacing_km=spacing_km)
+    for k, image_id in enumerate(traced):
+        if geom.visible_fraction[k] > 0:
+            values[image_id] = dict(zip(_GEOMETRY, (float(v) for v in (
+                geom.visible_fraction[k], geom.shadow_fraction[k], geom.incidence_deg[k], geom.emission_deg[k],
+                geom.phase_deg[k], geom.sun_azimuth_deg[k], geom.camera_azimuth_deg[k],
+                geom.resolution_ratio[k] * spacing_km * 1e3)), strict=True))
     order = sorted(values)
     weights = weigh_images(_geometry([values[i] for i in order], gsd_m=maplet.gsd_m), config.rules)
     roles = {order[k]: CoverageRole(name) for name, k in vars(weights.views).items() if k is not None}

@@ -36,6 +36,8 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
 from pwm.camera import PoseCorrection
+from pwm.frames import unit_to_latlon
+from pwm.maplets import MapletGrid
 from pwm.spg.uncertainty import PoseSigma
 from pwm.tiling import level_of
 
@@ -474,6 +476,15 @@ class Maplet(Base):
         # the index.
         Index(None, "center_lat_deg", "center_lon_deg"),
     )
+
+    @classmethod
+    def of(cls, grid: MapletGrid) -> Maplet:
+        """The catalog row of a tiled maplet: its frame, extent and spacing (no revision yet)."""
+        lat, lon = unit_to_latlon(grid.frame.origin)
+        x, y, z = (float(v) for v in grid.frame.origin)
+        return cls(name=grid.name, center_lat_deg=float(lat), center_lon_deg=float(lon), origin_x_km=x,
+                   origin_y_km=y, origin_z_km=z, rotation=grid.frame.rotation.tolist(),
+                   size_km=(grid.n - 1) * grid.spacing_km, gsd_m=grid.spacing_km * 1e3, nodes_per_side=grid.n)
 
 
 class Coverage(Base):

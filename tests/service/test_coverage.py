@@ -21,7 +21,6 @@ from service.ingest import ingest_directory
 from service.models import Coverage, CoverageRole, Image, ImageGeometry, Maplet
 from service.queries import count_maplets, list_maplets, maplet_coverage
 from service.views import catalog_views
-from tests.service.conftest import catalogue_maplets
 
 
 def _nadir(plan: dict) -> bool:
@@ -217,7 +216,7 @@ def test_finer_images_nest_maplets_of_their_level_under_coarser_ones(tiny_sim, c
     survey = tile(shape, spacing_km=coarser * gsd_km, nodes=40, centre_lat_deg=site["site_lat_deg"],
                   centre_lon_deg=site["site_lon_deg"], radius_km=site["site_size_km"])
     with catalog.begin() as session:
-        catalogue_maplets(session, survey)
+        session.add_all(Maplet.of(m) for m in survey)
     report = ingest_directory(catalog, tiny_sim / "downlink", shape=shape).coverage
     fine, coarse = int(level_of(gsd_km)), int(level_of(coarser * gsd_km))
     with catalog() as session:

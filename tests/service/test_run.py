@@ -26,7 +26,6 @@ from service.models import Coverage, Maplet, MapletRevision, ModelKind
 from service.refinement import load_revision_maplet
 from service.run import run_directory
 from service.versions import artifact_path, get_version, version_mesh
-from tests.service.conftest import catalogue_maplets
 
 CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008)  # a few maplets about the site's centre: seconds
 
@@ -152,7 +151,7 @@ def test_a_site_level_under_a_survey_level_is_refined_and_laid_into_one_model(ti
     survey = tile(start, spacing_km=4 * gsd_km, nodes=CONFIG.nodes, centre_lat_deg=site["site_lat_deg"],
                   centre_lon_deg=site["site_lon_deg"], radius_km=CONFIG.tile_radius_km)
     with catalog.begin() as session:
-        catalogue_maplets(session, survey)
+        session.add_all(Maplet.of(m) for m in survey)
     config = dataclasses.replace(CONFIG, passes=1)
     run = run_directory(catalog, shutil.copytree(tiny_sim / "downlink", tmp_path / "first"), data_dir=data,
                         config=config)
