@@ -143,13 +143,15 @@ def split_edges(mesh: Mesh, split: np.ndarray) -> tuple[Mesh, np.ndarray]:
 
 def refine_faces(mesh: Mesh, selected: np.ndarray, *, max_edge_km: float) -> tuple[Mesh, np.ndarray]:
     """The mesh with its selected faces (M,) bool split (`split_edges`, conforming) until none of
-    their edges is longer than max_edge_km, and which faces of the result came from selected
-    ones: a closed, manifold mesh stays closed and manifold."""
+    their edges is longer than max_edge_km, and each face's face of `mesh` (its vertices keep
+    their indices): a closed, manifold mesh stays closed and manifold."""
+    origin = np.arange(len(mesh.faces))
     selected = np.asarray(selected, dtype=bool)
     while True:
+        chosen = selected[origin]
         tri = mesh.vertices[mesh.faces]
-        long = selected[:, None] & (np.linalg.norm(np.roll(tri, -1, axis=1) - tri, axis=2) > max_edge_km)
+        long = chosen[:, None] & (np.linalg.norm(np.roll(tri, -1, axis=1) - tri, axis=2) > max_edge_km)
         if not long.any():
-            return mesh, selected
+            return mesh, origin
         mesh, parent = split_edges(mesh, long)
-        selected = selected[parent]
+        origin = origin[parent]

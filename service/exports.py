@@ -1,6 +1,14 @@
 """Exports of a model version: OBJ, PLY (per-vertex albedo), Gaskell ICQ, SPICE DSK type 2, and
 a local terrain product of a site (PDS4 heights and albedo in the site frame, with a PNG preview).
 
+Of a version with levels (pwm.levels), the mesh formats give the whole model (surface `model`,
+each place at the finest level that covers it), or the global model alone at the levels of the
+whole body (surface `global`: the surface the sites are laid onto, the survey's). The whole
+model's DSK has one segment for the body and one per site region, which part it without
+overlapping (pwm.io.dsk.write_dsk), so navigation loading it gets the model's own intercepts,
+and each segment's index sized to its plates; the global DSK is one segment. A site product is
+sampled from the whole model at the spacing of its faces there, the finest level's.
+
 Every export may be decimated to a requested face count first. An export is made once and kept
 in `<data_dir>/exports/`: the file `<key><suffix>` and its record `<key>.json`, where the key
 hashes the version's mesh checksum with the format and the parameters as asked (so that a
@@ -43,6 +51,7 @@ from sqlalchemy.orm import Session
 from pwm.decimate import decimate
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame
 from pwm.io.dsk import write_dsk
+from pwm.io.fusion_state import read_composition
 from pwm.io.icq import mesh_to_icq, write_icq
 from pwm.io.meshio import write_obj, write_ply
 from pwm.io.pds4 import file_sha256
@@ -65,7 +74,7 @@ from service.versions import ArtifactError, artifact_mesh, artifact_path
 EXPORTS_DIRNAME = "exports"
 # Bump when an export's content changes for the same inputs, so that old cache entries are
 # not served for new requests.
-EXPORT_REVISION = 3
+EXPORT_REVISION = 4
 # The site grid has at most (2 * MAX_SITE_HALF_NODES + 1)^2 nodes.
 MAX_SITE_HALF_NODES = 500
 # Requests of one process that may wait for the making lock or hold it; one more is refused.
@@ -84,6 +93,13 @@ class ExportFormat(enum.StrEnum):
     ICQ = "icq"
     DSK = "dsk"
     SITE = "site"
+
+
+class ExportSurface(enum.StrEnum):
+    """Which surface of a version: all of it (`model`) or the global model beneath the sites."""
+
+    MODEL = "model"
+    GLOBAL = "global"
 
 
 SUFFIXES = {ExportFormat.OBJ: ".obj", ExportFormat.PLY: ".ply", ExportFormat.ICQ: ".icq",
@@ -155,10 +171,11 @@ def icq_size(faces: int) -> int:
 @dataclass(frozen=True)
 class ExportPlan:
     """What making an export needs from the catalog, read beforehand: the version (number, kind,
-    creation time, PLY artifact record; its own record of the file asked for, for the mesh
-    formats at full resolution), the request (format, faces, site, body and frame; frame
-    from the catalog's images unless given), the catalog's accepted PCK and FK files with their
-    checksums, and for a site product the time span and spacecraft of its images."""
+    creation time, PLY artifact record and its composition's, if any; its own record of the file
+    asked for, for the mesh formats at full resolution), the request (format, surface, faces,
+    site, body and frame; frame from the catalog's images unless given), the catalog's accepted
+    PCK and FK files with their checksums, and for a site product the time span and spacecraft
+    of its images."""
 
     data_dir: Path
     version: int
@@ -168,6 +185,8 @@ class ExportPlan:
     fmt: ExportFormat
     faces: int | None
     filename: str
+    surface: ExportSurface = ExportSurface.MODEL
+    composition: dict[str, Any] | None = None
     site: Site | None = None
     body: str | None = None
     frame: str | None = None
@@ -180,35 +199,46 @@ class ExportPlan:
         """The cache key: a hex digest of everything the file depends on."""
         return digest({"mesh": self.mesh["sha256"], "version": self.version,
                        "revision": EXPORT_REVISION, "fmt": self.fmt.value, "faces": self.faces,
+                       "surface": self.surface.value,
+                       "composition": self.composition["sha256"] if self.composition else None,
                        "site": self.site.model_dump() if self.site else None, "body": self.body,
                        "frame": self.frame, "kernels": [sha for _, sha in self.kernels],
                        "time_span": self.time_span, "spacecraft": self.spacecraft_id})
 
 
 def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt: ExportFormat,
-                faces: int | None = None, site: Site | None = None, body: str | None = None,
-                frame: str | None = None) -> ExportPlan:
+                surface: ExportSurface = ExportSurface.MODEL, faces: int | None = None,
+                site: Site | None = None, body: str | None = None, frame: str | None = None) -> ExportPlan:
     """Read from the catalog what exporting `version` in format `fmt` needs (make_export makes
     it, without the catalog: end the session's transaction in between).
 
-    faces: decimate to about this many faces first (none, or at least the version's count:
-    full resolution); ICQ takes q from it (icq_size). site: needed by, and only by, the site
+    surface: the whole model, or the global model beneath the sites (the whole model for a
+    version without sites). faces: decimate to about this many faces first (none, or at least
+    the surface's count: full resolution); ICQ takes q from it (icq_size). site: needed by, and only by, the site
     product. body (NAIF name or ID) and frame (body-fixed frame name) override what the
     catalog's images give, for DSK and site products. Raises ExportError when the export cannot
     be made.
     """
     if (fmt is ExportFormat.SITE) != (site is not None):
         raise ExportError("a site product needs a site, and only a site product takes one")
-    total = int(version.statistics.get("faces", 0)) or None
+    if fmt is ExportFormat.SITE and surface is ExportSurface.GLOBAL:
+        raise ExportError("a site product is sampled from the whole model (the finest level there), "
+                          "not from the global one")
+    composition = version.artifacts.get("composition")
+    below = surface is ExportSurface.GLOBAL and composition is not None
+    total = None if below else int(version.statistics.get("faces", 0)) or None
     if faces is not None and faces < 4:
         raise ExportError(f"faces must be at least 4, got {faces}")
     if faces is not None and total is not None and faces >= total:
         faces = None
-    name = f"pwm-v{version.version:04d}" + (f"-f{faces}" if faces else "") + SUFFIXES[fmt]
+    name = (f"pwm-v{version.version:04d}" + ("-global" if below else "") + (f"-f{faces}" if faces else "")
+            + SUFFIXES[fmt])
     plan = ExportPlan(data_dir=data_dir, version=version.version, kind=str(version.kind),
                       created_at=version.created_at, mesh=dict(version.artifacts["ply"]),
-                      fmt=fmt, faces=faces, filename=name, site=site)
-    if fmt in (ExportFormat.PLY, ExportFormat.OBJ) and faces is None:
+                      fmt=fmt, faces=faces, filename=name, site=site,
+                      surface=ExportSurface.GLOBAL if below else ExportSurface.MODEL,
+                      composition=dict(composition) if composition is not None else None)
+    if fmt in (ExportFormat.PLY, ExportFormat.OBJ) and faces is None and not below:
         return dataclasses.replace(plan, own=dict(version.artifacts[fmt.value]))
     if fmt not in (ExportFormat.DSK, ExportFormat.SITE):
         return plan
@@ -241,13 +271,20 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
                           MEDIA_TYPES[fmt], plan.own["sha256"])
 
     def make(path: Path) -> None:
-        mesh = artifact_mesh(plan.data_dir, plan.mesh)
+        composition = (read_composition(artifact_path(plan.data_dir, plan.composition, verify=True))
+                       if plan.composition is not None else None)
+        if plan.surface is ExportSurface.GLOBAL and composition is not None:
+            mesh = composition.below
+        else:
+            mesh = artifact_mesh(plan.data_dir, plan.mesh)
+        # a DSK of the whole model at full resolution: a segment per site region, one for the rest
+        parts = composition.face_region() if plan.surface is ExportSurface.MODEL and composition else None
         if faces is not None and faces < len(mesh.faces):
-            mesh = decimate(mesh, faces)
+            mesh, parts = decimate(mesh, faces), None
         if fmt is ExportFormat.ICQ:
             _write_icq(path, mesh, icq_size(faces or len(mesh.faces)))
         elif fmt is ExportFormat.DSK:
-            _write_dsk(path, mesh, plan=plan)
+            _write_dsk(path, mesh, plan=plan, parts=parts)
         elif fmt is ExportFormat.SITE:
             _write_site(path, mesh, plan=plan)
         else:
@@ -423,13 +460,17 @@ def _write_icq(path: Path, mesh: Mesh, q: int) -> None:
     write_icq(path, grid)
 
 
-def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
+def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan, parts: np.ndarray | None) -> None:
     target = _target(plan)
+    segments = 1 if parts is None else len(np.unique(parts))
+    what = ("the global model beneath the sites" if plan.surface is ExportSurface.GLOBAL
+            else f"{segments} segments: the body and each site region, parting the surface without overlap"
+            if segments > 1 else "one segment")
     comment = (f"pwm shape model version {plan.version} ({plan.kind}), made "
                f"{plan.created_at:%Y-%m-%dT%H:%M:%SZ}; plate model in km in {target.frame}; "
-               f"{len(mesh.vertices)} vertices, {len(mesh.faces)} plates.")
+               f"{len(mesh.vertices)} vertices, {len(mesh.faces)} plates; {what}.")
     with kernel_pool(_kernel_paths(plan)):
-        write_dsk(path, mesh, body=target.body_id, frame=target.frame, comment=comment)
+        write_dsk(path, mesh, body=target.body_id, frame=target.frame, comment=comment, parts=parts)
 
 
 def _write_site(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:

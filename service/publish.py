@@ -8,7 +8,9 @@ photogrammetric model) starts an empty one. The base is the nearest version up t
 without a grid, the model that the refinements started from: the coarsest level is one closed
 surface that the base closes where its lattice is affordable over the whole body (pwm.volume),
 else a region stitched into the base (pwm.fusion; pwm.volume.grid_for chooses); each finer level
-is laid onto the surface below it (pwm.levels).
+is laid onto the surface below it (pwm.levels). The parent's "composition" artifact says how its
+surface was made: while the closed levels' sums and the base are the same, that surface is not
+made again, and the laid levels' regions that no changed maplet touches keep the parent's faces.
 
 All of it runs under the publication lock (service.versions.publication_lock), taken before the
 parent is read, so two fusions never build on the same parent.
@@ -25,7 +27,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
-from pwm.io.fusion_state import read_levels, write_levels
+from pwm.io.fusion_state import read_composition, read_levels, write_composition, write_levels
 from pwm.levels import LevelGrids
 from service.console.documents import MeshRequest, mesh_document
 from service.db import session_scope
@@ -56,8 +58,9 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
     .refined_downlinks).
     Statistics: maplets changed, added, replaced and fused in all, images used, whether the
     parent's sums were reused, the base version, the coarsest level's surface ("closed" or
-    "stitched"), voxels, each level's surface, voxel size and voxels, and seconds (with the
-    mesh's own).
+    "stitched"), voxels, each level's surface, voxel size and voxels, how the surface was
+    composed (regions laid and carried over, whether the closed levels' surface was made again),
+    and seconds (with the mesh's own).
     The console's 3D document of the new version (service.console.mesh_document) is made too.
     """
     clock = time.perf_counter()
@@ -74,8 +77,12 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
             log.info("fusion: no maplet changed since version %d; nothing published",
                      parent.version)
             return None
+        previous = None
         if "grid" in parent.artifacts:
             fusion = read_levels(artifact_path(data_dir, parent.artifacts["grid"], verify=True))
+            if "composition" in parent.artifacts:
+                previous = (version_mesh(data_dir, parent), read_composition(
+                    artifact_path(data_dir, parent.artifacts["composition"], verify=True)))
             for old in [used[r.maplet_id] for r in changed if r.maplet_id in used] + gone:
                 fusion.subtract(load_revision_maplet(data_dir, old))
             added = changed
@@ -89,9 +96,10 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
         level = {maplet_id: k for maplet_id, k in session.execute(select(Maplet.id, Maplet.level))}
         added = sorted(added, key=lambda r: (-level[r.maplet_id], r.maplet_id))
         fusion.add_all((load_revision_maplet(data_dir, r) for r in added), base=base_mesh)
-        mesh = fusion.mesh(base_mesh)
-        scratch = scratch_path(data_dir, ".npz")
-        write_levels(scratch, fusion)
+        mesh, composition, laid = fusion.compose(base_mesh, previous=previous)
+        scratch = {"grid": scratch_path(data_dir, ".npz"), "composition": scratch_path(data_dir, ".npz")}
+        write_levels(scratch["grid"], fusion)
+        write_composition(scratch["composition"], composition)
         downlinks = {d.id: d for d in parent.downlinks}
         # Every downlink whose refinements this version carries, besides those asked for: a
         # fusion may take up revisions whose own downlink's fusion has not run yet.
@@ -107,10 +115,12 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
             "maplets_removed": len(gone), "maplets_fused": len(current), "images": len(images),
             "incremental": "grid" in parent.artifacts, "base_version": base.version,
             "surface": next(iter(levels.values()))["surface"], "voxels": fusion.voxels, "levels": levels,
+            "composition": {"regions_laid": laid.regions_laid, "regions_carried": laid.regions_carried,
+                            "closed_levels_made": laid.below_made},
             "fusion_seconds": time.perf_counter() - clock}
         version = publish_version(session, data_dir=data_dir, mesh=mesh, kind=ModelKind.REFINED,
                                   parent=parent, statistics=statistics,
-                                  extra_artifacts={"grid": scratch},
+                                  extra_artifacts=scratch,
                                   maplet_revisions=current.values(),
                                   downlinks=downlinks.values())
         log.info("fusion: version %d from version %d, %d of %d maplets changed (%.1f s)",

@@ -5,7 +5,8 @@ a file's name is its checksum, so writing it again (a retried job) is harmless a
 published never changes. `ModelVersion.artifacts` maps a role to
 `{"path": <relative to data_dir>, "sha256": ..., "bytes": ...}`; every version has "ply" (mesh
 with per-vertex albedo when known) and "obj"; refined versions add "grid" (the fusion sums that
-let the next version be fused incrementally).
+let the next version be fused incrementally) and "composition" (how its surface was composed
+from them, pwm.levels.Composition, which lets the next one carry over what did not change).
 
 Publications are serialised by `publication_lock`, held to the end of the publishing
 transaction: concurrent publications get consecutive numbers instead of failing on the unique

@@ -51,6 +51,17 @@ def _rays(n: int, distance_km: float, aim_km: float, seed: int) -> tuple[np.ndar
     return origins, directions / np.linalg.norm(directions, axis=1, keepdims=True)
 
 
+def _rays_and_rays_at(site: np.ndarray, spread_km: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """500 rays as `_rays` gives, and 500 from high above `site` towards points within
+    spread_km of it."""
+    origins, directions = _rays(500, 1.0, 0.1, seed=seed)
+    towards = site + np.random.default_rng(seed + 1).uniform(-spread_km, spread_km, (500, 3))
+    above = np.tile(3 * site, (500, 1))
+    aimed = towards - above
+    return (np.vstack([origins, above]),
+            np.vstack([directions, aimed / np.linalg.norm(aimed, axis=1, keepdims=True)]))
+
+
 def _mesh_intercepts(mesh: Mesh, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """The mesh's own intercepts: the plate Embree hits, met by the float64 ray (Embree's float32
     rays are off by ~1e-7 of their length, 2 mm at Deimos)."""
@@ -144,16 +155,43 @@ def test_dsk_size_follows_the_plates_of_an_uneven_mesh(tmp_path, bennu):
     assert dsk.stat().st_size < 400 * len(mesh.faces)
 
     site = mesh.vertices[mesh.faces[-1]].mean(axis=0)
-    origins, directions = _rays(500, 1.0, 0.1, seed=11)
-    rng = np.random.default_rng(12)
-    towards = site + rng.uniform(-0.003, 0.003, (500, 3))
-    above = np.tile(3 * site, (500, 1))
-    origins = np.vstack([origins, above])
-    aimed = towards - above
-    directions = np.vstack([directions, aimed / np.linalg.norm(aimed, axis=1, keepdims=True)])
+    origins, directions = _rays_and_rays_at(site, 0.003, seed=11)
     expected = _mesh_intercepts(mesh, origins, directions)
     with kernel_pool([*bundled_kernels().values(), dsk]):
         assert np.abs(_dskxv("BENNU", "IAU_BENNU", origins, directions) - expected).max() < MM_KM
+
+
+def test_a_dsk_in_segments_parts_the_mesh_and_gives_its_intercepts(tmp_path, bennu):
+    # the body and a dense site as two segments (as a version with a site level is exported):
+    # SPICE's intercepts over both are the mesh's own, at the site, across the seam and beyond
+    mesh = _dense_site(decimate(bennu, 60), 6)
+    site = mesh.vertices[mesh.faces[-1]].mean(axis=0)
+    small = mesh.face_areas() < 0.01 * mesh.face_areas().max()
+    parts = np.where(small, 7, 3)
+    dsk = tmp_path / "parts.bds"
+    with kernel_pool(bundled_kernels().values()):
+        write_dsk(dsk, mesh, body=BENNU, frame="IAU_BENNU", comment="body and site", parts=parts)
+    handle = sp.dasopr(str(dsk))
+    try:
+        first = sp.dlabfs(handle)
+        with sp.no_found_check():
+            second, found = sp.dlafns(handle, first)
+        assert found and [sp.dskz02(handle, d)[1] for d in (first, second)] == [(~small).sum(), small.sum()]
+    finally:
+        sp.dascls(handle)
+    # read back as one mesh, a vertex the two segments share made one again
+    back = read_dsk(dsk)
+    assert (len(back.vertices), len(back.faces)) == (len(mesh.vertices), len(mesh.faces))
+    corners = [np.sort(m.vertices[m.faces].reshape(-1, 9), axis=0) for m in (mesh, back)]
+    np.testing.assert_array_equal(*corners)
+
+    origins, directions = _rays_and_rays_at(site, 0.02, seed=13)  # the site is about 15 m across
+    expected = _mesh_intercepts(mesh, origins, directions)
+    with kernel_pool([*bundled_kernels().values(), dsk]):
+        assert np.abs(_dskxv("BENNU", "IAU_BENNU", origins, directions) - expected).max() < MM_KM
+    tracer = RayTracer(mesh)
+    hit = parts[tracer.intersect(origins, directions).face]
+    assert (hit == 7).sum() > 300 and (hit == 3).sum() > 300  # both segments answer, and rays cross the seam
 
 
 def test_dsk_with_an_unknown_frame_leaves_no_file(tmp_path, bennu):

@@ -9,8 +9,8 @@ import trimesh
 
 from pwm.frames import latlon_to_unit
 from pwm.fusion import VoxelGrid
-from pwm.io.fusion_state import read_levels, write_levels
-from pwm.levels import LevelGrids
+from pwm.io.fusion_state import read_composition, read_levels, write_composition, write_levels
+from pwm.levels import Laid, LevelGrids
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh, refine_faces
 from pwm.raytrace import RayTracer
@@ -19,6 +19,7 @@ from pwm.volume import DistanceGrid
 
 R = 0.25
 SITE = (10.0, 40.0)
+SITE_B = (-30.0, 220.0)
 BUMP_KM, BUMP_SIGMA_KM, OFFSET_KM = 2e-3, 3e-3, 0.5e-3
 
 
@@ -28,13 +29,30 @@ def sphere() -> Mesh:
     return Mesh(np.asarray(s.vertices), np.asarray(s.faces), np.full(len(s.vertices), 0.1))
 
 
-def _site(maplet: MapletGrid) -> MapletGrid:
+def _site(maplet: MapletGrid, site: tuple[float, float] = SITE, bump_km: float = BUMP_KM) -> MapletGrid:
     """The maplet raised by a hill at the site and by OFFSET_KM everywhere: the site level
     disagrees with the survey at its border, which must fade, not step."""
-    centre = R * latlon_to_unit(*SITE)
+    centre = R * latlon_to_unit(*site)
     r = np.linalg.norm(maplet.nodes_body() - centre, axis=-1)
-    maplet.heights = maplet.heights + OFFSET_KM + BUMP_KM * np.exp(-0.5 * (r / BUMP_SIGMA_KM) ** 2)
+    maplet.heights = maplet.heights + OFFSET_KM + bump_km * np.exp(-0.5 * (r / BUMP_SIGMA_KM) ** 2)
     return maplet
+
+
+def _site_b(sphere: Mesh, bump_km: float) -> list[MapletGrid]:
+    return [_site(m, SITE_B, bump_km) for m in tile(sphere, spacing_km=5e-4, nodes=21, overlap=0.25,
+                                                     centre_lat_deg=SITE_B[0], centre_lon_deg=SITE_B[1],
+                                                     radius_km=0.008)]
+
+
+def _faces(mesh: Mesh, keep: np.ndarray | None = None) -> set[tuple[float, ...]]:
+    """The faces (those kept) as their corners' coordinates, each from its least corner on, so
+    that two meshes of the same faces compare equal whatever their numbering."""
+    out = set()
+    for tri in mesh.vertices[mesh.faces if keep is None else mesh.faces[keep]]:
+        corners = [tuple(c) for c in tri]
+        first = corners.index(min(corners))
+        out.add(tuple(x for c in corners[first:] + corners[:first] for x in c))
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +72,8 @@ def _radius(mesh: Mesh, directions: np.ndarray) -> np.ndarray:
 
 def test_refining_faces_keeps_a_closed_mesh_closed(sphere):
     top = sphere.vertices[sphere.faces].mean(axis=1)[:, 2] > 0.2
-    refined, chosen = refine_faces(sphere, top, max_edge_km=0.004)
+    refined, origin = refine_faces(sphere, top, max_edge_km=0.004)
+    chosen = top[origin]
     mesh = trimesh.Trimesh(refined.vertices, refined.faces, process=False)
     assert mesh.is_watertight and mesh.is_winding_consistent
     corners = refined.vertices[refined.faces[chosen]]
@@ -107,3 +126,47 @@ def test_a_site_level_is_laid_into_the_survey_without_a_step(sphere, levels, tmp
     with pytest.raises(ValueError, match="level -2"):
         again.subtract(tile(sphere, spacing_km=2.5e-4, nodes=5, centre_lat_deg=0.0, centre_lon_deg=0.0,
                             radius_km=1e-4)[0])
+
+
+def test_a_changed_site_is_laid_again_and_the_rest_carried_over(sphere, levels, tmp_path):
+    survey, site = levels
+    fusion = LevelGrids(taper_fraction=0.25)
+    fusion.add_all(survey + site + _site_b(sphere, BUMP_KM), base=sphere)
+    first, composition, laid = fusion.compose(sphere)
+    assert laid == Laid(regions_laid=2, regions_carried=0, below_made=True)
+    write_levels(tmp_path / "levels.npz", fusion)
+    write_composition(tmp_path / "composition.npz", composition)
+
+    # the next version: site B's maplets revised (its hill twice as high), site A's untouched
+    fusion = read_levels(tmp_path / "levels.npz")
+    for m in _site_b(sphere, BUMP_KM):
+        fusion.subtract(m)
+    revised = _site_b(sphere, 2 * BUMP_KM)
+    fusion.add_all(revised, base=sphere)
+    previous = (first, read_composition(tmp_path / "composition.npz"))
+    second, _, laid = fusion.compose(sphere, previous=previous)
+    assert laid == Laid(regions_laid=1, regions_carried=1, below_made=False)
+    # the surface that composing it all again makes, closed
+    again = LevelGrids(taper_fraction=0.25)
+    again.add_all(survey + site + revised, base=sphere)
+    assert _faces(second) == _faces(again.mesh(sphere))
+    closed = trimesh.Trimesh(second.vertices, second.faces, process=False)
+    assert closed.is_watertight and closed.is_winding_consistent
+    # the hill is twice as high; away from site B every face is the first version's, site A's too
+    centre_b = latlon_to_unit(*SITE_B)
+    assert _radius(second, centre_b[None])[0] == pytest.approx(R + OFFSET_KM + 2 * BUMP_KM, abs=1e-4)
+    away = [np.linalg.norm(m.vertices[m.faces].mean(axis=1) - R * centre_b, axis=1) > 0.2 for m in (first, second)]
+    kept = _faces(first, away[0])
+    assert kept == _faces(second, away[1])
+    assert len(kept) > len(sphere.faces) // 2 and _radius(second, latlon_to_unit(*SITE)[None])[0] > R + BUMP_KM
+
+    # site B gone: its place is the survey's surface again, the rest still carried over
+    fusion = read_levels(tmp_path / "levels.npz")
+    for m in _site_b(sphere, BUMP_KM):
+        fusion.subtract(m)
+    third, _, laid = fusion.compose(sphere, previous=previous)
+    assert laid == Laid(regions_laid=0, regions_carried=1, below_made=False)
+    alone = LevelGrids(taper_fraction=0.25)
+    alone.add_all(survey + site, base=sphere)
+    assert _faces(third) == _faces(alone.mesh(sphere))
+    assert _radius(third, centre_b[None])[0] == pytest.approx(R, abs=5e-4)

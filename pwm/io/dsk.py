@@ -1,4 +1,5 @@
-"""SPICE DSK type 2 (plate model) files: write a mesh as one segment, read segments back.
+"""SPICE DSK type 2 (plate model) files: write a mesh as one segment or as several that part it,
+read segments back.
 
 Vertices in km in the body-fixed frame; SPICE numbers vertices from 1, Mesh from 0. The frame
 must be known to SPICE when writing (built in, or from a loaded FK).
@@ -12,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import spiceypy as sp
 
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, compact
 from pwm.raytrace import RayTracer
 
 LATITUDINAL = 1  # SPICE_DSK_LATSYS
@@ -29,21 +30,22 @@ _COMMENT_WIDTH = 80  # NAIF's line length for kernel comments
 
 
 def write_dsk(path: str | Path, mesh: Mesh, *, body: int, frame: str, surface: int | None = None,
-              comment: str) -> None:
-    """Write `mesh` (km, body-fixed `frame`) as a one-segment DSK type 2 file, overwriting `path`.
+              comment: str, parts: np.ndarray | None = None) -> None:
+    """Write `mesh` (km, body-fixed `frame`) as a DSK type 2 file, overwriting `path`: one
+    segment, or one per value of `parts` (M,) (a label per face) in the order of the values.
 
-    body: NAIF ID of the body (the segment's centre); surface: surface ID (default: body).
-    Coverage is latitudinal, the mesh's longitude/latitude range (rad) and radius range (km),
-    valid for +-50 Julian years about J2000. comment goes to the comment area.
+    Segments part the mesh: they meet along shared edges and never overlap, so SPICE's
+    unprioritized intercepts over them all (dskxv, sincpt's DSK/UNPRIORITIZED) are the mesh's
+    own, and each segment's spatial index is sized to its own plates (a site's centimetre
+    plates apart from the body's metre ones).
+    body: NAIF ID of the body (each segment's centre); surface: surface ID (default: body).
+    Coverage is latitudinal, each segment's longitude/latitude range (rad) and radius range
+    (km), valid for +-50 Julian years about J2000. comment goes to the comment area.
     """
     path = Path(path)
-    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
-    plates = np.ascontiguousarray(mesh.faces + 1, dtype=np.int32)
-    finscl, corscl, sizes = _index_parameters(vertices, mesh.faces)
-    spaixd, spaixi = sp.dskmi2(vertices, plates, finscl, corscl, *sizes)
-    corpar = np.zeros(10)  # SPICE_DSK_NSYPAR; unused by latitudinal coordinates
-    radius_min, radius_max = sp.dskrb2(vertices, plates, LATITUDINAL, corpar)
-    lon_min, lon_max, lat_min, lat_max = _coverage(vertices, mesh.faces)
+    labels = np.zeros(len(mesh.faces), dtype=np.int64) if parts is None else np.asarray(parts)
+    if labels.shape != (len(mesh.faces),):
+        raise ValueError("parts must give one label per face")
     lines = [wrapped for line in comment.splitlines()
              for wrapped in (textwrap.wrap(line, _COMMENT_WIDTH) or [" "])]
     path.unlink(missing_ok=True)
@@ -51,9 +53,10 @@ def write_dsk(path: str | Path, mesh: Mesh, *, body: int, frame: str, surface: i
     try:
         if lines:
             sp.dasac(handle, lines)
-        sp.dskw02(handle, body, body if surface is None else surface, GENERAL_CLASS, frame,
-                  LATITUDINAL, corpar, lon_min, lon_max, lat_min, lat_max, radius_min, radius_max,
-                  -50 * sp.jyear(), 50 * sp.jyear(), vertices, plates, spaixd, spaixi)
+        for label in np.unique(labels):
+            used, faces = compact(len(mesh.vertices), mesh.faces[labels == label])
+            _write_segment(handle, np.ascontiguousarray(mesh.vertices[used], dtype=np.float64), faces,
+                           body=body, surface=body if surface is None else surface, frame=frame)
     except Exception:
         sp.dskcls(handle, False)
         path.unlink(missing_ok=True)
@@ -61,9 +64,22 @@ def write_dsk(path: str | Path, mesh: Mesh, *, body: int, frame: str, surface: i
     sp.dskcls(handle, True)
 
 
+def _write_segment(handle: int, vertices: np.ndarray, faces: np.ndarray, *, body: int, surface: int,
+                   frame: str) -> None:
+    plates = np.ascontiguousarray(faces + 1, dtype=np.int32)
+    finscl, corscl, sizes = _index_parameters(vertices, faces)
+    spaixd, spaixi = sp.dskmi2(vertices, plates, finscl, corscl, *sizes)
+    corpar = np.zeros(10)  # SPICE_DSK_NSYPAR; unused by latitudinal coordinates
+    radius_min, radius_max = sp.dskrb2(vertices, plates, LATITUDINAL, corpar)
+    lon_min, lon_max, lat_min, lat_max = _coverage(vertices, faces)
+    sp.dskw02(handle, body, surface, GENERAL_CLASS, frame, LATITUDINAL, corpar, lon_min, lon_max, lat_min,
+              lat_max, radius_min, radius_max, -50 * sp.jyear(), 50 * sp.jyear(), vertices, plates, spaixd, spaixi)
+
+
 def read_dsk(path: str | Path) -> Mesh:
     """Read every type 2 segment of a DSK file into one mesh (km, the segments' frame); the
-    segments must share body and frame."""
+    segments must share body and frame. Where segments meet, a vertex that several give at the
+    same place is one, so a closed surface written in parts reads back closed."""
     handle = sp.dasopr(str(path))
     try:
         vertices: list[np.ndarray] = []
@@ -86,7 +102,10 @@ def read_dsk(path: str | Path) -> Mesh:
         sp.dascls(handle)
     if len(owners) > 1:
         raise ValueError(f"{path}: segments of different bodies or frames {sorted(owners)}")
-    return Mesh(np.concatenate(vertices), np.concatenate(faces))
+    if len(vertices) == 1:
+        return Mesh(vertices[0], faces[0])
+    unique, inverse = np.unique(np.concatenate(vertices), axis=0, return_inverse=True)
+    return Mesh(unique, inverse.reshape(-1)[np.concatenate(faces)])
 
 
 def _index_parameters(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, int, tuple]:

@@ -1,6 +1,7 @@
 """What incremental fusion keeps between model versions, as numpy .npz files: a refined maplet
-(frame, spacing, heights, albedo, region weight) and the sums of a fusion, level by level
-(pwm.levels.LevelGrids of pwm.fusion.VoxelGrid and pwm.volume.DistanceGrid).
+(frame, spacing, heights, albedo, region weight), the sums of a fusion, level by level
+(pwm.levels.LevelGrids of pwm.fusion.VoxelGrid and pwm.volume.DistanceGrid), and how its surface
+was composed (pwm.levels.Composition).
 
 Arrays are stored exactly (float64, int64), so a maplet read back subtracts from a grid exactly
 what it added. Lengths in km, body-fixed frame.
@@ -15,8 +16,9 @@ import numpy as np
 
 from pwm.frames import LocalFrame
 from pwm.fusion import VoxelGrid
-from pwm.levels import LevelGrids
+from pwm.levels import Composition, LevelGrids
 from pwm.maplets import MapletGrid
+from pwm.mesh import Mesh
 from pwm.tiling import level_of
 from pwm.volume import DistanceGrid
 
@@ -65,6 +67,27 @@ def read_levels(path: str | Path) -> LevelGrids:
             return LevelGrids(taper_fraction=grid.taper_fraction, grids={int(level_of(grid.voxel_km)): grid})
         return LevelGrids(taper_fraction=float(data["taper_fraction"]),
                           grids={int(level): _grid(data, f"L{int(level)}_") for level in data["levels"]})
+
+
+def write_composition(path: str | Path, composition: Composition) -> None:
+    """Save a composition: the surface below the laid levels, its digest, and the origins of
+    the composed surface's vertices and faces."""
+    below = composition.below
+    arrays = {"vertices_km": below.vertices, "faces": below.faces, "digest": np.array(composition.digest),
+              "vertex_origin": composition.vertex_origin, "face_origin": composition.face_origin,
+              "below_region": composition.below_region}
+    if below.albedo is not None:
+        arrays["albedo"] = below.albedo
+    with open(path, "wb") as stream:
+        np.savez(stream, **arrays)  # type: ignore[arg-type]  # as in write_maplet
+
+
+def read_composition(path: str | Path) -> Composition:
+    """A composition saved by `write_composition`."""
+    with np.load(path, allow_pickle=False) as data:
+        below = Mesh(data["vertices_km"], data["faces"], data["albedo"] if "albedo" in data else None)
+        return Composition(below=below, digest=str(data["digest"]), vertex_origin=data["vertex_origin"],
+                           face_origin=data["face_origin"], below_region=data["below_region"])
 
 
 def _grid_arrays(grid: VoxelGrid | DistanceGrid) -> dict[str, np.ndarray]:

@@ -37,6 +37,8 @@ def export(
     version: str = typer.Argument(..., help="version number, release tag, latest or released"),
     format: str = typer.Option(..., "--format", help="obj | ply | icq | dsk | site"),
     out: Path = typer.Option(..., "--out", dir_okay=False, help="file to write"),
+    surface: str = typer.Option("model", "--surface",
+                                help="model (every level) | global (the whole body's levels, beneath the sites)"),
     faces: int | None = typer.Option(None, min=4, help="decimate to about this many faces first"),
     lat: float | None = typer.Option(None, min=-90.0, max=90.0, help="site latitude, deg (site)"),
     lon: float | None = typer.Option(None, help="site east longitude, deg (site)"),
@@ -46,7 +48,7 @@ def export(
 ) -> None:
     """Export a model version; a site product is a zip of its PDS4 label, data file and PNG preview."""
     from service.catalog import open_catalog
-    from service.exports import ExportError, ExportFormat, Site, make_export, plan_export
+    from service.exports import ExportError, ExportFormat, ExportSurface, Site, make_export, plan_export
     from service.settings import get_settings
     from service.versions import get_version
 
@@ -54,6 +56,10 @@ def export(
         fmt = ExportFormat(format)
     except ValueError:
         raise typer.BadParameter(f"expected one of {', '.join(ExportFormat)}", param_hint="--format") from None
+    try:
+        which = ExportSurface(surface)
+    except ValueError:
+        raise typer.BadParameter(f"expected one of {', '.join(ExportSurface)}", param_hint="--surface") from None
     site_args = (lat, lon, radius)
     if (fmt is ExportFormat.SITE) != all(a is not None for a in site_args) or (
             fmt is not ExportFormat.SITE and any(a is not None for a in site_args)):
@@ -62,7 +68,7 @@ def export(
     with open_catalog(settings)() as session:
         try:
             plan = plan_export(session, data_dir=settings.data_dir, version=get_version(session, version),
-                               fmt=fmt, faces=faces, body=body, frame=frame,
+                               fmt=fmt, surface=which, faces=faces, body=body, frame=frame,
                                site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius)
                                if lat is not None and lon is not None and radius is not None else None)
             session.close()

@@ -103,6 +103,12 @@ def test_icq_and_decimated_exports(client, populated, tmp_path):
     full = _download(client, 2, tmp_path, "v2.ply", format="ply", faces=10 * faces)
     assert hashlib.sha256(full.read_bytes()).hexdigest() == \
         client.get("/versions/2").json()["artifacts"]["ply"]["sha256"]
+    # a version without sites is its own global model
+    whole = _download(client, 2, tmp_path, "v2-global.ply", format="ply", surface="global")
+    assert whole.read_bytes() == full.read_bytes()
+    assert client.get("/versions/2/export", params={"format": "ply", "surface": "sites"}).status_code == 422
+    assert client.get("/versions/2/export", params={"format": "site", "lat": 10.0, "lon": 40.0, "radius_km": 0.02,
+                                                    "surface": "global"}).status_code == 422
 
 
 def test_site_product_reads_with_pds4_tools(client, populated, tmp_path):

@@ -13,16 +13,21 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import spiceypy as sp
+from scipy.spatial import cKDTree
 from sqlalchemy import func, select
 
 from pwm.config import RefinementConfig
-from pwm.io.fusion_state import read_levels
+from pwm.io.fusion_state import read_composition, read_levels
 from pwm.io.meshio import read_mesh
 from pwm.io.pds4 import MISSING_DN, read_image_product, write_image_product
 from pwm.mesh import Mesh, grid_faces
 from pwm.raytrace import RayTracer
 from pwm.tiling import level_of, tile
+from service.db import session_scope
+from service.exports import ExportFormat, ExportSurface, make_export, plan_export
 from service.models import Coverage, Maplet, MapletRevision, ModelKind
+from service.publish import fuse_and_publish
 from service.refinement import load_revision_maplet
 from service.run import run_directory
 from service.versions import artifact_path, get_version, version_mesh
@@ -186,3 +191,51 @@ def test_a_site_level_under_a_survey_level_is_refined_and_laid_into_one_model(ti
     # measured: 0.06 GSD from the site level (where its maplets overlap, the model is their
     # blend), 0.97 GSD from the survey level's
     assert np.median(to_site_km) < 0.1 * gsd_km and np.median(to_site_km) < 0.2 * np.median(to_survey_km)
+
+    # Issue 16.5: the whole model's DSK holds the body and the site region as segments that part
+    # its surface; the global model is the survey level's surface alone, coarser
+    with catalog() as session:
+        exported = get_version(session, version.version)
+        plans = [plan_export(session, data_dir=data, version=exported, fmt=fmt, surface=surface)
+                 for fmt, surface in ((ExportFormat.DSK, ExportSurface.MODEL),
+                                      (ExportFormat.PLY, ExportSurface.GLOBAL))]
+        composition = read_composition(artifact_path(data, exported.artifacts["composition"]))
+    dsk, global_ply = (make_export(plan, cache_bytes=10**9).path for plan in plans)
+    plates = _segment_plates(dsk)
+    assert len(plates) == 2 and sum(plates) == len(mesh.faces)
+    survey_level = read_mesh(global_ply)
+    assert len(survey_level.faces) < len(mesh.faces) and plans[1].filename.endswith("-global.ply")
+    np.testing.assert_array_equal(survey_level.vertices, composition.below.vertices)
+
+    # Issue 16.3: one site maplet withdrawn, the next fusion lays the site's region again onto
+    # the survey level's surface, which it does not make again, and changes nothing outside it.
+    withdrawn = refined[int(fine)][0]
+    with session_scope(catalog) as session:
+        session.scalars(select(Maplet).filter_by(name=withdrawn.name)).one().current_revision_id = None
+    number = fuse_and_publish(catalog, data_dir=data)
+    assert number is not None
+    with catalog() as session:
+        after = get_version(session, number)
+        assert after.statistics["composition"] == {"regions_laid": 1, "regions_carried": 0,
+                                                   "closed_levels_made": False}
+        again = version_mesh(data, after)
+    known = {tuple(v) for v in mesh.vertices}
+    new = np.array([v for v in again.vertices if tuple(v) not in known])
+    site_nodes = cKDTree(np.vstack([m.nodes_body().reshape(-1, 3) for m in refined[int(fine)]]))
+    # what moved lies over the site's maplets or within their fade (12 voxels) of them
+    assert len(new) and site_nodes.query(new)[0].max() < 16 * gsd_km
+
+
+def _segment_plates(path: Path) -> list[int]:
+    """The plates of each segment of a DSK file."""
+    handle = sp.dasopr(str(path))
+    plates, found = [], True
+    try:
+        descriptor = sp.dlabfs(handle)
+        while found:
+            plates.append(sp.dskz02(handle, descriptor)[1])
+            with sp.no_found_check():
+                descriptor, found = sp.dlafns(handle, descriptor)
+    finally:
+        sp.dascls(handle)
+    return plates

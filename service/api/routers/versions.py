@@ -19,7 +19,7 @@ from service.api.schemas import (
     VersionDetail,
     VersionSummary,
 )
-from service.exports import ExportError, ExportFormat, Site, make_export, plan_export
+from service.exports import ExportError, ExportFormat, ExportSurface, Site, make_export, plan_export
 from service.models import ModelKind, ModelVersion
 from service.releases import ReleaseConflict, release_version
 from service.versions import ArtifactError, artifact_path
@@ -104,6 +104,8 @@ def download_artifact(session: SessionDep, settings: SettingsDep, ref: VersionRe
                        404: {"model": Problem}, 503: {"model": Problem}})
 def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
            format: ExportFormat,
+           surface: Annotated[ExportSurface, Query(description="model: every level; global: the whole "
+                                                   "body's levels, beneath the sites")] = ExportSurface.MODEL,
            faces: Annotated[int | None, Query(ge=4, le=100_000_000,
                                               description="decimate to about this many faces")]
            = None,
@@ -118,10 +120,12 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
            frame: Annotated[str | None, Query(pattern=SPICE_NAME,
                                               description="body-fixed frame name")] = None,
            ) -> FileResponse:
-    """The version as OBJ, PLY (albedo per vertex), ICQ, SPICE DSK type 2 (km, body-fixed), or
-    the terrain product of a site (format `site` with lat, lon and radius_km: a zip of the PDS4
-    label, its data file and a PNG preview). Body and frame default to the catalog's. While
-    too many exports are being made, one not made yet is refused with 503 and Retry-After."""
+    """The version as OBJ, PLY (albedo per vertex), ICQ, SPICE DSK type 2 (km, body-fixed; of
+    the whole model, a segment for the body and one per site), or the terrain product of a site
+    (format `site` with lat, lon and radius_km: a zip of the PDS4 label, its data file and a PNG
+    preview). surface `global`: the global model alone, beneath the sites. Body and frame
+    default to the catalog's. While too many exports are being made, one not made yet is
+    refused with 503 and Retry-After."""
     version = resolve_version(session, ref)
     site_args = (lat, lon, radius_km)
     if format is ExportFormat.SITE and None in site_args:
@@ -134,7 +138,7 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
             if lat is not None and lon is not None and radius_km is not None else None)  # site format only
     try:
         plan = plan_export(session, data_dir=settings.data_dir, version=version, fmt=format,
-                           faces=faces, site=site, body=body, frame=frame)
+                           surface=surface, faces=faces, site=site, body=body, frame=frame)
         # The connection goes back to the pool before the export waits for its turn.
         session.close()
         made = make_export(plan, cache_bytes=settings.export_cache_bytes)
