@@ -124,6 +124,12 @@ class VoxelGrid(SparseSums):
             return Mesh(points, faces, None if np.isnan(albedo).all() else albedo)
         return _stitch(base, points, faces, albedo, param, q, self.voxel_km)
 
+    def vertical(self, points: np.ndarray) -> np.ndarray:
+        """Unit directions (N, 3) at the points along which `mesh`'s surface is a height field:
+        the region's mean normal, or radial for a region that curves too far (its
+        parameterisation)."""
+        return _parameterisation(self.points(), self.sums[:, _W]).up(points)
+
 
 def _averages(sums: np.ndarray) -> FusedPoints:
     w = sums[:, _W]
@@ -159,6 +165,9 @@ class _Plane:
     def coords(self, points: np.ndarray) -> np.ndarray:
         return self.frame.to_local(points)[:, :2]
 
+    def up(self, points: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(self.frame.normal, points.shape)
+
     def triangulate(self, q: np.ndarray) -> np.ndarray:
         faces = Delaunay(q).simplices.astype(np.int64)
         a, b, c = q[faces[:, 0]], q[faces[:, 1]], q[faces[:, 2]]
@@ -181,6 +190,9 @@ class _Sphere:
 
     def coords(self, points: np.ndarray) -> np.ndarray:
         return self.radius_km * points / np.linalg.norm(points, axis=1, keepdims=True)
+
+    def up(self, points: np.ndarray) -> np.ndarray:
+        return points / np.linalg.norm(points, axis=1, keepdims=True)
 
     def triangulate(self, q: np.ndarray) -> np.ndarray:
         faces = ConvexHull(q).simplices.astype(np.int64)

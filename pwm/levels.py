@@ -6,12 +6,13 @@ The coarsest level is fused over the base: one closed surface of the body where 
 affordable, else a region stitched into the base (pwm.volume.grid_for chooses). A finer level is
 kept as points (pwm.fusion.VoxelGrid) and laid onto the surface made so far (`displace`): that
 surface's faces about the level's region are split until they are as fine as its voxels
-(pwm.mesh.refine_faces, conforming) and each vertex there is moved along its normal to the
-level's own surface, fully inside the region and fading to nothing over BLEND_VOXELS inside its
-border. So a site's centimetre maplets sit in the survey's closed surface without a step, and
-the result stays closed, manifold and consistently wound. (A level made while it was the
-coarsest, and later under a coarser one, may be a DistanceGrid: its closed surface is then made
-over the surface below, which fills where its maplets do not reach.) A maplet's revision is
+(pwm.mesh.refine_faces, conforming) and each vertex there is moved along the level's vertical
+(the direction its surface is a height field along) to the level's own surface, fully inside
+the region and fading to nothing over BLEND_VOXELS inside its border. So a site's centimetre
+maplets sit in the survey's closed surface without a step, and the result stays closed,
+manifold and consistently wound. (A level made while it was the coarsest, and later under a
+coarser one, may be a DistanceGrid: its closed surface is then made over the surface below,
+which fills where its maplets do not reach.) A maplet's revision is
 subtracted from its own level's sums exactly as it was added.
 
 The laid levels are laid place by place: the places ("regions") are the connected parts of the
@@ -53,8 +54,8 @@ MAX_EDGE_VOXELS = float(np.sqrt(2.0))
 """Longest edge, in a finer level's voxels, of the faces laid onto it: about as many vertices as
 the level has lattice points over the same ground."""
 REACH_VOXELS = 4.0
-"""How far, in the next coarser level's voxels, a finer level's surface is looked for along the
-normals of the surface below it: about how far the coarser level may be off."""
+"""How far, in the next coarser level's voxels, a finer level's surface is looked for either way
+along its vertical from the surface below it: about how far the coarser level may be off."""
 MARGIN_EDGES = 3.0
 """Rings of the surface below's faces, beyond a laid level's reach, that a region's margin
 holds: the conforming splits about the laid faces stay inside it."""
@@ -235,7 +236,7 @@ class LevelGrids:
 
 def displace(surface: Mesh, grid: VoxelGrid, *, reach_km: float) -> tuple[Mesh, np.ndarray]:
     """`surface` with the finer level of `grid` laid onto it (see the module docstring): the
-    faces with a vertex that finds the level's surface along its normal within reach_km either
+    faces with a vertex that finds the level's surface along its vertical within reach_km either
     way split to MAX_EDGE_VOXELS; the vertices that find it moved to it, in full at BLEND_VOXELS
     and more inside its border, fading to nothing at it; albedo likewise. A face of `surface`
     across the level's border with no vertex over the level stays whole, and the level is laid
@@ -243,20 +244,20 @@ def displace(surface: Mesh, grid: VoxelGrid, *, reach_km: float) -> tuple[Mesh, 
     own corners, without a step. Also returns each face's face of `surface`."""
     level = grid.mesh()
     tracer = RayTracer(level)
-    over = _crossing(tracer, surface.vertices, surface.vertex_normals(), reach_km)[0]
+    over = _crossing(tracer, surface.vertices, grid.vertical(surface.vertices), reach_km)[0]
     selected = over[surface.faces].any(axis=1)
     refined, parent = refine_faces(surface, selected, max_edge_km=MAX_EDGE_VOXELS * grid.voxel_km)
     chosen = selected[parent]
     moved = np.unique(refined.faces[chosen])
-    normals = refined.vertex_normals()[moved]
-    found, shift, hits = _crossing(tracer, refined.vertices[moved], normals, reach_km)
-    at = refined.vertices[moved[found]] + shift[found, None] * normals[found]
+    up = grid.vertical(refined.vertices[moved])
+    found, shift, hits = _crossing(tracer, refined.vertices[moved], up, reach_km)
+    at = refined.vertices[moved[found]] + shift[found, None] * up[found]
     edge = level.vertices[border_vertices(level.faces)]
     inside = cKDTree(edge).query(at)[0] if len(edge) else np.full(len(at), np.inf)
     share = raised_cosine(inside / (BLEND_VOXELS * grid.voxel_km))
     vertices = refined.vertices.copy()
     index = moved[found]
-    vertices[index] += (share * shift[found])[:, None] * normals[found]
+    vertices[index] += (share * shift[found])[:, None] * up[found]
     albedo = refined.albedo
     if albedo is not None and level.albedo is not None:
         albedo = albedo.copy()
@@ -264,12 +265,12 @@ def displace(surface: Mesh, grid: VoxelGrid, *, reach_km: float) -> tuple[Mesh, 
     return Mesh(vertices, refined.faces, albedo), parent
 
 
-def _crossing(tracer: RayTracer, points: np.ndarray, normals: np.ndarray,
+def _crossing(tracer: RayTracer, points: np.ndarray, directions: np.ndarray,
               reach_km: float) -> tuple[np.ndarray, np.ndarray, Hits]:
-    """Where the tracer's surface crosses each point's normal line within reach_km either way
-    (the first crossing from below): whether it does, the signed shift along the normal (km),
-    and the hits."""
-    hits = tracer.intersect(points - reach_km * normals, normals)
+    """Where the tracer's surface crosses the line through each point along its direction
+    within reach_km either way (the first crossing from below): whether it does, the signed
+    shift along the direction (km), and the hits."""
+    hits = tracer.intersect(points - reach_km * directions, directions)
     return hits.hit & (hits.t <= 2.0 * reach_km), hits.t - reach_km, hits
 
 

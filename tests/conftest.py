@@ -24,8 +24,8 @@ import psycopg
 import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
-from pwm.simulate.campaign import simulate
-from pwm.simulate.scenarios import get_scenario
+from pwm.simulate.campaign import simulate, simulate_campaign
+from pwm.simulate.scenarios import CAMPAIGNS, get_scenario
 from service.db import make_engine, make_sessionmaker, upgrade
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -232,6 +232,15 @@ def global_tiny_sim(tmp_path_factory) -> Path:
     that comes with no shape model."""
     out = tmp_path_factory.mktemp("global-tiny") / "sim"
     simulate(out, scenario=get_scenario("global-tiny"), seed=2)
+    return out
+
+
+@pytest.fixture(scope="session")
+def campaign_tiny_sim(tmp_path_factory) -> Path:
+    """OUT directory of `pwm simulate OUT --scenario campaign-tiny --seed 4 --with-start-model`:
+    a survey with its start model, then two site downlinks, in time order under downlinks/."""
+    out = tmp_path_factory.mktemp("campaign-tiny") / "sim"
+    simulate_campaign(out, campaign=CAMPAIGNS["campaign-tiny"], seed=4, with_start_model=True)
     return out
 
 

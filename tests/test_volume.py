@@ -11,7 +11,7 @@ from pwm.evaluate.closure import closure
 from pwm.frames import local_frame
 from pwm.fusion import VoxelGrid
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, refine_faces
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface, tile
 from pwm.volume import DistanceGrid, grid_for
@@ -158,3 +158,19 @@ def test_the_closure_checks_see_what_they_check():
     flipped = faces.copy()
     flipped[0] = flipped[0, ::-1]
     assert not closure(Mesh(np.asarray(sphere.vertices), flipped)).winding_consistent
+
+
+def test_the_self_intersection_check_holds_a_dense_site_on_a_coarse_body():
+    # a site's centimetre faces on a body of metre ones (as levels make): counted pair by pair,
+    # not every small face against every other within a large face's size
+    sphere = trimesh.creation.icosphere(2, 1.0)
+    body = Mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces))
+    site = body.vertices[body.faces].mean(axis=1)[:, 2] > 0.95
+    dense, _ = refine_faces(body, site, max_edge_km=0.004)
+    assert len(dense.faces) > 50_000
+    assert closure(dense).closed
+    pebble = trimesh.creation.icosphere(2, 0.01)
+    pebble.apply_translation(dense.vertices[dense.faces[-1]].mean(axis=0) + [0.0013, 0.0007, 0.0])
+    crossed = Mesh(np.vstack([dense.vertices, pebble.vertices]),
+                   np.vstack([dense.faces, np.asarray(pebble.faces) + len(dense.vertices)]))
+    assert closure(crossed).self_intersections > 0

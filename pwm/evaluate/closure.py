@@ -49,9 +49,7 @@ def self_intersections(mesh: Mesh) -> int:
     tri = mesh.vertices[mesh.faces]
     centroids = tri.mean(axis=1)
     radius = np.linalg.norm(tri - centroids[:, None], axis=2).max(axis=1)
-    pairs = cKDTree(centroids).query_pairs(2.0 * float(radius.max(initial=0.0)), output_type="ndarray")
-    a, b = pairs.T
-    pairs = pairs[np.linalg.norm(centroids[a] - centroids[b], axis=1) <= radius[a] + radius[b]]
+    pairs = _near_pairs(centroids, radius)
     shared = (mesh.faces[pairs[:, 0], :, None] == mesh.faces[pairs[:, 1], None, :]).any(axis=(1, 2))
     pairs = pairs[~shared]
     crossing = 0
@@ -60,6 +58,30 @@ def self_intersections(mesh: Mesh) -> int:
         hit = _edges_cross(tri[a], tri[b]) | _edges_cross(tri[b], tri[a])
         crossing += int(hit.sum())
     return crossing
+
+
+def _near_pairs(centres: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(P, 2) pairs i < j of balls (centres, radius) that overlap. Balls are sorted into octaves
+    of radius first, each pair of octaves searched within their largest radii: one search within
+    the largest radius of all would pair every small face of a dense site with every other within
+    a coarse face's size of it."""
+    octave = np.floor(np.log2(np.maximum(radius, 1e-300))).astype(np.int64)
+    groups = [np.flatnonzero(octave == k) for k in np.unique(octave)]
+    trees = [cKDTree(centres[g]) for g in groups]
+    reach = [float(radius[g].max()) for g in groups]
+    found = []
+    for i, (gi, ti) in enumerate(zip(groups, trees, strict=True)):
+        for j in range(i, len(groups)):
+            if i == j:
+                local = ti.query_pairs(2.0 * reach[i], output_type="ndarray")
+                pairs = gi[local]
+            else:
+                near = ti.sparse_distance_matrix(trees[j], reach[i] + reach[j], output_type="ndarray")
+                pairs = np.column_stack([gi[near["i"]], groups[j][near["j"]]])
+            found.append(pairs.reshape(-1, 2))
+    pairs = np.sort(np.vstack(found), axis=1) if found else np.empty((0, 2), dtype=np.int64)
+    a, b = pairs.T
+    return pairs[np.linalg.norm(centres[a] - centres[b], axis=1) <= radius[a] + radius[b]]
 
 
 def _edges_cross(edges_of: np.ndarray, triangles: np.ndarray) -> np.ndarray:

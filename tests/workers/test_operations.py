@@ -2,10 +2,13 @@
 Redis broker and a PostgreSQL catalog take simulated downlinks dropped into a folder to published
 model versions, refining only the maplets whose input changed; a pool process killed during a
 refinement loses nothing and duplicates nothing; with two refinement passes, each pass of a
-downlink is fused into a version of its own, the second refined against the first's."""
+downlink is fused into a version of its own, the second refined against the first's; a small
+campaign's survey and two sites, in order, nest each site's level under the survey's and change
+the model only about each new site."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -16,6 +19,7 @@ from collections.abc import Callable, Iterator
 from datetime import timedelta
 from pathlib import Path
 
+import numpy as np
 import pytest
 from celery import Celery
 from harness import (
@@ -35,9 +39,22 @@ from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from pwm.config import DEFAULTS
 from pwm.evaluate.closure import closure
+from pwm.frames import latlon_to_unit
+from pwm.mesh import Mesh
 from pwm.simulate.windows import window_downlink
 from service.db import session_scope
-from service.models import Coverage, Downlink, Image, Job, JobKind, JobStatus, MapletRevision, ModelKind, ModelVersion
+from service.models import (
+    Coverage,
+    Downlink,
+    Image,
+    Job,
+    JobKind,
+    JobStatus,
+    Maplet,
+    MapletRevision,
+    ModelKind,
+    ModelVersion,
+)
 from service.versions import artifact_path, version_mesh
 from workers.app import WorkerSettings
 from workers.tasks import fuse_key, ingest_downlink, ingest_key
@@ -319,6 +336,51 @@ def test_a_first_survey_with_no_model_becomes_a_closed_global_model(
     assert refined.statistics["surface"] == "closed"
     checks = closure(version_mesh(Path(settings.data_dir), refined))
     assert checks.closed, checks
+
+
+def test_a_campaign_nests_each_site_under_the_survey_and_changes_only_about_it(
+        campaign_tiny_sim: Path, catalog: sessionmaker[Session], settings: WorkerSettings, client: Celery,
+        start_worker: Callable[..., Worker]) -> None:
+    """Issue 16 through the workers: campaign-tiny's survey (with its start model), site A and
+    site B, each delivered once the last is published."""
+    worker = start_worker(lambda name: pwm_worker_command(name, 2))
+    downlinks = sorted((campaign_tiny_sim / "downlinks").iterdir())
+    for number, downlink in zip((2, 3, 4), downlinks, strict=True):
+        client.send_task(ingest_downlink.name, args=[str(downlink)], kwargs={"key": ingest_key(downlink)})
+        _wait_for_version(catalog, number, [worker])
+    start, survey, site_a, site_b = _versions(catalog)
+    assert [v.kind for v in (start, survey, site_a, site_b)] == [ModelKind.START] + 3 * [ModelKind.REFINED]
+    with catalog() as session:
+        level = {m: k for m, k in session.execute(select(Maplet.id, Maplet.level))}
+    refined = [{j.maplet_id for j in _jobs(catalog, JobKind.REFINE, Job.downlink_id == _downlink_id(catalog, d.name))}
+               for d in downlinks]
+    assert all(refined)
+    # each site at its own level, 16x and more finer than the survey's; site B's downlink refines
+    # none of site A's maplets (nor the survey's: its images are too fine for them)
+    coarse = min(level[m] for m in refined[0])
+    # each site tiled at its own level, 16x and more finer than the survey's; site B's downlink
+    # refines none of site A's maplets (a site's images may refine a survey maplet they suit)
+    coarse = min(level[m] for m in refined[0])
+    assert all(any(level[m] <= coarse - 4 for m in r) for r in refined[1:])
+    assert not refined[2] & refined[1]
+    # site B's version: the survey level's surface not made again, site A's region carried over,
+    # site B's laid; the model changed only about site B, and is one closed surface
+    assert site_b.statistics["composition"] == {"regions_laid": 1, "regions_carried": 1,
+                                                "closed_levels_made": False}
+    data = Path(settings.data_dir)
+    meshes = [version_mesh(data, v) for v in (site_a, site_b)]
+    scenario = json.loads((campaign_tiny_sim / "truth" / downlinks[2].name / "manifest.json").read_text())["scenario"]
+    changed = meshes[1].vertices[meshes[1].faces[~np.isin(_face_keys(meshes[1]), _face_keys(meshes[0]))]]
+    direction = changed.mean(axis=1) / np.linalg.norm(changed.mean(axis=1), axis=1, keepdims=True)
+    off = np.degrees(np.arccos(direction @ latlon_to_unit(scenario["site_lat_deg"], scenario["site_lon_deg"])))
+    assert len(changed) and off.max() < 12.0  # the site is 2.3 deg across, its region's margin 8 deg
+    checks = closure(meshes[1])
+    assert checks.closed, checks
+
+
+def _face_keys(mesh: Mesh) -> np.ndarray:
+    """One opaque key per face: its corners' coordinates, in order."""
+    return np.ascontiguousarray(mesh.vertices[mesh.faces].reshape(-1, 9)).view("V72").ravel()
 
 
 def test_a_refinement_lost_with_its_pool_process_is_redelivered_and_done_once(
