@@ -36,6 +36,7 @@ from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVer
 from service.refinement import load_revision_maplet
 from service.versions import (
     artifact_path,
+    get_version,
     latest_version,
     publication_lock,
     publish_version,
@@ -46,8 +47,8 @@ from service.versions import (
 log = logging.getLogger(__name__)
 
 
-def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
-                     downlink_ids: Sequence[int] = (), config: RefinementConfig = DEFAULTS) -> int | None:
+def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlink_ids: Sequence[int] = (),
+                     config: RefinementConfig = DEFAULTS, document: bool = True) -> int | None:
     """Fuse the maplets' current revisions into the latest version and publish the result as a
     new version (kind refined); its number, or None when no maplet's current revision differs
     from the latest version's (nothing is published then).
@@ -61,7 +62,8 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
     "stitched"), voxels, each level's surface, voxel size and voxels, how the surface was
     composed (regions laid and carried over, whether the closed levels' surface was made again),
     and seconds (with the mesh's own).
-    The console's 3D document of the new version (service.console.mesh_document) is made too.
+    The console's 3D document of the new version (service.console.mesh_document) is made too,
+    unless `document` is False (a version that the caller's next pass supersedes at once).
     """
     clock = time.perf_counter()
     with session_scope(sessions) as session:
@@ -127,14 +129,26 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path,
                  version.version, parent.version, len(changed), len(current),
                  time.perf_counter() - clock)
         request = MeshRequest.of(version)
-    # Made now, outside the publication lock, so that the console's first 3D view of the new
-    # version is read, not decimated while the user waits; a failure here loses nothing (the
-    # first request makes it).
+    if document:  # outside the publication lock
+        _make_document(data_dir, request)
+    return request.version
+
+
+def make_document(sessions: sessionmaker[Session], *, data_dir: Path, version: int) -> None:
+    """Make the console's 3D document of a version now (see `fuse_and_publish`)."""
+    with sessions() as session:
+        request = MeshRequest.of(get_version(session, version))
+    _make_document(data_dir, request)
+
+
+def _make_document(data_dir: Path, request: MeshRequest) -> None:
+    """Made at publication, so that the console's first 3D view of a version is read, not
+    decimated while the user waits (a minute for two million faces); a failure here loses
+    nothing (the first request makes it)."""
     try:
         mesh_document(data_dir, request, cache_bytes=None)
     except Exception:
         log.exception("the console's mesh of version %d was not made now", request.version)
-    return request.version
 
 
 def first_version_with(session: Session, *, downlink_id: int) -> int | None:

@@ -25,7 +25,7 @@ from service.coverage import unweighed_images, update_coverage
 from service.db import make_engine, make_sessionmaker, session_scope
 from service.ingest import IngestReport, ingest_directory
 from service.models import Downlink, ModelKind
-from service.publish import fuse_and_publish
+from service.publish import fuse_and_publish, make_document
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
 from service.spg import start_from_images
 from service.versions import get_version, import_model, latest_version, publication_lock, version_mesh
@@ -144,8 +144,10 @@ def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir:
                 _log_progress(k, len(work), item, clock)
         finally:
             _close_catalog()
-        version = fuse_and_publish(sessions, data_dir=data_dir,
-                                   downlink_ids=[plan.downlink_id], config=config)
+        # the console's 3D document of the run's last version only, made below: a pass's
+        # version that the next pass supersedes within minutes need not cost a minute more
+        version = fuse_and_publish(sessions, data_dir=data_dir, downlink_ids=[plan.downlink_id], config=config,
+                                   document=False)
         if version is not None:
             report.versions.append(version)
         with sessions() as session:
@@ -154,6 +156,8 @@ def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir:
         if not work:
             break
         log.info("round %d: %d maplets due for another pass", round_number + 1, len(work))
+    if report.versions:
+        make_document(sessions, data_dir=data_dir, version=report.versions[-1])
     report.seconds = time.perf_counter() - clock
     log.info("run %s: %d maplet refinements, versions %s (%.1f s)", directory,
              len(report.revisions), report.versions, report.seconds)

@@ -24,6 +24,7 @@ from pwm.io.pds4 import MISSING_DN, read_image_product, write_image_product
 from pwm.mesh import Mesh, grid_faces
 from pwm.raytrace import RayTracer
 from pwm.tiling import level_of, tile
+from service.console.documents import unpack
 from service.db import session_scope
 from service.exports import ExportFormat, ExportSurface, make_export, plan_export
 from service.models import Coverage, Maplet, MapletRevision, ModelKind
@@ -73,6 +74,9 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
     assert (run.plan.base_version, run.versions) == (1, [2, 3]) and CONFIG.passes == 2
     assert len(run.plan.work) >= 2 and len(run.revisions) == 2 * len(run.plan.work)
     assert {w.pass_number for w in run.plan.work} == {1}
+    # the console's 3D document made for the run's last version, not for the pass it superseded
+    documents = [unpack(path.read_bytes())[0] for path in (data / "exports").glob("*.pwmc")]
+    assert [(d["version"], d["parent"]) for d in documents] == [(3, 2)]
     n = len(run.plan.work)
     with catalog() as session:
         start, v2, v3 = (get_version(session, v) for v in (1, 2, 3))
