@@ -92,6 +92,12 @@ def surface_points(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarr
 
 
 
+def face_keys(mesh: Mesh) -> np.ndarray:
+    """(M,) one opaque key per face, its corners' coordinates in order: a face of one mesh is
+    found, exactly, in another by its key (np.isin), whatever the numbering."""
+    return np.ascontiguousarray(mesh.vertices[mesh.faces].reshape(-1, 9)).view("V72").ravel()
+
+
 def edge_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     """(M, 3) undirected edge ids, edge k of a face joining its corners k and k + 1."""
     a, b = faces, np.roll(faces, -1, axis=1)

@@ -40,7 +40,7 @@ from sqlalchemy.orm import Session, selectinload, sessionmaker
 from pwm.config import DEFAULTS
 from pwm.evaluate.closure import closure
 from pwm.frames import latlon_to_unit
-from pwm.mesh import Mesh
+from pwm.mesh import face_keys
 from pwm.simulate.windows import window_downlink
 from service.db import session_scope
 from service.models import (
@@ -370,17 +370,12 @@ def test_a_campaign_nests_each_site_under_the_survey_and_changes_only_about_it(
     data = Path(settings.data_dir)
     meshes = [version_mesh(data, v) for v in (site_a, site_b)]
     scenario = json.loads((campaign_tiny_sim / "truth" / downlinks[2].name / "manifest.json").read_text())["scenario"]
-    changed = meshes[1].vertices[meshes[1].faces[~np.isin(_face_keys(meshes[1]), _face_keys(meshes[0]))]]
+    changed = meshes[1].vertices[meshes[1].faces[~np.isin(face_keys(meshes[1]), face_keys(meshes[0]))]]
     direction = changed.mean(axis=1) / np.linalg.norm(changed.mean(axis=1), axis=1, keepdims=True)
     off = np.degrees(np.arccos(direction @ latlon_to_unit(scenario["site_lat_deg"], scenario["site_lon_deg"])))
     assert len(changed) and off.max() < 12.0  # the site is 2.3 deg across, its region's margin 8 deg
     checks = closure(meshes[1])
     assert checks.closed, checks
-
-
-def _face_keys(mesh: Mesh) -> np.ndarray:
-    """One opaque key per face: its corners' coordinates, in order."""
-    return np.ascontiguousarray(mesh.vertices[mesh.faces].reshape(-1, 9)).view("V72").ravel()
 
 
 def test_a_refinement_lost_with_its_pool_process_is_redelivered_and_done_once(
