@@ -34,7 +34,7 @@ from scipy.spatial import ConvexHull, Delaunay, cKDTree
 
 from pwm.frames import LocalFrame, local_frame
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh, compact, edge_keys
+from pwm.mesh import Mesh, border_edges, compact
 from pwm.voxels import SparseSums, pack, sum_by_key
 from pwm.weights import raised_cosine
 
@@ -248,6 +248,5 @@ def _stitch(base: Mesh, points: np.ndarray, faces: np.ndarray, albedo: np.ndarra
 def border_vertices(faces: np.ndarray) -> np.ndarray:
     """Vertices on edges used by one face only."""
     n = int(faces.max()) + 1
-    uniq, counts = np.unique(edge_keys(faces, n), return_counts=True)
-    once = uniq[counts == 1]
+    once = border_edges(faces, n)
     return np.unique(np.concatenate([once // n, once % n]))

@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 
 from pwm.fusion import VoxelGrid, border_vertices
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh, compact, edge_keys, refine_faces
+from pwm.mesh import Mesh, border_edges, compact, refine_faces
 from pwm.raytrace import Hits, RayTracer
 from pwm.tiling import level_of
 from pwm.volume import DistanceGrid, grid_for
@@ -171,7 +171,7 @@ class LevelGrids:
         pieces = [_Piece.of(below, face_region < 0)]
         if carried is not None:
             pieces.append(_Piece.carried(*carried, keep=~dirty[np.maximum(face_region, 0)] & (face_region >= 0)))
-        outer = _border_edges(below.faces, len(below.vertices))
+        outer = border_edges(below.faces, len(below.vertices))
         for r in np.flatnonzero(dirty):
             pieces.append(self._lay(below, face_region == r, regions=regions, r=int(r), laid=laid, reach=reach,
                                     outer=outer))
@@ -194,7 +194,7 @@ class LevelGrids:
     def _lay(self, below: Mesh, faces: np.ndarray, *, regions: _Regions, r: int, laid: list[int],
              reach: dict[int, float], outer: np.ndarray) -> _Piece:
         """The laid levels' part of region r laid onto its faces of `below`. outer: the edges
-        where `below` is open (`_border_edges`)."""
+        where `below` is open (`pwm.mesh.border_edges`)."""
         used, sub_faces = compact(len(below.vertices), below.faces[faces])
         origin_vertex = np.flatnonzero(used)
         surface = Mesh(below.vertices[used], sub_faces, None if below.albedo is None else below.albedo[used])
@@ -207,12 +207,12 @@ class LevelGrids:
         n, m = len(origin_vertex), len(surface.vertices)
         # where the region's faces meet the rest of `below` (not where `below` itself is open),
         # the laying must have left every edge and corner as it was
-        border = _border_edges(sub_faces, m)
+        border = border_edges(sub_faces, m)
         a, b = origin_vertex[border // m], origin_vertex[border % m]
         cut = border[~np.isin(a * len(below.vertices) + b, outer)]
         ends = np.unique(np.concatenate([cut // m, cut % m]))
         if not (np.array_equal(surface.vertices[ends], below.vertices[origin_vertex[ends]])
-                and np.isin(cut, _border_edges(surface.faces, m)).all()):
+                and np.isin(cut, border_edges(surface.faces, m)).all()):
             raise RuntimeError(f"laying region {r} reached its margin: MARGIN_EDGES is too small")
         vertex_origin = np.concatenate([origin_vertex, np.full(m - n, -1)])
         return _Piece(surface, vertex_origin, origin_face)
@@ -402,12 +402,6 @@ def _part(grid: Grid, regions: _Regions, r: int) -> VoxelGrid | None:
         return None
     return VoxelGrid(grid.voxel_km, taper_fraction=grid.taper_fraction, keys=grid.keys[inside],
                      sums=grid.sums[inside], count=grid.count[inside])
-
-
-def _border_edges(faces: np.ndarray, n: int) -> np.ndarray:
-    """Undirected keys (over n vertices) of the edges used by one face only."""
-    uniq, counts = np.unique(edge_keys(faces, n), return_counts=True)
-    return uniq[counts == 1]
 
 
 def _longest_edge(mesh: Mesh) -> float:

@@ -104,6 +104,12 @@ def edge_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     return np.minimum(a, b) * np.int64(n_vertices) + np.maximum(a, b)
 
 
+def border_edges(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Sorted keys (`edge_keys` over n_vertices) of the edges used by one face only."""
+    uniq, counts = np.unique(edge_keys(faces, n_vertices), return_counts=True)
+    return uniq[counts == 1]
+
+
 def split_edges(mesh: Mesh, split: np.ndarray) -> tuple[Mesh, np.ndarray]:
     """One red-green refinement step: the face edges marked in `split` (M, 3; edge k joins corners
     k and k + 1) split at their midpoints, in every face that has them; a face left with two or
