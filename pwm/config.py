@@ -15,6 +15,7 @@ import json
 from dataclasses import dataclass, field
 from typing import Any, get_args
 
+from pwm.knowledge import KnowledgeErrors
 from pwm.photoclinometry import SOLVER, Mode, Solver
 from pwm.weights import RULES, Rules
 
@@ -36,6 +37,10 @@ class RefinementConfig:
     from; with fewer it keeps its start. tile_radius_km: the operations tile each place the images
     see (pwm.footprints) only within this of its centre (None: all of it).
     rules: the weighting (pwm.weights.Rules); solver: the iteration (pwm.photoclinometry.Solver).
+    knowledge: the 1-sigma pose knowledge (pwm.knowledge) of kernels that state none; None: as
+    good as the images need. With it, the operations adjust a downlink's poses before refining
+    (service.spg.adjust_downlink), and each image's registration search grows to three sigma of
+    its line of sight after the adjustment.
     """
 
     mode: Mode = "pwm"
@@ -48,6 +53,7 @@ class RefinementConfig:
     tile_radius_km: float | None = None
     rules: Rules = field(default=RULES)
     solver: Solver = field(default=SOLVER)
+    knowledge: KnowledgeErrors | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

@@ -100,17 +100,23 @@ def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
             & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
 
 
+KNOWLEDGE_SIGMAS = 3.0
+"""An image is searched for this many sigmas of its line of sight (View.los_sigma_px)."""
+
+
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                   config: RefinementConfig = DEFAULTS) -> MapletResult:
     """Weigh and refine one maplet; with fewer than config.min_images usable images it keeps its
     start.
 
     config.search_px: how far (px) the images may be off the maplet, from the pose knowledge (about
-    3 sigma of position error / range plus pointing error, times the focal length): beyond a pixel,
-    the images are registered (`pwm.alignment.register`) within it before the joint solution."""
+    3 sigma of position error / range plus pointing error, times the focal length), or three of
+    its images' los_sigma_px where that is more: beyond a pixel, the images are registered
+    (`pwm.alignment.register`) within it before the joint solution."""
     clock = time.perf_counter()
-    mode, search_px = config.mode, config.search_px
+    mode = config.mode
     data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)
+    search_px = max([config.search_px] + [KNOWLEDGE_SIGMAS * views[k].los_sigma_px for k in keep])
     views_found = {role: views[i].name for role, i in vars(weights.views).items() if i is not None}
     dropped = {views[k].name: reasons for k, reasons in enumerate(weights.reasons) if reasons}
     refined = MapletGrid(name=maplet.name, frame=maplet.frame, spacing_km=maplet.spacing_km,

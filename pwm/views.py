@@ -17,7 +17,9 @@ from pwm.geometry import view_cone
 class View:
     """One image ready for photoclinometry. image: reflectance-like values [line, sample], NaN
     where missing; camera: of the pixels read out (detector window applied); pose: body-fixed,
-    image frame; sun: unit vector towards the Sun, body-fixed; et: mid-exposure, ET s."""
+    image frame; sun: unit vector towards the Sun, body-fixed; et: mid-exposure, ET s;
+    los_sigma_px: 1 sigma (per image axis) of how far the image may be off its pose, from the
+    stated pose knowledge and the adjustment (0: not known to be off)."""
 
     name: str
     image: np.ndarray
@@ -25,6 +27,7 @@ class View:
     pose: Pose
     sun: np.ndarray
     et: float
+    los_sigma_px: float = 0.0
 
 
 CONE_MARGIN_RAD = 2e-3

@@ -40,6 +40,7 @@ class DownlinkSummary:
     images: dict[ImageStatus, int] = field(default_factory=dict)
     unused_files: int = 0
     model_note: str | None = None
+    pose_adjustment: dict | None = None
 
     @property
     def accepted(self) -> int:
@@ -98,5 +99,5 @@ def downlink_summaries(session: Session, ids: list[int]) -> list[DownlinkSummary
                             status=d.status, repeat_count=d.repeat_count,
                             last_seen_at=d.last_seen_at, kernels=kernels.get(d.id, 0),
                             images=images.get(d.id, {}), unused_files=unused.get(d.id, 0),
-                            model_note=d.model_note)
+                            model_note=d.model_note, pose_adjustment=d.pose_adjustment)
             for d in rows]

@@ -9,6 +9,7 @@ gives them. Enumerations are stored as VARCHAR with a CHECK constraint on both d
 from __future__ import annotations
 
 import enum
+import math
 from datetime import UTC, datetime
 from typing import Any
 
@@ -198,6 +199,10 @@ class Downlink(Base):
     # Set when the downlink arrived at a catalog without a model version: the version made from
     # the images by photogrammetry (service.spg.start_from_images), or why none could be made.
     model_note: Mapped[str | None] = mapped_column(Text)
+    # What the adjustment of the downlink's poses did (service.spg.adjust_downlink): the
+    # knowledge taken and where from, the line of sight before and after, the pose model's
+    # unknowns; or the reason none ran. Null where no pose knowledge was stated.
+    pose_adjustment: Mapped[dict[str, Any] | None]
 
     kernels: Mapped[list[Kernel]] = relationship(back_populates="downlink")
     images: Mapped[list[Image]] = relationship(back_populates="downlink")
@@ -332,7 +337,9 @@ class Image(Base):
     pose_rz_rad: Mapped[float | None]
     pose_corrected_at: Mapped[datetime | None]
     # The latest adjustment's 1-sigma figures of the pose, {"prior": {...}, "posterior": {...}},
-    # each pwm.spg.uncertainty.PoseSigma's fields (m, urad, px).
+    # each pwm.spg.uncertainty.PoseSigma's fields (m, urad, px), and "knowledge": the stated pose
+    # knowledge its priors came from (pwm.knowledge's text; absent where they were assumed, as
+    # the start from nothing assumes them).
     pose_sigma: Mapped[dict[str, Any] | None]
 
     def pose_correction(self) -> PoseCorrection | None:
@@ -351,6 +358,13 @@ class Image(Base):
         if not self.pose_sigma:
             return None
         return PoseSigma(**self.pose_sigma["prior"]), PoseSigma(**self.pose_sigma["posterior"])
+
+    def los_sigma_px(self) -> float:
+        """1 sigma per image axis of how far the image may be off its (corrected) pose (px): the
+        latest adjustment's posterior line of sight under a stated knowledge, else 0."""
+        if not self.pose_sigma or not self.pose_sigma.get("knowledge"):
+            return 0.0
+        return float(self.pose_sigma["posterior"]["los_px"]) / math.sqrt(2)
 
     # The detector window of the array (zero-based first line and sample, size), as the label
     # gives it; null for images catalogued before it was kept (their label is read instead).

@@ -27,7 +27,7 @@ from service.ingest import IngestReport, ingest_directory
 from service.models import Downlink, ModelKind
 from service.publish import fuse_and_publish, make_document
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
-from service.spg import start_from_images
+from service.spg import adjust_downlink, start_from_images
 from service.versions import get_version, import_model, latest_version, publication_lock, version_mesh
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,10 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     """Ingest a downlink against the current model and list the maplets whose input changed:
     those its images weigh into (their image sets changed), and those a stopped run left stale.
 
-    The current model is the latest version; a catalog without one first imports `start` (or
+    Where the downlink's pose knowledge is stated (its kernels, or config.knowledge), its poses
+    are adjusted on the current model first (service.spg.adjust_downlink) and its images weighed
+    with the corrected poses. The current model is the latest version; a catalog without one
+    first imports `start` (or
     DIRECTORY/start_model.obj when present) as a version of kind start, and with neither makes
     one from the catalogued images after the ingest (service.spg.start_from_images), which then
     weighs them against it; when it cannot yet, nothing is refined (Plan.base_version None).
@@ -104,8 +107,13 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     report = ingest_directory(sessions, directory, shape=shape, config=config)
     with sessions() as session:
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
+    if shape is not None and adjust_downlink(sessions, shape=shape, downlink_id=downlink_id,
+                                             configured=config.knowledge):
+        with session_scope(sessions) as session:  # weighed again with their corrected poses
+            report.coverage = update_coverage(session, shape, image_ids=unweighed_images(session), config=config)
     if shape is None:
-        base_version = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id)
+        base_version = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id,
+                                         configured=config.knowledge)
         if base_version is None:
             return Plan(downlink_id=downlink_id, ingest=report, work=[], base_version=None)
         with session_scope(sessions) as session:

@@ -12,6 +12,7 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.pds4 import MAX_LABEL_BYTES, MAX_PIXELS
 from pwm.io.spice_kernels import MAX_METAKERNEL_ENTRIES
+from pwm.knowledge import parse_knowledge_errors
 from pwm.photoclinometry import Mode
 
 CATALOG_FILENAME = "catalog.sqlite"
@@ -58,6 +59,9 @@ class Settings(BaseSettings):
     refine_mode, refine_passes, maplet_nodes, tile_radius_km: PWM_REFINE_MODE,
         PWM_REFINE_PASSES, PWM_MAPLET_NODES and PWM_TILE_RADIUS_KM, the catalog's refinement
         settings (`refinement`); their defaults and every other setting are pwm.config.DEFAULTS.
+    pose_knowledge: PWM_POSE_KNOWLEDGE, the 1-sigma pose knowledge of kernels that state none
+        (`POS_M,POINT_RAD` or `nav:ALONG_M,CROSS_M,MISALIGN_URAD,DRIFT_URAD`, as
+        pwm.knowledge.parse_knowledge_errors reads it); unset: none to adjust.
     """
 
     model_config = SettingsConfigDict(env_prefix="PWM_")
@@ -79,6 +83,7 @@ class Settings(BaseSettings):
     refine_passes: int = DEFAULTS.passes
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
+    pose_knowledge: str | None = None
 
     @model_validator(mode="after")
     def _resolve_paths(self) -> Settings:
@@ -104,8 +109,9 @@ class Settings(BaseSettings):
 
     def refinement(self) -> RefinementConfig:
         """How the catalog tiles and refines maplets: pwm.config.DEFAULTS with these settings."""
+        knowledge = None if not self.pose_knowledge else parse_knowledge_errors(self.pose_knowledge)
         return dataclasses.replace(DEFAULTS, mode=self.refine_mode, passes=self.refine_passes,
-                                   nodes=self.maplet_nodes, tile_radius_km=self.tile_radius_km)
+                                   nodes=self.maplet_nodes, tile_radius_km=self.tile_radius_km, knowledge=knowledge)
 
 
 @lru_cache(maxsize=1)

@@ -24,12 +24,29 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import PoseCorrection
 from pwm.io.spice_geometry import ellipsoid_of
-from pwm.io.spice_kernels import kernel_pool, spice_message
+from pwm.io.spice_kernels import KernelError, kernel_pool, spice_message, stated_knowledge
+from pwm.knowledge import KnowledgeErrors, NavigationErrors, format_knowledge_errors
 from pwm.mesh import Mesh
+from pwm.pipeline import KNOWLEDGE_SIGMAS
 from pwm.spg import stereo_photogrammetry
+from pwm.spg.photogrammetry import adjust_poses
+from pwm.spg.pose_models import PoseModel, free_poses, navigation_poses
+from pwm.spg.uncertainty import prior_los_px
+from pwm.views import View
 from service.db import session_scope
 from service.kernels import accepted_kernels
-from service.models import Downlink, GeometryStatus, Image, ImageStatus, ModelKind, ModelVersion, utcnow
+from service.models import (
+    Acceptance,
+    Downlink,
+    GeometryStatus,
+    Image,
+    ImageStatus,
+    Kernel,
+    KernelKind,
+    ModelKind,
+    ModelVersion,
+    utcnow,
+)
 from service.versions import latest_version, publish_version, version_mesh
 from service.views import catalog_views
 
@@ -38,6 +55,7 @@ log = logging.getLogger(__name__)
 
 def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
                            image_ids: Collection[int] | None = None, prior: Mesh | None = None,
+                           knowledge: KnowledgeErrors | None = None,
                            sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
                            max_features: int = 8192, first_octave: int | None = None, per_image: int = 6,
                            threads: int = 2) -> int:
@@ -46,8 +64,10 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
     as a version of kind photogrammetric (parent: that version) and store each image's pose
     correction. Its version number.
 
-    sigma_position_km, sigma_pointing_rad: 1-sigma pose knowledge per axis (km, rad) about the
-    images' current poses; the other options are pwm.spg.stereo_photogrammetry's.
+    knowledge: the stated pose knowledge of the images' current poses (pwm.knowledge), modelled
+    as `adjust_downlink` models it; without it, sigma_position_km, sigma_pointing_rad: the 1-sigma
+    pose knowledge assumed per axis (km, rad). The other options are
+    pwm.spg.stereo_photogrammetry's.
     Raises LookupError when the catalog has no version and no prior is given, ValueError when
     photogrammetry cannot work (fewer than two images, no pair that overlaps).
     """
@@ -67,6 +87,8 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
                          f"{len(views)}")
     ids = list(views)
     result = stereo_photogrammetry([views[i] for i in ids], previous,
+                                   pose_model=None if knowledge is None else _pose_model(knowledge,
+                                                                                         [views[i] for i in ids]),
                                    sigma_position_km=sigma_position_km,
                                    sigma_pointing_rad=sigma_pointing_rad,
                                    max_features=max_features, first_octave=first_octave,
@@ -77,7 +99,8 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
         for image in images:
             _store_correction(image, result.corrections[views[image.id].name])
             sigma_before, sigma_after = result.sigmas[views[image.id].name]
-            image.pose_sigma = {"prior": sigma_before.as_dict(), "posterior": sigma_after.as_dict()}
+            image.pose_sigma = {"prior": sigma_before.as_dict(), "posterior": sigma_after.as_dict(),
+                                **({} if knowledge is None else {"knowledge": format_knowledge_errors(knowledge)})}
             image.pose_corrected_at = now
             # weighed again, with the corrected pose, at the next ingest with a shape
             image.coverage_computed_at = None
@@ -93,14 +116,17 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
         return version.version
 
 
-def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int) -> int | None:
+def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int,
+                      configured: KnowledgeErrors | None = None) -> int | None:
     """When the catalog has no model version: stereo photogrammetry on every catalogued image
     with geometry, from the images' target's PCK ellipsoid, published as the first version (kind
-    photogrammetric, pose corrections stored). Its number, or None when photogrammetry cannot
-    work (too few images, too little overlap, no target radii); the downlink's model_note says
-    what happened either way, and the next downlink tries again with every image so far.
+    photogrammetric, pose corrections stored), under the downlink's pose knowledge
+    (`downlink_knowledge`; assumed when none is stated). Its number, or None when photogrammetry
+    cannot work (too few images, too little overlap, no target radii); the downlink's model_note
+    says what happened either way, and the next downlink tries again with every image so far.
     """
     with sessions() as session:
+        knowledge, _ = downlink_knowledge(session, downlink_id, configured)
         made = latest_version(session)
         targets = set(session.scalars(select(Image.target).where(
             Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED)))
@@ -121,7 +147,8 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
             note = f"no model: no radii of {target} in the kernels ({spice_message(exc)})"
         else:
             try:
-                number = photogrammetry_version(sessions, data_dir=data_dir, prior=ellipsoid.mesh())
+                number = photogrammetry_version(sessions, data_dir=data_dir, prior=ellipsoid.mesh(),
+                                                knowledge=knowledge)
             except ValueError as exc:
                 note = f"no model: stereo photogrammetry cannot work yet: {exc}"
     if number is not None and made is None:
@@ -130,6 +157,111 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
         session.get_one(Downlink, downlink_id).model_note = note
     log.info("downlink %d: %s", downlink_id, note)
     return number
+
+
+def downlink_knowledge(session: Session, downlink_id: int,
+                       configured: KnowledgeErrors | None) -> tuple[KnowledgeErrors | None, str]:
+    """The pose knowledge of a downlink's images and where it came from: what its accepted SPKs
+    and CKs state (pwm.io.spice_kernels.stated_knowledge; the first that states one), else
+    `configured` (PWM_POSE_KNOWLEDGE), else None."""
+    kernels = session.scalars(select(Kernel).where(
+        Kernel.downlink_id == downlink_id, Kernel.status == Acceptance.ACCEPTED,
+        Kernel.kind.in_([KernelKind.SPK, KernelKind.CK])).order_by(Kernel.id)).all()
+    for kernel in kernels:
+        try:
+            stated = stated_knowledge(kernel.path)
+        except KernelError as exc:
+            log.warning("downlink %d: %s", downlink_id, exc)
+            continue
+        if stated is not None:
+            return stated, f"stated in {Path(kernel.path).name}"
+    return configured, "configured" if configured is not None else "none stated"
+
+
+def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id: int,
+                    configured: KnowledgeErrors | None, threads: int = 2) -> list[int]:
+    """Adjust the poses of a downlink's images on `shape` under their pose knowledge
+    (`downlink_knowledge`): a navigation-like knowledge is modelled per arc with one shared
+    misalignment and drift, an independent one per image (pwm.spg.pose_models), and the block is
+    tied to `shape` (pwm.spg.photogrammetry.adjust_poses' anchor). The images'
+    corrections are composed onto their stored ones, each image keeps its prior and posterior
+    sigmas (which size its registration search, Image.los_sigma_px) and loses its coverage
+    weighing; the downlink keeps what was done (Downlink.pose_adjustment). Nothing is adjusted
+    when no knowledge is stated, or when the knowledge already keeps every image's line of
+    sight within a pixel (three sigma), or when the same images were adjusted before (a
+    downlink ingested again). The ids of the images corrected.
+    """
+    with sessions() as session:
+        knowledge, source = downlink_knowledge(session, downlink_id, configured)
+        if knowledge is None:
+            return []
+        ids = list(session.scalars(select(Image.id).where(
+            Image.downlink_id == downlink_id, Image.status == ImageStatus.ACCEPTED,
+            Image.geometry_status == GeometryStatus.COMPUTED)))
+        done = session.get_one(Downlink, downlink_id).pose_adjustment
+        if done is not None and done.get("images") == len(ids) and done.get("knowledge") == format_knowledge_errors(
+                knowledge):
+            return []
+        views = catalog_views(session, image_ids=ids, pixels=True)
+    ids = list(views)
+    report: dict = {"knowledge": format_knowledge_errors(knowledge), "source": source, "images": len(ids)}
+    view_list = [views[i] for i in ids]
+    pose_model = _pose_model(knowledge, view_list)
+    ranges = np.array([_range(v, shape) for v in view_list])
+    prior_los = prior_los_px(pose_model, [v.camera for v in view_list], [v.pose for v in view_list], ranges)
+    report["los_prior_px"] = float(np.median(prior_los)) if len(ids) else 0.0
+    corrected: list[int] = []
+    if len(ids) < 2:
+        report["note"] = f"not adjusted: {len(ids)} image(s) with geometry, two or more needed"
+    elif KNOWLEDGE_SIGMAS * prior_los.max() / np.sqrt(2) <= 1.0:
+        report["note"] = "not adjusted: the knowledge keeps every line of sight within a pixel"
+    else:
+        try:
+            result = adjust_poses(view_list, shape, pose_model=pose_model, anchor=True, threads=threads)
+        except ValueError as exc:
+            report["note"] = f"not adjusted: {exc}"
+        else:
+            corrected = ids
+            stats = result.stats
+            posterior = np.array([result.sigmas[v.name][1].los_px for v in view_list])
+            report.update(note="adjusted", los_posterior_px=float(np.median(posterior)),
+                          residual_rms_px=stats["residual_rms_px"], tracks=stats["tracks"],
+                          observations=stats["observations"], seconds=stats["seconds"],
+                          anchor_shift_m=stats["anchor_shift_m"],
+                          unknowns=stats.get("unknowns", []))
+    with session_scope(sessions) as session:
+        now = utcnow()
+        for image in session.scalars(select(Image).where(Image.id.in_(ids))):
+            name = views[image.id].name
+            k = ids.index(image.id)
+            if image.id in corrected:
+                _store_correction(image, result.corrections[name])
+                prior, posterior_sigma = result.sigmas[name]
+                image.pose_sigma = {"prior": prior.as_dict(), "posterior": posterior_sigma.as_dict(),
+                                    "knowledge": report["knowledge"]}
+                image.pose_corrected_at = now
+                image.coverage_computed_at = None  # weighed again with the corrected pose
+            else:  # not adjusted: the registration searches what the knowledge allows
+                los = {"lateral_m": 0.0, "along_m": 0.0, "pointing_urad": 0.0, "los_px": float(prior_los[k])}
+                image.pose_sigma = {"prior": los, "posterior": los, "knowledge": report["knowledge"]}
+        session.get_one(Downlink, downlink_id).pose_adjustment = report
+    log.info("downlink %d: pose knowledge %s (%s): %s; line of sight %.2f -> %s px", downlink_id,
+             report["knowledge"], source, report["note"], report["los_prior_px"],
+             f"{report['los_posterior_px']:.2f}" if "los_posterior_px" in report else "-")
+    return corrected
+
+
+def _pose_model(knowledge: KnowledgeErrors, views: list[View]) -> PoseModel:
+    if isinstance(knowledge, NavigationErrors):
+        return navigation_poses(np.array([v.et for v in views]), [v.pose for v in views], knowledge)
+    return free_poses(len(views), sigma_position_km=knowledge.position_m * 1e-3,
+                      sigma_pointing_rad=knowledge.pointing_rad)
+
+
+def _range(view: View, shape: Mesh) -> float:
+    """Distance (km) from a view to the body's centre less the shape's mean radius: the range
+    to the ground near its boresight, without tracing."""
+    return max(float(np.linalg.norm(view.pose.position) - np.linalg.norm(shape.vertices, axis=1).mean()), 1e-3)
 
 
 def _store_correction(image: Image, new: PoseCorrection) -> None:

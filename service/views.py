@@ -84,4 +84,4 @@ def image_view(image: Image, *, pixels: bool = False) -> View:
     sun = np.array([g.sun_x, g.sun_y, g.sun_z])
     return View(name=image.lidvid, image=np.empty((0, 0)) if data is None else data,
                 camera=camera, pose=image_pose(image), sun=sun / np.linalg.norm(sun),
-                et=0.5 * (image.start_et + image.stop_et))
+                et=0.5 * (image.start_et + image.stop_et), los_sigma_px=image.los_sigma_px())

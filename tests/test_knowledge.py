@@ -12,16 +12,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from pwm.simulate.knowledge import (
-    ARC_GAP_S,
-    RADIAL_FRACTION,
-    IndependentErrors,
-    NavigationErrors,
-    arcs,
-    parse_knowledge_errors,
-    perturb,
-    track_frames,
-)
+from pwm.io.spice_kernels import KernelError, SpkSegment, knowledge_comment, stated_knowledge, write_spk
+from pwm.knowledge import RADIAL_FRACTION, IndependentErrors, NavigationErrors, parse_knowledge_errors
+from pwm.simulate.knowledge import perturb
+from pwm.trajectory import ARC_GAP_S, arcs, track_frames
+from service.settings import Settings
 
 DAY = 86400.0
 
@@ -194,3 +189,33 @@ def test_navigation_kernels_carry_exactly_the_recorded_errors(tmp_path, tiny_sim
 def test_manifest_keeps_the_independent_keys(tiny_sim: Path):
     summary = json.loads((tiny_sim / "truth" / "manifest.json").read_text())["knowledge_error"]
     assert summary == {"mode": "independent", "position_m": 0.0, "pointing_rad": 0.0}
+
+
+def test_kernels_state_their_pose_knowledge(tmp_path):
+    epochs = np.array([0.0, 60.0, 120.0])
+    states = np.column_stack([np.ones((3, 3)), np.zeros((3, 3))])
+    for errors in (NAV, IndependentErrors(position_m=1.5, pointing_rad=2e-4)):
+        path = tmp_path / "stated.bsp"
+        write_spk(path, segments=[SpkSegment(body=-64, center=2101955, epochs=epochs, states=states)],
+                  comments=["navigation delivery 7", knowledge_comment(errors)])
+        assert stated_knowledge(path) == errors
+    write_spk(tmp_path / "silent.bsp", segments=[SpkSegment(body=-64, center=2101955, epochs=epochs, states=states)])
+    assert stated_knowledge(tmp_path / "silent.bsp") is None
+    write_spk(tmp_path / "garbled.bsp", segments=[SpkSegment(body=-64, center=2101955, epochs=epochs, states=states)],
+              comments=["PWM_POSE_KNOWLEDGE = nav:3,1"])
+    with pytest.raises(KernelError, match="garbled.bsp: PWM_POSE_KNOWLEDGE: 2 value"):
+        stated_knowledge(tmp_path / "garbled.bsp")
+    (tmp_path / "text.bsp").write_text("not a DAF")
+    with pytest.raises(KernelError, match="text.bsp"):
+        stated_knowledge(tmp_path / "text.bsp")
+
+
+def test_the_configured_pose_knowledge_is_checked(monkeypatch, tmp_path):
+    monkeypatch.setenv("PWM_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("PWM_POSE_KNOWLEDGE", "nav:3,1,50,20")
+    assert Settings().refinement().knowledge == NAV
+    monkeypatch.setenv("PWM_POSE_KNOWLEDGE", "nav:3,-1,50,20")
+    with pytest.raises(ValueError, match="cross_m must be a finite non-negative number"):
+        Settings()
+    monkeypatch.delenv("PWM_POSE_KNOWLEDGE")
+    assert Settings().refinement().knowledge is None

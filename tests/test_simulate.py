@@ -19,10 +19,10 @@ from pwm.evaluate.report import evaluate
 from pwm.io.pds4 import read_image_product
 from pwm.io.spice_geometry import camera_pose
 from pwm.io.spice_kernels import kernel_pool
+from pwm.knowledge import IndependentErrors
 from pwm.raytrace import RayTracer
 from pwm.render import render
 from pwm.simulate.campaign import simulate
-from pwm.simulate.knowledge import IndependentErrors
 from pwm.simulate.scenarios import get_scenario
 from pwm.simulate.truth import load as load_truth
 

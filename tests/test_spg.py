@@ -7,17 +7,23 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from pwm.camera import Camera, corrected_pose, look_at, project
+from pwm.camera import Camera, Pose, corrected_pose, look_at, project
 from pwm.io.downlink import read_downlink
+from pwm.knowledge import NavigationErrors
 from pwm.mesh import Mesh
+from pwm.simulate.knowledge import perturb
 from pwm.spg import PoseCorrection
 from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.features import fundamental
+from pwm.spg.photogrammetry import anchor_shift
+from pwm.spg.pose_models import navigation_poses
 from pwm.spg.surface import fit_surface, subdivide
 from pwm.spg.triangulation import Tracks, build_tracks, triangulate
 from pwm.spg.uncertainty import DETERMINED, determined, image_sigmas, pose_uncertainty
+from pwm.trajectory import track_frames
 from service.cli import app
 
 CAMERA = Camera(width=1024, height=1024, fx=14729.4, fy=14729.4, cx=511.5, cy=511.5)
@@ -171,3 +177,77 @@ def test_spg_command_on_the_tiny_downlink(tiny_sim, tmp_path):
         assert np.allclose(b.pose.rotation, corrected_pose(a.pose, np.zeros(3), np.array(c.rotation_rad)).rotation)
     for name in ("spg.ply", "spg.obj"):
         assert (out / name).stat().st_size > 0
+
+
+def _orbit_passes(rng: np.random.Generator) -> tuple[np.ndarray, list, np.ndarray]:
+    """Twenty views of a 50 m site from two passes of an orbit 1.5 km above it, four days apart
+    (two navigation arcs), and points on the site."""
+    site = np.array([0.0, 0.0, 0.25])
+    points = np.column_stack([rng.uniform(-0.025, 0.025, (300, 2)), 0.25 + 0.002 * rng.standard_normal(300)])
+    times, poses = [], []
+    for tilt, start in [(0.3, 0.0), (-0.5, 4 * 86400.0)]:
+        for phase in np.linspace(-0.6, 0.6, 10):
+            position = Rotation.from_rotvec([tilt, 0, 0]).apply([1.75 * np.sin(phase), 0, 1.75 * np.cos(phase)])
+            times.append(6e8 + start + (phase + 0.6) / (2 * np.pi) * 86400)
+            poses.append(look_at(position, site + rng.normal(0, 0.003, 3), np.array([0, 1.0, 0])))
+    return np.array(times), poses, points
+
+
+def test_navigation_pose_model_recovers_what_the_images_determine():
+    rng = np.random.default_rng(0)
+    times, truth, points = _orbit_passes(rng)
+    errors = NavigationErrors(along_m=3, cross_m=1, misalign_urad=50, drift_urad=20)
+    drawn = perturb(errors, times=times, positions_km=np.array([p.position for p in truth]),
+                    rotations=np.array([p.rotation for p in truth]), rng=rng)
+    kernels = [Pose(position=drawn.positions_km[i], rotation=drawn.rotations[i]) for i in range(len(truth))]
+    n = len(truth)
+    tracks = Tracks(point=np.tile(np.arange(len(points)), n), image=np.repeat(np.arange(n), len(points)),
+                    xy=np.concatenate([project(points, CAMERA, p) for p in truth])
+                    + 0.2 * rng.standard_normal((n * len(points), 2)))
+    cameras = [CAMERA] * n
+    model = navigation_poses(times, kernels, errors)
+    assert len(model.names) == 2 * 12 + 6  # two arcs of 3 axes x 4 terms, misalignment, drift
+    # the errors drawn are what the model can express (both take the track frames of the kernels'
+    # trajectory): within 1 mm and 1e-3 microradian
+    target = np.concatenate([np.r_[-drawn.position_error_m[i] * 1e-3, drawn.pointing_error_body_rad[i]]
+                             for i in range(n)])
+    true_theta = np.linalg.lstsq(model.design.toarray(), target, rcond=None)[0]
+    misfit = np.abs(model.design @ true_theta - target).reshape(n, 6)
+    assert misfit[:, :3].max() < 1e-6 and misfit[:, 3:].max() < 1e-9
+
+    result = bundle_adjust(triangulate(tracks, cameras, kernels)[0], tracks, cameras, kernels, model=model)
+    fixed = [corrected_pose(p, result.position_corrections[i], result.rotation_corrections[i])
+             for i, p in enumerate(kernels)]
+
+    def los_px(poses):
+        d = [project(np.array([0, 0, 0.25]), CAMERA, p) - project(np.array([0, 0, 0.25]), CAMERA, t)
+             for p, t in zip(poses, truth, strict=True)]
+        return float(np.sqrt(np.mean(np.sum(np.square(d), axis=1))))
+
+    assert los_px(fixed) < 0.3 * los_px(kernels)
+    # the unknowns the posterior says the images determined come out within half their truth
+    posterior = np.sqrt(np.diag(result.parameter_covariance(0.2)))
+    determined = posterior < DETERMINED
+    assert 0 < determined.sum() < len(determined)  # some are left to the priors
+    error = result.parameters[determined] - true_theta[determined]
+    assert np.sqrt(np.mean(error**2)) < 0.5 * np.sqrt(np.mean(true_theta[determined] ** 2))
+    # and each arc's position error shrinks in every track axis
+    frames = track_frames(times, np.array([p.position for p in truth]))
+    for arc in drawn.arcs:
+        after = np.einsum("kij,kj->ki", frames[arc], np.array([fixed[i].position - truth[i].position for i in arc]))
+        assert (np.sqrt(np.mean(after**2, axis=0)) * 1e3 < 0.5 * np.array([3.0, 1.0, 0.5])).all()
+
+
+def test_the_block_is_anchored_to_the_model_by_its_relief():
+    sphere = _sphere(5)
+    model = Mesh(sphere.vertices * 0.25, sphere.faces)
+    rng = np.random.default_rng(5)
+    on = model.vertices[rng.choice(len(model.vertices), 400, replace=False)]
+    on = on + rng.normal(0, 1e-5, on.shape)  # 1 cm of noise
+    off = np.array([1.0, -2.0, 0.5]) * 1e-3
+    np.testing.assert_allclose(anchor_shift(on + off, model), -off, atol=2e-5)
+    # a plane constrains only the shift across it: the sliding is left at zero
+    corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) * 0.1
+    plane = Mesh(corners, np.array([[0, 1, 2], [0, 2, 3]]))
+    flat = np.column_stack([rng.uniform(-0.05, 0.05, (100, 2)), np.zeros(100)])
+    np.testing.assert_allclose(anchor_shift(flat + off, plane), [0, 0, -off[2]], atol=1e-9)

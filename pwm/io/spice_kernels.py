@@ -20,6 +20,7 @@ import numpy as np
 import spiceypy as sp
 
 import pwm
+from pwm.knowledge import KnowledgeErrors, format_knowledge_errors, parse_knowledge_errors
 
 BUNDLED_DIR = Path(__file__).resolve().parent.parent / "data" / "spice"
 HERMITE_DEGREE = 7  # 4 states per window: smooth trajectories sampled every few minutes
@@ -85,13 +86,13 @@ def bundled_kernels() -> dict[str, Path]:
     return {p.name: p for p in sorted(BUNDLED_DIR.iterdir()) if p.is_file()}
 
 
-def write_spk(path: str | Path, *, segments: Sequence[SpkSegment]) -> None:
-    """Write an SPK of Hermite type-13 segments (overwrites `path`)."""
+def write_spk(path: str | Path, *, segments: Sequence[SpkSegment], comments: Sequence[str] = ()) -> None:
+    """Write an SPK of Hermite type-13 segments (overwrites `path`), with `comments` (lines)."""
     path = Path(path)
     path.unlink(missing_ok=True)
     handle = sp.spkopn(str(path), "pwm SPK", 1024)
     try:
-        sp.dafac(handle, [_COMMENT])
+        sp.dafac(handle, [_COMMENT, *comments])
         for seg in segments:
             epochs = np.ascontiguousarray(seg.epochs, dtype=float)
             states = np.ascontiguousarray(seg.states, dtype=float).reshape(len(epochs), 6)
@@ -102,8 +103,8 @@ def write_spk(path: str | Path, *, segments: Sequence[SpkSegment]) -> None:
         sp.spkcls(handle)
 
 
-def write_ck(path: str | Path, *, segments: Sequence[CkSegment]) -> None:
-    """Write a CK of type-3 segments with angular velocity (overwrites `path`).
+def write_ck(path: str | Path, *, segments: Sequence[CkSegment], comments: Sequence[str] = ()) -> None:
+    """Write a CK of type-3 segments with angular velocity (overwrites `path`), with `comments`.
 
     Quaternions are SPICE's (scalar first, m2q of the C-matrix reference -> frame).
     """
@@ -111,7 +112,7 @@ def write_ck(path: str | Path, *, segments: Sequence[CkSegment]) -> None:
     path.unlink(missing_ok=True)
     handle = sp.ckopn(str(path), "pwm CK", 1024)
     try:
-        sp.dafac(handle, [_COMMENT])
+        sp.dafac(handle, [_COMMENT, *comments])
         for seg in segments:
             epochs = np.asarray(seg.epochs, dtype=float)
             sclk = np.array([sp.sce2c(seg.sclk_id, et) for et in epochs])
@@ -122,6 +123,44 @@ def write_ck(path: str | Path, *, segments: Sequence[CkSegment]) -> None:
                      np.ascontiguousarray(seg.angular_velocities, dtype=float), len(starts), starts)
     finally:
         sp.ckcls(handle)
+
+
+KNOWLEDGE_KEYWORD = "PWM_POSE_KNOWLEDGE"
+"""A line `PWM_POSE_KNOWLEDGE = TEXT` in an SPK's or CK's comment area states the 1-sigma
+knowledge of the poses it carries (TEXT as pwm.knowledge.parse_knowledge_errors reads it)."""
+MAX_COMMENT_LINES = 10_000  # a kernel's comment area is read this far for a statement
+
+
+def knowledge_comment(errors: KnowledgeErrors) -> str:
+    """The comment line that states `errors` as a kernel's pose knowledge."""
+    return f"{KNOWLEDGE_KEYWORD} = {format_knowledge_errors(errors)}"
+
+
+def stated_knowledge(path: str | Path) -> KnowledgeErrors | None:
+    """The pose knowledge stated in the comment area of a DAF kernel (SPK, CK; see
+    KNOWLEDGE_KEYWORD), or None where it states none. KernelError for a statement that does not
+    parse or a file SPICE cannot open as a DAF."""
+    try:
+        handle = sp.dafopr(str(path))
+    except sp.utils.exceptions.SpiceyError as exc:
+        raise KernelError(f"{Path(path).name}: {spice_message(exc)}") from None
+    try:
+        lines: list[str] = []
+        while len(lines) < MAX_COMMENT_LINES:
+            n, chunk, done = sp.dafec(handle, 100, 1000)
+            lines.extend(chunk[:n])
+            if done:
+                break
+    finally:
+        sp.dafcls(handle)
+    for line in lines:
+        key, sep, value = line.partition("=")
+        if sep and key.strip() == KNOWLEDGE_KEYWORD:
+            try:
+                return parse_knowledge_errors(value)
+            except ValueError as exc:
+                raise KernelError(f"{Path(path).name}: {KNOWLEDGE_KEYWORD}: {exc}") from None
+    return None
 
 
 def write_sclk(path: str | Path, *, spacecraft: int, epoch_et: float) -> None:

@@ -27,16 +27,18 @@ from pwm.io.spice_kernels import (
     CkSegment,
     SpkSegment,
     kernel_pool,
+    knowledge_comment,
     write_ck,
     write_metakernel,
     write_spk,
 )
+from pwm.knowledge import EXACT, IndependentErrors, KnowledgeErrors
 from pwm.mesh import Mesh
 from pwm.photometry import PHOTOMETRY
 from pwm.raytrace import RayTracer
 from pwm.render import render_supersampled
 from pwm.simulate.detector import choose_exposure, to_dn
-from pwm.simulate.knowledge import EXACT, IndependentErrors, KnowledgeErrors, manifest_entries, perturb
+from pwm.simulate.knowledge import manifest_entries, perturb
 from pwm.simulate.landforms import Clearing, Landform, apply_landforms, sample_landforms
 from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
 from pwm.simulate.optics import blur, flat_field
@@ -192,7 +194,8 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
                                            observations=observations + validation)
         noisy, drawn = _perturb(observations, errors=knowledge, rng=rng, seed=seed)
         downlink_kernels = _write_pose_kernels(downlink / "kernels", scenario=scenario, mission=mission,
-                                               observations=noisy)
+                                               observations=noisy,
+                                               comments=[] if knowledge == EXACT else [knowledge_comment(knowledge)])
 
     all_fixed = fixed + [sun_spk]
     (downlink / "kernels" / "mk").mkdir(parents=True, exist_ok=True)
@@ -344,9 +347,10 @@ def _apart(observations: list[Observation]) -> None:
 
 
 def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Mission,
-                        observations: list[Observation]) -> list[Path]:
+                        observations: list[Observation], comments: list[str] | None = None) -> list[Path]:
     """SPK of the spacecraft and CKs of the spacecraft and, where a CK gives the camera frame
-    (its mount), of the camera, one window per image.
+    (its mount), of the camera, one window per image; `comments` in the SPK's and the CKs'
+    comment areas (the pose knowledge they state).
 
     The spacecraft holds an inertial attitude and position through each short window, so the
     kernels give exactly the planned pose at the image epoch. A camera frame fixed to the
@@ -381,18 +385,19 @@ def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Missio
     ck_mount = kernel_dir / "ck" / f"{name}_struct.bc"
     for p in (spk, ck_sc, ck_mount):
         p.parent.mkdir(parents=True, exist_ok=True)
-    write_spk(spk, segments=spk_segments)
+    comments = comments or []
+    write_spk(spk, segments=spk_segments, comments=comments)
     # the spacecraft clock carries the spacecraft's own NAIF id
     write_ck(ck_sc, segments=[CkSegment(frame_id=spacecraft_frame, sclk_id=sc, epochs=epochs_a, rotations=rot_a,
                                         angular_velocities=np.zeros((len(epochs_a), 3)),
-                                        interval_starts=[e[0] for e in epochs])])
+                                        interval_starts=[e[0] for e in epochs])], comments=comments)
     if not ck_mounted:
         return [spk, ck_sc]
     span = np.array([epochs_a[0], epochs_a[-1]])
     write_ck(ck_mount, segments=[CkSegment(frame_id=frame_id, sclk_id=sc, epochs=span,
                                            rotations=np.repeat(np.eye(3)[None], 2, axis=0),
                                            angular_velocities=np.zeros((2, 3)), interval_starts=[span[0]],
-                                           reference=mission.spacecraft_frame)])
+                                           reference=mission.spacecraft_frame)], comments=comments)
     return [spk, ck_sc, ck_mount]
 
 

@@ -1,11 +1,13 @@
-"""Bundle adjustment with pose priors from the navigation uncertainty.
+"""Bundle adjustment with pose priors from the navigation knowledge.
 
-Unknowns: every point (body-fixed, km) and per image a position correction and a rotation
-vector applied to the camera axes in the body-fixed frame. Residuals: reprojection errors
-(px, Huber-weighted) and the priors dp / sigma_position, omega / sigma_pointing. Solved by
-Levenberg-Marquardt with the points eliminated (Schur complement), so the reduced system has
-six unknowns per image. Jacobian blocks are central differences per observation: each
-observation depends on one point and one image only.
+Unknowns: every point (body-fixed, km) and the pose model's unknowns (pwm.spg.pose_models:
+each image its own six, or a few per navigation arc and one shared misalignment), which give per
+image a position correction and a rotation vector applied to the camera axes in the body-fixed
+frame. Residuals: reprojection errors (px, Huber-weighted) and the priors theta ~ N(0, I).
+Solved by Levenberg-Marquardt with the points eliminated (Schur complement), so the reduced
+system has one unknown per pose-model unknown. Jacobian blocks are central differences per
+observation: each observation depends on one point and one image's six corrections, which the
+model's design maps to its unknowns.
 """
 
 from __future__ import annotations
@@ -17,18 +19,23 @@ from scipy import sparse
 from scipy.spatial.transform import Rotation
 
 from pwm.camera import Camera, Pose
+from pwm.spg.pose_models import PoseModel, free_poses
 from pwm.spg.triangulation import Tracks
+
+STEP = np.array([1e-6] * 3 + [1e-7] * 3)
+"""Central-difference steps of an image's corrections (km, rad)."""
 
 
 @dataclass
 class Adjustment:
     """Adjusted points (km, body-fixed); per image a position correction (km, body-fixed) and a
     rotation vector (rad, body-fixed; corrected rotation = rotation @ R(omega)^T); the
-    observations' final reprojection errors (px) and the iterations run.
+    observations' final reprojection errors (px) and the iterations run; the pose model and its
+    unknowns' values (sigma units).
 
-    information: what the images alone say about the pose corrections, the normal matrix
-    (6 n_img square; per image dx, dy, dz, wx, wy, wz) with the points eliminated and no
-    priors, in units of the prior sigmas `sigma` (km, km, km, rad, rad, rad) and of 1 px errors.
+    information: what the images alone say about the images' corrections, the normal matrix
+    (6 n_img square; per image dx, dy, dz km, wx, wy, wz rad) with the points eliminated and no
+    priors, for 1 px errors.
     """
 
     points: np.ndarray
@@ -37,14 +44,26 @@ class Adjustment:
     residuals_px: np.ndarray
     iterations: int
     information: np.ndarray
-    sigma: np.ndarray
+    model: PoseModel
+    parameters: np.ndarray
+
+    def parameter_covariance(self, noise_px: float) -> np.ndarray:
+        """Posterior covariance of the model's unknowns (sigma units, prior I), for image
+        measurements with `noise_px` (px, 1 sigma per axis)."""
+        g = self.model.design
+        reduced = np.asarray((g.T @ sparse.csr_matrix(self.information) @ g).todense())
+        return np.linalg.inv(reduced / noise_px**2 + np.eye(g.shape[1]))
 
     def covariance(self, noise_px: float) -> np.ndarray:
-        """Posterior covariance of the pose corrections (km, rad; 6 n_img square), priors
+        """Posterior covariance of the images' corrections (km, rad; 6 n_img square), priors
         included, for image measurements with `noise_px` (px, 1 sigma per axis)."""
-        n = len(self.information)
-        scale = np.tile(self.sigma, n // 6)
-        return np.linalg.inv(self.information / noise_px**2 + np.eye(n)) * np.outer(scale, scale)
+        g = self.model.design
+        return np.asarray(g @ (g @ self.parameter_covariance(noise_px)).T)
+
+    def prior_covariance(self) -> np.ndarray:
+        """Prior covariance of the images' corrections (km, rad; 6 n_img square)."""
+        g = self.model.design
+        return np.asarray((g @ g.T).todense())
 
 
 def _project(points: np.ndarray, position: np.ndarray, rotation: np.ndarray, cam: np.ndarray) -> np.ndarray:
@@ -55,71 +74,77 @@ def _project(points: np.ndarray, position: np.ndarray, rotation: np.ndarray, cam
 
 
 def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], poses: list[Pose], *,
-                  sigma_position_km: float, sigma_pointing_rad: float, huber_px: float = 2.0, max_iterations: int = 20,
-                  tolerance: float = 1e-6) -> Adjustment:
+                  model: PoseModel | None = None, sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
+                  huber_px: float = 2.0, max_iterations: int = 20, tolerance: float = 1e-6) -> Adjustment:
     """Adjust `points` and the poses' corrections to the observations in `tracks`.
 
-    Parameters are scaled so that the point unknowns are in metres and the pose unknowns in
-    units of their prior sigma, which keeps the normal equations well conditioned.
+    model: how the corrections depend on their unknowns (default: every image free, with priors
+    sigma_position_km and sigma_pointing_rad per axis). Point unknowns are in metres and the
+    model's in units of their prior sigma, which keeps the normal equations well conditioned.
     """
     n_img, n_pt, obs_img, obs_pt = len(poses), len(points), tracks.image, tracks.point
+    if model is None:
+        model = free_poses(n_img, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
+    if model.n_images != n_img:
+        raise ValueError(f"a pose model of {model.n_images} images for {n_img} images")
     cam = np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras])[obs_img]
     pos0 = np.array([p.position for p in poses])
     rot0 = np.array([p.rotation for p in poses])
-    sigma = np.array([sigma_position_km] * 3 + [sigma_pointing_rad] * 3)
+    design = model.design
     x_pts = points.copy()
-    x_pose = np.zeros((n_img, 6))  # in sigma units
+    theta = np.zeros(design.shape[1])
 
-    def pose_arrays(xp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d = xp * sigma
+    def pose_arrays(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return pos0 + d[:, :3], rot0 @ Rotation.from_rotvec(d[:, 3:]).as_matrix().transpose(0, 2, 1)
 
-    def residuals(xpt: np.ndarray, xp: np.ndarray) -> np.ndarray:
-        pos, rot = pose_arrays(xp)
+    def residuals(xpt: np.ndarray, th: np.ndarray) -> np.ndarray:
+        pos, rot = pose_arrays(model.corrections(th))
         return (_project(xpt[obs_pt], pos[obs_img], rot[obs_img], cam) - tracks.xy).ravel()
 
-    def cost(r: np.ndarray, xp: np.ndarray) -> float:
+    def cost(r: np.ndarray, th: np.ndarray) -> float:
         a = np.abs(r)
-        return float(np.sum(np.where(a <= huber_px, 0.5 * a**2, huber_px * (a - 0.5 * huber_px))) + 0.5 * np.sum(xp**2))
+        return float(np.sum(np.where(a <= huber_px, 0.5 * a**2, huber_px * (a - 0.5 * huber_px))) + 0.5 * np.sum(th**2))
 
-    r = residuals(x_pts, x_pose)
-    current = cost(r, x_pose)
+    def normal(th: np.ndarray, r: np.ndarray) -> _Normal:
+        jp, jc = _jacobians(x_pts, model.corrections(th), obs_pt, obs_img, cam, pose_arrays)
+        w = np.minimum(1.0, huber_px / np.maximum(np.abs(r), 1e-12)).reshape(-1, 2)  # IRLS Huber weights
+        return _normal(jp, jc, w, r.reshape(-1, 2), obs_pt, obs_img, n_pt, n_img)
+
+    r = residuals(x_pts, theta)
+    current = cost(r, theta)
     damping = 1e-3
     iterations = 0
     for iterations in range(1, max_iterations + 1):  # noqa: B007 (the count done is returned)
-        jp, jc = _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays)
-        w = np.minimum(1.0, huber_px / np.maximum(np.abs(r), 1e-12)).reshape(-1, 2)  # IRLS Huber weights
-        eq = _normal(jp, jc, w, r.reshape(-1, 2), obs_pt, obs_img, n_pt, n_img)
-        step_pts, step_pose = _solve(eq, x_pose, damping)
+        eq = normal(theta, r)
+        step_pts, step_theta = _solve(eq, design, theta, damping)
         while True:
-            trial_pts, trial_pose = x_pts + step_pts * 1e-3, x_pose + step_pose
-            r_trial = residuals(trial_pts, trial_pose)
-            new = cost(r_trial, trial_pose)
+            trial_pts, trial_theta = x_pts + step_pts * 1e-3, theta + step_theta
+            r_trial = residuals(trial_pts, trial_theta)
+            new = cost(r_trial, trial_theta)
             if new < current or damping > 1e6:
                 break
             damping *= 10.0
-            step_pts, step_pose = _solve(eq, x_pose, damping)
+            step_pts, step_theta = _solve(eq, design, theta, damping)
         if new >= current:
             break
         improvement = (current - new) / max(current, 1e-300)
-        x_pts, x_pose, r, current = trial_pts, trial_pose, r_trial, new
+        x_pts, theta, r, current = trial_pts, trial_theta, r_trial, new
         damping = max(damping / 10.0, 1e-7)
         if improvement < tolerance:
             break
-    d = x_pose * sigma
-    jp, jc = _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays)
-    w = np.minimum(1.0, huber_px / np.maximum(np.abs(r), 1e-12)).reshape(-1, 2)
-    eq = _normal(jp, jc, w, r.reshape(-1, 2), obs_pt, obs_img, n_pt, n_img)
+    d = model.corrections(theta)
+    eq = normal(theta, r)
     information, _ = _schur(_block_diag(eq.hcc).toarray(), eq.hpp + 1e-9 * np.eye(3), eq.hpc)
     return Adjustment(points=x_pts, position_corrections=d[:, :3], rotation_corrections=d[:, 3:],
                       residuals_px=np.linalg.norm(r.reshape(-1, 2), axis=1), iterations=iterations,
-                      information=information, sigma=sigma)
+                      information=information, model=model, parameters=theta)
 
 
-def _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays) -> tuple[np.ndarray, np.ndarray]:
-    """Per observation, d(sample, line) / d(point, m): (n, 2, 3) and / d(pose, sigma units): (n, 2, 6)."""
+def _jacobians(x_pts, corrections, obs_pt, obs_img, cam, pose_arrays) -> tuple[np.ndarray, np.ndarray]:
+    """Per observation, d(sample, line) / d(point, m): (n, 2, 3) and / d(its image's six
+    corrections, km and rad): (n, 2, 6)."""
     n = len(obs_pt)
-    pos, rot = pose_arrays(x_pose)
+    pos, rot = pose_arrays(corrections)
     p = x_pts[obs_pt]
     jp = np.empty((n, 2, 3))
     h = 1e-3  # m
@@ -129,13 +154,12 @@ def _jacobians(x_pts, x_pose, obs_pt, obs_img, cam, pose_arrays) -> tuple[np.nda
         jp[:, :, k] = (_project(p + e, pos[obs_img], rot[obs_img], cam)
                        - _project(p - e, pos[obs_img], rot[obs_img], cam)) / (2 * h)
     jc = np.empty((n, 2, 6))
-    h = 1e-3  # sigma units
     for k in range(6):
-        e = np.zeros_like(x_pose)
-        e[:, k] = h
-        plus, minus = pose_arrays(x_pose + e), pose_arrays(x_pose - e)
+        e = np.zeros_like(corrections)
+        e[:, k] = STEP[k]
+        plus, minus = pose_arrays(corrections + e), pose_arrays(corrections - e)
         jc[:, :, k] = (_project(p, plus[0][obs_img], plus[1][obs_img], cam)
-                       - _project(p, minus[0][obs_img], minus[1][obs_img], cam)) / (2 * h)
+                       - _project(p, minus[0][obs_img], minus[1][obs_img], cam)) / (2 * STEP[k])
     return jp, jc
 
 
@@ -175,18 +199,20 @@ def _schur(hcc_dense: np.ndarray, hpp: np.ndarray, hpc: sparse.csr_matrix) -> tu
     return hcc_dense - (hpc.T @ _block_diag(hpp_inv) @ hpc).toarray(), hpp_inv
 
 
-def _solve(eq: _Normal, x_pose: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
-    """One damped Gauss-Newton step with the points eliminated: (point steps in m, pose steps)."""
-    n_pt, n_img = len(eq.hpp), len(eq.hcc)
+def _solve(eq: _Normal, design: sparse.csr_matrix, theta: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """One damped Gauss-Newton step with the points eliminated: (point steps in m, steps of the
+    model's unknowns)."""
+    n_pt = len(eq.hpp)
     hpp = eq.hpp + damping * (eq.hpp * np.eye(3) + 1e-9 * np.eye(3))
-    hcc_dense = _block_diag(eq.hcc + np.eye(6)).toarray()  # prior: x_pose ~ N(0, 1) in sigma units
-    hcc_dense += damping * np.diag(np.diag(hcc_dense))
-    gc = eq.gc + x_pose
-    schur, hpp_inv = _schur(hcc_dense, hpp, eq.hpc)
-    rhs = -gc.ravel() + eq.hpc.T @ (_block_diag(hpp_inv) @ eq.gp.ravel())
-    step_pose = np.linalg.solve(schur, rhs)
-    step_pts = -np.einsum("nij,nj->ni", hpp_inv, eq.gp + (eq.hpc @ step_pose).reshape(n_pt, 3))
-    return step_pts, step_pose.reshape(n_img, 6)
+    hcc = np.asarray((design.T @ _block_diag(eq.hcc) @ design).todense()) + np.eye(len(theta))  # prior N(0, I)
+    hcc += damping * np.diag(np.diag(hcc))
+    gc = design.T @ eq.gc.ravel() + theta
+    coupling = (eq.hpc @ design).tocsr()
+    schur, hpp_inv = _schur(hcc, hpp, coupling)
+    rhs = -gc + coupling.T @ (_block_diag(hpp_inv) @ eq.gp.ravel())
+    step_theta = np.linalg.solve(schur, rhs)
+    step_pts = -np.einsum("nij,nj->ni", hpp_inv, eq.gp + (coupling @ step_theta).reshape(n_pt, 3))
+    return step_pts, step_theta
 
 
 def _block_diag(blocks: np.ndarray) -> sparse.csr_matrix:

@@ -14,14 +14,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pwm.camera import PoseCorrection, corrected_pose
+from pwm.evaluate.distance import ClosestPoint
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.features import Features, extract, match_guided
 from pwm.spg.pairs import Pair, choose_pairs, footprints
+from pwm.spg.pose_models import PoseModel, free_poses
 from pwm.spg.surface import at_resolution, fit_surface, point_spacing
 from pwm.spg.triangulation import Tracks, build_tracks, rays, reprojection_errors, triangulate
-from pwm.spg.uncertainty import PoseSigma, image_sigmas, pose_uncertainty
+from pwm.spg.uncertainty import PoseSigma, image_sigmas, pose_uncertainty, prior_los_px
 from pwm.views import View
 
 log = logging.getLogger(__name__)
@@ -47,20 +49,22 @@ class SpgResult:
 @dataclass
 class Matching:
     """Pairs chosen, features per view, matches per pair {(first, second): (k, 2) keypoint
-    indices}, each view's range to the model along its boresight (km), and seconds spent."""
+    indices}, each view's range to the model along its boresight (km) and its band (px: three
+    sigma of the image motion its pose knowledge allows, plus one), and seconds spent."""
 
     pairs: list[Pair]
     features: list[Features]
     matches: dict[tuple[int, int], np.ndarray]
     ranges: np.ndarray
+    bands: np.ndarray
     extract_s: float
     match_s: float
 
 
 def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: float = 1e-3,
-                sigma_pointing_rad: float = 1e-4, max_features: int = 8192, first_octave: int | None = None,
-                peak_threshold: float = 0.002, per_image: int = 6, max_sun_deg: float = 25.0,
-                double_below: float = 0.25, threads: int = 2) -> Matching:
+                sigma_pointing_rad: float = 1e-4, los_sigma_px: np.ndarray | None = None, max_features: int = 8192,
+                first_octave: int | None = None, peak_threshold: float = 0.002, per_image: int = 6,
+                max_sun_deg: float = 25.0, double_below: float = 0.25, threads: int = 2) -> Matching:
     """Choose pairs on the model (`tracer`), extract SIFT features where each view sees the model
     and match them along the epipolar band the pose knowledge allows.
 
@@ -74,6 +78,7 @@ def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: floa
     if not pairs:
         raise ValueError("no image pair overlaps with a usable stereo angle and illumination")
     ranges = _ranges(views, tracer)
+    bands = _bands(views, ranges, sigma_position_km, sigma_pointing_rad, los_sigma_px)
     windows = [p.window(v.camera, margin_px=max(v.camera.width, v.camera.height) / (FOOTPRINT_GRID - 1))
                for p, v in zip(prints, views, strict=True)]
     if first_octave is None:
@@ -88,72 +93,152 @@ def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: floa
     matches = {}
     for p in pairs:
         a, b = views[p.first], views[p.second]
-        band = (_band_px(a, ranges[p.first], sigma_position_km, sigma_pointing_rad)
-                + _band_px(b, ranges[p.second], sigma_position_km, sigma_pointing_rad))
+        band = bands[p.first] + bands[p.second]
         matches[(p.first, p.second)] = match_guided(features[p.first], features[p.second], camera_a=a.camera,
                                                     pose_a=a.pose, camera_b=b.camera, pose_b=b.pose,
                                                     max_error_px=band, threads=threads)
-    return Matching(pairs=pairs, features=features, matches=matches, ranges=ranges, extract_s=extract_s,
-                    match_s=time.perf_counter() - clock - extract_s)
+    return Matching(pairs=pairs, features=features, matches=matches, ranges=ranges, bands=bands,
+                    extract_s=extract_s, match_s=time.perf_counter() - clock - extract_s)
 
 
-def stereo_photogrammetry(views: list[View], previous: Mesh, *, sigma_position_km: float = 1e-3,
-                          sigma_pointing_rad: float = 1e-4, max_features: int = 8192, first_octave: int | None = None,
-                          per_image: int = 6, max_sun_deg: float = 25.0, model_tolerance_px: float = 30.0,
-                          min_angle_deg: float = 2.0, max_residual_px: float = 3.0, threads: int = 2) -> SpgResult:
-    """The photogrammetric model and pose corrections from `views`, starting from `previous`.
+@dataclass
+class PoseAdjustment:
+    """A bundle adjustment of views on a model: per-image-name pose corrections, their prior and
+    posterior 1-sigma figures, the adjusted points (km) with their triangulation angles (rad),
+    the pairs matched and figures of the run (counts, residuals, seconds, the pose model's
+    unknowns with their prior and posterior sigmas)."""
 
-    sigma_position_km, sigma_pointing_rad: 1-sigma navigation knowledge (per axis), the priors
-    of the adjustment and the width of the matching band. model_tolerance_px: how far (in
-    pixels of the image) a triangulated point may lie from `previous` along its line of sight
-    before it counts as a mismatch. first_octave: see `match_views`.
+    corrections: dict[str, PoseCorrection]
+    sigmas: dict[str, tuple[PoseSigma, PoseSigma]]
+    points: np.ndarray
+    angles: np.ndarray
+    pairs: list[Pair]
+    stats: dict
+
+
+def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None = None,
+                 sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4, max_features: int = 8192,
+                 first_octave: int | None = None, per_image: int = 6, max_sun_deg: float = 25.0,
+                 model_tolerance_px: float = 30.0, max_residual_px: float = 3.0, anchor: bool = False,
+                 threads: int = 2) -> PoseAdjustment:
+    """Match `views` on `model` and adjust their poses (pwm.spg.adjustment.bundle_adjust).
+
+    pose_model: what the adjustment may change (pwm.spg.pose_models; default: every image free,
+    with priors sigma_position_km and sigma_pointing_rad per axis); its prior line of sight sizes
+    each view's matching band. model_tolerance_px: how far (in pixels of the image) a
+    triangulated point may lie from `model` along its line of sight before it counts as a
+    mismatch. first_octave: see `match_views`.
+
+    anchor: tie the block to `model`. A shift of every camera and point together leaves the
+    images as they are, so only the priors place the block; when `model` is a shape to keep (not
+    a first guess), the adjusted points are shifted onto it (point to plane) and the cameras
+    with them, in every direction the model's relief constrains. The shift alone: a turn of the
+    block would move the split between the cameras' positions and pointings that the images
+    leave to the priors.
     """
     clock = time.perf_counter()
-    tracer = RayTracer(previous)
-    m = match_views(views, tracer, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad,
-                    max_features=max_features, first_octave=first_octave, per_image=per_image,
-                    max_sun_deg=max_sun_deg, threads=threads)
+    if pose_model is None:
+        pose_model = free_poses(len(views), sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
+    tracer = RayTracer(model)
+    cameras, poses = [v.camera for v in views], [v.pose for v in views]
+    prior_los = prior_los_px(pose_model, cameras, poses, _ranges(views, tracer)) / np.sqrt(2)  # per image axis
+    m = match_views(views, tracer, los_sigma_px=prior_los, max_features=max_features, first_octave=first_octave,
+                    per_image=per_image, max_sun_deg=max_sun_deg, threads=threads)
     pairs, features, matches, ranges = m.pairs, m.features, m.matches, m.ranges
     stats: dict = {"extract_s": m.extract_s, "match_s": m.match_s, "features": int(sum(len(f.xy) for f in features)),
                    "matches": int(sum(len(x) for x in matches.values()))}
     log.info("%d pairs, %d features, %d matches (%.1f s)", len(pairs), stats["features"], stats["matches"],
              time.perf_counter() - clock)
-
-    cameras, poses = [v.camera for v in views], [v.pose for v in views]
     tracks = build_tracks(matches, [f.xy for f in features])
-    tracks = _consistent(tracks, cameras, poses, tracer, views, ranges, sigma_position_km, sigma_pointing_rad,
-                         model_tolerance_px)
+    tracks = _consistent(tracks, cameras, poses, tracer, ranges, m.bands, model_tolerance_px)
+    if tracks.n_points == 0:
+        raise ValueError("no feature track is consistent with the model and the pose knowledge")
     points, _ = triangulate(tracks, cameras, poses)
-    adjusted = bundle_adjust(points, tracks, cameras, poses, sigma_position_km=sigma_position_km,
-                             sigma_pointing_rad=sigma_pointing_rad)
+    adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model)
     keep = adjusted.residuals_px <= max_residual_px
     if not keep.all():
         # once more without the mismatches, which the Huber weights only damped
         tracks = tracks.subset(keep)
         points, _ = triangulate(tracks, cameras, poses)
-        adjusted = bundle_adjust(points, tracks, cameras, poses, sigma_position_km=sigma_position_km,
-                                 sigma_pointing_rad=sigma_pointing_rad)
-    final = [corrected_pose(p, adjusted.position_corrections[i], adjusted.rotation_corrections[i])
-             for i, p in enumerate(poses)]
-    points, angle = triangulate(tracks, cameras, final)
+        adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model)
+    positions, rotations = adjusted.position_corrections, adjusted.rotation_corrections
+    final = [corrected_pose(p, positions[i], rotations[i]) for i, p in enumerate(poses)]
+    points, angles = triangulate(tracks, cameras, final)
+    if anchor:
+        shift = anchor_shift(points[angles >= np.radians(ANCHOR_MIN_ANGLE_DEG) / 2], model)
+        stats["anchor_shift_m"] = [float(v) * 1e3 for v in shift]
+        positions = positions + shift
+        final = [corrected_pose(p, positions[i], rotations[i]) for i, p in enumerate(poses)]
+        points = points + shift
     residual = reprojection_errors(points, tracks, cameras, final)
-    good_point = angle >= np.radians(min_angle_deg) / 2
-    stats.update(pairs=len(pairs), tracks=tracks.n_points, observations=len(tracks.image), points=int(good_point.sum()),
+    stats.update(pairs=len(pairs), tracks=tracks.n_points, observations=len(tracks.image),
                  residual_rms_px=float(np.sqrt(np.mean(residual**2))), iterations=adjusted.iterations)
     noise_px = max(stats["residual_rms_px"], 0.1) / np.sqrt(2)
     stats["uncertainty"] = pose_uncertainty(adjusted, cameras, poses, ranges, noise_px=noise_px)
+    if len(pose_model.names) < 6 * len(views):  # a model of shared unknowns: what each was found to be
+        sigma = np.sqrt(np.diag(adjusted.parameter_covariance(noise_px)))
+        stats["unknowns"] = [{"name": name, "value": float(v * scale), "prior_sigma": float(scale),
+                              "posterior_sigma": float(s * scale)} for name, v, scale, s in
+                             zip(pose_model.names, adjusted.parameters, pose_model.scale, sigma, strict=True)]
     priors, posteriors = image_sigmas(adjusted, cameras, poses, ranges, noise_px=noise_px)
-    points = points[good_point]
+    corrections = {v.name: PoseCorrection(_triple(positions[i]), _triple(rotations[i])) for i, v in enumerate(views)}
+    sigmas = {v.name: (priors[i], posteriors[i]) for i, v in enumerate(views)}
+    stats["seconds"] = time.perf_counter() - clock
+    return PoseAdjustment(corrections=corrections, sigmas=sigmas, points=points, angles=angles, pairs=pairs,
+                          stats=stats)
+
+
+def stereo_photogrammetry(views: list[View], previous: Mesh, *, pose_model: PoseModel | None = None,
+                          sigma_position_km: float = 1e-3,
+                          sigma_pointing_rad: float = 1e-4, max_features: int = 8192, first_octave: int | None = None,
+                          per_image: int = 6, max_sun_deg: float = 25.0, model_tolerance_px: float = 30.0,
+                          min_angle_deg: float = 2.0, max_residual_px: float = 3.0, threads: int = 2) -> SpgResult:
+    """The photogrammetric model and pose corrections from `views`, starting from `previous`:
+    `adjust_poses` (pose_model: what it may change, by default every image free with
+    sigma_position_km and sigma_pointing_rad, the 1-sigma navigation knowledge per axis), then a
+    surface through the points seen at a stereo angle of at least min_angle_deg."""
+    clock = time.perf_counter()
+    adjusted = adjust_poses(views, previous, pose_model=pose_model, sigma_position_km=sigma_position_km,
+                            sigma_pointing_rad=sigma_pointing_rad, max_features=max_features,
+                            first_octave=first_octave, per_image=per_image, max_sun_deg=max_sun_deg,
+                            model_tolerance_px=model_tolerance_px, max_residual_px=max_residual_px, threads=threads)
+    stats = adjusted.stats
+    good_point = adjusted.angles >= np.radians(min_angle_deg) / 2
+    points = adjusted.points[good_point]
+    stats["points"] = int(good_point.sum())
     spacing = point_spacing(points)
     surface = fit_surface(at_resolution(previous, 2.0 * spacing, points), points, radius_km=2.0 * spacing)
     stats.update(point_spacing_km=spacing, surface_vertices=len(surface.vertices), seconds=time.perf_counter() - clock)
-    corrections = {v.name: PoseCorrection(_triple(adjusted.position_corrections[i]),
-                                          _triple(adjusted.rotation_corrections[i]))
-                   for i, v in enumerate(views)}
     log.info("SPG: %d points at %.2f m spacing, residual %.2f px RMS, %d vertices (%.1f s)", len(points), spacing * 1e3,
              stats["residual_rms_px"], len(surface.vertices), stats["seconds"])
-    sigmas = {v.name: (priors[i], posteriors[i]) for i, v in enumerate(views)}
-    return SpgResult(mesh=surface, corrections=corrections, points=points, pairs=pairs, stats=stats, sigmas=sigmas)
+    return SpgResult(mesh=surface, corrections=adjusted.corrections, points=points, pairs=adjusted.pairs, stats=stats,
+                     sigmas=adjusted.sigmas)
+
+
+ANCHOR_MIN_ANGLE_DEG = 2.0
+"""Points seen at a narrower stereo angle are too far off along their rays to anchor the block."""
+
+
+def anchor_shift(points: np.ndarray, model: Mesh, *, iterations: int = 20) -> np.ndarray:
+    """The shift (km) that moves `points` onto `model` (point-to-plane, the shift alone, in the
+    directions the model's relief constrains), leaving out the worst fifth of the pairs
+    (mismatches, and relief the model lacks)."""
+    shift = np.zeros(3)
+    if len(points) < 6:
+        return shift
+    surface = ClosestPoint(model)
+    for _ in range(iterations):
+        distance, closest, face = surface.query(points + shift)
+        keep = distance <= 2.0 * np.quantile(distance, 0.8)
+        normals = surface.face_normals[face[keep]]
+        gap = np.einsum("ij,ij->i", normals, closest[keep] - points[keep] - shift)
+        normal = normals.T @ normals
+        # a direction along which no normal points (a plane's sliding) keeps its shift
+        step = np.linalg.lstsq(normal, normals.T @ gap, rcond=1e-6)[0]
+        shift = shift + step
+        if np.linalg.norm(step) < 1e-9:
+            break
+    return shift
 
 
 def _triple(values: np.ndarray) -> tuple[float, float, float]:
@@ -169,17 +254,20 @@ def _ranges(views: list[View], tracer: RayTracer) -> np.ndarray:
     return np.where(hits.hit, hits.t, np.linalg.norm(origins, axis=1))
 
 
-def _band_px(view: View, range_km: float, sigma_position_km: float, sigma_pointing_rad: float) -> float:
-    """Three sigma of the image displacement the navigation uncertainty allows (px), plus one."""
-    return 1.0 + 3.0 * view.camera.fx * float(np.hypot(sigma_position_km / range_km, sigma_pointing_rad))
+def _bands(views: list[View], ranges: np.ndarray, sigma_position_km: float, sigma_pointing_rad: float,
+           los_sigma_px: np.ndarray | None) -> np.ndarray:
+    """Per view, three sigma of the image displacement its pose knowledge allows (px), plus one."""
+    if los_sigma_px is None:
+        los_sigma_px = np.array([v.camera.fx * float(np.hypot(sigma_position_km / r, sigma_pointing_rad))
+                                 for v, r in zip(views, ranges, strict=True)])
+    return 1.0 + 3.0 * np.asarray(los_sigma_px, float)
 
 
-def _consistent(tracks: Tracks, cameras, poses, tracer: RayTracer, views: list[View], ranges: np.ndarray,
-                sigma_position_km: float, sigma_pointing_rad: float, model_tolerance_px: float) -> Tracks:
+def _consistent(tracks: Tracks, cameras, poses, tracer: RayTracer, ranges: np.ndarray, band: np.ndarray,
+                model_tolerance_px: float) -> Tracks:
     """Tracks whose rays meet within the navigation band and whose points lie near the previous
     model along the first observation's line of sight."""
     points, _ = triangulate(tracks, cameras, poses)
-    band = np.array([_band_px(v, r, sigma_position_km, sigma_pointing_rad) for v, r in zip(views, ranges, strict=True)])
     tracks = tracks.subset(reprojection_errors(points, tracks, cameras, poses) <= band[tracks.image])
     points, _ = triangulate(tracks, cameras, poses)
     origins, dirs = rays(tracks, cameras, poses)

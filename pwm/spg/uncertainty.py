@@ -16,6 +16,7 @@ import numpy as np
 
 from pwm.camera import Camera, Pose, corrected_pose, project
 from pwm.spg.adjustment import Adjustment
+from pwm.spg.pose_models import PoseModel
 
 
 @dataclass(frozen=True)
@@ -49,7 +50,7 @@ def image_sigmas(adjusted: Adjustment, cameras: list[Camera], poses: list[Pose],
     measurements with `noise_px` (px per axis) and the ground at `ranges_km` along each
     boresight; a posterior well under its prior is what the images determined."""
     posterior = adjusted.covariance(noise_px)
-    prior = np.diag(np.tile(adjusted.sigma**2, len(poses)))
+    prior = adjusted.prior_covariance()
     jacobians = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km, strict=True)]
     out: tuple[list[PoseSigma], list[PoseSigma]] = ([], [])
     for which, cov in enumerate((prior, posterior)):
@@ -60,6 +61,19 @@ def image_sigmas(adjusted: Adjustment, cameras: list[Camera], poses: list[Pose],
                                         along_m=float(np.sqrt(c[2, 2])) * 1e3,
                                         pointing_urad=float(np.sqrt(c[3, 3] + c[4, 4])) * 1e6,
                                         los_px=float(np.sqrt(np.trace(jac @ own @ jac.T)))))
+    return out
+
+
+def prior_los_px(model: PoseModel, cameras: list[Camera], poses: list[Pose], ranges_km: np.ndarray) -> np.ndarray:
+    """Per image, the 1-sigma line of sight (px, RSS over the two image axes) that the pose
+    model's priors allow, for the ground at `ranges_km` along each boresight."""
+    g = model.design
+    out = np.empty(len(poses))
+    for i, (cam, pose, r) in enumerate(zip(cameras, poses, ranges_km, strict=True)):
+        rows = g[6 * i:6 * i + 6]
+        own = np.asarray((rows @ rows.T).todense())
+        jac = _los_jacobian(cam, pose, float(r))
+        out[i] = float(np.sqrt(np.trace(jac @ own @ jac.T)))
     return out
 
 
@@ -83,12 +97,15 @@ def pose_uncertainty(adjusted: Adjustment, cameras: list[Camera], poses: list[Po
     for k in ("los_one_image_px", "pointing_one_image_urad", "pointing_alone_urad", "lateral_pointing_correlation"):
         out[k] = []
     jac = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km, strict=True)]
+    prior = adjusted.prior_covariance()
     for i, pose in enumerate(poses):
-        block = adjusted.information[6 * i:6 * i + 6, 6 * i:6 * i + 6] / noise_px**2 + np.eye(6)  # sigma units
-        one_body = np.linalg.inv(block) * np.outer(adjusted.sigma, adjusted.sigma)
+        own = slice(6 * i, 6 * i + 6)
+        prior_information = np.linalg.pinv(prior[own, own])
+        block = adjusted.information[own, own] / noise_px**2 + prior_information
+        one_body = np.linalg.pinv(block)
         one = _to_camera(one_body, pose)
         out["los_one_image_px"].append(float(np.sqrt(np.trace(jac[i] @ one_body @ jac[i].T))))
-        alone_body = np.pad(np.linalg.inv(block[3:, 3:]), ((3, 0), (3, 0))) * np.outer(adjusted.sigma, adjusted.sigma)
+        alone_body = np.pad(np.linalg.pinv(block[3:, 3:]), ((3, 0), (3, 0)))
         alone = _to_camera(alone_body, pose)
         corr = one / np.sqrt(np.outer(np.diag(one), np.diag(one)))
         out["pointing_one_image_urad"].append(float(np.sqrt(one[3, 3] + one[4, 4])) * 1e6)

@@ -190,6 +190,10 @@ class DownlinkOut(_Out):
     model_note: str | None = Field(description="set when the downlink came to a catalog without "
                                                "a model: the version its images made, or why none "
                                                "could be made yet")
+    pose_adjustment: dict[str, Any] | None = Field(
+        default=None, description="what the adjustment of the downlink's poses did: the pose knowledge taken "
+        "(knowledge, source), the median line of sight before and after (los_prior_px, los_posterior_px, "
+        "1 sigma), the pose model's unknowns with their values and sigmas, or why none ran (note)")
 
 
 class JobOut(_Out):

@@ -39,7 +39,7 @@ def downlinks(
                     "unused_files": [dict(zip(("path", "code", "reason"), f, strict=True)) for f in unused[d.id]],
                     "repeat_count": d.repeat_count,
                     "last_seen_at": d.last_seen_at.isoformat() if d.last_seen_at else None,
-                    "model_note": d.model_note} for d in rows])
+                    "model_note": d.model_note, "pose_adjustment": d.pose_adjustment} for d in rows])
         return
     typer.echo(f"{'id':>4} {'downlink':<32} {'status':<10} {'outcome':<9} {'accepted':>8} {'rejected':>8} "
                f"{'conflict':>8} {'kernels':>7} {'unused':>6} {'repeats':>7}")
@@ -48,5 +48,10 @@ def downlinks(
                    f"{d.rejected:>8} {d.conflict:>8} {d.kernels:>7} {d.unused_files:>6} {d.repeat_count:>7}")
         if d.model_note:
             typer.echo(f"      model: {d.model_note}")
+        if d.pose_adjustment:
+            a = d.pose_adjustment
+            after = f" -> {a['los_posterior_px']:.2f}" if "los_posterior_px" in a else ""
+            typer.echo(f"      poses: {a['knowledge']} ({a['source']}): {a['note']}; line of sight "
+                       f"{a['los_prior_px']:.2f}{after} px (1 sigma)")
         for path, code, reason in unused.get(d.id, []) if files else []:
             typer.echo(f"      unused {path}: {code}: {reason}")

@@ -22,11 +22,11 @@ from service.cli.app import (
 )
 
 if TYPE_CHECKING:
-    from pwm.simulate.knowledge import KnowledgeErrors
+    from pwm.knowledge import KnowledgeErrors
 
 
 def _knowledge_error(value: str | None) -> KnowledgeErrors:
-    from pwm.simulate.knowledge import IndependentErrors, parse_knowledge_errors
+    from pwm.knowledge import IndependentErrors, parse_knowledge_errors
 
     if value is None:
         return IndependentErrors()

@@ -41,7 +41,8 @@ def _downlinks(session: Session, ids: list[int]) -> list[DownlinkOut]:
                         outcome=d.outcome, kernels=d.kernels, images=d.images,
                         accepted=d.accepted, rejected=d.rejected, conflict=d.conflict,
                         unused_files=d.unused_files, repeat_count=d.repeat_count,
-                        last_seen_at=d.last_seen_at, model_note=d.model_note)
+                        last_seen_at=d.last_seen_at, model_note=d.model_note,
+                        pose_adjustment=d.pose_adjustment)
             for d in downlink_summaries(session, ids)]
 
 

@@ -1,0 +1,107 @@
+"""Pose knowledge in operations (issue 18.3): a downlink whose kernels state their pose knowledge
+is adjusted on the current model before its maplets are refined, unasked; the corrections, the
+sigmas and what was done are kept; a knowledge from the configuration serves kernels that
+state none; and each image's registration search follows its sigma."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from sqlalchemy import select
+
+from pwm.camera import Camera, Pose, project
+from pwm.knowledge import IndependentErrors, NavigationErrors
+from pwm.simulate.campaign import simulate
+from pwm.simulate.scenarios import get_scenario
+from service.models import Downlink, Image
+from service.run import ingest_and_plan
+from service.views import catalog_views
+from tests.service.test_spg_catalog import SITE
+
+NAV = NavigationErrors(along_m=3.0, cross_m=1.0, misalign_urad=50.0, drift_urad=20.0)
+
+
+@pytest.fixture(scope="module")
+def tiny_nav_sim(tmp_path_factory) -> Path:
+    """`pwm simulate OUT --scenario tiny --seed 3 --knowledge-error nav:3,1,50,20 --with-start-model`."""
+    out = tmp_path_factory.mktemp("tiny-nav") / "sim"
+    simulate(out, scenario=get_scenario("tiny"), seed=3, knowledge=NAV, with_start_model=True)
+    return out
+
+
+def _line_of_sight_px(sim: Path, poses: dict[str, Pose]) -> float:
+    """RMS over the images of where the true boresight's ground point lands, px from where it belongs."""
+    manifest = json.loads((sim / "truth" / "manifest.json").read_text())
+    c = manifest["camera"]
+    camera = Camera(width=c["width"], height=c["height"], fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"])
+    errors = []
+    for image in manifest["images"]:
+        truth = Pose(np.array(image["position_km"]), np.array(image["rotation"]))
+        ground = truth.position + truth.boresight * image["site_range_km"]
+        pose = poses[Path(image["label"]).stem]
+        errors.append(np.linalg.norm(project(ground, camera, pose) - project(ground, camera, truth)))
+    return float(np.sqrt(np.mean(np.square(errors))))
+
+
+def _poses(catalog) -> tuple[dict[str, Pose], dict[str, Pose]]:
+    """Per image (label stem): its kernels' pose and its corrected pose."""
+    with catalog() as session:
+        images = {i.id: i for i in session.scalars(select(Image))}
+        kernels, corrected = {}, {}
+        for i, view in catalog_views(session).items():
+            name, correction = Path(images[i].label_path).stem, images[i].pose_correction()
+            corrected[name] = view.pose
+            # corrected = kernels' rotation @ R(w)^T, position + dp (pwm.camera.corrected_pose)
+            turn = Rotation.from_rotvec(correction.rotation_rad).as_matrix()
+            kernels[name] = Pose(position=view.pose.position - np.asarray(correction.position_km),
+                                 rotation=view.pose.rotation @ turn)
+        return kernels, corrected
+
+
+def test_stated_knowledge_is_adjusted_unasked(tiny_nav_sim, catalog, tmp_path):
+    plan = ingest_and_plan(catalog, tiny_nav_sim / "downlink", data_dir=tmp_path, **SITE)
+    with catalog() as session:
+        report = session.get_one(Downlink, plan.downlink_id).pose_adjustment
+        assert report["knowledge"] == "nav:3,1,50,20" and report["source"].startswith("stated in pwm_tiny_sc")
+        assert report["note"] == "adjusted" and report["images"] == 6
+        assert report["los_posterior_px"] < 0.5 * report["los_prior_px"]
+        names = {u["name"] for u in report["unknowns"]}
+        assert {"misalignment x", "drift z", "arc 0 along constant"} <= names
+        images = session.scalars(select(Image)).all()
+        assert all(i.pose_corrected_at is not None and i.pose_sigma["knowledge"] == "nav:3,1,50,20" for i in images)
+        views = catalog_views(session)
+        # each image's registration searches what is left of its line of sight after the adjustment
+        for image in images:
+            sigma = image.pose_sigma["posterior"]["los_px"] / np.sqrt(2)
+            assert views[image.id].los_sigma_px == pytest.approx(sigma) and sigma > 0
+        corrections = {i.id: i.pose_correction() for i in images}
+    kernels, corrected = _poses(catalog)
+    before, after = _line_of_sight_px(tiny_nav_sim, kernels), _line_of_sight_px(tiny_nav_sim, corrected)
+    assert after < 0.7 * before, (before, after)
+
+    # the same downlink again: its images were adjusted under that knowledge, nothing is redone
+    ingest_and_plan(catalog, tiny_nav_sim / "downlink", data_dir=tmp_path, **SITE)
+    with catalog() as session:
+        assert {i.id: i.pose_correction() for i in session.scalars(select(Image))} == corrections
+
+
+def test_configured_knowledge_serves_kernels_that_state_none(tiny_sim, catalog, tmp_path):
+    config = dataclasses.replace(SITE["config"], knowledge=IndependentErrors(position_m=1.0, pointing_rad=1e-4))
+    plan = ingest_and_plan(catalog, tiny_sim / "downlink", data_dir=tmp_path, config=config)
+    with catalog() as session:
+        report = session.get_one(Downlink, plan.downlink_id).pose_adjustment
+        assert report["knowledge"] == "1,0.0001" and report["source"] == "configured"
+        assert report["note"] == "adjusted" and report["unknowns"] == []  # every image free: none shared
+
+
+def test_no_knowledge_no_adjustment(tiny_sim, catalog, tmp_path):
+    plan = ingest_and_plan(catalog, tiny_sim / "downlink", data_dir=tmp_path, **SITE)
+    with catalog() as session:
+        assert session.get_one(Downlink, plan.downlink_id).pose_adjustment is None
+        assert all(i.pose_correction() is None and i.pose_sigma is None for i in session.scalars(select(Image)))
+        assert all(v.los_sigma_px == 0.0 for v in catalog_views(session).values())
