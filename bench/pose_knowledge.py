@@ -96,7 +96,7 @@ def pose_table(sim: Path, work: Path) -> dict:
     frames = track_frames(times, np.array([t.position for t in truth]))
     out: dict = {"los_before_px": _rms(los["before"]), "los_after_px": _rms(los["after"])}
     arcs = manifest["knowledge_error"].get("arcs") or [{"images": names}]
-    index = {n: k for k, n in enumerate(names)}
+    index = {true[n]["name"]: k for k, n in enumerate(names)}  # the arcs name images as the manifest does
     out["arcs"] = []
     for arc in arcs:
         ks = [index[n] for n in arc["images"] if n in index]

@@ -24,6 +24,7 @@ import psycopg
 import pytest
 from sqlalchemy.orm import Session, sessionmaker
 
+from pwm.knowledge import NavigationErrors
 from pwm.simulate.campaign import simulate, simulate_campaign
 from pwm.simulate.scenarios import CAMPAIGNS, get_scenario
 from service.db import make_engine, make_sessionmaker, upgrade
@@ -223,6 +224,16 @@ def tiny_sim(tmp_path_factory) -> Path:
     and truth/)."""
     out = tmp_path_factory.mktemp("tiny") / "sim"
     simulate(out, scenario=get_scenario("tiny"), seed=3, with_start_model=True)
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_nav_sim(tmp_path_factory) -> Path:
+    """`pwm simulate OUT --scenario tiny --seed 3 --knowledge-error nav:3,1,50,20 --with-start-model`:
+    kernels with navigation-like pose errors, which state that knowledge."""
+    out = tmp_path_factory.mktemp("tiny-nav") / "sim"
+    simulate(out, scenario=get_scenario("tiny"), seed=3, with_start_model=True,
+             knowledge=NavigationErrors(along_m=3.0, cross_m=1.0, misalign_urad=50.0, drift_urad=20.0))
     return out
 
 

@@ -15,23 +15,11 @@ from scipy.spatial.transform import Rotation
 from sqlalchemy import select
 
 from pwm.camera import Camera, Pose, project
-from pwm.knowledge import IndependentErrors, NavigationErrors
-from pwm.simulate.campaign import simulate
-from pwm.simulate.scenarios import get_scenario
+from pwm.knowledge import IndependentErrors
 from service.models import Downlink, Image
 from service.run import ingest_and_plan
 from service.views import catalog_views
 from tests.service.test_spg_catalog import SITE
-
-NAV = NavigationErrors(along_m=3.0, cross_m=1.0, misalign_urad=50.0, drift_urad=20.0)
-
-
-@pytest.fixture(scope="module")
-def tiny_nav_sim(tmp_path_factory) -> Path:
-    """`pwm simulate OUT --scenario tiny --seed 3 --knowledge-error nav:3,1,50,20 --with-start-model`."""
-    out = tmp_path_factory.mktemp("tiny-nav") / "sim"
-    simulate(out, scenario=get_scenario("tiny"), seed=3, knowledge=NAV, with_start_model=True)
-    return out
 
 
 def _line_of_sight_px(sim: Path, poses: dict[str, Pose]) -> float:

@@ -312,6 +312,23 @@ def test_each_pass_of_a_downlink_is_fused_into_a_version_of_its_own(
     assert len(_jobs(catalog, JobKind.REFINE)) == len(refines)
 
 
+def test_a_downlink_that_states_its_pose_knowledge_is_adjusted_by_the_workers(
+        tiny_nav_sim: Path, catalog: sessionmaker[Session], client: Celery,
+        start_worker: Callable[..., Worker]) -> None:
+    worker = start_worker(lambda name: pwm_worker_command(name, 2))
+    downlink = tiny_nav_sim / "downlink"
+    client.send_task(ingest_downlink.name, args=[str(downlink)], kwargs={"key": ingest_key(downlink)})
+    _wait_for_version(catalog, 2, [worker])
+    with catalog() as session:
+        report = session.scalars(select(Downlink.pose_adjustment)).one()
+        assert (report["knowledge"], report["note"]) == ("nav:3,1,50,20", "adjusted")
+        assert report["source"].startswith("stated in") and report["los_posterior_px"] < 0.5 * report["los_prior_px"]
+        images = session.scalars(select(Image)).all()
+        assert images and all(i.pose_corrected_at is not None and i.pose_sigma["knowledge"] for i in images)
+        # the maplets were weighed and refined with the corrected poses: their input names them
+        assert session.scalar(select(func.count()).select_from(MapletRevision)) > 0
+
+
 # A survey's maplets: 16 nodes, within 60 m of each place's centre (issue 15: the whole flow)
 @pytest.mark.parametrize("settings", [{"maplet_nodes": 16, "tile_radius_km": 0.06}], indirect=True)
 def test_a_first_survey_with_no_model_becomes_a_closed_global_model(
