@@ -95,7 +95,7 @@ def pose_table(sim: Path, work: Path) -> dict:
             errors[which].append((pose.position - t.position) * 1e3)
     frames = track_frames(times, np.array([t.position for t in truth]))
     out: dict = {"los_before_px": _rms(los["before"]), "los_after_px": _rms(los["after"])}
-    arcs = manifest["knowledge_error"].get("arcs") or [{"images": names}]
+    arcs = manifest["knowledge_error"].get("arcs") or [{"images": [true[n]["name"] for n in names]}]
     index = {true[n]["name"]: k for k, n in enumerate(names)}  # the arcs name images as the manifest does
     out["arcs"] = []
     for arc in arcs:
