@@ -227,7 +227,7 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
             report.update(note="adjusted", los_posterior_px=float(np.median(posterior)),
                           residual_rms_px=stats["residual_rms_px"], tracks=stats["tracks"],
                           observations=stats["observations"], seconds=stats["seconds"],
-                          anchor_shift_m=stats["anchor_shift_m"],
+                          anchor_shift_m=stats["anchor_shift_m"], anchor_measured_m=stats["anchor_measured_m"],
                           unknowns=stats.get("unknowns", []))
     with session_scope(sessions) as session:
         now = utcnow()

@@ -245,9 +245,15 @@ def test_the_block_is_anchored_to_the_model_by_its_relief():
     on = model.vertices[rng.choice(len(model.vertices), 400, replace=False)]
     on = on + rng.normal(0, 1e-5, on.shape)  # 1 cm of noise
     off = np.array([1.0, -2.0, 0.5]) * 1e-3
-    np.testing.assert_allclose(anchor_shift(on + off, model), -off, atol=2e-5)
+    shift, covariance = anchor_shift(on + off, model)
+    np.testing.assert_allclose(shift, -off, atol=2e-5)
+    edge = 0.25 * np.pi / 2 / 32  # the sphere's edges: a quarter circle in 32
+    assert np.all(np.sqrt(np.diag(covariance)) < edge) and np.all(np.sqrt(np.diag(covariance)) > 0.4 * edge)
     # a plane constrains only the shift across it: the sliding is left at zero
     corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) * 0.1
     plane = Mesh(corners, np.array([[0, 1, 2], [0, 2, 3]]))
     flat = np.column_stack([rng.uniform(-0.05, 0.05, (100, 2)), np.zeros(100)])
-    np.testing.assert_allclose(anchor_shift(flat + off, plane), [0, 0, -off[2]], atol=1e-9)
+    shift, covariance = anchor_shift(flat + off, plane)
+    np.testing.assert_allclose(shift, [0, 0, -off[2]], atol=1e-9)
+    # across it, half the model's edge (0.2 and 0.28 km here): a model places nothing more finely
+    assert covariance[0, 0] > 1e3 and covariance[1, 1] > 1e3 and 0.1**2 <= covariance[2, 2] <= 0.15**2  # km^2

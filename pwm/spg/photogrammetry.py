@@ -131,10 +131,11 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
 
     anchor: tie the block to `model`. A shift of every camera and point together leaves the
     images as they are, so only the priors place the block; when `model` is a shape to keep (not
-    a first guess), the adjusted points are shifted onto it (point to plane) and the cameras
-    with them, in every direction the model's relief constrains. The shift alone: a turn of the
-    block would move the split between the cameras' positions and pointings that the images
-    leave to the priors.
+    a first guess), the adjusted points are shifted onto it (point to plane, `anchor_shift`) and
+    the cameras with them, as far as the shift's covariance against the block's (from the
+    adjustment) says: fully where the model's relief places the block better than the priors
+    do, hardly at all on a coarse model. The shift alone: a turn of the block would move the
+    split between the cameras' positions and pointings that the images leave to the priors.
     """
     clock = time.perf_counter()
     if pose_model is None:
@@ -165,8 +166,15 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
     final = [corrected_pose(p, positions[i], rotations[i]) for i, p in enumerate(poses)]
     points, angles = triangulate(tracks, cameras, final)
     if anchor:
-        shift = anchor_shift(points[angles >= np.radians(ANCHOR_MIN_ANGLE_DEG) / 2], model)
+        measured, measured_covariance = anchor_shift(points[angles >= np.radians(ANCHOR_MIN_ANGLE_DEG) / 2], model)
+        # weighed against what the adjustment knows of the block's place: the covariance of the
+        # images' mean position correction
+        noise = max(float(np.sqrt(np.mean(adjusted.residuals_px**2))), 0.1) / np.sqrt(2)
+        position = adjusted.covariance(noise).reshape(len(poses), 6, len(poses), 6)[:, :3, :, :3]
+        block = position.mean(axis=(0, 2))
+        shift = block @ np.linalg.solve(block + measured_covariance, measured)
         stats["anchor_shift_m"] = [float(v) * 1e3 for v in shift]
+        stats["anchor_measured_m"] = [float(v) * 1e3 for v in measured]
         positions = positions + shift
         final = [corrected_pose(p, positions[i], rotations[i]) for i, p in enumerate(poses)]
         points = points + shift
@@ -215,30 +223,38 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, pose_model: Pose
                      sigmas=adjusted.sigmas)
 
 
+MIN_SCATTER_KM = 1e-6  # the anchor's pairs are never taken to fit better than a millimetre
+UNCONSTRAINED_KM2 = 1e6  # the variance of a shift no normal constrains
 ANCHOR_MIN_ANGLE_DEG = 2.0
 """Points seen at a narrower stereo angle are too far off along their rays to anchor the block."""
 
 
-def anchor_shift(points: np.ndarray, model: Mesh, *, iterations: int = 20) -> np.ndarray:
-    """The shift (km) that moves `points` onto `model` (point-to-plane, the shift alone, in the
-    directions the model's relief constrains), leaving out the worst fifth of the pairs
-    (mismatches, and relief the model lacks)."""
+def anchor_shift(points: np.ndarray, model: Mesh, *, iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """The shift (km) that moves `points` onto `model` (point to plane, the shift alone),
+    leaving out the worst fifth of the pairs (mismatches, and relief the model lacks), and its
+    covariance (km^2): the pairs' scatter through the normals they constrain (a direction no
+    normal constrains, a plane's sliding, keeps a zero shift of vast variance) plus half the
+    model's local edge length in every direction, since a model places nothing more finely
+    than it is sampled."""
     shift = np.zeros(3)
     if len(points) < 6:
-        return shift
+        return shift, np.eye(3)
     surface = ClosestPoint(model)
     for _ in range(iterations):
         distance, closest, face = surface.query(points + shift)
         keep = distance <= 2.0 * np.quantile(distance, 0.8)
         normals = surface.face_normals[face[keep]]
         gap = np.einsum("ij,ij->i", normals, closest[keep] - points[keep] - shift)
-        normal = normals.T @ normals
-        # a direction along which no normal points (a plane's sliding) keeps its shift
-        step = np.linalg.lstsq(normal, normals.T @ gap, rcond=1e-6)[0]
+        step = np.linalg.lstsq(normals.T @ normals, normals.T @ gap, rcond=1e-6)[0]
         shift = shift + step
         if np.linalg.norm(step) < 1e-9:
             break
-    return shift
+    scatter = max(float(np.mean((gap - normals @ step) ** 2)), MIN_SCATTER_KM**2)
+    values, vectors = np.linalg.eigh(normals.T @ normals)
+    variances = np.where(values > 1e-9 * values.max(), scatter / np.maximum(values, 1e-300), UNCONSTRAINED_KM2)
+    faces = model.vertices[model.faces[face[keep]]]
+    edge = float(np.median(np.linalg.norm(faces[:, 1] - faces[:, 0], axis=1)))
+    return shift, (vectors * variances) @ vectors.T + (0.5 * edge) ** 2 * np.eye(3)
 
 
 def _triple(values: np.ndarray) -> tuple[float, float, float]:
