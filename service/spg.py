@@ -202,7 +202,7 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
         if done is not None and done.get("images") == len(ids) and done.get("knowledge") == format_knowledge_errors(
                 knowledge):
             return []
-        views = catalog_views(session, image_ids=ids, pixels=True)
+        views = catalog_views(session, image_ids=ids)  # geometry only, until an adjustment needs pixels
     ids = list(views)
     report: dict = {"knowledge": format_knowledge_errors(knowledge), "source": source, "images": len(ids)}
     view_list = [views[i] for i in ids]
@@ -216,6 +216,9 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
     elif KNOWLEDGE_SIGMAS * prior_los.max() / np.sqrt(2) <= 1.0:
         report["note"] = "not adjusted: the knowledge keeps every line of sight within a pixel"
     else:
+        with sessions() as session:
+            views = catalog_views(session, image_ids=ids, pixels=True)
+        view_list = [views[i] for i in ids]
         try:
             result = adjust_poses(view_list, shape, pose_model=pose_model, anchor=True, threads=threads)
         except ValueError as exc:

@@ -93,3 +93,15 @@ def test_no_knowledge_no_adjustment(tiny_sim, catalog, tmp_path):
         assert session.get_one(Downlink, plan.downlink_id).pose_adjustment is None
         assert all(i.pose_correction() is None and i.pose_sigma is None for i in session.scalars(select(Image)))
         assert all(v.los_sigma_px == 0.0 for v in catalog_views(session).values())
+
+
+def test_knowledge_within_a_pixel_needs_no_adjustment(tiny_sim, catalog, tmp_path):
+    config = dataclasses.replace(SITE["config"], knowledge=IndependentErrors(position_m=0.001, pointing_rad=1e-8))
+    plan = ingest_and_plan(catalog, tiny_sim / "downlink", data_dir=tmp_path, config=config)
+    with catalog() as session:
+        report = session.get_one(Downlink, plan.downlink_id).pose_adjustment
+        assert report["note"] == "not adjusted: the knowledge keeps every line of sight within a pixel"
+        images = session.scalars(select(Image)).all()
+        assert all(i.pose_correction() is None for i in images)
+        # what the knowledge allows is still what each image's registration searches
+        assert all(0 < 3 * i.los_sigma_px() <= 1.0 for i in images)
