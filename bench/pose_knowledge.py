@@ -25,10 +25,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from sqlalchemy import select
 
-from pwm.camera import Pose
+from pwm.camera import Camera, Pose, project
 from pwm.trajectory import track_frames
 
 PWM = [sys.executable, "-c", "from service.cli import app; app(prog_name='pwm')"]
@@ -58,29 +57,21 @@ def catalog_poses(work: Path) -> tuple[dict[str, tuple[Pose, Pose]], dict | None
     from service.db import make_engine, make_sessionmaker
     from service.models import Downlink, Image
     from service.settings import get_settings
-    from service.views import image_pose
+    from service.views import image_pose, kernel_pose
 
     get_settings.cache_clear()
     sessions = make_sessionmaker(make_engine(get_settings().database_url))
     with sessions() as session:
-        poses = {}
-        for image in session.scalars(select(Image)):
-            stored = image.pose_correction()
-            corrected = image_pose(image)
-            if stored is None:
-                kernel = corrected
-            else:  # undo the stored correction: rotation @ R(w)^T, position + dp
-                kernel = Pose(position=corrected.position - np.asarray(stored.position_km),
-                              rotation=corrected.rotation @ Rotation.from_rotvec(stored.rotation_rad).as_matrix())
-            poses[Path(image.label_path).stem] = (kernel, corrected)
+        poses = {Path(image.label_path).stem: (kernel_pose(image), image_pose(image))
+                 for image in session.scalars(select(Image))}
         report = session.scalars(select(Downlink.pose_adjustment)).first()
     return poses, report
 
 
 def pose_table(sim: Path, work: Path) -> dict:
     manifest = json.loads((sim / "truth" / "manifest.json").read_text())
-    cam = manifest["camera"]
-    fx = cam["fx"]
+    c = manifest["camera"]
+    camera = Camera(width=c["width"], height=c["height"], fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"])
     true = {Path(im["label"]).stem: im for im in manifest["images"]}
     poses, report = catalog_poses(work)
     names = sorted(true, key=lambda n: true[n]["et"])
@@ -91,7 +82,7 @@ def pose_table(sim: Path, work: Path) -> dict:
     for name, t in zip(names, truth, strict=True):
         ground = t.position + t.boresight * true[name]["site_range_km"]
         for which, pose in zip(("before", "after"), poses[name], strict=True):
-            los[which].append(float(np.linalg.norm(_pixel(ground, pose, fx) - _pixel(ground, t, fx))))
+            los[which].append(float(np.linalg.norm(project(ground, camera, pose) - project(ground, camera, t))))
             errors[which].append((pose.position - t.position) * 1e3)
     frames = track_frames(times, np.array([t.position for t in truth]))
     out: dict = {"los_before_px": _rms(los["before"]), "los_after_px": _rms(los["after"])}
@@ -124,11 +115,6 @@ def true_unknowns(manifest: dict, names: list[str], kernels: list[Pose]) -> dict
                                    np.array(true[n]["knowledge_error"]["pointing_body_urad"]) * 1e-6] for n in names])
     theta = np.linalg.lstsq(model.design.toarray(), target, rcond=None)[0]
     return {name: float(v * scale) for name, v, scale in zip(model.names, theta, model.scale, strict=True)}
-
-
-def _pixel(point: np.ndarray, pose: Pose, fx: float) -> np.ndarray:
-    c = pose.rotation @ (point - pose.position)
-    return fx * c[:2] / c[2]
 
 
 def _rms(values: list[float]) -> float:

@@ -31,7 +31,7 @@ from pwm.pipeline import KNOWLEDGE_SIGMAS
 from pwm.spg import stereo_photogrammetry
 from pwm.spg.photogrammetry import adjust_poses
 from pwm.spg.pose_models import PoseModel, free_poses, navigation_poses
-from pwm.spg.uncertainty import prior_los_px
+from pwm.spg.uncertainty import prior_sigmas
 from pwm.views import View
 from service.db import session_scope
 from service.kernels import accepted_kernels
@@ -208,7 +208,9 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
     view_list = [views[i] for i in ids]
     pose_model = _pose_model(knowledge, view_list)
     ranges = np.array([_range(v, shape) for v in view_list])
-    prior_los = prior_los_px(pose_model, [v.camera for v in view_list], [v.pose for v in view_list], ranges)
+    priors = dict(zip(ids, prior_sigmas(pose_model, [v.camera for v in view_list], [v.pose for v in view_list],
+                                        ranges), strict=True))
+    prior_los = np.array([priors[i].los_px for i in ids])
     report["los_prior_px"] = float(np.median(prior_los)) if len(ids) else 0.0
     corrected: list[int] = []
     if len(ids) < 2:
@@ -235,9 +237,8 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
     with session_scope(sessions) as session:
         now = utcnow()
         for image in session.scalars(select(Image).where(Image.id.in_(ids))):
-            name = views[image.id].name
-            k = ids.index(image.id)
-            if image.id in corrected:
+            if corrected:
+                name = views[image.id].name
                 _store_correction(image, result.corrections[name])
                 prior, posterior_sigma = result.sigmas[name]
                 image.pose_sigma = {"prior": prior.as_dict(), "posterior": posterior_sigma.as_dict(),
@@ -245,8 +246,8 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
                 image.pose_corrected_at = now
                 image.coverage_computed_at = None  # weighed again with the corrected pose
             else:  # not adjusted: the registration searches what the knowledge allows
-                los = {"lateral_m": 0.0, "along_m": 0.0, "pointing_urad": 0.0, "los_px": float(prior_los[k])}
-                image.pose_sigma = {"prior": los, "posterior": los, "knowledge": report["knowledge"]}
+                known = priors[image.id].as_dict()
+                image.pose_sigma = {"prior": known, "posterior": known, "knowledge": report["knowledge"]}
         session.get_one(Downlink, downlink_id).pose_adjustment = report
     log.info("downlink %d: pose knowledge %s (%s): %s; line of sight %.2f -> %s px", downlink_id,
              report["knowledge"], source, report["note"], report["los_prior_px"],

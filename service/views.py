@@ -21,14 +21,19 @@ from service.models import GeometryStatus, Image, ImageGeometry, ImageStatus
 from service.settings import get_settings
 
 
-def image_pose(image: Image) -> Pose:
-    """The image's camera pose (body-fixed, km; body -> image frame), with its bundle-adjustment
-    correction (Image.pose_d*_km, pose_r*_rad) applied when set (pwm.camera.corrected_pose)."""
+def kernel_pose(image: Image) -> Pose:
+    """The image's camera pose as its kernels give it (body-fixed, km; body -> image frame)."""
     g = image.geometry
     if g is None:
         raise ValueError(f"image {image.lidvid} has no geometry")
-    pose = Pose(position=np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
+    return Pose(position=np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
                 rotation=np.asarray(g.camera_rotation, float).reshape(3, 3))
+
+
+def image_pose(image: Image) -> Pose:
+    """The image's camera pose (`kernel_pose`) with its bundle-adjustment correction
+    (Image.pose_d*_km, pose_r*_rad) applied when set (pwm.camera.corrected_pose)."""
+    pose = kernel_pose(image)
     correction = image.pose_correction()
     return pose if correction is None else correction.apply(pose)
 

@@ -60,11 +60,6 @@ class Adjustment:
         g = self.model.design
         return np.asarray(g @ (g @ self.parameter_covariance(noise_px)).T)
 
-    def prior_covariance(self) -> np.ndarray:
-        """Prior covariance of the images' corrections (km, rad; 6 n_img square)."""
-        g = self.model.design
-        return np.asarray((g @ g.T).todense())
-
 
 def _project(points: np.ndarray, position: np.ndarray, rotation: np.ndarray, cam: np.ndarray) -> np.ndarray:
     """Per observation: points (n, 3) km through poses (n, 3), (n, 3, 3) and intrinsics rows

@@ -23,7 +23,7 @@ from pwm.spg.pairs import Pair, choose_pairs, footprints
 from pwm.spg.pose_models import PoseModel, free_poses
 from pwm.spg.surface import at_resolution, fit_surface, point_spacing
 from pwm.spg.triangulation import Tracks, build_tracks, rays, reprojection_errors, triangulate
-from pwm.spg.uncertainty import PoseSigma, image_sigmas, pose_uncertainty, prior_los_px
+from pwm.spg.uncertainty import PoseSigma, image_sigmas, pose_uncertainty, prior_sigmas
 from pwm.views import View
 
 log = logging.getLogger(__name__)
@@ -61,8 +61,9 @@ class Matching:
     match_s: float
 
 
-def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: float = 1e-3,
-                sigma_pointing_rad: float = 1e-4, los_sigma_px: np.ndarray | None = None, max_features: int = 8192,
+def match_views(views: list[View], tracer: RayTracer, *, ranges: np.ndarray | None = None,
+                sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
+                los_sigma_px: np.ndarray | None = None, max_features: int = 8192,
                 first_octave: int | None = None, peak_threshold: float = 0.002, per_image: int = 6,
                 max_sun_deg: float = 25.0, double_below: float = 0.25, threads: int = 2) -> Matching:
     """Choose pairs on the model (`tracer`), extract SIFT features where each view sees the model
@@ -77,7 +78,7 @@ def match_views(views: list[View], tracer: RayTracer, *, sigma_position_km: floa
     pairs = choose_pairs(views, prints, per_image=per_image, max_sun_deg=max_sun_deg)
     if not pairs:
         raise ValueError("no image pair overlaps with a usable stereo angle and illumination")
-    ranges = _ranges(views, tracer)
+    ranges = _ranges(views, tracer) if ranges is None else ranges
     bands = _bands(views, ranges, sigma_position_km, sigma_pointing_rad, los_sigma_px)
     windows = [p.window(v.camera, margin_px=max(v.camera.width, v.camera.height) / (FOOTPRINT_GRID - 1))
                for p, v in zip(prints, views, strict=True)]
@@ -142,10 +143,11 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
         pose_model = free_poses(len(views), sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
     tracer = RayTracer(model)
     cameras, poses = [v.camera for v in views], [v.pose for v in views]
-    prior_los = prior_los_px(pose_model, cameras, poses, _ranges(views, tracer)) / np.sqrt(2)  # per image axis
-    m = match_views(views, tracer, los_sigma_px=prior_los, max_features=max_features, first_octave=first_octave,
-                    per_image=per_image, max_sun_deg=max_sun_deg, threads=threads)
-    pairs, features, matches, ranges = m.pairs, m.features, m.matches, m.ranges
+    ranges = _ranges(views, tracer)
+    prior_los = np.array([s.los_px for s in prior_sigmas(pose_model, cameras, poses, ranges)]) / np.sqrt(2)  # per axis
+    m = match_views(views, tracer, ranges=ranges, los_sigma_px=prior_los, max_features=max_features,
+                    first_octave=first_octave, per_image=per_image, max_sun_deg=max_sun_deg, threads=threads)
+    pairs, features, matches = m.pairs, m.features, m.matches
     stats: dict = {"extract_s": m.extract_s, "match_s": m.match_s, "features": int(sum(len(f.xy) for f in features)),
                    "matches": int(sum(len(x) for x in matches.values()))}
     log.info("%d pairs, %d features, %d matches (%.1f s)", len(pairs), stats["features"], stats["matches"],

@@ -47,6 +47,11 @@ class PoseModel:
         """(n_images, 6) corrections of the unknowns theta (sigma units)."""
         return np.asarray(self.design @ theta).reshape(-1, 6)
 
+    def prior_blocks(self) -> np.ndarray:
+        """(n_images, 6, 6): each image's own prior covariance of its corrections (km, rad)."""
+        return np.array([(rows @ rows.T).toarray() for rows in
+                         (self.design[6 * i:6 * i + 6] for i in range(self.n_images))]).reshape(-1, 6, 6)
+
 
 def free_poses(n_images: int, *, sigma_position_km: float, sigma_pointing_rad: float) -> PoseModel:
     """Every image's own six corrections, with independent priors per axis."""

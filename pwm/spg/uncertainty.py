@@ -50,30 +50,26 @@ def image_sigmas(adjusted: Adjustment, cameras: list[Camera], poses: list[Pose],
     measurements with `noise_px` (px per axis) and the ground at `ranges_km` along each
     boresight; a posterior well under its prior is what the images determined."""
     posterior = adjusted.covariance(noise_px)
-    prior = adjusted.prior_covariance()
-    jacobians = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km, strict=True)]
-    out: tuple[list[PoseSigma], list[PoseSigma]] = ([], [])
-    for which, cov in enumerate((prior, posterior)):
-        for i, (pose, jac) in enumerate(zip(poses, jacobians, strict=True)):
-            own = cov[6 * i:6 * i + 6, 6 * i:6 * i + 6]
-            c = _to_camera(own, pose)
-            out[which].append(PoseSigma(lateral_m=float(np.sqrt(c[0, 0] + c[1, 1])) * 1e3,
-                                        along_m=float(np.sqrt(c[2, 2])) * 1e3,
-                                        pointing_urad=float(np.sqrt(c[3, 3] + c[4, 4])) * 1e6,
-                                        los_px=float(np.sqrt(np.trace(jac @ own @ jac.T)))))
-    return out
+    blocks = np.array([posterior[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(len(poses))]).reshape(-1, 6, 6)
+    return (prior_sigmas(adjusted.model, cameras, poses, ranges_km),
+            _sigmas(blocks, cameras, poses, ranges_km))
 
 
-def prior_los_px(model: PoseModel, cameras: list[Camera], poses: list[Pose], ranges_km: np.ndarray) -> np.ndarray:
-    """Per image, the 1-sigma line of sight (px, RSS over the two image axes) that the pose
-    model's priors allow, for the ground at `ranges_km` along each boresight."""
-    g = model.design
-    out = np.empty(len(poses))
-    for i, (cam, pose, r) in enumerate(zip(cameras, poses, ranges_km, strict=True)):
-        rows = g[6 * i:6 * i + 6]
-        own = np.asarray((rows @ rows.T).todense())
+def prior_sigmas(model: PoseModel, cameras: list[Camera], poses: list[Pose], ranges_km: np.ndarray) -> list[PoseSigma]:
+    """Each image's 1-sigma figures (see `PoseSigma`) that the pose model's priors allow, for the
+    ground at `ranges_km` along each boresight."""
+    return _sigmas(model.prior_blocks(), cameras, poses, ranges_km)
+
+
+def _sigmas(blocks: np.ndarray, cameras: list[Camera], poses: list[Pose], ranges_km: np.ndarray) -> list[PoseSigma]:
+    """The figures of each image's own covariance block (n, 6, 6; body-fixed km and rad)."""
+    out = []
+    for own, cam, pose, r in zip(blocks, cameras, poses, ranges_km, strict=True):
         jac = _los_jacobian(cam, pose, float(r))
-        out[i] = float(np.sqrt(np.trace(jac @ own @ jac.T)))
+        c = _to_camera(own, pose)
+        out.append(PoseSigma(lateral_m=float(np.sqrt(c[0, 0] + c[1, 1])) * 1e3, along_m=float(np.sqrt(c[2, 2])) * 1e3,
+                             pointing_urad=float(np.sqrt(c[3, 3] + c[4, 4])) * 1e6,
+                             los_px=float(np.sqrt(np.trace(jac @ own @ jac.T)))))
     return out
 
 
@@ -97,10 +93,10 @@ def pose_uncertainty(adjusted: Adjustment, cameras: list[Camera], poses: list[Po
     for k in ("los_one_image_px", "pointing_one_image_urad", "pointing_alone_urad", "lateral_pointing_correlation"):
         out[k] = []
     jac = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km, strict=True)]
-    prior = adjusted.prior_covariance()
+    prior = adjusted.model.prior_blocks()
     for i, pose in enumerate(poses):
         own = slice(6 * i, 6 * i + 6)
-        prior_information = np.linalg.pinv(prior[own, own])
+        prior_information = np.linalg.pinv(prior[i])
         block = adjusted.information[own, own] / noise_px**2 + prior_information
         one_body = np.linalg.pinv(block)
         one = _to_camera(one_body, pose)

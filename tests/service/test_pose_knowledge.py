@@ -11,14 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 from sqlalchemy import select
+from sqlalchemy.orm import selectinload
 
 from pwm.camera import Camera, Pose, project
 from pwm.knowledge import IndependentErrors
 from service.models import Downlink, Image
 from service.run import ingest_and_plan
-from service.views import catalog_views
+from service.views import catalog_views, image_pose, kernel_pose
 from tests.service.test_spg_catalog import SITE
 
 
@@ -39,16 +39,9 @@ def _line_of_sight_px(sim: Path, poses: dict[str, Pose]) -> float:
 def _poses(catalog) -> tuple[dict[str, Pose], dict[str, Pose]]:
     """Per image (label stem): its kernels' pose and its corrected pose."""
     with catalog() as session:
-        images = {i.id: i for i in session.scalars(select(Image))}
-        kernels, corrected = {}, {}
-        for i, view in catalog_views(session).items():
-            name, correction = Path(images[i].label_path).stem, images[i].pose_correction()
-            corrected[name] = view.pose
-            # corrected = kernels' rotation @ R(w)^T, position + dp (pwm.camera.corrected_pose)
-            turn = Rotation.from_rotvec(correction.rotation_rad).as_matrix()
-            kernels[name] = Pose(position=view.pose.position - np.asarray(correction.position_km),
-                                 rotation=view.pose.rotation @ turn)
-        return kernels, corrected
+        images = session.scalars(select(Image).options(selectinload(Image.geometry))).all()
+        return ({Path(i.label_path).stem: kernel_pose(i) for i in images},
+                {Path(i.label_path).stem: image_pose(i) for i in images})
 
 
 def test_stated_knowledge_is_adjusted_unasked(tiny_nav_sim, catalog, tmp_path):

@@ -8,7 +8,7 @@ import numpy as np
 from sqlalchemy import select
 from typer.testing import CliRunner
 
-from pwm.camera import Pose, PoseCorrection
+from pwm.camera import PoseCorrection
 from pwm.config import RefinementConfig
 from service.cli import app
 from service.models import Image, ImageGeometry, ModelKind
@@ -17,15 +17,9 @@ from service.run import ingest_and_plan
 from service.settings import get_settings
 from service.spg import _store_correction, photogrammetry_version
 from service.versions import get_version, latest_version, version_mesh
-from service.views import catalog_views, image_pose
+from service.views import catalog_views, image_pose, kernel_pose
 
 SITE = {"config": RefinementConfig(nodes=40, tile_radius_km=0.0003)}  # one maplet on the site's centre
-
-
-def _geometry_pose(image: Image) -> Pose:
-    g = image.geometry
-    return Pose(np.array([g.camera_x_km, g.camera_y_km, g.camera_z_km]),
-                np.asarray(g.camera_rotation, float).reshape(3, 3))
 
 
 def test_photogrammetric_version_corrects_poses_and_stales_maplets(tiny_sim, catalog, tmp_path):
@@ -56,7 +50,7 @@ def test_photogrammetric_version_corrects_poses_and_stales_maplets(tiny_sim, cat
             pose = image_pose(image)
             moved_m.append(np.linalg.norm(pose.position - before[image.id].position) * 1e3)
             # the correction is what makes the stored pose differ from SPICE's
-            assert np.allclose(pose.position - _geometry_pose(image).position,
+            assert np.allclose(pose.position - kernel_pose(image).position,
                                [image.pose_dx_km, image.pose_dy_km, image.pose_dz_km])
         # navigation knowledge is 1 m: the adjustment moves cameras, within a few sigma
         assert 0.0 < max(moved_m) < 5.0
