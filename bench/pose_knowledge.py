@@ -10,8 +10,9 @@ SQLite catalog under OUT/<name>/ (kept with --reuse), and the tables give per SI
 sight (where the true boresight's ground point lands, px from where it belongs, RMS over the
 images) with the kernels' poses and with the corrected ones; per navigation arc, the position
 error along-track, cross-track and radial (RMS, m) before and after; the misalignment and drift
-(microradians) drawn and recovered, with the posterior sigma the adjustment gives each; the
-refined model's RMS (GSD), NCC and SSIM on held-out views, and the run's time.
+(microradians) drawn and recovered, with the posterior sigma the adjustment gives each (the
+feedback's, where the maplets' registrations adjusted the poses again); the refined model's
+RMS (GSD), NCC and SSIM on held-out views, and the run's time.
 """
 
 from __future__ import annotations
@@ -137,14 +138,19 @@ def main() -> None:
         report = table["report"] or {}
         print(f"\n{sim}: knowledge {report.get('knowledge')} ({report.get('source')}), {report.get('note')}; "
               f"pwm run {seconds:.0f} s, adjustment {report.get('seconds', 0):.0f} s")
+        feedback = report.get("feedback") or {}
+        if feedback:
+            print(f"  registrations fed back: {feedback['note']}; {feedback['landmarks']} landmarks, "
+                  f"{feedback.get('feature_tracks', 0)} feature tracks, {feedback.get('seconds', 0):.0f} s")
+        final = feedback if feedback.get("note") == "adjusted" else report  # the corrections stored
         print(f"  line of sight RMS (px, against the truth): {table['los_before_px']:.2f} -> "
               f"{table['los_after_px']:.2f} ({1 - table['los_after_px'] / table['los_before_px']:.0%} cut); "
-              f"posterior 1 sigma {report.get('los_posterior_px', float('nan')):.2f}")
+              f"posterior 1 sigma {final.get('los_posterior_px', float('nan')):.2f}")
         for k, arc in enumerate(table["arcs"]):
             print(f"  arc {k} position RMS along/cross/radial (m): "
                   f"{'/'.join(f'{v:.2f}' for v in arc['before'])} -> {'/'.join(f'{v:.2f}' for v in arc['after'])}")
         truth = table["unknowns_true"] or {}
-        for u in report.get("unknowns", []):
+        for u in final.get("unknowns", []):
             if u["name"] in truth and ("misalignment" in u["name"] or "drift" in u["name"]):
                 print(f"  {u['name']:<16} true {truth[u['name']] * 1e6:7.1f} found {u['value'] * 1e6:7.1f} urad, "
                       f"posterior sigma {u['posterior_sigma'] * 1e6:5.1f} (prior {u['prior_sigma'] * 1e6:.0f})")

@@ -42,7 +42,8 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class MapletResult:
-    """A refined maplet and how it was made: the images used (names), weights, solver outcome."""
+    """A refined maplet and how it was made: the images used (names), weights, solver outcome,
+    and where each image that weighed into it sees its landmark (`landmark_pixels`)."""
 
     maplet: MapletGrid
     images: list[str]
@@ -53,6 +54,7 @@ class MapletResult:
     converged: bool
     residual_rms: list[float]
     seconds: float
+    registrations: dict[str, tuple[float, float]]
 
 
 def maplet_images(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
@@ -124,6 +126,7 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                          albedo=None if maplet.albedo is None else maplet.albedo.copy(),
                          weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
     iterations, converged, rms = 0, False, []
+    registrations: dict[str, tuple[float, float]] = {}
     if data.count >= config.min_images:
         # navigation knowledge errors move images by many pixels: register them before the joint
         # solution, which only corrects offsets within its linear reach (about a pixel); within
@@ -138,9 +141,23 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         result = refine(maplet, data, mode=mode, offsets=offsets, solver=config.solver)
         refined.heights, refined.albedo = result.heights, result.albedo
         iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
+        seen = np.isfinite(result.rms)  # an image no node weighed kept its start: it observed nothing
+        registrations = {views[k].name: (float(s), float(line)) for k, (s, line), ok in
+                         zip(keep, landmark_pixels(refined, data, result.offsets), seen, strict=True) if ok}
     return MapletResult(maplet=refined, images=[views[k].name for k in keep], region_weight=weights.region,
                         five_views=views_found, dropped=dropped, iterations=iterations, converged=converged,
-                        residual_rms=rms, seconds=time.perf_counter() - clock)
+                        residual_rms=rms, seconds=time.perf_counter() - clock, registrations=registrations)
+
+
+def landmark_pixels(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray) -> np.ndarray:
+    """Where each image sees the maplet's landmark, its centre node (K, 2; sample, line, px): the
+    node projected with the image's pose, plus the offset that registered the image to the
+    maplet. These are observations of the images' poses in the pixels of the images themselves,
+    whatever poses they were registered with: a bundle adjustment takes them as a track of one
+    point (SPC's landmarks)."""
+    centre = maplet.nodes_body()[maplet.n // 2, maplet.n // 2]
+    return np.array([project(centre[None], camera, pose)[0] for camera, pose in
+                     zip(data.cameras, data.poses, strict=True)]).reshape(-1, 2) + np.asarray(offsets, float)
 
 
 def search_levels(search_px: float) -> tuple[tuple[int, float], ...]:

@@ -202,6 +202,8 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
                   "iterations": result.iterations, "converged": result.converged,
                   "residual_rms": result.residual_rms, "seconds": result.seconds,
                   "model_version": model_version, "pass": pass_number,
+                  # observations of the images' poses for the next adjustment (service.spg)
+                  "registrations": {name: list(xy) for name, xy in result.registrations.items()},
                   "height_change_rms_m": float(np.sqrt(np.mean(
                       (result.maplet.heights - grid.heights) ** 2)) * 1e3)}
     revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=input_hash,

@@ -3,7 +3,8 @@ servers: ingest (with the coverage of its images against the current model; a ca
 model and none given first makes one from the images, service.spg.start_from_images),
 refinement of the maplets whose input changed, fusion into a new version; then each further
 pass (RefinementConfig.passes) refines those maplets again against that version and fuses the
-next.
+next. After the first fusion, poses that are still not known within a pixel are adjusted again
+with the maplets' registrations (`feed_back`), and the maplets refined again with them.
 
 The distributed setup (workers/) runs the same three steps as Celery tasks.
 """
@@ -27,7 +28,7 @@ from service.ingest import IngestReport, ingest_directory
 from service.models import Downlink, ModelKind
 from service.publish import fuse_and_publish, make_document
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
-from service.spg import adjust_downlink, start_from_images
+from service.spg import adjust_downlink, feed_back_registrations, start_from_images
 from service.versions import get_version, import_model, latest_version, publication_lock, version_mesh
 
 log = logging.getLogger(__name__)
@@ -143,7 +144,10 @@ def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir:
     url = sessions.kw["bind"].url.render_as_string(hide_password=False)
     refine = partial(_refine_in_process, data_dir=data_dir, config=config)
     work = plan.work
-    for round_number in range(1, config.passes + 1):
+    rounds = config.passes
+    round_number = 0
+    while round_number < rounds:
+        round_number += 1
         revisions = map_processes(refine, work, workers=workers, initializer=_open_catalog,
                                   initargs=(url,))
         try:
@@ -156,20 +160,42 @@ def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir:
         # version that the next pass supersedes within minutes need not cost a minute more
         version = fuse_and_publish(sessions, data_dir=data_dir, downlink_ids=[plan.downlink_id], config=config,
                                    document=False)
+        fed = version is not None and feed_back(sessions, data_dir=data_dir, downlink_id=plan.downlink_id,
+                                                version=version, config=config)
         if version is not None:
             report.versions.append(version)
         with sessions() as session:
-            # Only later passes: a new input now is another run's (its downlink's) to refine.
-            work = [w for w in stale_maplets(session, config=config) if w.pass_number > 1]
+            # Only later passes: a new input now is another run's (its downlink's) to refine;
+            # but poses corrected by the feedback are this run's, and its maplets start again.
+            work = [w for w in stale_maplets(session, config=config) if w.pass_number > 1 or fed]
+        if fed:
+            rounds += 1
         if not work:
             break
-        log.info("round %d: %d maplets due for another pass", round_number + 1, len(work))
+        log.info("round %d: %d maplets due for %s", round_number + 1, len(work),
+                 "refinement with the poses corrected" if fed else "another pass")
     if report.versions:
         make_document(sessions, data_dir=data_dir, version=report.versions[-1])
     report.seconds = time.perf_counter() - clock
     log.info("run %s: %d maplet refinements, versions %s (%.1f s)", directory,
              len(report.revisions), report.versions, report.seconds)
     return report
+
+
+def feed_back(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int, version: int,
+              config: RefinementConfig) -> bool:
+    """After a downlink's refinements were first fused into `version`: its maplets' registrations
+    fed back into the adjustment of its poses on that version (service.spg.feed_back_registrations),
+    and the images it corrected weighed again. Whether it corrected any."""
+    corrected = feed_back_registrations(sessions, data_dir=data_dir, version=version, downlink_id=downlink_id,
+                                        configured=config.knowledge)
+    with session_scope(sessions) as session:
+        # also those a stopped attempt corrected and left unweighed
+        unweighed = unweighed_images(session)
+        if unweighed:
+            update_coverage(session, version_mesh(data_dir, get_version(session, version)), image_ids=unweighed,
+                            config=config)
+    return bool(corrected)
 
 
 _CATALOG: dict[str, sessionmaker[Session]] = {}

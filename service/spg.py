@@ -31,23 +31,27 @@ from pwm.pipeline import KNOWLEDGE_SIGMAS
 from pwm.spg import stereo_photogrammetry
 from pwm.spg.photogrammetry import adjust_poses
 from pwm.spg.pose_models import PoseModel, free_poses, navigation_poses
+from pwm.spg.triangulation import Tracks
 from pwm.spg.uncertainty import prior_sigmas
 from pwm.views import View
 from service.db import session_scope
 from service.kernels import accepted_kernels
 from service.models import (
     Acceptance,
+    Coverage,
     Downlink,
     GeometryStatus,
     Image,
     ImageStatus,
     Kernel,
     KernelKind,
+    Maplet,
+    MapletRevision,
     ModelKind,
     ModelVersion,
     utcnow,
 )
-from service.versions import latest_version, publish_version, version_mesh
+from service.versions import get_version, latest_version, publish_version, version_mesh
 from service.views import catalog_views
 
 log = logging.getLogger(__name__)
@@ -215,7 +219,7 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
     corrected: list[int] = []
     if len(ids) < 2:
         report["note"] = f"not adjusted: {len(ids)} image(s) with geometry, two or more needed"
-    elif KNOWLEDGE_SIGMAS * prior_los.max() / np.sqrt(2) <= 1.0:
+    elif within_a_pixel(prior_los):
         report["note"] = "not adjusted: the knowledge keeps every line of sight within a pixel"
     else:
         with sessions() as session:
@@ -255,6 +259,119 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
     return corrected
 
 
+def within_a_pixel(los_px: np.ndarray) -> bool:
+    """Whether lines of sight with these 1-sigma errors (px, both axes together) all stay within
+    a pixel, three sigma per axis: then no adjustment can move an image by anything that
+    matters."""
+    return bool(KNOWLEDGE_SIGMAS * np.max(los_px, initial=0.0) / np.sqrt(2) <= 1.0)
+
+
+def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, version: int, downlink_id: int,
+                            configured: KnowledgeErrors | None, threads: int = 2) -> list[int]:
+    """Adjust a downlink's images again, once, after its maplets were first refined: the feature
+    tracks with, as observations, where each image saw each maplet's landmark once registered to
+    it (the revisions' `registrations`, pwm.pipeline.landmark_pixels), from the kernels' poses
+    under the same knowledge as `adjust_downlink`, tied to version `version` (the refined model). The
+    maplets' registration works across lighting where features do not match, so it determines
+    what the features could not; its new corrections replace the stored ones, and the maplets
+    that the images weigh into are due again (their input changed).
+
+    Only when some image of the downlink is still not known within a pixel (`within_a_pixel` of
+    its posterior, or of its prior where nothing adjusted it) and the downlink was not fed back
+    before; the downlink's pose_adjustment keeps what was done under "feedback". The ids of the
+    images corrected.
+    """
+    with sessions() as session:
+        knowledge, source = downlink_knowledge(session, downlink_id, configured)
+        downlink = session.get_one(Downlink, downlink_id)
+        report = dict(downlink.pose_adjustment or {})
+        if knowledge is None or "feedback" in report:
+            return []
+        images = session.scalars(select(Image).where(
+            Image.downlink_id == downlink_id, Image.status == ImageStatus.ACCEPTED,
+            Image.geometry_status == GeometryStatus.COMPUTED, Image.instrument_id.is_not(None))
+            .order_by(Image.id)).all()  # catalog_views' images, in its order
+        los = np.array([image.los_sigma_px() for image in images]) * np.sqrt(2)
+        if len(images) < 2 or within_a_pixel(los):
+            return []
+        ids = [image.id for image in images]
+        landmarks = landmark_tracks(session, {image.lidvid: k for k, image in enumerate(images)})
+        views: list[View] = []
+        shape: Mesh | None = None
+        if landmarks.n_points:  # pixels and the model only when there is something to adjust with
+            by_id = catalog_views(session, image_ids=ids, pixels=True, kernel_poses=True)
+            views = [by_id[i] for i in ids]
+            shape = version_mesh(data_dir, get_version(session, version))
+    feedback: dict = {"landmarks": landmarks.n_points, "observations": len(landmarks.image),
+                      "los_before_px": float(np.median(los))}
+    result = None
+    if shape is None:
+        feedback["note"] = "not adjusted: no maplet registered two of the images"
+    else:
+        try:
+            result = adjust_poses(views, shape, pose_model=_pose_model(knowledge, views), anchor=True,
+                                  landmarks=landmarks, threads=threads)
+        except ValueError as exc:
+            feedback["note"] = f"not adjusted: {exc}"
+        else:
+            stats = result.stats
+            feedback.update(note="adjusted",
+                            los_posterior_px=float(np.median([result.sigmas[v.name][1].los_px for v in views])),
+                            feature_tracks=stats["feature_tracks"], residual_rms_px=stats["residual_rms_px"],
+                            seconds=stats["seconds"], anchor_shift_m=stats["anchor_shift_m"],
+                            unknowns=stats.get("unknowns", []))
+    with session_scope(sessions) as session:
+        if result is not None:
+            now = utcnow()
+            for image in session.scalars(select(Image).where(Image.id.in_(ids))):
+                name = image.lidvid
+                _store_correction(image, result.corrections[name], replace=True)
+                prior, posterior = result.sigmas[name]
+                image.pose_sigma = {"prior": prior.as_dict(), "posterior": posterior.as_dict(),
+                                    "knowledge": format_knowledge_errors(knowledge)}
+                image.pose_corrected_at = now
+                image.coverage_computed_at = None  # weighed again with the corrected pose
+        report.setdefault("knowledge", format_knowledge_errors(knowledge))
+        report.setdefault("source", source)
+        report["feedback"] = feedback
+        session.get_one(Downlink, downlink_id).pose_adjustment = report
+    log.info("downlink %d: registrations fed back (%d landmarks): %s; line of sight %.2f -> %s px", downlink_id,
+             landmarks.n_points, feedback["note"], feedback["los_before_px"],
+             f"{feedback['los_posterior_px']:.2f}" if "los_posterior_px" in feedback else "-")
+    return ids if result is not None else []
+
+
+def fed_back(session: Session, downlink_id: int) -> bool:
+    """Whether `feed_back_registrations` corrected the downlink's poses."""
+    report = session.get_one(Downlink, downlink_id).pose_adjustment or {}
+    return bool(report.get("feedback", {}).get("note") == "adjusted")
+
+
+def landmark_tracks(session: Session, index: dict[str, int]) -> Tracks:
+    """The maplets' landmarks as tracks over the images named in `index` (name: its index): for
+    each maplet that two of them weigh into, where its current revision registered each of them
+    (pwm.pipeline.landmark_pixels)."""
+    maplet_ids = select(Coverage.maplet_id).join(Image, Image.id == Coverage.image_id).where(
+        Image.lidvid.in_(list(index)), Coverage.weight > 0)
+    revisions = session.scalars(select(MapletRevision.statistics).join(
+        Maplet, Maplet.current_revision_id == MapletRevision.id).where(Maplet.id.in_(maplet_ids)).order_by(Maplet.id))
+    point: list[int] = []
+    image: list[int] = []
+    xy: list[list[float]] = []
+    landmark = 0
+    for statistics in revisions:
+        seen = [(index[name], at) for name, at in (statistics.get("registrations") or {}).items() if name in index]
+        if len(seen) < 2:
+            continue
+        for k, at in seen:
+            point.append(landmark)
+            image.append(k)
+            xy.append(at)
+        landmark += 1
+    return Tracks(point=np.asarray(point, np.int64), image=np.asarray(image, np.int64),
+                  xy=np.asarray(xy, float).reshape(-1, 2))
+
+
 def _pose_model(knowledge: KnowledgeErrors, views: list[View]) -> PoseModel:
     if isinstance(knowledge, NavigationErrors):
         return navigation_poses(np.array([v.et for v in views]), [v.pose for v in views], knowledge)
@@ -268,11 +385,14 @@ def _range(view: View, shape: Mesh) -> float:
     return max(float(np.linalg.norm(view.pose.position) - np.linalg.norm(shape.vertices, axis=1).mean()), 1e-3)
 
 
-def _store_correction(image: Image, new: PoseCorrection) -> None:
+def _store_correction(image: Image, new: PoseCorrection, *, replace: bool = False) -> None:
     """Compose `new` (estimated about the image's corrected pose) onto its stored correction:
     positions add; rotations compose as R(total) = R(new) R(stored), so that
-    rotation @ R(total)^T = (rotation @ R(stored)^T) @ R(new)^T (pwm.camera.corrected_pose)."""
-    stored = image.pose_correction() or PoseCorrection(position_km=(0.0, 0.0, 0.0), rotation_rad=(0.0, 0.0, 0.0))
+    rotation @ R(total)^T = (rotation @ R(stored)^T) @ R(new)^T (pwm.camera.corrected_pose).
+    replace: `new` was estimated about the kernels' pose, and replaces the stored one."""
+    stored = image.pose_correction()
+    if replace or stored is None:
+        stored = PoseCorrection(position_km=(0.0, 0.0, 0.0), rotation_rad=(0.0, 0.0, 0.0))
     dp = np.asarray(stored.position_km) + np.asarray(new.position_km)
     w = (Rotation.from_rotvec(np.asarray(new.rotation_rad))
          * Rotation.from_rotvec(np.asarray(stored.rotation_rad))).as_rotvec()

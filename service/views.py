@@ -39,16 +39,17 @@ def image_pose(image: Image) -> Pose:
 
 
 def catalog_views(session: Session, *, image_ids: Collection[int] | None = None,
-                  pixels: bool = False) -> dict[int, View]:
+                  pixels: bool = False, kernel_poses: bool = False) -> dict[int, View]:
     """The accepted images with geometry (those of image_ids, or all) as views, by image id.
-    Without pixels the views' image is an empty array (geometry only)."""
+    Without pixels the views' image is an empty array (geometry only); with kernel_poses their
+    poses are the kernels' (`kernel_pose`), without the stored corrections."""
     query = select(Image).where(
         Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED,
         Image.instrument_id.is_not(None)).options(
         selectinload(Image.geometry), selectinload(Image.instrument)).order_by(Image.id)
     if image_ids is not None:
         query = query.where(Image.id.in_(list(image_ids)))
-    return {image.id: image_view(image, pixels=pixels) for image in session.scalars(query)}
+    return {image.id: image_view(image, pixels=pixels, kernel_poses=kernel_poses) for image in session.scalars(query)}
 
 
 def catalog_cones(session: Session) -> tuple[np.ndarray, Cones]:
@@ -67,7 +68,7 @@ def catalog_cones(session: Session) -> tuple[np.ndarray, Cones]:
     return table[:, 0].astype(np.int64), Cones(apex=table[:, 1:4], axis=axis, half_angle=table[:, 7])
 
 
-def image_view(image: Image, *, pixels: bool = False) -> View:
+def image_view(image: Image, *, pixels: bool = False, kernel_poses: bool = False) -> View:
     """One catalogued image (accepted, with geometry) as a view; see `catalog_views`."""
     g, inst = image.geometry, image.instrument
     if g is None or inst is None or image.start_et is None or image.stop_et is None:
@@ -88,5 +89,6 @@ def image_view(image: Image, *, pixels: bool = False) -> View:
         first_sample=first_sample, first_line=first_line, samples=samples, lines=lines)
     sun = np.array([g.sun_x, g.sun_y, g.sun_z])
     return View(name=image.lidvid, image=np.empty((0, 0)) if data is None else data,
-                camera=camera, pose=image_pose(image), sun=sun / np.linalg.norm(sun),
+                camera=camera, pose=kernel_pose(image) if kernel_poses else image_pose(image),
+                sun=sun / np.linalg.norm(sun),
                 et=0.5 * (image.start_et + image.stop_et), los_sigma_px=image.los_sigma_px())

@@ -14,16 +14,17 @@ from pwm.camera import Camera, Pose, corrected_pose, look_at, project
 from pwm.io.downlink import read_downlink
 from pwm.knowledge import NavigationErrors
 from pwm.mesh import Mesh
-from pwm.simulate.knowledge import perturb
+from pwm.simulate.knowledge import Knowledge, perturb
 from pwm.spg import PoseCorrection
 from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.features import fundamental
-from pwm.spg.photogrammetry import anchor_shift
+from pwm.spg.photogrammetry import adjust_poses, anchor_shift
 from pwm.spg.pose_models import navigation_poses
 from pwm.spg.surface import fit_surface, subdivide
 from pwm.spg.triangulation import Tracks, build_tracks, triangulate
 from pwm.spg.uncertainty import DETERMINED, determined, image_sigmas, pose_uncertainty
 from pwm.trajectory import track_frames
+from pwm.views import View
 from service.cli import app
 
 CAMERA = Camera(width=1024, height=1024, fx=14729.4, fy=14729.4, cx=511.5, cy=511.5)
@@ -193,13 +194,21 @@ def _orbit_passes(rng: np.random.Generator) -> tuple[np.ndarray, list, np.ndarra
     return np.array(times), poses, points
 
 
+NAVIGATION = NavigationErrors(along_m=3, cross_m=1, misalign_urad=50, drift_urad=20)
+
+
+def _navigated(times: np.ndarray, truth: list, rng: np.random.Generator) -> tuple[NavigationErrors, Knowledge, list]:
+    """Navigation-like knowledge errors of the true poses: the errors, what was drawn, the kernels' poses."""
+    drawn = perturb(NAVIGATION, times=times, positions_km=np.array([p.position for p in truth]),
+                    rotations=np.array([p.rotation for p in truth]), rng=rng)
+    return NAVIGATION, drawn, [Pose(position=drawn.positions_km[i], rotation=drawn.rotations[i])
+                               for i in range(len(truth))]
+
+
 def test_navigation_pose_model_recovers_what_the_images_determine():
     rng = np.random.default_rng(0)
     times, truth, points = _orbit_passes(rng)
-    errors = NavigationErrors(along_m=3, cross_m=1, misalign_urad=50, drift_urad=20)
-    drawn = perturb(errors, times=times, positions_km=np.array([p.position for p in truth]),
-                    rotations=np.array([p.rotation for p in truth]), rng=rng)
-    kernels = [Pose(position=drawn.positions_km[i], rotation=drawn.rotations[i]) for i in range(len(truth))]
+    errors, drawn, kernels = _navigated(times, truth, rng)
     n = len(truth)
     tracks = Tracks(point=np.tile(np.arange(len(points)), n), image=np.repeat(np.arange(n), len(points)),
                     xy=np.concatenate([project(points, CAMERA, p) for p in truth])
@@ -257,3 +266,36 @@ def test_the_block_is_anchored_to_the_model_by_its_relief():
     np.testing.assert_allclose(shift, [0, 0, -off[2]], atol=1e-9)
     # across it, half the model's edge (0.2 and 0.28 km here): a model places nothing more finely
     assert covariance[0, 0] > 1e3 and covariance[1, 1] > 1e3 and 0.1**2 <= covariance[2, 2] <= 0.15**2  # km^2
+
+
+def test_landmarks_adjust_views_that_no_feature_joins():
+    """Blank images give no feature: the maplets' landmarks (a point per maplet, where each image
+    saw it once registered, pwm.pipeline.landmark_pixels) are then what the adjustment has, and
+    enough to take out most of the line-of-sight error."""
+    rng = np.random.default_rng(7)
+    times, truth, points = _orbit_passes(rng)
+    errors, drawn, kernels = _navigated(times, truth, rng)
+    sphere = _sphere(5)
+    model = Mesh(sphere.vertices * 0.25, sphere.faces)
+    grid = np.stack(np.meshgrid(np.linspace(-0.02, 0.02, 5), np.linspace(-0.02, 0.02, 5)), axis=-1).reshape(-1, 2)
+    landmarks = np.column_stack([grid, np.sqrt(0.25**2 - np.sum(grid**2, axis=1))])  # 25 maplet centres
+    n = len(truth)
+    observed = Tracks(point=np.tile(np.arange(len(landmarks)), n), image=np.repeat(np.arange(n), len(landmarks)),
+                      xy=np.concatenate([project(landmarks, CAMERA, p) for p in truth])
+                      + 0.1 * rng.standard_normal((n * len(landmarks), 2)))
+    views = [View(name=f"img{i}", image=np.zeros((CAMERA.height, CAMERA.width)), camera=CAMERA, pose=p,
+                  sun=np.array([0.0, 0.0, 1.0]), et=t) for i, (p, t) in enumerate(zip(kernels, times, strict=True))]
+    pose_model = navigation_poses(times, kernels, errors)
+    with pytest.raises(ValueError):
+        adjust_poses(views, model, pose_model=pose_model)
+    result = adjust_poses(views, model, pose_model=pose_model, landmarks=observed)
+    assert result.stats["feature_tracks"] == 0 and result.stats["landmarks"] == len(landmarks)
+    fixed = [result.corrections[v.name].apply(v.pose) for v in views]
+
+    def los_px(poses):
+        centre = np.array([0, 0, 0.25])
+        d = [project(centre, CAMERA, p) - project(centre, CAMERA, t) for p, t in zip(poses, truth, strict=True)]
+        return float(np.sqrt(np.mean(np.sum(np.square(d), axis=1))))
+
+    assert los_px(kernels) > 20.0
+    assert los_px(fixed) < 0.3 * los_px(kernels)

@@ -71,7 +71,8 @@ from service.jobs import (
 from service.models import Job, JobKind, JobStatus, Maplet
 from service.publish import first_version_with, fuse_and_publish
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
-from service.run import ingest_and_plan
+from service.run import feed_back, ingest_and_plan
+from service.spg import fed_back
 from workers.app import QUEUES, ProcessState, app, get_worker_settings, process_state
 
 log = logging.getLogger(__name__)
@@ -206,9 +207,14 @@ def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
         version = fuse_and_publish(state.sessions, data_dir=settings.data_dir,
                                    downlink_ids=[] if downlink_id is None else [downlink_id],
                                    config=config)
+        if version is not None and downlink_id is not None:
+            feed_back(state.sessions, data_dir=settings.data_dir, downlink_id=downlink_id,
+                      version=version, config=config)
         with session_scope(state.sessions) as session:
+            # from the catalog, not from this attempt: one that died after the feedback left it there
+            fed = downlink_id is not None and fed_back(session, downlink_id)
             later = [w for w in _next_passes(session, downlink_id=downlink_id, key=key,
-                                             config=config)
+                                             config=config, fed=fed)
                      if _submit_refine(session, downlink_id, w)]
         for work_item in later:
             _enqueue_refine(state.sessions, downlink_id, work_item)
@@ -229,10 +235,11 @@ def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
 
 
 def _next_passes(session: Session, *, downlink_id: int | None, key: str,
-                 config: RefinementConfig) -> list[MapletWork]:
+                 config: RefinementConfig, fed: bool = False) -> list[MapletWork]:
     """The maplets due for a later pass (service.refinement.stale_maplets) whose current
     revision the downlink's refine jobs made, or (downlink None) the requested refinement
-    that the fuse job `key` follows made."""
+    that the fuse job `key` follows made; fed: due at any pass (the feedback corrected the
+    downlink's poses, so its maplets start again)."""
     if downlink_id is None:
         try:
             _, maplet_id, _ = refine_key_parts(key.removeprefix("fuse:"))
@@ -241,7 +248,7 @@ def _next_passes(session: Session, *, downlink_id: int | None, key: str,
         made = made_current(session, downlink_id=None, maplet_ids=[maplet_id])
     else:
         made = made_current(session, downlink_id=downlink_id)
-    return [w for w in stale_maplets(session, config=config, maplet_ids=made) if w.pass_number > 1]
+    return [w for w in stale_maplets(session, config=config, maplet_ids=made) if w.pass_number > 1 or fed]
 
 
 def _submit_refine(session: Session, downlink_id: int | None, work: MapletWork) -> str | None:

@@ -121,7 +121,7 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
                  sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4, max_features: int = 8192,
                  first_octave: int | None = None, per_image: int = 6, max_sun_deg: float = 25.0,
                  model_tolerance_px: float = 30.0, max_residual_px: float = 3.0, anchor: bool = False,
-                 threads: int = 2) -> PoseAdjustment:
+                 landmarks: Tracks | None = None, threads: int = 2) -> PoseAdjustment:
     """Match `views` on `model` and adjust their poses (pwm.spg.adjustment.bundle_adjust).
 
     pose_model: what the adjustment may change (pwm.spg.pose_models; default: every image free,
@@ -137,6 +137,10 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
     adjustment) says: fully where the model's relief places the block better than the priors
     do, hardly at all on a coarse model. The shift alone: a turn of the block would move the
     split between the cameras' positions and pointings that the images leave to the priors.
+
+    landmarks: observations of points no feature needs to find, such as the maplets' landmarks
+    (pwm.pipeline.landmark_pixels; image indices into `views`), adjusted with the feature tracks;
+    with landmarks, views that no feature pair joins are still adjusted.
     """
     clock = time.perf_counter()
     if pose_model is None:
@@ -145,15 +149,27 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
     cameras, poses = [v.camera for v in views], [v.pose for v in views]
     ranges = _ranges(views, tracer)
     prior_los = np.array([s.los_px for s in prior_sigmas(pose_model, cameras, poses, ranges)]) / np.sqrt(2)  # per axis
-    m = match_views(views, tracer, ranges=ranges, los_sigma_px=prior_los, max_features=max_features,
-                    first_octave=first_octave, per_image=per_image, max_sun_deg=max_sun_deg, threads=threads)
-    pairs, features, matches = m.pairs, m.features, m.matches
-    stats: dict = {"extract_s": m.extract_s, "match_s": m.match_s, "features": int(sum(len(f.xy) for f in features)),
-                   "matches": int(sum(len(x) for x in matches.values()))}
-    log.info("%d pairs, %d features, %d matches (%.1f s)", len(pairs), stats["features"], stats["matches"],
-             time.perf_counter() - clock)
-    tracks = build_tracks(matches, [f.xy for f in features])
-    tracks = _consistent(tracks, cameras, poses, tracer, ranges, m.bands, model_tolerance_px)
+    stats: dict = {}
+    try:
+        m = match_views(views, tracer, ranges=ranges, los_sigma_px=prior_los, max_features=max_features,
+                        first_octave=first_octave, per_image=per_image, max_sun_deg=max_sun_deg, threads=threads)
+    except ValueError:
+        if landmarks is None or landmarks.n_points == 0:
+            raise
+        pairs, tracks = [], _NO_TRACKS
+    else:
+        pairs = m.pairs
+        stats.update(extract_s=m.extract_s, match_s=m.match_s, features=int(sum(len(f.xy) for f in m.features)),
+                     matches=int(sum(len(x) for x in m.matches.values())))
+        log.info("%d pairs, %d features, %d matches (%.1f s)", len(pairs), stats["features"], stats["matches"],
+                 time.perf_counter() - clock)
+        tracks = build_tracks(m.matches, [f.xy for f in m.features])
+        if tracks.n_points:
+            tracks = _consistent(tracks, cameras, poses, tracer, ranges, m.bands, model_tolerance_px)
+    stats["feature_tracks"] = tracks.n_points
+    if landmarks is not None:
+        stats["landmarks"] = landmarks.n_points
+        tracks = tracks.joined(landmarks)
     if tracks.n_points == 0:
         raise ValueError("no feature track is consistent with the model and the pose knowledge")
     points, _ = triangulate(tracks, cameras, poses)
@@ -257,6 +273,9 @@ def anchor_shift(points: np.ndarray, model: Mesh, *, iterations: int = 20) -> tu
     faces = model.vertices[model.faces[face[keep]]]
     edge = float(np.median(np.linalg.norm(faces[:, 1] - faces[:, 0], axis=1)))
     return shift, (vectors * variances) @ vectors.T + (0.5 * edge) ** 2 * np.eye(3)
+
+
+_NO_TRACKS = Tracks(point=np.zeros(0, np.int64), image=np.zeros(0, np.int64), xy=np.zeros((0, 2)))
 
 
 def _triple(values: np.ndarray) -> tuple[float, float, float]:

@@ -24,6 +24,12 @@ class Tracks:
     def n_points(self) -> int:
         return int(self.point.max()) + 1 if len(self.point) else 0
 
+    def joined(self, other: Tracks) -> Tracks:
+        """These observations and `other`'s, whose points are numbered after these."""
+        return Tracks(point=np.concatenate([self.point, other.point + self.n_points]).astype(np.int64),
+                      image=np.concatenate([self.image, other.image]).astype(np.int64),
+                      xy=np.concatenate([self.xy.reshape(-1, 2), other.xy.reshape(-1, 2)]))
+
     def subset(self, keep: np.ndarray) -> Tracks:
         """The observations where `keep`, dropping points left with fewer than two, renumbered."""
         point, image, xy = self.point[keep], self.image[keep], self.xy[keep]

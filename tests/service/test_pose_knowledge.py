@@ -15,9 +15,11 @@ from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 
 from pwm.camera import Camera, Pose, project
+from pwm.config import RefinementConfig
 from pwm.knowledge import IndependentErrors
-from service.models import Downlink, Image
-from service.run import ingest_and_plan
+from service.models import Downlink, Image, Maplet
+from service.run import feed_back, ingest_and_plan, run_directory
+from service.spg import fed_back
 from service.views import catalog_views, image_pose, kernel_pose
 from tests.service.test_spg_catalog import SITE
 
@@ -98,3 +100,36 @@ def test_knowledge_within_a_pixel_needs_no_adjustment(tiny_sim, catalog, tmp_pat
         assert all(i.pose_correction() is None for i in images)
         # what the knowledge allows is still what each image's registration searches
         assert all(0 < 3 * i.los_sigma_px() <= 1.0 for i in images)
+
+
+def test_the_maplets_registrations_feed_back_into_the_adjustment(tiny_nav_sim, catalog, tmp_path):
+    """tiny's 3 m navigation errors are 60 px at its range: the first adjustment leaves them far
+    beyond a pixel, so after the first fusion the maplets' registrations join the features in
+    adjusting the poses again (service.spg.feed_back_registrations), once, and the maplets are
+    refined again with the new poses."""
+    config = RefinementConfig(nodes=40, tile_radius_km=0.002, passes=1)
+    report = run_directory(catalog, tiny_nav_sim / "downlink", data_dir=tmp_path, config=config)
+    assert len(report.versions) == 2  # the first fusion, and the one after the feedback
+    with catalog() as session:
+        adjustment = session.get_one(Downlink, report.plan.downlink_id).pose_adjustment
+        feedback = adjustment["feedback"]
+        assert feedback["note"] == "adjusted" and feedback["los_before_px"] == adjustment["los_posterior_px"]
+        maplets = [m for m in session.scalars(select(Maplet)) if m.revisions]  # those with enough images
+        first = [m for m in maplets if m.revisions[0].statistics["model_version"] == report.plan.base_version]
+        # a landmark for each maplet of the first round; the new poses weigh in a few more
+        assert feedback["landmarks"] == len(first) > 3 and feedback["observations"] >= 2 * feedback["landmarks"]
+        assert len(maplets) >= len(first)
+        for maplet in maplets:
+            *earlier, again = (r.statistics for r in maplet.revisions)
+            assert len(earlier) == (maplet in first)
+            # each revision keeps where each image it used saw its landmark (observed pixels)
+            assert set(again["registrations"]) <= set(again["images"]) and len(again["registrations"]) >= 2
+            assert all(np.all(np.isfinite(xy)) for xy in again["registrations"].values())
+            # refined again with the new poses, against the first fusion
+            assert maplet.current_revision.statistics == again and again["model_version"] == report.versions[0]
+        assert fed_back(session, report.plan.downlink_id)
+    kernels, corrected = _poses(catalog)
+    assert _line_of_sight_px(tiny_nav_sim, corrected) < 0.7 * _line_of_sight_px(tiny_nav_sim, kernels)
+    # once per downlink: a second call changes nothing
+    assert not feed_back(catalog, data_dir=tmp_path, downlink_id=report.plan.downlink_id,
+                         version=report.versions[-1], config=config)
