@@ -130,7 +130,7 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
     says what happened either way, and the next downlink tries again with every image so far.
     """
     with sessions() as session:
-        knowledge, _ = downlink_knowledge(session, downlink_id, configured)
+        knowledge, source = downlink_knowledge(session, downlink_id, configured)
         made = latest_version(session)
         targets = set(session.scalars(select(Image.target).where(
             Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED)))
@@ -158,9 +158,28 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
     if number is not None and made is None:
         note = f"version {number} (photogrammetric) made from the images, with no model before"
     with session_scope(sessions) as session:
-        session.get_one(Downlink, downlink_id).model_note = note
+        downlink = session.get_one(Downlink, downlink_id)
+        downlink.model_note = note
+        if number is not None and made is None and knowledge is not None:
+            downlink.pose_adjustment = _start_report(session, downlink_id, number, knowledge, source)
     log.info("downlink %d: %s", downlink_id, note)
     return number
+
+
+def _start_report(session: Session, downlink_id: int, version: int, knowledge: KnowledgeErrors,
+                  source: str) -> dict:
+    """What the start from nothing did to a downlink's poses, as `adjust_downlink` reports its
+    own: the knowledge, the line of sight before and after (medians over the downlink's images),
+    and the adjustment's figures and unknowns (the photogrammetric version's statistics)."""
+    stats = get_version(session, version).statistics
+    sigmas = [image.pose_sigma for image in session.scalars(select(Image).where(Image.downlink_id == downlink_id))
+              if image.pose_sigma]
+    return {"knowledge": format_knowledge_errors(knowledge), "source": source, "images": len(sigmas),
+            "note": f"adjusted by the stereo photogrammetry of version {version}, from nothing",
+            "los_prior_px": float(np.median([s["prior"]["los_px"] for s in sigmas])) if sigmas else 0.0,
+            "los_posterior_px": float(np.median([s["posterior"]["los_px"] for s in sigmas])) if sigmas else 0.0,
+            **{key: stats[key] for key in ("residual_rms_px", "tracks", "observations", "seconds", "unknowns")
+               if key in stats}}
 
 
 def downlink_knowledge(session: Session, downlink_id: int,

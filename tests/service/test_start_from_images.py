@@ -6,6 +6,7 @@ version, the reason recorded on the downlink and shown, and the next downlink tr
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -18,6 +19,7 @@ from typer.testing import CliRunner
 from pwm.config import RefinementConfig
 from pwm.evaluate.closure import closure
 from pwm.geometry import Ellipsoid
+from pwm.knowledge import NavigationErrors
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
@@ -26,7 +28,7 @@ from service.api.routers.images import image_out
 from service.cli import app
 from service.db import session_scope
 from service.models import Downlink, Image, ModelKind, ModelVersion
-from service.run import START_MODEL_NAME, run_directory
+from service.run import START_MODEL_NAME, ingest_and_plan, run_directory
 from service.settings import get_settings
 from service.spg import start_from_images
 from service.versions import get_version, import_model, version_mesh
@@ -170,3 +172,19 @@ def test_a_version_made_meanwhile_is_started_from(tiny_sim, catalog, tmp_path):
         assert len(session.scalars(select(ModelVersion)).all()) == 1
         assert session.get_one(Downlink, downlink_id).model_note == (
             "version 1 (start) was made meanwhile, by another ingest")
+
+
+def test_the_start_from_nothing_reports_what_it_did_to_the_poses(global_tiny_sim, catalog, tmp_path):
+    """Under a pose knowledge, the start from nothing is the downlink's pose adjustment: its record
+    says so as `adjust_downlink`'s does (issue 18.4), with the unknowns of the pose model."""
+    config = dataclasses.replace(SURVEY, knowledge=NavigationErrors(along_m=3, cross_m=1, misalign_urad=50,
+                                                                     drift_urad=20))
+    plan = ingest_and_plan(catalog, global_tiny_sim / "downlink", data_dir=tmp_path, config=config)
+    assert plan.base_version == 1
+    with catalog() as session:
+        report = session.get_one(Downlink, plan.downlink_id).pose_adjustment
+        assert (report["knowledge"], report["source"]) == ("nav:3,1,50,20", "configured")
+        assert report["note"] == "adjusted by the stereo photogrammetry of version 1, from nothing"
+        assert report["images"] == 12 and 0 < report["los_posterior_px"] <= report["los_prior_px"]
+        assert report["tracks"] == get_version(session, 1).statistics["tracks"] > 0
+        assert {"misalignment x", "drift z"} <= {u["name"] for u in report["unknowns"]}
