@@ -8,7 +8,8 @@ Each SIM is a simulated downlink directory (downlink/ and truth/, e.g. `pwm simu
 --scenario site --knowledge-error nav:3,1,50,20 --with-start-model`). It is run into a fresh
 SQLite catalog under OUT/<name>/ (kept with --reuse), and the tables give per SIM: the line of
 sight (where the true boresight's ground point lands, px from where it belongs, RMS over the
-images) with the kernels' poses and with the corrected ones; per navigation arc, the position
+images) with the kernels' poses and with the corrected ones, and how much of it every image
+shares in its own frame (what a camera misalignment does); per navigation arc, the position
 error along-track, cross-track and radial (RMS, m) before and after; the misalignment and drift
 (microradians) drawn and recovered, with the posterior sigma the adjustment gives each (the
 feedback's, where the maplets' registrations adjusted the poses again); the refined model's
@@ -78,15 +79,21 @@ def pose_table(sim: Path, work: Path) -> dict:
     names = sorted(true, key=lambda n: true[n]["et"])
     truth = [Pose(np.array(true[n]["position_km"]), np.array(true[n]["rotation"])) for n in names]
     times = np.array([true[n]["et"] for n in names])
-    los = {"before": [], "after": []}
-    errors = {"before": [], "after": []}
+    los: dict[str, list] = {"before": [], "after": []}
+    errors: dict[str, list] = {"before": [], "after": []}
     for name, t in zip(names, truth, strict=True):
         ground = t.position + t.boresight * true[name]["site_range_km"]
         for which, pose in zip(("before", "after"), poses[name], strict=True):
-            los[which].append(float(np.linalg.norm(project(ground, camera, pose) - project(ground, camera, t))))
+            los[which].append(project(ground, camera, pose) - project(ground, camera, t))
             errors[which].append((pose.position - t.position) * 1e3)
     frames = track_frames(times, np.array([t.position for t in truth]))
-    out: dict = {"los_before_px": _rms(los["before"]), "los_after_px": _rms(los["after"])}
+    out: dict = {}
+    for which, shifts in los.items():
+        # the part every image shares (in its own frame: a camera misalignment looks so) and the rest
+        common = np.mean(shifts, axis=0)
+        out[f"los_{which}_px"] = _rms(np.linalg.norm(shifts, axis=1))
+        out[f"los_{which}_common_px"] = common.tolist()
+        out[f"los_{which}_rest_px"] = _rms(np.linalg.norm(np.array(shifts) - common, axis=1))
     arcs = manifest["knowledge_error"].get("arcs") or [{"images": [true[n]["name"] for n in names]}]
     index = {true[n]["name"]: k for k, n in enumerate(names)}  # the arcs name images as the manifest does
     out["arcs"] = []
@@ -146,6 +153,10 @@ def main() -> None:
         print(f"  line of sight RMS (px, against the truth): {table['los_before_px']:.2f} -> "
               f"{table['los_after_px']:.2f} ({1 - table['los_after_px'] / table['los_before_px']:.0%} cut); "
               f"posterior 1 sigma {final.get('los_posterior_px', float('nan')):.2f}")
+        print(f"  of which common to every image (image frame, px): "
+              f"{'/'.join(f'{v:.2f}' for v in table['los_before_common_px'])} -> "
+              f"{'/'.join(f'{v:.2f}' for v in table['los_after_common_px'])}; the rest "
+              f"{table['los_before_rest_px']:.2f} -> {table['los_after_rest_px']:.2f} px RMS")
         for k, arc in enumerate(table["arcs"]):
             print(f"  arc {k} position RMS along/cross/radial (m): "
                   f"{'/'.join(f'{v:.2f}' for v in arc['before'])} -> {'/'.join(f'{v:.2f}' for v in arc['after'])}")

@@ -303,3 +303,81 @@ def _search(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, steps: np.
     step = float(steps[1] - steps[0]) if len(steps) > 1 else 1.0
     best = np.array([steps[j], steps[i]], float) + step * _peak(score, i, j)
     return best, float(score[i, j])
+
+
+def rise_motion(maplet: MapletGrid, data: MapletImages, axis: np.ndarray | None = None) -> np.ndarray:
+    """(K, 2) how each image's view of the maplet's centre node moves (sample, line; px per km) as
+    the node moves along `axis` (default the maplet's local z: a rise)."""
+    centre = maplet.nodes_body()[maplet.n // 2, maplet.n // 2]
+    step = maplet.spacing_km * (maplet.frame.rotation[2] if axis is None else axis)
+    return np.array([project((centre + step)[None], camera, pose)[0] - project((centre - step)[None], camera, pose)[0]
+                     for camera, pose in zip(data.cameras, data.poses, strict=True)]) / (2 * maplet.spacing_km)
+
+
+def parallax_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,
+                    sigma_px: np.ndarray) -> tuple[float, float]:
+    """The rise of the maplet (km, along its local z) whose parallax best explains the images'
+    offsets (K, 2; sample, line, px) beside a sideways shift of the whole maplet, and its 1 sigma
+    (km), for offsets each good to sigma_px (K,) px (inf: an image that says nothing).
+
+    Photometry cannot place a maplet: the offsets that register its images take up whatever
+    the poses and the start's height leave (pwm.photoclinometry holds the mean height). A
+    sideways shift moves every image alike over the ground (the albedo moves with it: the datum
+    the poses fix), but a rise moves each image along its own parallax; where the poses are
+    known better than that parallax, the offsets measure the height the start got wrong, as
+    stereo does.
+    """
+    jac = np.column_stack([rise_motion(maplet, data, axis).ravel() for axis in maplet.frame.rotation])  # (2K, 3)
+    weight = np.repeat(1.0 / np.square(np.asarray(sigma_px, float)), 2)
+    normal = jac.T @ (weight[:, None] * jac)
+    if np.linalg.matrix_rank(normal) < 3:
+        return 0.0, float("inf")
+    covariance = np.linalg.inv(normal)
+    shift = covariance @ (jac.T @ (weight * np.asarray(offsets, float).ravel()))
+    return float(shift[2]), float(np.sqrt(covariance[2, 2]))
+
+
+def sweep_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *, reach_px: float,
+                 step_px: float = 1.0) -> float:
+    """The rise of the whole maplet (km, along its local z) at which its images agree best with
+    one another: plane-sweep stereo over rises whose parallax between the images spans up to
+    reach_px (step_px apart). At each, every image is compared with the albedo the others give
+    times its shading (`_full_scores`, on every second or third node: the agreement needs no
+    more); the rise of the best mean correlation is kept, refined by a parabola. It finds a
+    start's height error many pixels of parallax wide, far beyond the photoclinometric
+    solution's reach of about a pixel. 0 when the images are too few, their parallax too small
+    to sweep, or the best agreement lies at the sweep's end."""
+    if data.count < 2:
+        return 0.0
+    motion = rise_motion(maplet, data)
+    spread = float(np.max(np.linalg.norm(motion[:, None] - motion[None], axis=-1)))  # px per km between images
+    if spread * maplet.spacing_km < 1e-3:
+        return 0.0
+    sparse, sparse_data = _every(maplet, data)
+    step = step_px / spread
+    rises = np.arange(-reach_px / spread, reach_px / spread + 0.5 * step, step)
+    scores = np.array([_mean_score(dataclasses.replace(sparse, heights=sparse.heights + rise), sparse_data, offsets)
+                       for rise in rises])
+    if not np.isfinite(scores).any():
+        return 0.0
+    best = int(np.nanargmax(scores))
+    if not (0 < best < len(rises) - 1 and np.isfinite(scores[best - 1 : best + 2]).all()):
+        return 0.0
+    return float(rises[best] + _vertex(*scores[best - 1 : best + 2]) * step)
+
+
+def _every(maplet: MapletGrid, data: MapletImages) -> tuple[MapletGrid, MapletImages]:
+    """The maplet and its images' node masks at every third (or second) node, where that spans
+    the same square."""
+    factor = next(f for f in (3, 2, 1) if (maplet.n - 1) % f == 0)
+    if factor == 1:
+        return maplet, data
+    pick = (slice(None), slice(None, None, factor), slice(None, None, factor))
+    return (dataclasses.replace(maplet, heights=maplet.heights[::factor, ::factor], albedo=None,
+                                spacing_km=maplet.spacing_km * factor),
+            dataclasses.replace(data, visible=data.visible[pick], lit=data.lit[pick], weights=data.weights[pick]))
+
+
+def _mean_score(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray) -> float:
+    scores = _full_scores(maplet, data, offsets)
+    return float(np.mean(scores[np.isfinite(scores)])) if np.isfinite(scores).sum() >= 2 else np.nan

@@ -33,9 +33,11 @@ class RefinementConfig:
     passes of `pwm refine`, each from the previous pass's fused model (the catalog refines a
     maplet once per input, against the current published model). search_px: how far (px) the
     images may be off the maplets, from the pose knowledge; beyond a pixel they are registered
-    first (pwm.pipeline.refine_maplet). min_images: fewest usable images a maplet is refined
-    from; with fewer it keeps its start. tile_radius_km: the operations tile each place the images
-    see (pwm.footprints) only within this of its centre (None: all of it).
+    first (pwm.pipeline.refine_maplet). height_sweep_px: within a pixel, how much parallax between
+    the images a maplet's height is swept over before it is refined (0: not swept). min_images:
+    fewest usable images a maplet is refined from; with fewer it keeps its start.
+    tile_radius_km: the operations tile each place the images see (pwm.footprints) only within
+    this of its centre (None: all of it).
     rules: the weighting (pwm.weights.Rules); solver: the iteration (pwm.photoclinometry.Solver).
     knowledge: the 1-sigma pose knowledge (pwm.knowledge) of kernels that state none; None: as
     good as the images need. With it, the operations adjust a downlink's poses before refining
@@ -49,6 +51,7 @@ class RefinementConfig:
     spacing_gsd: float = 1.0
     passes: int = 2
     search_px: float = 1.0
+    height_sweep_px: float = 16.0
     min_images: int = 3
     tile_radius_km: float | None = None
     rules: Rules = field(default=RULES)
@@ -68,6 +71,8 @@ class RefinementConfig:
             raise ValueError("at least one pass")
         if self.search_px < 0:
             raise ValueError(f"search of {self.search_px} px: must be non-negative")
+        if self.height_sweep_px < 0:
+            raise ValueError(f"height sweep of {self.height_sweep_px} px: must be non-negative")
         if self.min_images < 1:
             raise ValueError("a maplet is refined from at least one image")
         if self.tile_radius_km is not None and not self.tile_radius_km > 0:
@@ -76,7 +81,8 @@ class RefinementConfig:
     def digest(self) -> str:
         """sha256 of the settings that change one maplet's refinement (mode, search, image count,
         weighting rules, solver)."""
-        payload: dict[str, Any] = {"mode": self.mode, "search_px": self.search_px, "min_images": self.min_images,
+        payload: dict[str, Any] = {"mode": self.mode, "search_px": self.search_px,
+                                   "height_sweep_px": self.height_sweep_px, "min_images": self.min_images,
                                    "rules": dataclasses.asdict(self.rules), "solver": dataclasses.asdict(self.solver)}
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 

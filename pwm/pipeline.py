@@ -8,20 +8,21 @@ Celery workers build the same views from the catalog.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from pwm.alignment import register
+from pwm.alignment import parallax_height, register, rise_motion, sweep_height
 from pwm.camera import project
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.levels import LevelGrids
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.parallel import map_processes
-from pwm.photoclinometry import MapletImages, extract, refine
+from pwm.photoclinometry import MapletImages, Refinement, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
 from pwm.views import View
@@ -43,7 +44,8 @@ log = logging.getLogger(__name__)
 @dataclass
 class MapletResult:
     """A refined maplet and how it was made: the images used (names), weights, solver outcome,
-    and where each image that weighed into it sees its landmark (`landmark_pixels`)."""
+    where each image that weighed into it sees its landmark (`landmark_pixels`), and how far
+    (km) the images' parallax raised it from its start."""
 
     maplet: MapletGrid
     images: list[str]
@@ -55,6 +57,7 @@ class MapletResult:
     residual_rms: list[float]
     seconds: float
     registrations: dict[str, tuple[float, float]]
+    raised_km: float
 
 
 def maplet_images(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
@@ -104,6 +107,15 @@ def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
 
 KNOWLEDGE_SIGMAS = 3.0
 """An image is searched for this many sigmas of its line of sight (View.los_sigma_px)."""
+REGISTRATION_PX = 0.1
+"""How well a maplet's registration places an image with exact poses (px, 1 sigma)."""
+PARALLAX_ROUNDS = 3
+"""At most this many times a maplet is raised by its offsets' parallax and solved again."""
+NESTED_START = 16.0
+"""A maplet whose start model's faces are this many of its spacings or more (four levels) is
+nested under a coarser model and placed by its images' parallax; nearer its own level the start
+is within the joint solution's reach, and a sweep there only adds noise (bench/RESULTS.md: `tiny`
+at 10 and `site` at 14 spacings)."""
 
 
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
@@ -114,7 +126,12 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     config.search_px: how far (px) the images may be off the maplet, from the pose knowledge (about
     3 sigma of position error / range plus pointing error, times the focal length), or three of
     its images' los_sigma_px where that is more: beyond a pixel, the images are registered
-    (`pwm.alignment.register`) within it before the joint solution."""
+    (`pwm.alignment.register`) within it before the joint solution; within it, the maplet is first
+    raised to where its images agree best (`pwm.alignment.sweep_height`, over
+    config.height_sweep_px of parallax), and after the solution by what its offsets took up of
+    the parallax (`_settled`), where its start is a much coarser model (NESTED_START): the joint
+    solution holds the start's mean height, which a coarser level gets wrong by many pixels of
+    parallax."""
     clock = time.perf_counter()
     mode = config.mode
     data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)
@@ -125,7 +142,7 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                          heights=maplet.heights.copy(),
                          albedo=None if maplet.albedo is None else maplet.albedo.copy(),
                          weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
-    iterations, converged, rms = 0, False, []
+    iterations, converged, rms, raised = 0, False, [], 0.0
     registrations: dict[str, tuple[float, float]] = {}
     if data.count >= config.min_images:
         # navigation knowledge errors move images by many pixels: register them before the joint
@@ -134,11 +151,24 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         # moves the joint solution's starting point away from the poses
         offsets = (register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0
                    else np.zeros((data.count, 2)))
+        # A start from a much coarser model can be off by many pixels of parallax, and the joint
+        # solution holds its mean height; where the poses are known within a pixel, their
+        # parallax places the maplet instead.
+        placed = search_px <= 1.0 and _start_edge_km(maplet, tracer) >= NESTED_START * maplet.spacing_km
+        if placed and config.height_sweep_px > 0:
+            raised = sweep_height(maplet, data, offsets, reach_px=config.height_sweep_px)
+            maplet = _raised(maplet, raised)
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
             data.weights = without_dark(data.weights, dark_nodes(extract(maplet, data, offsets=offsets), data.weights,
                                                                       config.rules), config.rules)
         result = refine(maplet, data, mode=mode, offsets=offsets, solver=config.solver)
+        if placed:
+            # an image that no node weighed kept its start offset: it says nothing
+            sigma = np.where(np.isfinite(result.rms),
+                             np.hypot([views[k].los_sigma_px for k in keep], REGISTRATION_PX), np.inf)
+            result, rise = _settled(maplet, data, result, sigma_px=sigma, config=config)
+            raised += rise
         refined.heights, refined.albedo = result.heights, result.albedo
         iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
         seen = np.isfinite(result.rms)  # an image no node weighed kept its start: it observed nothing
@@ -146,7 +176,25 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                          zip(keep, landmark_pixels(refined, data, result.offsets), seen, strict=True) if ok}
     return MapletResult(maplet=refined, images=[views[k].name for k in keep], region_weight=weights.region,
                         five_views=views_found, dropped=dropped, iterations=iterations, converged=converged,
-                        residual_rms=rms, seconds=time.perf_counter() - clock, registrations=registrations)
+                        residual_rms=rms, seconds=time.perf_counter() - clock, registrations=registrations,
+                        raised_km=raised)
+
+
+def _settled(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sigma_px: np.ndarray,
+             config: RefinementConfig) -> tuple[Refinement, float]:
+    """The refinement solved again from a maplet raised by what its offsets took up of a height
+    the start got wrong (`pwm.alignment.parallax_height`), while that is more than three sigma,
+    at most PARALLAX_ROUNDS times; and the rise (km)."""
+    raised = 0.0
+    for _ in range(PARALLAX_ROUNDS):
+        rise, sigma = parallax_height(dataclasses.replace(maplet, heights=result.heights), data, result.offsets,
+                                      sigma_px=sigma_px)
+        if not abs(rise) > 3 * sigma:
+            break
+        maplet, raised = _raised(maplet, rise), raised + rise
+        result = refine(maplet, data, mode=config.mode, offsets=result.offsets - rise * rise_motion(maplet, data),
+                        solver=config.solver)
+    return result, raised
 
 
 def landmark_pixels(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray) -> np.ndarray:
@@ -158,6 +206,20 @@ def landmark_pixels(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray)
     centre = maplet.nodes_body()[maplet.n // 2, maplet.n // 2]
     return np.array([project(centre[None], camera, pose)[0] for camera, pose in
                      zip(data.cameras, data.poses, strict=True)]).reshape(-1, 2) + np.asarray(offsets, float)
+
+
+def _start_edge_km(maplet: MapletGrid, tracer: RayTracer) -> float:
+    """Median edge (km) of the start model's faces under the maplet (at 5 x 5 of its nodes)."""
+    pick = np.linspace(0, maplet.n - 1, 5).round().astype(int)
+    nodes = maplet.nodes_body()[np.ix_(pick, pick)].reshape(-1, 3)
+    up = maplet.frame.rotation[2]
+    hits = tracer.intersect(nodes + maplet.n * maplet.spacing_km * up, np.broadcast_to(-up, nodes.shape).copy())
+    corners = tracer.mesh.vertices[tracer.mesh.faces[hits.face[hits.hit]]]
+    return float(np.median(np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1))) if len(corners) else 0.0
+
+
+def _raised(maplet: MapletGrid, rise_km: float) -> MapletGrid:
+    return dataclasses.replace(maplet, heights=maplet.heights + rise_km)
 
 
 def search_levels(search_px: float) -> tuple[tuple[int, float], ...]:

@@ -204,6 +204,7 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
                   "model_version": model_version, "pass": pass_number,
                   # observations of the images' poses for the next adjustment (service.spg)
                   "registrations": {name: list(xy) for name, xy in result.registrations.items()},
+                  "raised_m": result.raised_km * 1e3,
                   "height_change_rms_m": float(np.sqrt(np.mean(
                       (result.maplet.heights - grid.heights) ** 2)) * 1e3)}
     revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=input_hash,

@@ -17,7 +17,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
-from pwm.alignment import align, register
+from pwm.alignment import align, parallax_height, register, sweep_height
 from pwm.camera import Camera, Pose, look_at, project
 from pwm.frames import latlon_to_unit, local_frame
 from pwm.maplets import MapletGrid
@@ -273,6 +273,41 @@ def test_a_maplet_too_high_keeps_its_mean_height_and_the_offsets_take_the_parall
     np.testing.assert_allclose(_datum_free(result.offsets, start, scene.data), _datum_free(parallax, start, scene.data),
                                atol=0.05)
     assert _bump_height(result.heights) == pytest.approx(BUMP_KM, rel=0.10)
+
+
+def test_the_offsets_parallax_tells_how_far_the_maplet_is_too_high(scene: Scene) -> None:
+    # where the poses are known (the images' offsets good to 0.1 px), what the offsets took up
+    # of a start 2 spacings too high is a rise of the maplet, as stereo measures it
+    lift = 2 * SPACING_KM
+    start = dataclasses.replace(scene.start, heights=scene.start.heights + lift)
+    result = refine(start, scene.data)
+    made = dataclasses.replace(start, heights=result.heights)
+    rise, sigma = parallax_height(made, scene.data, result.offsets, sigma_px=np.full(scene.data.count, 0.1))
+    truth = float(np.mean(scene.truth.heights)) - lift
+    assert 0 < sigma < 0.1 * SPACING_KM and rise == pytest.approx(truth, abs=0.15 * SPACING_KM)
+    # an image that says nothing (infinite sigma) changes nothing but the sigma
+    loose = np.full(scene.data.count, 0.1)
+    loose[0] = np.inf
+    rise_without, sigma_without = parallax_height(made, scene.data, result.offsets, sigma_px=loose)
+    assert sigma_without >= sigma and rise_without == pytest.approx(truth, abs=0.15 * SPACING_KM)
+
+
+def test_a_sweep_of_rises_finds_a_start_many_pixels_of_parallax_off(scene: Scene) -> None:
+    # 8 spacings too high: the oblique images see the nodes several pixels apart, beyond the
+    # joint solution's reach; the images agree again where the maplet is lowered by about that
+    lift = 8 * SPACING_KM
+    start = dataclasses.replace(scene.start, heights=scene.start.heights + lift)
+    zero = np.zeros((scene.data.count, 2))
+    rise = sweep_height(start, scene.data, zero, reach_px=16.0)
+    assert rise == pytest.approx(float(np.mean(scene.truth.heights)) - lift, abs=SPACING_KM)
+    # at the true height, the images agree best where the maplet is
+    assert sweep_height(scene.truth, scene.data, zero, reach_px=16.0) == pytest.approx(0.0, abs=0.1 * SPACING_KM)
+    # nor with a single image
+    assert sweep_height(start, dataclasses.replace(scene.data, images=scene.data.images[:1],
+                                                   cameras=scene.data.cameras[:1], poses=scene.data.poses[:1],
+                                                   sun_directions=scene.data.sun_directions[:1],
+                                                   visible=scene.data.visible[:1], lit=scene.data.lit[:1],
+                                                   weights=scene.data.weights[:1]), zero[:1], reach_px=16.0) == 0.0
 
 
 def test_region_weight_tightens_to_the_start(scene: Scene, refined: Refinement) -> None:
