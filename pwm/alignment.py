@@ -24,7 +24,15 @@ from scipy import ndimage
 
 from pwm.camera import project
 from pwm.maplets import MapletGrid
-from pwm.photoclinometry import MapletImages, bilinear, bilinear_gradient, datum_complement, node_pixels, predict
+from pwm.photoclinometry import (
+    MapletImages,
+    bilinear,
+    bilinear_gradient,
+    datum_complement,
+    image_motion,
+    node_pixels,
+    predict,
+)
 
 
 @dataclass
@@ -309,9 +317,7 @@ def rise_motion(maplet: MapletGrid, data: MapletImages, axis: np.ndarray | None 
     """(K, 2) how each image's view of the maplet's centre node moves (sample, line; px per km) as
     the node moves along `axis` (default the maplet's local z: a rise)."""
     centre = maplet.nodes_body()[maplet.n // 2, maplet.n // 2]
-    step = maplet.spacing_km * (maplet.frame.rotation[2] if axis is None else axis)
-    return np.array([project((centre + step)[None], camera, pose)[0] - project((centre - step)[None], camera, pose)[0]
-                     for camera, pose in zip(data.cameras, data.poses, strict=True)]) / (2 * maplet.spacing_km)
+    return image_motion(data, centre, maplet.frame.rotation[2] if axis is None else axis, step_km=maplet.spacing_km)
 
 
 def parallax_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,

@@ -513,16 +513,19 @@ def datum_complement(maplet: MapletGrid, data: MapletImages) -> np.ndarray:
     """(2K, m) orthonormal basis of the image offsets (sample, line per image) orthogonal to those
     a shift of the maplet along its local x and y would cause (m = 2K - 2 in general). A shift
     along z stays free: `refine` holds the mean height, and the offsets absorb its parallax."""
-    centre = maplet.frame.origin
-    step = maplet.spacing_km
-    shift = np.column_stack([
-        np.concatenate([project(centre + step * axis, camera, pose) - project(centre - step * axis, camera, pose)
-                        for camera, pose in zip(data.cameras, data.poses, strict=True)]) / (2 * step)
-        for axis in maplet.frame.rotation[:2]
-    ])
+    shift = np.column_stack([image_motion(data, maplet.frame.origin, axis, step_km=maplet.spacing_km).ravel()
+                             for axis in maplet.frame.rotation[:2]])
     u, sv, _ = np.linalg.svd(shift)
     rank = int((sv > 1e-9 * sv.max()).sum()) if sv.size and sv.max() > 0 else 0
     return u[:, rank:]
+
+
+def image_motion(data: MapletImages, point: np.ndarray, direction: np.ndarray, *, step_km: float) -> np.ndarray:
+    """(K, 2) how each image sees `point` (body-fixed, km) move as it moves along the unit
+    `direction` (sample, line; px per km), by central differences over +-step_km."""
+    step = step_km * np.asarray(direction, float)
+    return np.array([project(point + step, camera, pose) - project(point - step, camera, pose)
+                     for camera, pose in zip(data.cameras, data.poses, strict=True)]).reshape(-1, 2) / (2 * step_km)
 
 
 def _advance(state: _State, step: _State, t: float) -> _State | None:
