@@ -344,15 +344,15 @@ def parallax_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray,
 
 
 def sweep_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *, reach_px: float,
-                 step_px: float = 1.0) -> float:
+                 max_rise_km: float, step_px: float = 1.0) -> float:
     """The rise of the whole maplet (km, along its local z) at which its images agree best with
     one another: plane-sweep stereo over rises whose parallax between the images spans up to
-    reach_px (step_px apart). At each, every image is compared with the albedo the others give
-    times its shading (`_full_scores`, on every second or third node: the agreement needs no
-    more); the rise of the best mean correlation is kept, refined by a parabola. It finds a
-    start's height error many pixels of parallax wide, far beyond the photoclinometric
-    solution's reach of about a pixel. 0 when the images are too few, their parallax too small
-    to sweep, or the best agreement lies at the sweep's end."""
+    reach_px (step_px apart), and at most max_rise_km. At each, every image is compared with the
+    albedo the others give times its shading (`_full_scores`, on every second or third node: the
+    agreement needs no more); the rise of the best mean correlation is kept, refined by a
+    parabola. It finds a start's height error many pixels of parallax wide, far beyond the
+    photoclinometric solution's reach of about a pixel. 0 when the images are too few, their
+    parallax too small to sweep, or the best agreement lies at the sweep's end."""
     if data.count < 2:
         return 0.0
     motion = rise_motion(maplet, data)
@@ -361,7 +361,8 @@ def sweep_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,
         return 0.0
     sparse, sparse_data = _every(maplet, data)
     step = step_px / spread
-    rises = np.arange(-reach_px / spread, reach_px / spread + 0.5 * step, step)
+    half = min(reach_px / spread, max_rise_km)
+    rises = np.arange(-half, half + 0.5 * step, step)
     scores = np.array([_mean_score(dataclasses.replace(sparse, heights=sparse.heights + rise), sparse_data, offsets)
                        for rise in rises])
     if not np.isfinite(scores).any():

@@ -154,9 +154,13 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         # A start from a much coarser model can be off by many pixels of parallax, and the joint
         # solution holds its mean height; where the poses are known within a pixel, their
         # parallax places the maplet instead.
-        placed = search_px <= 1.0 and _start_edge_km(maplet, tracer) >= NESTED_START * maplet.spacing_km
+        # Placement within the start's face size: a coarse model's heights are not off by more
+        # than its faces are long, and a rise beyond that (small parallax between the images,
+        # a repeating texture) is a misplacement.
+        start_edge_km = _start_edge_km(maplet, tracer)
+        placed = search_px <= 1.0 and start_edge_km >= NESTED_START * maplet.spacing_km
         if placed and config.height_sweep_px > 0:
-            raised = sweep_height(maplet, data, offsets, reach_px=config.height_sweep_px)
+            raised = sweep_height(maplet, data, offsets, reach_px=config.height_sweep_px, max_rise_km=start_edge_km)
             maplet = _raised(maplet, raised)
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
@@ -167,8 +171,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
             # an image that no node weighed kept its start offset: it says nothing
             sigma = np.where(np.isfinite(result.rms),
                              np.hypot([views[k].los_sigma_px for k in keep], REGISTRATION_PX), np.inf)
-            result, rise = _settled(maplet, data, result, sigma_px=sigma, config=config)
-            raised += rise
+            result, raised = _settled(maplet, data, result, sigma_px=sigma, config=config, raised_km=raised,
+                                      max_rise_km=start_edge_km)
         refined.heights, refined.albedo = result.heights, result.albedo
         iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
         seen = np.isfinite(result.rms)  # an image no node weighed kept its start: it observed nothing
@@ -181,15 +185,16 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
 
 
 def _settled(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sigma_px: np.ndarray,
-             config: RefinementConfig) -> tuple[Refinement, float]:
+             config: RefinementConfig, raised_km: float, max_rise_km: float) -> tuple[Refinement, float]:
     """The refinement solved again from a maplet raised by what its offsets took up of a height
-    the start got wrong (`pwm.alignment.parallax_height`), while that is more than three sigma,
-    at most PARALLAX_ROUNDS times; and the rise (km)."""
-    raised = 0.0
+    the start got wrong (`pwm.alignment.parallax_height`), while that is more than three sigma
+    and the maplet stays within max_rise_km of its start, at most PARALLAX_ROUNDS times; and the
+    whole rise (km) from the start, of which raised_km was done before."""
+    raised = raised_km
     for _ in range(PARALLAX_ROUNDS):
         rise, sigma = parallax_height(dataclasses.replace(maplet, heights=result.heights), data, result.offsets,
                                       sigma_px=sigma_px)
-        if not abs(rise) > 3 * sigma:
+        if not (abs(rise) > 3 * sigma and abs(raised + rise) <= max_rise_km):
             break
         maplet, raised = _raised(maplet, rise), raised + rise
         result = refine(maplet, data, mode=config.mode, offsets=result.offsets - rise * rise_motion(maplet, data),

@@ -100,14 +100,18 @@ class DistanceGrid(SparseSums):
             cols[:, _A] = w * ndimage.map_coordinates(maplet.albedo, grid[:, near], order=1, mode="nearest")
         return sum_by_key(pack(index[near]), cols)
 
-    def _band(self, points: np.ndarray, normals: np.ndarray, truncation_km: float | None = None) -> np.ndarray:
+    def _band(self, points: np.ndarray, normals: np.ndarray, reach_km: np.ndarray | float | None = None) -> np.ndarray:
         """Sorted unique keys of the lattice points about the surface through `points` with unit
-        `normals`, out to the truncation (this grid's by default) on both sides: the corners of
-        the cells that the points stepped along their normals fall in."""
-        reach = self.truncation_km if truncation_km is None else truncation_km
+        `normals`, out to reach_km on both sides (per point, or this grid's truncation): the
+        corners of the cells that the points stepped along their normals fall in."""
+        reach = np.broadcast_to(self.truncation_km if reach_km is None else reach_km, (len(points),))
         keys = []
-        for t in np.arange(-reach, reach + 0.5 * self.voxel_km, self.voxel_km):
-            cell = np.floor((points + t * normals) / self.voxel_km).astype(np.int64)
+        # steps at whole lattice steps from the surface, so that a point's band is the same
+        # whatever the others' reach
+        steps = int(np.ceil(reach.max(initial=0.0) / self.voxel_km))
+        for t in self.voxel_km * np.arange(-steps, steps + 1):
+            out_to = reach > abs(t) - self.voxel_km
+            cell = np.floor((points[out_to] + t * normals[out_to]) / self.voxel_km).astype(np.int64)
             keys.append(np.unique(pack((cell[:, None, :] + _CORNERS[None]).reshape(-1, 3))))
         return np.unique(np.concatenate(keys))
 
@@ -130,16 +134,21 @@ class DistanceGrid(SparseSums):
         surface = np.abs(maplet_distance) <= 0.5 * self.truncation_km
         at = unpack(self.keys[maplet_sums][surface]) * self.voxel_km
         delta = distance_to_base(at)[0] - maplet_distance[surface]
-        reach = self.truncation_km + float(np.abs(delta).max(initial=0.0))
+        fade = FADE_VOXELS * self.voxel_km
+        # each base sample's band is widened by the disagreement of the maplets about it, not the
+        # body's largest: one far-off maplet would otherwise widen the band everywhere
+        local_reach = self.truncation_km + _largest_near(points, at, np.abs(delta), fade + self.truncation_km)
+        reach = float(local_reach.max(initial=self.truncation_km))
         maplet_surface = cKDTree(at) if len(at) else None
         # where the base runs within a lattice step of the maplets' surface, and is not near
         # where it does not (a border), the maplets hold the surface alone
         bare = np.ones(len(points), dtype=bool) if maplet_surface is None else (
             maplet_surface.query(points, distance_upper_bound=self.voxel_km)[0] > self.voxel_km)
         if bare.any() and not bare.all():
-            margin = reach + 2.0 * self.voxel_km
-            bare = cKDTree(points[bare]).query(points, distance_upper_bound=margin)[0] <= margin
-        keys = self._band(points[bare], normals[bare], reach) if bare.any() else np.empty(0, dtype=np.int64)
+            margin = local_reach + 2.0 * self.voxel_km
+            bare = cKDTree(points[bare]).query(points, distance_upper_bound=margin.max())[0] <= margin
+        keys = (self._band(points[bare], normals[bare], local_reach[bare]) if bare.any()
+                else np.empty(0, dtype=np.int64))
         keys = keys[~np.isin(keys, self.keys, assume_unique=True)]
 
         def bent(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -149,7 +158,6 @@ class DistanceGrid(SparseSums):
                 # the mean disagreement of the nearest maplet points, so that one maplet's
                 # outlier does not bend the base alone; none beyond the fade (a bound that also
                 # keeps the tree's search on a regular lattice fast)
-                fade = FADE_VOXELS * self.voxel_km
                 gap, which = maplet_surface.query(x, k=min(_BEND_NEIGHBOURS, len(at)),
                                                   distance_upper_bound=fade + self.truncation_km)
                 gap, which = gap.reshape(len(x), -1), which.reshape(len(x), -1)
@@ -230,6 +238,24 @@ class _MeshDistance:
         hits = self.tracer.intersect(x, direction)
         inside = hits.hit & (self.tracer.face_normals[np.where(hits.hit, hits.face, 0)] @ _INSIDE_RAY > 0)
         return np.where(inside, -size, size), nearest
+
+
+def _largest_near(points: np.ndarray, at: np.ndarray, values: np.ndarray, radius_km: float) -> np.ndarray:
+    """For each of `points`, the largest of `values` (0 without any) at the points `at` within
+    about radius_km: binned in cubes of radius_km, each point takes the largest over its cube and
+    the 26 about it (so at least everything within radius_km, and nothing beyond 2 sqrt(3) of it)."""
+    if not len(at):
+        return np.zeros(len(points))
+    cells, slot = np.unique(pack(np.floor(at / radius_km).astype(np.int64)), return_inverse=True)
+    largest = np.zeros(len(cells))
+    np.maximum.at(largest, slot.ravel(), values)
+    own = np.floor(points / radius_km).astype(np.int64)
+    found = np.zeros(len(points))
+    for step in _NEIGHBOURS:
+        key = pack(own + step)
+        where = np.clip(np.searchsorted(cells, key), 0, len(cells) - 1)
+        found = np.maximum(found, np.where(cells[where] == key, largest[where], 0.0))
+    return found
 
 
 def _surface_samples(mesh: Mesh, spacing_km: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:

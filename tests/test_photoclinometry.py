@@ -10,6 +10,7 @@ per-image brightness scales and 1 % noise. Refinement starts from the flat, bump
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -293,21 +294,25 @@ def test_the_offsets_parallax_tells_how_far_the_maplet_is_too_high(scene: Scene)
 
 
 def test_a_sweep_of_rises_finds_a_start_many_pixels_of_parallax_off(scene: Scene) -> None:
+    sweep = functools.partial(sweep_height, reach_px=16.0)
+    far = 16 * SPACING_KM
     # 8 spacings too high: the oblique images see the nodes several pixels apart, beyond the
     # joint solution's reach; the images agree again where the maplet is lowered by about that
     lift = 8 * SPACING_KM
     start = dataclasses.replace(scene.start, heights=scene.start.heights + lift)
     zero = np.zeros((scene.data.count, 2))
-    rise = sweep_height(start, scene.data, zero, reach_px=16.0)
+    rise = sweep(start, scene.data, zero, max_rise_km=far)
     assert rise == pytest.approx(float(np.mean(scene.truth.heights)) - lift, abs=SPACING_KM)
+    # never further than it is allowed to go: a start 8 spacings off is no find within 4
+    assert abs(sweep(start, scene.data, zero, max_rise_km=4 * SPACING_KM)) <= 4 * SPACING_KM
     # at the true height, the images agree best where the maplet is
-    assert sweep_height(scene.truth, scene.data, zero, reach_px=16.0) == pytest.approx(0.0, abs=0.1 * SPACING_KM)
+    assert sweep(scene.truth, scene.data, zero, max_rise_km=far) == pytest.approx(0.0, abs=0.1 * SPACING_KM)
     # nor with a single image
-    assert sweep_height(start, dataclasses.replace(scene.data, images=scene.data.images[:1],
-                                                   cameras=scene.data.cameras[:1], poses=scene.data.poses[:1],
-                                                   sun_directions=scene.data.sun_directions[:1],
-                                                   visible=scene.data.visible[:1], lit=scene.data.lit[:1],
-                                                   weights=scene.data.weights[:1]), zero[:1], reach_px=16.0) == 0.0
+    assert sweep(start, dataclasses.replace(scene.data, images=scene.data.images[:1],
+                                    cameras=scene.data.cameras[:1], poses=scene.data.poses[:1],
+                                    sun_directions=scene.data.sun_directions[:1],
+                                    visible=scene.data.visible[:1], lit=scene.data.lit[:1],
+                                    weights=scene.data.weights[:1]), zero[:1], max_rise_km=far) == 0.0
 
 
 def test_region_weight_tightens_to_the_start(scene: Scene, refined: Refinement) -> None:

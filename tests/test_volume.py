@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -14,7 +16,8 @@ from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh, refine_faces
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface, tile
-from pwm.volume import DistanceGrid, grid_for
+from pwm.volume import FADE_VOXELS, TRUNCATION_VOXELS, DistanceGrid, grid_for
+from pwm.voxels import unpack
 
 # Two lobes of radius 0.1 km, 0.4 km apart, joined by a neck of radius 0.045 km: rays from the
 # centre at 23-29 degrees from the long axis leave the neck, enter a lobe and leave it.
@@ -107,6 +110,28 @@ def test_places_no_maplet_reaches_keep_the_base_and_the_surface_closes(truth, ma
     hits = RayTracer(fused).intersect(np.array([[0.0, 0, 0], [0.0, 0, 0]]), np.array([[1.0, 0, 0], [-1.0, 0, 0]]))
     assert hits.t[0] == pytest.approx(CENTRE + LOBE, abs=0.25 * SPACING)
     assert hits.t[1] == pytest.approx(CENTRE + LOBE + SPACING, abs=0.5 * SPACING)
+
+
+def test_one_far_off_maplet_widens_the_base_only_about_itself(truth, maplets):
+    # a maplet 20 spacings off the base (a misplaced one) bends the base towards it over a band
+    # that wide about itself (once everywhere, which took a global survey's fusion from 20 s to
+    # 160 s); the base's lattice away from it is as it was
+    base = dumbbell(0.006, grow=SPACING)
+    lobe = [m for m in maplets if m.frame.origin[0] > 0.2]
+    grid = DistanceGrid(SPACING)
+    grid.add_all(lobe)
+    plain = grid._base_sums(base)[0]
+    far = dataclasses.replace(lobe[0], name="far", heights=lobe[0].heights + 20 * SPACING)
+    grid.add(far)
+    bent = grid._base_sums(base)[0]
+    reach = 5 * (FADE_VOXELS + TRUNCATION_VOXELS) * SPACING  # the bins about it, and a band as wide
+
+    def away(keys: np.ndarray) -> np.ndarray:
+        return keys[np.linalg.norm(unpack(keys) * SPACING - far.frame.origin, axis=1) > reach]
+
+    assert len(away(plain)) > 0.3 * len(plain) and np.array_equal(away(bent), away(plain))
+    assert len(bent) > 1.2 * len(plain)  # and about it, the band is wider
+    assert closure(grid.mesh(base)).closed
 
 
 def test_a_rough_low_poly_base_still_closes():
