@@ -116,6 +116,13 @@ NESTED_START = 16.0
 nested under a coarser model and placed by its images' parallax; nearer its own level the start
 is within the joint solution's reach, and a sweep there only adds noise (bench/RESULTS.md: `tiny`
 at 10 and `site` at 14 spacings)."""
+SWEEP_START = 32.0
+"""A nested maplet is also swept (pwm.alignment.sweep_height) where its start's faces are this
+many of its spacings or more (five levels, a survey over a site): a coarser model's heights are
+off by about a sixth of its faces (measured on campaign-tiny's survey under its sites and on the
+surveys' photogrammetric starts), which is then several spacings, beyond the joint solution's
+reach; nearer, the sweep's false optima cost more than it finds (bench/RESULTS.md: the survey
+from nothing)."""
 
 
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
@@ -128,8 +135,9 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     its images' los_sigma_px where that is more: beyond a pixel, the images are registered
     (`pwm.alignment.register`) within it before the joint solution; within it, the maplet is first
     raised to where its images agree best (`pwm.alignment.sweep_height`, over
-    config.height_sweep_px of parallax), and after the solution by what its offsets took up of
-    the parallax (`_settled`), where its start is a much coarser model (NESTED_START): the joint
+    config.height_sweep_px of parallax, where its start is coarser still, SWEEP_START),
+    and after the solution by what its offsets took up of the parallax (`_settled`), where its
+    start is a much coarser model (NESTED_START): the joint
     solution holds the start's mean height, which a coarser level gets wrong by many pixels of
     parallax."""
     clock = time.perf_counter()
@@ -159,7 +167,7 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         # a repeating texture) is a misplacement.
         start_edge_km = _start_edge_km(maplet, tracer)
         placed = search_px <= 1.0 and start_edge_km >= NESTED_START * maplet.spacing_km
-        if placed and config.height_sweep_px > 0:
+        if placed and config.height_sweep_px > 0 and start_edge_km >= SWEEP_START * maplet.spacing_km:
             raised = sweep_height(maplet, data, offsets, reach_px=config.height_sweep_px, max_rise_km=start_edge_km)
             maplet = _raised(maplet, raised)
         if mode == "pwm":

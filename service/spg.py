@@ -58,13 +58,14 @@ log = logging.getLogger(__name__)
 
 
 def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
-                           image_ids: Collection[int] | None = None, prior: Mesh | None = None,
+                           image_ids: Collection[int] | None = None, figure: Mesh | None = None,
                            knowledge: KnowledgeErrors | None = None,
                            sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
                            max_features: int = 8192, first_octave: int | None = None, per_image: int = 6,
                            threads: int = 2) -> int:
     """Run stereo photogrammetry on the accepted images with geometry (those of image_ids, or
-    all) from the latest version, or from `prior` when the catalog has none; publish the model
+    all) from the latest version, or from the body's `figure` (its PCK ellipsoid) when the catalog
+    has none, over which the points are interpolated everywhere; publish the model
     as a version of kind photogrammetric (parent: that version) and store each image's pose
     correction. Its version number.
 
@@ -72,15 +73,15 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
     as `adjust_downlink` models it; without it, sigma_position_km, sigma_pointing_rad: the 1-sigma
     pose knowledge assumed per axis (km, rad). The other options are
     pwm.spg.stereo_photogrammetry's.
-    Raises LookupError when the catalog has no version and no prior is given, ValueError when
+    Raises LookupError when the catalog has no version and no figure is given, ValueError when
     photogrammetry cannot work (fewer than two images, no pair that overlaps).
     """
     with sessions() as session:
         base = latest_version(session)
         if base is not None:
             previous = version_mesh(data_dir, base)
-        elif prior is not None:
-            previous = prior
+        elif figure is not None:
+            previous = figure
         else:
             raise LookupError("the catalog has no model version to start from: ingest with a "
                               "start model (pwm run) or pwm import one")
@@ -96,7 +97,7 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
                                    sigma_position_km=sigma_position_km,
                                    sigma_pointing_rad=sigma_pointing_rad,
                                    max_features=max_features, first_octave=first_octave,
-                                   per_image=per_image, threads=threads)
+                                   per_image=per_image, from_figure=base_id is None, threads=threads)
     with session_scope(sessions) as session:
         images = session.scalars(select(Image).where(Image.id.in_(ids)).order_by(Image.id)).all()
         now = utcnow()
@@ -151,7 +152,7 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
             note = f"no model: no radii of {target} in the kernels ({spice_message(exc)})"
         else:
             try:
-                number = photogrammetry_version(sessions, data_dir=data_dir, prior=ellipsoid.mesh(),
+                number = photogrammetry_version(sessions, data_dir=data_dir, figure=ellipsoid.mesh(),
                                                 knowledge=knowledge)
             except ValueError as exc:
                 note = f"no model: stereo photogrammetry cannot work yet: {exc}"

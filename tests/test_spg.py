@@ -20,7 +20,7 @@ from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.features import fundamental
 from pwm.spg.photogrammetry import adjust_poses, anchor_shift
 from pwm.spg.pose_models import navigation_poses
-from pwm.spg.surface import fit_surface, subdivide
+from pwm.spg.surface import fit_figure, fit_surface, point_spacing, subdivide
 from pwm.spg.triangulation import Tracks, build_tracks, triangulate
 from pwm.spg.uncertainty import DETERMINED, determined, image_sigmas, pose_uncertainty
 from pwm.trajectory import track_frames
@@ -157,6 +157,31 @@ def test_surface_follows_points_and_keeps_the_model_elsewhere():
     assert np.array_equal(surface.faces, sphere.faces)
     assert np.abs(radius[sphere.vertices[:, 2] > 0.9] - 1.01).max() < 1e-3
     assert np.abs(radius[sphere.vertices[:, 2] < 0.5] - 1.0).max() < 1e-12
+
+
+def test_a_figure_bends_to_points_in_a_few_clusters_everywhere():
+    # a body whose shape differs from its reference figure at long wavelengths (a ridge and a
+    # squashing, 5% of the radius), seen by stereo points in 8 clusters only, with noise and a
+    # few mismatches: the whole surface follows, not only the places under the points
+    def body(u: np.ndarray) -> np.ndarray:
+        return 1.0 + 0.05 * (1.5 * u[:, 2] ** 2 - 0.5) * -1 + 0.03 * u[:, 0] * u[:, 1]
+
+    rng = np.random.default_rng(1)
+    figure = _sphere(4)
+    centres = rng.normal(size=(16, 3))
+    u = np.repeat(centres / np.linalg.norm(centres, axis=1, keepdims=True), 20, axis=0) + rng.normal(0, 0.08, (320, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    points = u * (body(u) + rng.normal(0, 0.003, len(u)))[:, None]
+    points[:8] *= 1.3  # mismatches
+
+    def error(mesh: Mesh) -> float:
+        radius = np.linalg.norm(mesh.vertices, axis=1)
+        return float(np.sqrt(np.mean((radius - body(mesh.vertices / radius[:, None])) ** 2)))
+
+    fitted = fit_figure(figure, points)
+    local = fit_surface(figure, points, radius_km=2.0 * point_spacing(points))
+    assert np.array_equal(fitted.faces, figure.faces)
+    assert error(fitted) < 0.4 * error(figure) and error(fitted) < 0.5 * error(local)
 
 
 def test_spg_command_on_the_tiny_downlink(tiny_sim, tmp_path):

@@ -21,7 +21,7 @@ from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.features import Features, extract, match_guided
 from pwm.spg.pairs import Pair, choose_pairs, footprints
 from pwm.spg.pose_models import PoseModel, free_poses
-from pwm.spg.surface import at_resolution, fit_surface, point_spacing
+from pwm.spg.surface import at_resolution, fit_figure, fit_surface, point_spacing
 from pwm.spg.triangulation import Tracks, build_tracks, rays, reprojection_errors, triangulate
 from pwm.spg.uncertainty import PoseSigma, image_sigmas, pose_uncertainty, prior_sigmas
 from pwm.views import View
@@ -218,11 +218,14 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, pose_model: Pose
                           sigma_position_km: float = 1e-3,
                           sigma_pointing_rad: float = 1e-4, max_features: int = 8192, first_octave: int | None = None,
                           per_image: int = 6, max_sun_deg: float = 25.0, model_tolerance_px: float = 30.0,
-                          min_angle_deg: float = 2.0, max_residual_px: float = 3.0, threads: int = 2) -> SpgResult:
+                          min_angle_deg: float = 2.0, max_residual_px: float = 3.0, from_figure: bool = False,
+                          threads: int = 2) -> SpgResult:
     """The photogrammetric model and pose corrections from `views`, starting from `previous`:
     `adjust_poses` (pose_model: what it may change, by default every image free with
     sigma_position_km and sigma_pointing_rad, the 1-sigma navigation knowledge per axis), then a
-    surface through the points seen at a stereo angle of at least min_angle_deg."""
+    surface through the points seen at a stereo angle of at least min_angle_deg: `previous` moved
+    towards the points near them (fit_surface), or, from_figure (`previous` is only the body's
+    reference figure, no model yet), the points interpolated over the whole of it (fit_figure)."""
     clock = time.perf_counter()
     adjusted = adjust_poses(views, previous, pose_model=pose_model, sigma_position_km=sigma_position_km,
                             sigma_pointing_rad=sigma_pointing_rad, max_features=max_features,
@@ -233,7 +236,9 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, pose_model: Pose
     points = adjusted.points[good_point]
     stats["points"] = int(good_point.sum())
     spacing = point_spacing(points)
-    surface = fit_surface(at_resolution(previous, 2.0 * spacing, points), points, radius_km=2.0 * spacing)
+    resampled = at_resolution(previous, 2.0 * spacing, points)
+    surface = (fit_figure(resampled, points) if from_figure
+               else fit_surface(resampled, points, radius_km=2.0 * spacing))
     stats.update(point_spacing_km=spacing, surface_vertices=len(surface.vertices), seconds=time.perf_counter() - clock)
     log.info("SPG: %d points at %.2f m spacing, residual %.2f px RMS, %d vertices (%.1f s)", len(points), spacing * 1e3,
              stats["residual_rms_px"], len(surface.vertices), stats["seconds"])

@@ -1,15 +1,24 @@
-"""A watertight surface through sparse stereo points: the previous model's vertices moved along
-their normals towards the points near them, at the resolution the points support; where there
-are no points the previous model stays."""
+"""A watertight surface through sparse stereo points, at the resolution the points support:
+over a previous model, its vertices moved along their normals towards the points near them (where
+there are no points the model stays); over a figure (the PCK ellipsoid of a body with no model
+yet), the points' offsets interpolated over the whole surface by the smoothest field."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import sparse
+from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
 from pwm.decimate import decimate
+from pwm.evaluate.distance import ClosestPoint
 from pwm.mesh import Mesh
+
+FIGURE_SMOOTHING = 3.0
+"""fit_figure bends over this many mean point spacings (the surface's area per point): the
+figure's error is a body's shape, kilometre-long, and a cluster of points should move the
+surface between the clusters, not leave a dimple under each."""
+_FIGURE_ROUNDS = 3
 
 
 def point_spacing(points: np.ndarray) -> float:
@@ -92,3 +101,42 @@ def fit_surface(model: Mesh, points: np.ndarray, *, radius_km: float, neighbours
     for _ in range(smoothing):
         height = 0.5 * height + 0.5 * (mean @ height)
     return Mesh(model.vertices + height[:, None] * normals, model.faces)
+
+
+def fit_figure(figure: Mesh, points: np.ndarray, *, smoothing: float = FIGURE_SMOOTHING) -> Mesh:
+    """Move the vertices of `figure` (a body's reference figure, its PCK ellipsoid, at the
+    resolution the points support) along their normals by the smoothest field of offsets that
+    meets the `points` (km, body-fixed): least squares over the points' normal offsets (at their
+    closest points, interpolated from the face's vertices) plus the bending of the field (the
+    umbrella Laplacian, a thin plate) weighted so that it bends over `smoothing` mean point
+    spacings, whatever the mesh's edge length. Unlike fit_surface, places far from any point
+    move too: a figure is wrong everywhere, and smoothly. Fitted FIGURE_ROUNDS times, each
+    leaving out the points beyond three robust sigmas of the last fit (mismatches)."""
+    keep = np.ones(len(points), dtype=bool)
+    spacing = float(np.sqrt(figure.face_areas().sum() / max(len(points), 1)))
+    bending = smoothing * spacing / figure.mean_edge_length()
+    n = len(figure.vertices)
+    laplacian = sparse.identity(n) - _neighbour_mean(figure)
+    regular = bending**2 * (laplacian.T @ laplacian) + 1e-9 * sparse.identity(n)
+    _, closest, face = ClosestPoint(figure).query(points)
+    offset = np.einsum("ij,ij->i", points - closest, figure.face_normals()[face])
+    corners = figure.faces[face]
+    design = sparse.csr_matrix((_barycentric(figure.vertices[corners], closest).ravel(),
+                                (np.repeat(np.arange(len(points)), 3), corners.ravel())), shape=(len(points), n))
+    for _ in range(_FIGURE_ROUNDS):
+        used = sparse.diags(keep.astype(float)) @ design
+        height = spsolve((used.T @ used + regular).tocsc(), used.T @ offset)
+        residual = np.abs(design @ height - offset)
+        keep = residual <= 3.0 * 1.4826 * np.median(residual[keep]) + 1e-12
+    return Mesh(figure.vertices + height[:, None] * figure.vertex_normals(), figure.faces)
+
+
+def _barycentric(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric coordinates of points on (N, 3, 3) triangles (clipped to the face)."""
+    a = triangles[:, 0]
+    u, v, w = triangles[:, 1] - a, triangles[:, 2] - a, points - a
+    uu, uv, vv = (u * u).sum(1), (u * v).sum(1), (v * v).sum(1)
+    wu, wv = (w * u).sum(1), (w * v).sum(1)
+    det = np.maximum(uu * vv - uv**2, 1e-300)
+    b1, b2 = (vv * wu - uv * wv) / det, (uu * wv - uv * wu) / det
+    return np.clip(np.column_stack([1.0 - b1 - b2, b1, b2]), 0.0, 1.0)

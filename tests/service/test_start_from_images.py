@@ -106,7 +106,8 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
     start = _radial_error_m(Ellipsoid(radii=BENNU_RADII_KM).mesh(), truth)
     made = _radial_error_m(photogrammetric, truth)
     print(f"\nradial RMS: PCK ellipsoid {start:.1f} m, photogrammetric version 1 {made:.1f} m")
-    assert made < 0.85 * start
+    # the points move the whole ellipsoid (pwm.spg.surface.fit_figure), not only the places under them
+    assert made < 0.6 * start
 
 
 def test_a_site_too_small_to_start_from_the_ellipsoid_says_why(tiny_sim, catalog, tmp_path,
