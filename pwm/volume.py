@@ -171,17 +171,22 @@ class DistanceGrid(SparseSums):
         # where the base's coarse faces meet at an angle, and the maplets' bands end at their
         # edges: a cell that the surface crosses there would lack a corner, and marching cubes
         # leave a hole. Every lattice point next to one within a cell diagonal of the surface
-        # gets the base's distance too.
+        # gets the base's distance too, ring after ring while the points added are themselves
+        # that near (where the bend carries the surface out of the base's band).
         held = np.concatenate([self.keys[maplet_sums], keys])
-        close = np.abs(np.concatenate([maplet_distance, distance])) <= np.sqrt(3.0) * self.voxel_km
-        around = np.unique(pack((unpack(held[close])[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
-        missing = around[~np.isin(around, self.keys) & ~np.isin(around, keys)]
-        if len(missing):
+        values = np.concatenate([maplet_distance, distance])
+        near = np.abs(values) <= np.sqrt(3.0) * self.voxel_km
+        for _ in range(int(FADE_VOXELS)):
+            around = np.unique(pack((unpack(held[near])[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
+            missing = around[~np.isin(around, self.keys) & ~np.isin(around, keys)]
+            if not len(missing):
+                break
             more = bent(missing)
             keys = np.concatenate([keys, missing])
             distance, nearest = np.concatenate([distance, more[0]]), np.concatenate([nearest, more[1]])
             order = np.argsort(keys)
             keys, distance, nearest = keys[order], distance[order], nearest[order]
+            held, near = missing, np.abs(more[0]) <= np.sqrt(3.0) * self.voxel_km
         cols = np.zeros((len(keys), _COLUMNS))
         cols[:, _W] = BASE_WEIGHT
         cols[:, _WD] = BASE_WEIGHT * np.clip(distance, -reach, reach)

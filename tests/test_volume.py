@@ -134,6 +134,17 @@ def test_one_far_off_maplet_widens_the_base_only_about_itself(truth, maplets):
     assert closure(grid.mesh(base)).closed
 
 
+def test_maplets_misplaced_by_many_voxels_still_close(truth, maplets):
+    # maplets raised or lowered by up to 25 voxels (a placement gone wrong) bend the base far out
+    # of its band, where cells the surface crosses once lacked corners (open with seed 0 before)
+    rng = np.random.default_rng(0)
+    lobe = [dataclasses.replace(m, heights=m.heights + rng.choice([0, 0, 0, 8, 15, 25, -10]) * SPACING)
+            for m in maplets if m.frame.origin[0] > 0.2]
+    grid = DistanceGrid(SPACING)
+    grid.add_all(lobe)
+    assert closure(grid.mesh(dumbbell(0.006, grow=SPACING))).closed
+
+
 def test_a_rough_low_poly_base_still_closes():
     # a start model's coarse faces meeting at sharp angles (radial noise of 10% on 1280 faces),
     # under five maplets: lattice points between the base's samples once went without a
