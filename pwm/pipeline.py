@@ -111,18 +111,13 @@ REGISTRATION_PX = 0.1
 """How well a maplet's registration places an image with exact poses (px, 1 sigma)."""
 PARALLAX_ROUNDS = 3
 """At most this many times a maplet is raised by its offsets' parallax and solved again."""
-NESTED_START = 16.0
-"""A maplet whose start model's faces are this many of its spacings or more (four levels) is
-nested under a coarser model and placed by its images' parallax; nearer its own level the start
-is within the joint solution's reach, and a sweep there only adds noise (bench/RESULTS.md: `tiny`
-at 10 and `site` at 14 spacings)."""
 SWEEP_START = 32.0
-"""A nested maplet is also swept (pwm.alignment.sweep_height) where its start's faces are this
-many of its spacings or more (five levels, a survey over a site): a coarser model's heights are
-off by about a sixth of its faces (measured on campaign-tiny's survey under its sites and on the
-surveys' photogrammetric starts), which is then several spacings, beyond the joint solution's
-reach; nearer, the sweep's false optima cost more than it finds (bench/RESULTS.md: the survey
-from nothing)."""
+"""A maplet is first swept (pwm.alignment.sweep_height) where its start's faces are this many of
+its spacings or more (five levels, a survey over a site): a coarser model's heights are off by
+about a sixth of its faces (measured on campaign-tiny's survey under its sites and on the
+surveys' photogrammetric starts), which is then several spacings of parallax, beyond the joint
+solution's reach; nearer, the sweep's false optima cost more than it finds (bench/RESULTS.md:
+the survey from nothing)."""
 
 
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
@@ -133,13 +128,11 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     config.search_px: how far (px) the images may be off the maplet, from the pose knowledge (about
     3 sigma of position error / range plus pointing error, times the focal length), or three of
     its images' los_sigma_px where that is more: beyond a pixel, the images are registered
-    (`pwm.alignment.register`) within it before the joint solution; within it, the maplet is first
-    raised to where its images agree best (`pwm.alignment.sweep_height`, over
-    config.height_sweep_px of parallax, where its start is coarser still, SWEEP_START),
-    and after the solution by what its offsets took up of the parallax (`_settled`), where its
-    start is a much coarser model (NESTED_START): the joint
-    solution holds the start's mean height, which a coarser level gets wrong by many pixels of
-    parallax."""
+    (`pwm.alignment.register`) within it before the joint solution; within it, the joint solution
+    holds the start's mean height, which a coarser start gets wrong by pixels of parallax, so the
+    maplet is raised after the solution by what its offsets took up of the parallax (`_settled`),
+    and first, where the start is much coarser (SWEEP_START), to where its images agree best
+    (`pwm.alignment.sweep_height`, over config.height_sweep_px of parallax)."""
     clock = time.perf_counter()
     mode = config.mode
     data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)
@@ -159,14 +152,13 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         # moves the joint solution's starting point away from the poses
         offsets = (register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0
                    else np.zeros((data.count, 2)))
-        # A start from a much coarser model can be off by many pixels of parallax, and the joint
-        # solution holds its mean height; where the poses are known within a pixel, their
-        # parallax places the maplet instead.
-        # Placement within the start's face size: a coarse model's heights are not off by more
-        # than its faces are long, and a rise beyond that (small parallax between the images,
-        # a repeating texture) is a misplacement.
+        # A start can be off by pixels of parallax, and the joint solution holds its mean height;
+        # where the poses are known within a pixel, their parallax places the maplet instead,
+        # within the start's face size: a model's heights are not off by more than its faces are
+        # long, and a rise beyond that (small parallax between the images, a repeating texture)
+        # is a misplacement.
         start_edge_km = _start_edge_km(maplet, tracer)
-        placed = search_px <= 1.0 and start_edge_km >= NESTED_START * maplet.spacing_km
+        placed = search_px <= 1.0
         if placed and config.height_sweep_px > 0 and start_edge_km >= SWEEP_START * maplet.spacing_km:
             raised = sweep_height(maplet, data, offsets, reach_px=config.height_sweep_px, max_rise_km=start_edge_km)
             maplet = _raised(maplet, raised)
