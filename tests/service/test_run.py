@@ -225,9 +225,13 @@ def test_a_site_level_under_a_survey_level_is_refined_and_laid_into_one_model(ti
         again = version_mesh(data, after)
     known = {tuple(v) for v in mesh.vertices}
     new = np.array([v for v in again.vertices if tuple(v) not in known])
-    site_nodes = cKDTree(np.vstack([m.nodes_body().reshape(-1, 3) for m in refined[int(fine)]]))
-    # what moved lies over the site's maplets or within their fade (12 voxels) of them
-    assert len(new) and site_nodes.query(new)[0].max() < 16 * gsd_km
+    # what moved lies over the site's maplets, seen along the site's vertical (in 3D it can lie
+    # far above their nodes, where the survey level runs up a boulder's flank that they smooth):
+    # measured 3.7 voxels at most, the faces split about the site's border
+    nodes = np.vstack([m.nodes_body().reshape(-1, 3) for m in refined[int(fine)]])
+    across = np.linalg.svd(nodes - nodes.mean(axis=0), full_matrices=False)[2][:2].T
+    site_ground = cKDTree((nodes - nodes.mean(axis=0)) @ across)
+    assert len(new) and site_ground.query((new - nodes.mean(axis=0)) @ across)[0].max() < 8 * gsd_km
 
 
 def _segment_plates(path: Path) -> list[int]:
