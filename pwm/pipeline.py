@@ -111,6 +111,10 @@ REGISTRATION_PX = 0.1
 """How well a maplet's registration places an image with exact poses (px, 1 sigma)."""
 PARALLAX_ROUNDS = 3
 """At most this many times a maplet is raised by its offsets' parallax and solved again."""
+RUNAWAY = 0.8
+"""A parallax rise after which the solution still shows this much of it or more (measured
+0.05-0.5 where the start was metres off, 0.8-0.95 where the rise ran away) is undone with
+those after it."""
 SWEEP_START = 32.0
 """A maplet is first swept (pwm.alignment.sweep_height) where its start's faces are this many of
 its spacings or more (five levels, a survey over a site): a coarser model's heights are off by
@@ -189,14 +193,20 @@ def _settled(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sigm
     """The refinement solved again from a maplet raised by what its offsets took up of a height
     the start got wrong (`pwm.alignment.parallax_height`), while that is more than three sigma
     and the maplet stays within max_rise_km of its start, at most PARALLAX_ROUNDS times; and the
-    whole rise (km) from the start, of which raised_km was done before."""
-    raised = raised_km
+    whole rise (km) from the start, of which raised_km was done before. All of them are undone
+    where a rise leaves RUNAWAY of itself in the solution after it."""
+    raised, start, last = raised_km, (result, raised_km), None
     for _ in range(PARALLAX_ROUNDS):
         rise, sigma = parallax_height(dataclasses.replace(maplet, heights=result.heights), data, result.offsets,
                                       sigma_px=sigma_px)
+        if last is not None and abs(rise) > RUNAWAY * abs(last):
+            # the rise did not take up the parallax it was measured from: what the offsets show
+            # is not the start's height (a common pointing error, a misregistered image), and
+            # following it runs the maplet off by tens of metres
+            return start
         if not (abs(rise) > 3 * sigma and abs(raised + rise) <= max_rise_km):
             break
-        maplet, raised = _raised(maplet, rise), raised + rise
+        maplet, raised, last = _raised(maplet, rise), raised + rise, rise
         result = refine(maplet, data, mode=config.mode, offsets=result.offsets - rise * rise_motion(maplet, data),
                         solver=config.solver)
     return result, raised
