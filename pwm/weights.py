@@ -13,8 +13,6 @@ The rules, all thresholds in `Rules`:
   visible in it, over 20% of what is visible is in shadow, the emission exceeds about 40 deg, or
   its pixels are more than twice as coarse as the maplet's spacing. Here the shadow limit is 60%:
   SPC's photoclinometry reads shadows as dark terrain, the pixel weights here leave them out.
-  Short of five images, images dropped only for their emission are kept up to 55 deg: a global
-  survey sees most places within 40 deg from fewer than that.
 - Pixel weights: occluded or out-of-frame nodes get 0; shadowed nodes 0, except that where the
   terrain needs them (steep relief, a maplet whose slope-angle spread exceeds a threshold) shadowed
   nodes next to lit ones keep a small weight; lit nodes next to a shadow edge are down-weighted,
@@ -67,12 +65,6 @@ class Rules:
     SPC drops an image over 20% in shadow; with shadowed nodes weighed out one by one, an image's
     lit nodes are worth keeping well beyond that. The rule only bites once the shape casts the
     shadows the images show (a smooth start casts few; bench/RESULTS.md)."""
-    short_emission_deg: float = 55.0
-    """Where fewer than min_images pass the drop rules, the images dropped only for their
-    emission are kept up to this: a global survey's few images see most places under 40 deg
-    from one or two of them at most (the campaign survey: a third of the surface from five),
-    and a maplet left to its start keeps the start's errors; the emission weight still makes
-    them count less (bench/RESULTS.md, the survey's emission rule)."""
     shadow_keep_weight: float = 0.1
     """Weight of a shadowed node next to a lit one, in steep terrain."""
     steep_slope_std_deg: float = 15.0
@@ -204,8 +196,7 @@ def image_weights(geom: MapletGeometry, rules: Rules = RULES) -> np.ndarray:
 
 
 def select_images(geom: MapletGeometry, rules: Rules = RULES) -> tuple[np.ndarray, list[list[str]]]:
-    """The SPC drop rules: (keep (K,) bool, for each image the reasons it was dropped); short of
-    min_images, oblique images up to short_emission_deg are kept too."""
+    """The SPC drop rules: (keep (K,) bool, for each image the reasons it was dropped)."""
     tests = [
         (geom.visible_fraction < rules.min_visible_fraction,
          lambda k: f"visible {geom.visible_fraction[k]:.0%} < {rules.min_visible_fraction:.0%}"),
@@ -217,13 +208,7 @@ def select_images(geom: MapletGeometry, rules: Rules = RULES) -> tuple[np.ndarra
          lambda k: f"pixel scale {geom.resolution_ratio[k]:.2f} x spacing > {rules.max_resolution_ratio:g}"),
     ]
     reasons = [[text(k) for failed, text in tests if failed[k]] for k in range(len(geom.emission_deg))]
-    keep = np.array([not r for r in reasons], dtype=bool)
-    if keep.sum() < rules.min_images:
-        oblique = (geom.emission_deg <= rules.short_emission_deg) & np.array(
-            [all(r.startswith("emission") for r in reason) for reason in reasons])
-        keep |= oblique
-        reasons = [[] if oblique[k] else r for k, r in enumerate(reasons)]
-    return keep, reasons
+    return np.array([not r for r in reasons], dtype=bool), reasons
 
 
 def slope_spread_deg(heights: np.ndarray, spacing_km: float) -> float:

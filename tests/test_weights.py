@@ -45,26 +45,13 @@ def directions(frame: LocalFrame, angles_deg: list[tuple[float, float]]) -> np.n
 def test_each_drop_rule_fires_and_says_why():
     geom = geometry(visible_fraction=[0.9, 0.1, 0.9, 0.9, 0.9], shadow_fraction=[0.0, 0.0, 0.7, 0.0, 0.0],
                     emission_deg=[10.0, 10.0, 10.0, 45.0, 10.0], resolution_ratio=[1.0, 1.0, 1.0, 1.0, 2.5])
-    spc = Rules(short_emission_deg=RULES.max_emission_deg)  # SPC's rules alone, however few are left
-    keep, reasons = select_images(geom, spc)
+    keep, reasons = select_images(geom)
     assert keep.tolist() == [True, False, False, False, False]
     assert reasons[0] == []
     for k, word in enumerate(["visible", "shadowed", "emission", "pixel scale"], start=1):
         assert len(reasons[k]) == 1 and reasons[k][0].startswith(word)
-    keep, _ = select_images(geom, Rules(max_emission_deg=50.0, short_emission_deg=50.0, max_resolution_ratio=3.0))
+    keep, _ = select_images(geom, Rules(max_emission_deg=50.0, max_resolution_ratio=3.0))
     assert keep.tolist() == [True, False, False, True, True]
-
-
-def test_a_short_image_set_keeps_oblique_images_up_to_the_looser_bound():
-    # two images within the emission rule: those dropped only for their emission are kept up to
-    # short_emission_deg; one dropped for a shadow too, or beyond the bound, stays dropped
-    geom = geometry(emission_deg=[10.0, 20.0, 45.0, 54.0, 60.0, 50.0], shadow_fraction=[0.0] * 5 + [0.7])
-    keep, reasons = select_images(geom)
-    assert keep.tolist() == [True, True, True, True, False, False]
-    assert reasons[2] == reasons[3] == [] and reasons[4][0].startswith("emission") and len(reasons[5]) == 2
-    # with min_images within the rule, it holds as SPC's
-    many = geometry(emission_deg=[10.0] * RULES.min_images + [45.0])
-    assert select_images(many)[0].tolist() == [True] * RULES.min_images + [False]
 
 
 def test_image_weight_favours_moderate_incidence_low_emission_and_fine_pixels():
