@@ -112,9 +112,9 @@ REGISTRATION_PX = 0.1
 PARALLAX_ROUNDS = 3
 """At most this many times a maplet is raised by its offsets' parallax and solved again."""
 RUNAWAY = 0.8
-"""A parallax rise after which the solution still shows this much of it or more (measured
-0.05-0.5 where the start was metres off, 0.8-0.95 where the rise ran away) is undone with
-those after it."""
+"""A parallax rise after which the solution still shows this much of it or more (measured on
+the campaign survey: 0.05-0.75 where the start was metres off, 0.85-0.95 where the rise ran
+away) is undone with those after it."""
 SWEEP_START = 32.0
 """A maplet is first swept (pwm.alignment.sweep_height) where its start's faces are this many of
 its spacings or more (five levels, a survey over a site): a coarser model's heights are off by
