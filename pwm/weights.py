@@ -12,7 +12,11 @@ The rules, all thresholds in `Rules`:
 - Operational SPC drops an image from a maplet (`select_images`) when under 20% of the maplet is
   visible in it, over 20% of what is visible is in shadow, the emission exceeds about 40 deg, or
   its pixels are more than twice as coarse as the maplet's spacing. Here the shadow limit is 60%:
-  SPC's photoclinometry reads shadows as dark terrain, the pixel weights here leave them out.
+  SPC's photoclinometry reads shadows as dark terrain, the pixel weights here leave them out. An
+  image whose pixels are over five times finer than the spacing is dropped too: it belongs to the
+  finer maplets tiled where it looks (two levels down or more), so that a site's close images
+  leave the coarser levels over the site as they were; and sampled at the nodes without a
+  low-pass its pixels alias (a 10 cm image over 2 m nodes reads cobbles as slopes).
 - Pixel weights: occluded or out-of-frame nodes get 0; shadowed nodes 0, except that where the
   terrain needs them (steep relief, a maplet whose slope-angle spread exceeds a threshold) shadowed
   nodes next to lit ones keep a small weight; lit nodes next to a shadow edge are down-weighted,
@@ -61,7 +65,9 @@ class Rules:
     max_shadow_fraction: float = 0.6
     max_emission_deg: float = 40.0
     max_resolution_ratio: float = 2.0
-    """The SPC drop rules: visible fraction, shadowed fraction, emission, pixel scale / spacing.
+    min_resolution_ratio: float = 0.2
+    """The SPC drop rules: visible fraction, shadowed fraction, emission, pixel scale / spacing
+    (at most max_resolution_ratio, at least min_resolution_ratio: see the module docstring).
     SPC drops an image over 20% in shadow; with shadowed nodes weighed out one by one, an image's
     lit nodes are worth keeping well beyond that. The rule only bites once the shape casts the
     shadows the images show (a smooth start casts few; bench/RESULTS.md)."""
@@ -206,6 +212,9 @@ def select_images(geom: MapletGeometry, rules: Rules = RULES) -> tuple[np.ndarra
          lambda k: f"emission {geom.emission_deg[k]:.1f} > {rules.max_emission_deg:g} deg"),
         (geom.resolution_ratio > rules.max_resolution_ratio,
          lambda k: f"pixel scale {geom.resolution_ratio[k]:.2f} x spacing > {rules.max_resolution_ratio:g}"),
+        (geom.resolution_ratio < rules.min_resolution_ratio,
+         lambda k: f"pixel scale {geom.resolution_ratio[k]:.2f} x spacing < {rules.min_resolution_ratio:g}: "
+                   "the finer levels' image"),
     ]
     reasons = [[text(k) for failed, text in tests if failed[k]] for k in range(len(geom.emission_deg))]
     return np.array([not r for r in reasons], dtype=bool), reasons

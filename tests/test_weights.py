@@ -43,15 +43,17 @@ def directions(frame: LocalFrame, angles_deg: list[tuple[float, float]]) -> np.n
 
 
 def test_each_drop_rule_fires_and_says_why():
-    geom = geometry(visible_fraction=[0.9, 0.1, 0.9, 0.9, 0.9], shadow_fraction=[0.0, 0.0, 0.7, 0.0, 0.0],
-                    emission_deg=[10.0, 10.0, 10.0, 45.0, 10.0], resolution_ratio=[1.0, 1.0, 1.0, 1.0, 2.5])
+    geom = geometry(visible_fraction=[0.9, 0.1, 0.9, 0.9, 0.9, 0.9], shadow_fraction=[0.0, 0.0, 0.7, 0.0, 0.0, 0.0],
+                    emission_deg=[10.0, 10.0, 10.0, 45.0, 10.0, 10.0],
+                    resolution_ratio=[1.0, 1.0, 1.0, 1.0, 2.5, 0.05])
     keep, reasons = select_images(geom)
-    assert keep.tolist() == [True, False, False, False, False]
+    assert keep.tolist() == [True, False, False, False, False, False]
     assert reasons[0] == []
-    for k, word in enumerate(["visible", "shadowed", "emission", "pixel scale"], start=1):
+    for k, word in enumerate(["visible", "shadowed", "emission", "pixel scale", "pixel scale"], start=1):
         assert len(reasons[k]) == 1 and reasons[k][0].startswith(word)
-    keep, _ = select_images(geom, Rules(max_emission_deg=50.0, max_resolution_ratio=3.0))
-    assert keep.tolist() == [True, False, False, True, True]
+    assert "finer levels" in reasons[5][0]
+    keep, _ = select_images(geom, Rules(max_emission_deg=50.0, max_resolution_ratio=3.0, min_resolution_ratio=0.01))
+    assert keep.tolist() == [True, False, False, True, True, True]
 
 
 def test_image_weight_favours_moderate_incidence_low_emission_and_fine_pixels():

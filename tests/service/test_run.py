@@ -235,6 +235,30 @@ def test_a_site_level_under_a_survey_level_is_refined_and_laid_into_one_model(ti
     assert len(new) and site_ground.query((new - centre) @ across)[0].max() < 8 * gsd_km
 
 
+def test_close_images_leave_a_level_two_octaves_coarser_as_it_was(tiny_sim, sqlite_url, open_catalog_at, tmp_path):
+    """Issue 16: over survey maplets eight times as coarse as its images, a downlink refines its
+    own level only; its images are the finer maplets' (pwm.weights.Rules.min_resolution_ratio),
+    so the survey level keeps its shape."""
+    catalog = open_catalog_at(sqlite_url)
+    start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
+    manifest = json.loads((tiny_sim / "truth" / "manifest.json").read_text())
+    site, gsd_km = manifest["scenario"], manifest["gsd_m"] * 1e-3
+    survey = tile(start, spacing_km=8 * gsd_km, nodes=CONFIG.nodes, centre_lat_deg=site["site_lat_deg"],
+                  centre_lon_deg=site["site_lon_deg"], radius_km=CONFIG.tile_radius_km)
+    with catalog.begin() as session:
+        session.add_all(Maplet.of(m) for m in survey)
+    run = run_directory(catalog, shutil.copytree(tiny_sim / "downlink", tmp_path / "first"), data_dir=tmp_path / "data",
+                        config=dataclasses.replace(CONFIG, passes=1))
+    coarse = int(level_of(8 * gsd_km))
+    with catalog() as session:
+        refined: dict[int, int] = {}
+        for m in session.scalars(select(Maplet)):
+            refined[m.level] = refined.get(m.level, 0) + (m.current_revision_id is not None)
+        over_survey = session.scalars(select(Coverage).join(Maplet).where(Maplet.level == coarse)).all()
+    assert run.versions and refined[coarse] == 0 and sum(refined.values()) >= 2
+    assert over_survey and all(row.weight == 0 for row in over_survey)
+
+
 def _segment_plates(path: Path) -> list[int]:
     """The plates of each segment of a DSK file."""
     handle = sp.dasopr(str(path))
