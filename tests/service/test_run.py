@@ -16,11 +16,13 @@ import numpy as np
 import spiceypy as sp
 from scipy.spatial import cKDTree
 from sqlalchemy import func, select
+from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import RefinementConfig
 from pwm.io.fusion_state import read_composition, read_levels
 from pwm.io.meshio import read_mesh
 from pwm.io.pds4 import MISSING_DN, read_image_product, write_image_product
+from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh, grid_faces
 from pwm.raytrace import RayTracer
 from pwm.tiling import level_of, tile
@@ -154,13 +156,7 @@ def test_a_site_level_under_a_survey_level_is_refined_and_laid_into_one_model(ti
     from the finest level that covers it."""
     catalog = open_catalog_at(sqlite_url)
     data = tmp_path / "data"
-    start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
-    manifest = json.loads((tiny_sim / "truth" / "manifest.json").read_text())
-    site, gsd_km = manifest["scenario"], manifest["gsd_m"] * 1e-3
-    survey = tile(start, spacing_km=4 * gsd_km, nodes=CONFIG.nodes, centre_lat_deg=site["site_lat_deg"],
-                  centre_lon_deg=site["site_lon_deg"], radius_km=CONFIG.tile_radius_km)
-    with catalog.begin() as session:
-        session.add_all(Maplet.of(m) for m in survey)
+    gsd_km, survey = _survey_maplets(tiny_sim, catalog, coarser=4)
     config = dataclasses.replace(CONFIG, passes=1)
     run = run_directory(catalog, shutil.copytree(tiny_sim / "downlink", tmp_path / "first"), data_dir=data,
                         config=config)
@@ -240,13 +236,7 @@ def test_close_images_leave_a_level_two_octaves_coarser_as_it_was(tiny_sim, sqli
     own level only; its images are the finer maplets' (pwm.weights.Rules.min_resolution_ratio),
     so the survey level keeps its shape."""
     catalog = open_catalog_at(sqlite_url)
-    start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
-    manifest = json.loads((tiny_sim / "truth" / "manifest.json").read_text())
-    site, gsd_km = manifest["scenario"], manifest["gsd_m"] * 1e-3
-    survey = tile(start, spacing_km=8 * gsd_km, nodes=CONFIG.nodes, centre_lat_deg=site["site_lat_deg"],
-                  centre_lon_deg=site["site_lon_deg"], radius_km=CONFIG.tile_radius_km)
-    with catalog.begin() as session:
-        session.add_all(Maplet.of(m) for m in survey)
+    gsd_km, _ = _survey_maplets(tiny_sim, catalog, coarser=8)
     run = run_directory(catalog, shutil.copytree(tiny_sim / "downlink", tmp_path / "first"), data_dir=tmp_path / "data",
                         config=dataclasses.replace(CONFIG, passes=1))
     coarse = int(level_of(8 * gsd_km))
@@ -257,6 +247,19 @@ def test_close_images_leave_a_level_two_octaves_coarser_as_it_was(tiny_sim, sqli
         over_survey = session.scalars(select(Coverage).join(Maplet).where(Maplet.level == coarse)).all()
     assert run.versions and refined[coarse] == 0 and sum(refined.values()) >= 2
     assert over_survey and all(row.weight == 0 for row in over_survey)
+
+
+def _survey_maplets(sim: Path, catalog: sessionmaker[Session], *, coarser: int) -> tuple[float, list[MapletGrid]]:
+    """The site's GSD (km), and survey maplets `coarser` times as coarse about the site, tiled
+    on its start model and catalogued."""
+    manifest = json.loads((sim / "truth" / "manifest.json").read_text())
+    site, gsd_km = manifest["scenario"], manifest["gsd_m"] * 1e-3
+    survey = tile(read_mesh(sim / "downlink" / "start_model.obj"), spacing_km=coarser * gsd_km, nodes=CONFIG.nodes,
+                  centre_lat_deg=site["site_lat_deg"], centre_lon_deg=site["site_lon_deg"],
+                  radius_km=CONFIG.tile_radius_km)
+    with catalog.begin() as session:
+        session.add_all(Maplet.of(m) for m in survey)
+    return gsd_km, survey
 
 
 def _segment_plates(path: Path) -> list[int]:
