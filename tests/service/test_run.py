@@ -231,7 +231,8 @@ def test_a_site_level_under_a_survey_level_is_refined_and_laid_into_one_model(ti
     assert len(new) and site_ground.query((new - centre) @ across)[0].max() < 8 * gsd_km
 
 
-def test_close_images_leave_a_level_two_octaves_coarser_as_it_was(tiny_sim, sqlite_url, open_catalog_at, tmp_path):
+def test_close_images_leave_a_level_three_octaves_coarser_as_it_was(tiny_sim, sqlite_url, open_catalog_at,
+                                                                    tmp_path):
     """Issue 16: over survey maplets eight times as coarse as its images, a downlink refines its
     own level only; its images are the finer maplets' (pwm.weights.Rules.min_resolution_ratio),
     so the survey level keeps its shape."""
