@@ -87,17 +87,28 @@ def _ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / den) if den > 0 else np.nan
 
 
+def _masked_ncc(values: np.ndarray, model: np.ndarray, *, min_nodes: int) -> np.ndarray:
+    """`_ncc` of values (..., N) with model (N,) over the nodes where each row of values is
+    finite; -inf where fewer than min_nodes are, or where either side is constant."""
+    ok = np.isfinite(values)
+    count = ok.sum(axis=-1)
+    a = np.where(ok, values, 0.0)
+    b = np.where(ok, model, 0.0)
+    a = np.where(ok, a - a.sum(axis=-1, keepdims=True) / np.maximum(count, 1)[..., None], 0.0)
+    b = np.where(ok, b - b.sum(axis=-1, keepdims=True) / np.maximum(count, 1)[..., None], 0.0)
+    den = np.sqrt((a * a).sum(axis=-1) * (b * b).sum(axis=-1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ncc = (a * b).sum(axis=-1) / den
+    return np.where((count >= min_nodes) & (den > 0), ncc, -np.inf)
+
+
 def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, *, search_px: int, min_nodes: int,
            max_iterations: int) -> tuple[np.ndarray, float] | None:
     """Offset (sample, line) of `image` that best matches `model` at `pixels`, and its NCC."""
     shifts = np.arange(-search_px, search_px + 1)
-    score = np.full((len(shifts), len(shifts)), -np.inf)
-    for i, dl in enumerate(shifts):
-        for j, ds in enumerate(shifts):
-            values = bilinear(image, pixels + (ds, dl))
-            ok = np.isfinite(values)
-            if ok.sum() >= min_nodes:
-                score[i, j] = np.nan_to_num(_ncc(values[ok], model[ok]), nan=-np.inf)
+    # every whole shift at once: [line shift i, sample shift j, node]
+    grid = np.stack(np.meshgrid(shifts, shifts), axis=-1).astype(float)
+    score = _masked_ncc(bilinear(image, pixels + grid[:, :, None, :]), model, min_nodes=min_nodes)
     if not np.isfinite(score).any():
         return None
     i, j = map(int, np.unravel_index(np.argmax(score), score.shape))
@@ -313,15 +324,17 @@ def _search(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, steps: np.
     return best, float(score[i, j])
 
 
-def rise_motion(maplet: MapletGrid, data: MapletImages, axis: np.ndarray | None = None) -> np.ndarray:
-    """(K, 2) how each image's view of the maplet's centre node moves (sample, line; px per km) as
-    the node moves along `axis` (default the maplet's local z: a rise)."""
-    centre = maplet.nodes_body()[maplet.n // 2, maplet.n // 2]
-    return image_motion(data, centre, maplet.frame.rotation[2] if axis is None else axis, step_km=maplet.spacing_km)
+def rise_motion(maplet: MapletGrid, data: MapletImages, axis: np.ndarray | None = None, *,
+                node: tuple[int, int] | None = None) -> np.ndarray:
+    """(K, 2) how each image's view of a node (default the maplet's centre) moves (sample, line;
+    px per km) as the node moves along `axis` (default the maplet's local z: a rise)."""
+    row, col = (maplet.n // 2, maplet.n // 2) if node is None else node
+    point = maplet.nodes_body()[row, col]
+    return image_motion(data, point, maplet.frame.rotation[2] if axis is None else axis, step_km=maplet.spacing_km)
 
 
 def parallax_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,
-                    sigma_px: np.ndarray) -> tuple[float, float]:
+                    sigma_px: np.ndarray, node: tuple[int, int] | None = None) -> tuple[float, float]:
     """The rise of the maplet (km, along its local z) whose parallax best explains the images'
     offsets (K, 2; sample, line, px) beside a sideways shift of the whole maplet, and its 1 sigma
     (km), for offsets each good to sigma_px (K,) px (inf: an image that says nothing).
@@ -333,7 +346,8 @@ def parallax_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray,
     known better than that parallax, the offsets measure the height the start got wrong, as
     stereo does.
     """
-    jac = np.column_stack([rise_motion(maplet, data, axis).ravel() for axis in maplet.frame.rotation])  # (2K, 3)
+    jac = np.column_stack([rise_motion(maplet, data, axis, node=node).ravel()
+                           for axis in maplet.frame.rotation])  # (2K, 3)
     weight = np.repeat(1.0 / np.square(np.asarray(sigma_px, float)), 2)
     normal = jac.T @ (weight[:, None] * jac)
     if np.linalg.matrix_rank(normal) < 3:
@@ -341,6 +355,36 @@ def parallax_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray,
     covariance = np.linalg.inv(normal)
     shift = covariance @ (jac.T @ (weight * np.asarray(offsets, float).ravel()))
     return float(shift[2]), float(np.sqrt(covariance[2, 2]))
+
+
+def window_rises(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *, albedo: np.ndarray,
+                 sigma_px: np.ndarray, windows: int, search_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rise (km, along the maplet's local z) of each of windows x windows square parts of the
+    maplet that the parallax of its images' offsets there shows (`parallax_height` at the part's
+    centre), with its 1 sigma (km; inf where fewer than two images register there), and the
+    parts' centres (node index along either axis, (windows,)): (centres, rises, sigmas).
+
+    offsets: the images' offsets for the whole maplet (K, 2, px); each part is registered
+    (`align`, within search_px of them) to the maplet's brightness with this albedo. A start
+    tilted or bent across the maplet keeps its tilt through photoclinometry: the images' brightness
+    scales take up a uniform tilt, and its parallax, several pixels across a survey maplet, lies
+    beyond the joint solution's reach. Each part's own offsets measure it, as SPC's landmarks do.
+    sigma_px: (K,) how well an image's offsets are known over one part.
+    """
+    n = maplet.n
+    edges = np.linspace(0, n, windows + 1).round().astype(int)
+    rises = np.zeros((windows, windows))
+    sigmas = np.full((windows, windows), np.inf)
+    for i in range(windows):
+        for j in range(windows):
+            inside = np.zeros((n, n), bool)
+            inside[edges[i]:edges[i + 1], edges[j]:edges[j + 1]] = True
+            part = dataclasses.replace(data, weights=np.where(inside, data.weights, 0.0))
+            found = align(maplet, part, albedo=albedo, offsets=offsets, search_px=search_px)
+            said = np.where(np.isfinite(found.correlation), sigma_px, np.inf)
+            centre = ((edges[i] + edges[i + 1]) // 2, (edges[j] + edges[j + 1]) // 2)
+            rises[i, j], sigmas[i, j] = parallax_height(maplet, data, found.offsets, sigma_px=said, node=centre)
+    return 0.5 * (edges[:-1] + edges[1:] - 1), rises, sigmas
 
 
 def sweep_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *, reach_px: float,

@@ -34,7 +34,9 @@ class RefinementConfig:
     maplet once per input, against the current published model). search_px: how far (px) the
     images may be off the maplets, from the pose knowledge; beyond a pixel they are registered
     first (pwm.pipeline.refine_maplet). height_sweep_px: within a pixel, how much parallax between
-    the images a maplet's height is swept over before it is refined (0: not swept). min_images:
+    the images a maplet's height is swept over before it is refined (0: not swept).
+    shape_window_nodes: within a pixel, a maplet of at least twice this many nodes a side is also
+    bent by the parallax its images show in square parts this many nodes wide (0: not). min_images:
     fewest usable images a maplet is refined from; with fewer it keeps its start.
     tile_radius_km: the operations tile each place the images see (pwm.footprints) only within
     this of its centre (None: all of it).
@@ -52,6 +54,7 @@ class RefinementConfig:
     passes: int = 2
     search_px: float = 1.0
     height_sweep_px: float = 16.0
+    shape_window_nodes: int = 20
     min_images: int = 3
     tile_radius_km: float | None = None
     rules: Rules = field(default=RULES)
@@ -73,6 +76,8 @@ class RefinementConfig:
             raise ValueError(f"search of {self.search_px} px: must be non-negative")
         if self.height_sweep_px < 0:
             raise ValueError(f"height sweep of {self.height_sweep_px} px: must be non-negative")
+        if self.shape_window_nodes != 0 and self.shape_window_nodes < 8:
+            raise ValueError(f"shape windows of {self.shape_window_nodes} nodes: 0 (off) or at least 8")
         if self.min_images < 1:
             raise ValueError("a maplet is refined from at least one image")
         if self.tile_radius_km is not None and not self.tile_radius_km > 0:
@@ -82,7 +87,8 @@ class RefinementConfig:
         """sha256 of the settings that change one maplet's refinement (mode, search, image count,
         weighting rules, solver)."""
         payload: dict[str, Any] = {"mode": self.mode, "search_px": self.search_px,
-                                   "height_sweep_px": self.height_sweep_px, "min_images": self.min_images,
+                                   "height_sweep_px": self.height_sweep_px,
+                                   "shape_window_nodes": self.shape_window_nodes, "min_images": self.min_images,
                                    "rules": dataclasses.asdict(self.rules), "solver": dataclasses.asdict(self.solver)}
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 

@@ -19,6 +19,7 @@ def test_modes_are_the_solver_modes():
     ({"mode": "fast"}, "mode 'fast'"), ({"nodes": 4}, "at least 8"), ({"overlap": 0.9}, "overlap"),
     ({"spacing_gsd": 3.0}, "spacing"), ({"passes": 0}, "one pass"), ({"search_px": -1.0}, "non-negative"),
     ({"min_images": 0}, "at least one image"), ({"tile_radius_km": 0.0}, "positive"),
+    ({"shape_window_nodes": 4}, "shape windows of 4 nodes"),
 ])
 def test_a_bad_setting_is_refused_with_its_name(change, message):
     with pytest.raises(ValueError, match=message):
@@ -28,7 +29,7 @@ def test_a_bad_setting_is_refused_with_its_name(change, message):
 def test_the_digest_follows_what_changes_one_maplets_refinement():
     base = DEFAULTS.digest()
     assert RefinementConfig().digest() == base
-    for change in ({"mode": "standard"}, {"search_px": 8.0}, {"min_images": 4},
+    for change in ({"mode": "standard"}, {"search_px": 8.0}, {"min_images": 4}, {"shape_window_nodes": 0},
                    {"solver": Solver(slope_scale=0.2)}, {"rules": Rules(max_shadow_fraction=0.2)}):
         assert dataclasses.replace(DEFAULTS, **change).digest() != base, change
     # tiling makes other maplets, whose grids are in their own input hashes

@@ -18,8 +18,9 @@ import pytest
 from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
-from pwm.alignment import align, parallax_height, register, sweep_height
+from pwm.alignment import align, parallax_height, register, sweep_height, window_rises
 from pwm.camera import Camera, Pose, look_at, project
+from pwm.config import RefinementConfig
 from pwm.frames import latlon_to_unit, local_frame
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh, grid_faces
@@ -36,6 +37,7 @@ from pwm.photoclinometry import (
     refine,
     slopes,
 )
+from pwm.pipeline import _reshaped
 from pwm.raytrace import RayTracer
 from pwm.render import render
 
@@ -313,6 +315,52 @@ def test_a_sweep_of_rises_finds_a_start_many_pixels_of_parallax_off(scene: Scene
                                     sun_directions=scene.data.sun_directions[:1],
                                     visible=scene.data.visible[:1], lit=scene.data.lit[:1],
                                     weights=scene.data.weights[:1]), zero[:1], max_rise_km=far) == 0.0
+
+
+def _tilted(scene: Scene, span: float) -> MapletGrid:
+    """The flat start tilted along x by +-span spacings at its edges."""
+    x = np.broadcast_to(scene.start.axis_km, scene.start.heights.shape)
+    return dataclasses.replace(scene.start, heights=scene.start.heights + span * SPACING_KM * x / x.max())
+
+
+def _part_means(heights: np.ndarray, windows: int) -> np.ndarray:
+    edges = np.linspace(0, heights.shape[0], windows + 1).round().astype(int)
+    return np.array([[heights[edges[i]:edges[i + 1], edges[j]:edges[j + 1]].mean() for j in range(windows)]
+                     for i in range(windows)])
+
+
+def test_the_parallax_of_a_maplets_parts_shows_the_tilt_its_start_kept(scene: Scene) -> None:
+    # a start tilted by +-8 spacings: photoclinometry leaves about half of the tilt (the
+    # brightness scales take up a uniform slope), and the oblique images see its parts pixels
+    # apart; each part's own offsets measure most of what it is off
+    start = _tilted(scene, 8.0)
+    result = refine(start, scene.data)
+    needed = _part_means(scene.truth.heights - result.heights, 3) / SPACING_KM
+    centres, rises, sigmas = window_rises(dataclasses.replace(start, heights=result.heights), scene.data,
+                                          result.offsets, albedo=result.albedo, sigma_px=np.full(scene.data.count, 0.3),
+                                          windows=3, search_px=4)
+    rises = rises / SPACING_KM
+    np.testing.assert_allclose(centres, [9.5, 29.5, 49.5])
+    assert np.all(sigmas < 0.5 * SPACING_KM)
+    assert np.all(needed[:, 0] > 3) and np.all(needed[:, 2] < -3)  # the tilt is still there
+    tilt, measured = needed[:, 0] - needed[:, 2], rises[:, 0] - rises[:, 2]
+    assert np.all((measured > 0.5 * tilt) & (measured < 1.1 * tilt))
+    np.testing.assert_allclose(rises[:, 1], needed[:, 1], atol=0.3)
+
+
+def test_a_maplet_bent_by_its_parts_parallax_loses_the_tilt(scene: Scene, refined: Refinement) -> None:
+    bend = functools.partial(_reshaped, data=scene.data, sigma_px=np.full(scene.data.count, 0.1),
+                             config=RefinementConfig(shape_window_nodes=20), max_rise_km=20 * SPACING_KM)
+    start = _tilted(scene, 8.0)
+    result = refine(start, scene.data)
+    before = np.std(result.heights - scene.truth.heights)
+    after = np.std(bend(start, result=result).heights - scene.truth.heights)
+    assert before > 2.5 * SPACING_KM and after < 0.35 * before
+    # where the parts agree with the whole, nothing moves; nor where the parts are too small
+    assert bend(scene.start, result=refined) is refined
+    assert bend(start, result=result, config=RefinementConfig(shape_window_nodes=40)) is result
+    # nor beyond what the start may be off
+    assert bend(start, result=result, max_rise_km=SPACING_KM) is result
 
 
 def test_region_weight_tightens_to_the_start(scene: Scene, refined: Refinement) -> None:
