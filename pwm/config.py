@@ -36,8 +36,8 @@ class RefinementConfig:
     first (pwm.pipeline.refine_maplet). height_sweep_px: within a pixel, how much parallax between
     the images a maplet's height is swept over before it is refined (0: not swept).
     shape_window_nodes: within a pixel, a maplet of at least twice this many nodes a side is also
-    bent by the parallax its images show in square parts this many nodes wide (0: not). min_images:
-    fewest usable images a maplet is refined from; with fewer it keeps its start.
+    bent by the parallax its images show in square parts of about this many nodes a side (0: not).
+    min_images: fewest usable images a maplet is refined from; with fewer it keeps its start.
     tile_radius_km: the operations tile each place the images see (pwm.footprints) only within
     this of its centre (None: all of it).
     rules: the weighting (pwm.weights.Rules); solver: the iteration (pwm.photoclinometry.Solver).

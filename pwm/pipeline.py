@@ -116,9 +116,6 @@ RUNAWAY = 0.8
 """A parallax rise after which the solution still shows this much of it or more (measured on
 the campaign survey: 0.05-0.75 where the start was metres off, 0.85-0.95 where the rise ran
 away) is undone with those after it."""
-SHAPE_ROUNDS = 2
-"""At most this many times a maplet is bent by its parts' parallax (`_reshaped`) and solved again
-(a third changed nothing on the campaign survey: bench/RESULTS.md)."""
 WINDOW_SEARCH_PX = 4
 """How far (px) each part of a maplet is registered about the maplet's offsets when it is bent."""
 SWEEP_START = 32.0
@@ -222,37 +219,29 @@ def _settled(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sigm
 def _reshaped(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sigma_px: np.ndarray,
               config: RefinementConfig, max_rise_km: float) -> Refinement:
     """The refinement solved again from its heights bent by the rises that the parallax of its
-    images' offsets shows in square parts of config.shape_window_nodes a side
+    images' offsets shows in square parts of about config.shape_window_nodes a side
     (`pwm.alignment.window_rises`; those beyond three sigma, interpolated linearly between the
-    parts' centres, less their mean), while the bend stays within max_rise_km, at most
-    SHAPE_ROUNDS times; the refinement as it was where a bend runs away (RUNAWAY) as a rise can.
-    A survey's start from photogrammetry is bent or tilted across a maplet where its points are
-    sparse (a polar cap), and photoclinometry keeps that (`pwm.alignment.window_rises`)."""
+    parts' centres, less their mean), unless the bend reaches beyond max_rise_km. A survey's
+    start from photogrammetry is bent or tilted across a maplet where its points are sparse (a
+    polar cap), and photoclinometry keeps that (`pwm.alignment.window_rises`)."""
     windows = maplet.n // config.shape_window_nodes if config.shape_window_nodes else 0
     if windows < 2:
         return result
-    nodes = np.stack(np.meshgrid(np.arange(maplet.n), np.arange(maplet.n), indexing="ij"), axis=-1)
     # a part's offsets rest on a windows-th of the nodes a side: the registration's error grows so
     part_sigma_px = np.hypot(sigma_px, REGISTRATION_PX * windows)
-    start, bend, last = result, np.zeros_like(maplet.heights), None
-    for _ in range(SHAPE_ROUNDS):
-        shaped = dataclasses.replace(maplet, heights=result.heights)
-        centres, rises, sigmas = window_rises(shaped, data, result.offsets, albedo=result.albedo,
-                                              sigma_px=part_sigma_px, windows=windows, search_px=WINDOW_SEARCH_PX)
-        rises = np.where(np.abs(rises) > 3 * sigmas, rises, 0.0)
-        largest = float(np.max(np.abs(rises)))
-        if largest == 0.0:
-            break
-        if last is not None and largest > RUNAWAY * last:
-            return start
-        field = RegularGridInterpolator((centres, centres), rises, bounds_error=False, fill_value=None)(nodes)
-        field -= field.mean()  # the maplet's mean height is the whole maplet's parallax to place (_settled)
-        if np.max(np.abs(bend + field)) > max_rise_km:
-            break
-        bend, last = bend + field, largest
-        shaped = dataclasses.replace(maplet, heights=result.heights + field)
-        result = refine(shaped, data, mode=config.mode, solver=config.solver, offsets=result.offsets)
-    return result
+    centres, rises, sigmas = window_rises(dataclasses.replace(maplet, heights=result.heights), data, result.offsets,
+                                          albedo=result.albedo, sigma_px=part_sigma_px, windows=windows,
+                                          search_px=WINDOW_SEARCH_PX)
+    rises = np.where(np.abs(rises) > 3 * sigmas, rises, 0.0)
+    if not rises.any():
+        return result
+    nodes = np.stack(np.meshgrid(np.arange(maplet.n), np.arange(maplet.n), indexing="ij"), axis=-1)
+    bend = RegularGridInterpolator((centres, centres), rises, bounds_error=False, fill_value=None)(nodes)
+    bend -= bend.mean()  # the maplet's mean height is the whole maplet's parallax to place (_settled)
+    if np.max(np.abs(bend)) > max_rise_km:
+        return result
+    return refine(dataclasses.replace(maplet, heights=result.heights + bend), data, mode=config.mode,
+                  solver=config.solver, offsets=result.offsets)
 
 
 def landmark_pixels(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray) -> np.ndarray:
