@@ -36,7 +36,6 @@ from pwm.weights import (
     dark_nodes,
     maplet_geometry,
     weigh_maplet,
-    without_dark,
 )
 
 log = logging.getLogger(__name__)
@@ -171,8 +170,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
             maplet = _raised(maplet, raised)
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
-            data.weights = without_dark(data.weights, dark_nodes(extract(maplet, data, offsets=offsets), data.weights,
-                                                                      config.rules), config.rules)
+            dark = dark_nodes(extract(maplet, data, offsets=offsets), data.weights, config.rules)
+            data.weights = np.where(dark, 0.0, data.weights)
         result = refine(maplet, data, mode=mode, offsets=offsets, solver=config.solver)
         if placed:
             # an image that no node weighed kept its start offset: it says nothing

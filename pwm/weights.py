@@ -76,7 +76,10 @@ class Rules:
     steep_slope_std_deg: float = 15.0
     """Spread (standard deviation) of a maplet's slope angles above which its terrain is steep."""
     shadow_edge_factor: float = 0.5
-    """Factor on lit nodes next to a shadowed node."""
+    """Factor on lit nodes next to a node that the current shape shadows, whose shadow's edge may
+    lie a node off. Not on those next to a node the images themselves show dark (`dark_nodes`):
+    they are lit in the same pixels, and on a boulder a few nodes across they are the flank
+    towards its shadow, the steepest slope it shows (bench/RESULTS.md: the survey's boulders)."""
     dark_fraction: float = 0.05
     """A node darker in an image than this fraction of the image's median over the maplet lies in
     a shadow, cast by relief the current shape may not have yet (boulders missing from the start).
@@ -244,20 +247,13 @@ def node_factors(vis: Visibility, heights: np.ndarray, spacing_km: float, *, in_
 def dark_nodes(values: np.ndarray, weights: np.ndarray, rules: Rules = RULES) -> np.ndarray:
     """(K, n, n) nodes in shadow by the images themselves: darker than rules.dark_fraction of their
     image's median over the nodes it weighs. values: image values at the nodes (K, n, n), NaN where
-    missing; weights: the pixel weights (K, n, n)."""
+    missing; weights: the pixel weights (K, n, n). The refinement weighs them out altogether: kept
+    at shadow_keep_weight beside lit ones, they cost a long-shadowed site its held-out NCC
+    (bench/RESULTS.md)."""
     used = np.isfinite(values) & (weights > 0)
     typical = np.array([np.median(v[u]) if u.any() else np.nan for v, u in zip(values, used, strict=True)])
     with np.errstate(invalid="ignore"):
         return used & (values < rules.dark_fraction * typical[:, None, None])
-
-
-def without_dark(weights: np.ndarray, dark: np.ndarray, rules: Rules = RULES) -> np.ndarray:
-    """Pixel weights (K, n, n) with the dark nodes (K, n, n) excluded and their neighbours in the
-    same image taken down by shadow_edge_factor, as for the shadows the shape casts
-    (`node_factors`). Dark nodes next to lit ones are not kept at shadow_keep_weight: that cost a
-    long-shadowed site its held-out NCC (bench/RESULTS.md)."""
-    near = ndimage.binary_dilation(dark, structure=_SAME_IMAGE) & ~dark
-    return np.where(dark, 0.0, np.where(near, rules.shadow_edge_factor * weights, weights))
 
 
 def five_views(geom: MapletGeometry, image_weight: np.ndarray, keep: np.ndarray, rules: Rules = RULES) -> FiveViews:

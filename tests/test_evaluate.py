@@ -310,6 +310,21 @@ def test_figures_are_written(tmp_path, scene):
         _assert_png(tmp_path / name)
 
 
+def test_a_coverage_map_shows_the_few_gaps_among_many_covered_points(tmp_path):
+    directions = np.random.default_rng(3).normal(size=(20000, 3))
+    points = 0.25 * directions / np.linalg.norm(directions, axis=1)[:, None]
+    top = np.array(matplotlib.colormaps["viridis"](1.0)[:3])  # the colour of a gap
+
+    def gap_pixels(gap_m):
+        plots.coverage_map(tmp_path / "coverage.png", points, gap_m, tolerance_m=4.0)
+        image = matplotlib.image.imread(tmp_path / "coverage.png")[..., :3]
+        the_map = image[:, : int(0.75 * image.shape[1])]  # not the colour bar, on the right
+        return (np.abs(the_map - top).max(axis=-1) < 0.05).sum()
+
+    assert gap_pixels(np.full(len(points), 0.5)) == 0  # all covered: no point in a gap's colour
+    assert gap_pixels(np.where(np.arange(len(points)) % 200 == 0, 5.0, 0.5)) > 20  # 0.5% not covered
+
+
 def test_completeness_sees_a_hole_that_distances_cannot():
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.25)
     whole = Mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces))

@@ -24,7 +24,6 @@ from pwm.weights import (
     select_images,
     slope_spread_deg,
     weigh_maplet,
-    without_dark,
 )
 
 
@@ -176,15 +175,6 @@ def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():
     values[1, 0, 0] = 0.0
     dark = dark_nodes(values, weights)
     assert sorted(zip(*np.nonzero(dark), strict=True)) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
-
-    out = without_dark(weights, dark)
-    assert (out[dark] == 0).all()
-    around = np.zeros_like(dark)
-    around[0, 1:5, 4:7] = around[1, 5:8, 5:8] = True
-    around &= ~dark
-    assert np.allclose(out[around], RULES.shadow_edge_factor)  # neighbours in the same image only
-    rest = ~dark & ~around
-    assert (out[rest] == weights[rest]).all()
 
 
 def test_weigh_maplet_on_real_shadows_and_occlusion():

@@ -139,14 +139,16 @@ def image_comparison(
 
 
 def body_map(path: str | os.PathLike[str], points_km: np.ndarray, values: np.ndarray, *, title: str,
-             label: str) -> None:
+             label: str, limits: tuple[float, float] | None = None) -> None:
     """Values at body-fixed points (N, 3) on a map of planetocentric longitude and latitude,
-    coloured from the 1st to the 99th percentile (a whole body's errors or coverage at a glance)."""
-    p = np.asarray(points_km, float)
+    coloured over limits (default: the 1st to the 99th percentile), the largest drawn last (a
+    whole body's errors or coverage at a glance: the few bad places must show over the many)."""
+    order = np.argsort(np.asarray(values, float), kind="stable")
+    p = np.asarray(points_km, float)[order]
     lon = np.degrees(np.arctan2(p[:, 1], p[:, 0])) % 360.0
     lat = np.degrees(np.arcsin(np.clip(p[:, 2] / np.linalg.norm(p, axis=1), -1.0, 1.0)))
-    v = np.asarray(values, float)
-    low, high = np.percentile(v, [1, 99]) if v.size else (0.0, 1.0)
+    v = np.asarray(values, float)[order]
+    low, high = limits if limits is not None else np.percentile(v, [1, 99]) if v.size else (0.0, 1.0)
     fig = _figure(8.0, 4.2)
     ax = fig.add_subplot()
     dots = ax.scatter(lon, lat, c=v, s=1.0, cmap="viridis", vmin=low, vmax=max(high, low + 1e-12), linewidths=0)
@@ -157,6 +159,14 @@ def body_map(path: str | os.PathLike[str], points_km: np.ndarray, values: np.nda
     ax.set_ylabel("latitude (deg)")
     ax.set_title(title)
     fig.savefig(path, dpi=120)
+
+
+def coverage_map(path: str | os.PathLike[str], points_km: np.ndarray, gap_m: np.ndarray, *,
+                 tolerance_m: float) -> None:
+    """The distance (m) from truth points (N, 3) to the model on a fixed scale up to tolerance_m,
+    beyond which a point is not covered: a coverage of 99% coloured by percentile is one colour."""
+    body_map(path, points_km, gap_m, title=f"truth to model distance (m): not covered at {tolerance_m:g} m or more",
+             label="m", limits=(0.0, tolerance_m))
 
 
 def _figure(width_in: float, height_in: float) -> Figure:

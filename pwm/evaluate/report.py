@@ -143,8 +143,7 @@ def _whole_body(truth: Truth, model: Mesh, tracer: RayTracer, *, vertex_error_km
     if plots_dir is not None:
         plots.body_map(plots_dir / "vertex_error.png", model.vertices, vertex_error_km * 1e3,
                        title="model to truth distance (m)", label="m")
-        plots.body_map(plots_dir / "coverage.png", samples, (gap <= tolerance_km).astype(float),
-                       title=f"truth within {COMPLETENESS_GSD:g} GSD of the model (1) or not (0)", label="covered")
+        plots.coverage_map(plots_dir / "coverage.png", samples, gap * 1e3, tolerance_m=tolerance_km * 1e3)
     return out
 
 
