@@ -117,15 +117,13 @@ the campaign survey: 0.05-0.75 where the start was metres off, 0.85-0.95 where t
 away) is undone with those after it."""
 WINDOW_SEARCH_PX = 4
 """How far (px) each part of a maplet is registered about the maplet's offsets when it is bent."""
-SWEEP_START = 16.0
+SWEEP_START = 32.0
 """A maplet is first swept (pwm.alignment.sweep_height) where its start's faces are this many of
-its spacings or more (four levels, a survey over a site: the campaign's 10 cm sites lie on its
-survey's 2 m faces, 20 spacings): a coarser model's heights are off by a sixth of its faces or
-more (measured on campaign-tiny's survey under its sites and on the surveys' photogrammetric
-starts; 0.4-1.1 m under the campaign's site A, 2-6 px of parallax), beyond the joint solution's
-reach; nearer (a survey's photogrammetric start is 5 spacings coarse, its second pass 1), the
-solution and the parallax placement reach, and a sweep's false optima cost more than it finds
-(bench/RESULTS.md: the survey from nothing, and a site under its survey)."""
+its spacings or more (five levels, a survey over a site): a coarser model's heights are off by
+about a sixth of its faces (measured on campaign-tiny's survey under its sites and on the
+surveys' photogrammetric starts), which is then several spacings of parallax, beyond the joint
+solution's reach; nearer, the sweep's false optima cost more than it finds (bench/RESULTS.md:
+the survey from nothing)."""
 
 
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
