@@ -124,6 +124,14 @@ about a sixth of its faces (measured on campaign-tiny's survey under its sites a
 surveys' photogrammetric starts), which is then several spacings of parallax, beyond the joint
 solution's reach; nearer, the sweep's false optima cost more than it finds (bench/RESULTS.md:
 the survey from nothing)."""
+SWEEP_START_MANY = 16.0
+SWEEP_MANY_IMAGES = 12
+"""A maplet seen by SWEEP_MANY_IMAGES usable images or more is swept from SWEEP_START_MANY
+spacings (four levels): the campaign's 10 cm sites lie on its survey's 2 m faces (20 spacings),
+0.4-1.1 m off (2-6 px of parallax), beyond the reach of the solution and the parallax placement;
+a plane sweep's false optima grow rarer with its views (2 of 20 there, with 22-24 images), and
+with the 3-6 images of a small survey from nothing they broke its closed surface
+(bench/RESULTS.md: the campaign's site A swept under its survey)."""
 
 
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
@@ -137,7 +145,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     (`pwm.alignment.register`) within it before the joint solution; within it, the joint solution
     holds the start's mean height, which a coarser start gets wrong by pixels of parallax, so the
     maplet is raised after the solution by what its offsets took up of the parallax (`_settled`),
-    and first, where the start is much coarser (SWEEP_START), to where its images agree best
+    and first, where the start is much coarser (SWEEP_START, or SWEEP_START_MANY under many
+    images), to where its images agree best
     (`pwm.alignment.sweep_height`, over config.height_sweep_px of parallax)."""
     clock = time.perf_counter()
     mode = config.mode
@@ -165,7 +174,9 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         # is a misplacement.
         start_edge_km = _start_edge_km(maplet, tracer)
         placed = search_px <= 1.0
-        if placed and config.height_sweep_px > 0 and start_edge_km >= SWEEP_START * maplet.spacing_km:
+        coarse = start_edge_km / maplet.spacing_km
+        if placed and config.height_sweep_px > 0 and (
+                coarse >= SWEEP_START or (coarse >= SWEEP_START_MANY and data.count >= SWEEP_MANY_IMAGES)):
             raised = sweep_height(maplet, data, offsets, reach_px=config.height_sweep_px, max_rise_km=start_edge_km)
             maplet = _raised(maplet, raised)
         if mode == "pwm":
