@@ -146,8 +146,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     holds the start's mean height, which a coarser start gets wrong by pixels of parallax, so the
     maplet is raised after the solution by what its offsets took up of the parallax (`_settled`),
     and first, where the start is much coarser (SWEEP_START, or SWEEP_START_MANY under many
-    images), to where its images agree best
-    (`pwm.alignment.sweep_height`, over config.height_sweep_px of parallax)."""
+    images), to where its images agree best (`pwm.alignment.sweep_height`, over
+    config.height_sweep_px of parallax)."""
     clock = time.perf_counter()
     mode = config.mode
     data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)

@@ -143,11 +143,12 @@ def body_map(path: str | os.PathLike[str], points_km: np.ndarray, values: np.nda
     """Values at body-fixed points (N, 3) on a map of planetocentric longitude and latitude,
     coloured over limits (default: the 1st to the 99th percentile), the largest drawn last (a
     whole body's errors or coverage at a glance: the few bad places must show over the many)."""
-    order = np.argsort(np.asarray(values, float), kind="stable")
+    v = np.asarray(values, float)
+    order = np.argsort(v, kind="stable")
+    v = v[order]
     p = np.asarray(points_km, float)[order]
     lon = np.degrees(np.arctan2(p[:, 1], p[:, 0])) % 360.0
     lat = np.degrees(np.arcsin(np.clip(p[:, 2] / np.linalg.norm(p, axis=1), -1.0, 1.0)))
-    v = np.asarray(values, float)[order]
     low, high = limits if limits is not None else np.percentile(v, [1, 99]) if v.size else (0.0, 1.0)
     fig = _figure(8.0, 4.2)
     ax = fig.add_subplot()
