@@ -388,15 +388,19 @@ def window_rises(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,
 
 
 def sweep_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *, reach_px: float,
-                 max_rise_km: float, step_px: float = 1.0) -> float:
+                 max_rise_km: float, follow: bool = False, step_px: float = 1.0) -> float:
     """The rise of the whole maplet (km, along its local z) at which its images agree best with
     one another: plane-sweep stereo over rises whose parallax between the images spans up to
     reach_px (step_px apart), and at most max_rise_km. At each, every image is compared with the
     albedo the others give times its shading (`_full_scores`, on every second or third node: the
     agreement needs no more); the rise of the best mean correlation is kept, refined by a
     parabola. It finds a start's height error many pixels of parallax wide, far beyond the
-    photoclinometric solution's reach of about a pixel. 0 when the images are too few, their
-    parallax too small to sweep, or the best agreement lies at the sweep's end."""
+    photoclinometric solution's reach of about a pixel. With `follow`, where the agreement still
+    rises at an end of the sweep, the sweep goes on that way, within max_rise_km, until it
+    falls: a start off by more than reach_px is then found at the same cost per step (with a
+    few images, the agreement can also rise at an end towards no height at all). 0 when the
+    images are too few, their parallax too small to sweep, or the best agreement lies at an end
+    the sweep may not pass."""
     if data.count < 2:
         return 0.0
     motion = rise_motion(maplet, data)
@@ -406,12 +410,23 @@ def sweep_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,
     sparse, sparse_data = _every(maplet, data)
     step = step_px / spread
     half = min(reach_px / spread, max_rise_km)
-    rises = np.arange(-half, half + 0.5 * step, step)
-    scores = np.array([_mean_score(dataclasses.replace(sparse, heights=sparse.heights + rise), sparse_data, offsets)
-                       for rise in rises])
+
+    def score(rise: float) -> float:
+        return _mean_score(dataclasses.replace(sparse, heights=sparse.heights + rise), sparse_data, offsets)
+
+    rises = list(np.arange(-half, half + 0.5 * step, step))
+    scores = [score(rise) for rise in rises]
     if not np.isfinite(scores).any():
         return 0.0
     best = int(np.nanargmax(scores))
+    while follow and best == len(rises) - 1 and rises[-1] + step <= max_rise_km:
+        rises.append(rises[-1] + step)
+        scores.append(score(rises[-1]))
+        best = int(np.nanargmax(scores))
+    while follow and best == 0 and rises[0] - step >= -max_rise_km:
+        rises.insert(0, rises[0] - step)
+        scores.insert(0, score(rises[0]))
+        best = int(np.nanargmax(scores))
     if not (0 < best < len(rises) - 1 and np.isfinite(scores[best - 1 : best + 2]).all()):
         return 0.0
     return float(rises[best] + _vertex(*scores[best - 1 : best + 2]) * step)

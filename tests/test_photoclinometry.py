@@ -305,6 +305,9 @@ def test_a_sweep_of_rises_finds_a_start_many_pixels_of_parallax_off(scene: Scene
     zero = np.zeros((scene.data.count, 2))
     rise = sweep(start, scene.data, zero, max_rise_km=far)
     assert rise == pytest.approx(float(np.mean(scene.truth.heights)) - lift, abs=SPACING_KM)
+    # a sweep too short to reach it follows the images' agreement on past its end to the same place
+    short = functools.partial(sweep_height, start, scene.data, zero, reach_px=2.0, max_rise_km=far)
+    assert short(follow=True) == pytest.approx(rise, abs=0.2 * SPACING_KM) and short() == 0.0
     # never further than it is allowed to go: a start 8 spacings off is no find within 4
     assert abs(sweep(start, scene.data, zero, max_rise_km=4 * SPACING_KM)) <= 4 * SPACING_KM
     # at the true height, the images agree best where the maplet is
