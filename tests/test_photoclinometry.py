@@ -37,7 +37,7 @@ from pwm.photoclinometry import (
     refine,
     slopes,
 )
-from pwm.pipeline import _reshaped
+from pwm.pipeline import _reshaped, _swept_again
 from pwm.raytrace import RayTracer
 from pwm.render import render
 
@@ -477,3 +477,23 @@ def test_register_recovers_offsets_of_many_pixels_without_albedo(scene: Scene) -
     assert np.abs(_datum_free(unregistered.offsets - expected, start, bad)).max() > 2.0
     assert (_shape_error(refined.heights, scene.truth.heights)
             < 0.5 * _shape_error(unregistered.heights, scene.truth.heights))
+
+
+def test_a_swept_maplet_is_swept_again_from_its_refined_relief(scene: Scene) -> None:
+    # a maplet refined 5 spacings too high (its first sweep's peak was flat on a coarser
+    # start's relief) keeps that height through the joint solution; swept again from the relief
+    # it has now, and solved again, it comes down
+    lift = 5 * SPACING_KM
+    zero = np.zeros((scene.data.count, 2))
+    truth = float(np.mean(scene.truth.heights))
+    high = refine(dataclasses.replace(scene.truth, heights=scene.truth.heights + lift, albedo=None), scene.data,
+                  offsets=zero)
+    assert float(np.mean(high.heights)) - truth > 3 * SPACING_KM
+    again = functools.partial(_swept_again, scene.start, scene.data, high, offsets=zero, config=RefinementConfig(),
+                              follow=False)
+    placed, raised = again(raised_km=0.0, max_rise_km=16 * SPACING_KM)
+    assert float(np.mean(placed.heights)) == pytest.approx(truth, abs=0.5 * SPACING_KM)
+    assert raised == pytest.approx(-lift, abs=0.5 * SPACING_KM)
+    # within what is left of the start's face size: a maplet already raised that far stays
+    kept, raised = again(raised_km=16 * SPACING_KM, max_rise_km=16 * SPACING_KM)
+    assert kept is high and raised == 16 * SPACING_KM
