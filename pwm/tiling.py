@@ -44,7 +44,7 @@ COVERAGE_MARGIN = 0.5
 """A sample counts as covered only this many sample spacings inside a maplet's square, so that
 gaps between samples are covered too."""
 _NEAR = 2.0 * np.sqrt(3.0)
-"""Radius, in half-sizes, of the ball about a maplet's origin holding the box that `_top_km` searches."""
+"""Radius, in half-sizes, of the ball about a maplet's origin holding the box that `_span_km` searches."""
 
 
 def level_of(spacing_km: float | np.ndarray) -> np.ndarray:
@@ -141,7 +141,7 @@ class _Surface:
         return out
 
     def near_vertices(self, origin: np.ndarray, half_km: float) -> np.ndarray:
-        """The vertices `_top_km` needs for a square of half-side half_km about origin."""
+        """The vertices `_span_km` needs for a square of half-side half_km about origin."""
         return self.mesh.vertices[self.vertices.query_ball_point(origin, _NEAR * half_km)]
 
     def outer_points(self, directions: np.ndarray) -> np.ndarray:
@@ -206,7 +206,7 @@ def _region_centres(surface: _Surface, lat: float, lon: float, radius: float, st
     gap = np.hypot(np.maximum(np.abs(x) - step / 2, 0.0), np.maximum(np.abs(y) - step / 2, 0.0))
     keep = gap <= radius
     reach = radius + step + half
-    top = _top_km(site, surface.near_vertices(origin, reach), reach)
+    _, top = _span_km(site, surface.near_vertices(origin, reach), reach)
     centres = _drop_points(surface.tracer, site, x[keep], y[keep], top)
     m = int(np.ceil(radius / fine))
     sx, sy = np.meshgrid(np.arange(-m, m + 1) * fine, np.arange(-m, m + 1) * fine)
@@ -251,12 +251,14 @@ def _complete(surface: _Surface, frames: list[LocalFrame], samples: np.ndarray, 
     return extra
 
 
-def _top_km(frame: LocalFrame, vertices: np.ndarray, half_km: float) -> float:
-    """A height along the frame's z (km) above the surface over the square of half-side half_km:
-    above the highest nearby vertex over it (at least half_km, enough for a facet tilted by 45 deg)."""
+def _span_km(frame: LocalFrame, vertices: np.ndarray, half_km: float) -> tuple[float, float]:
+    """Heights along the frame's z (km) below and above the surface over the square of half-side
+    half_km: half_km beyond the lowest nearby vertex over it, and above the highest (at least
+    half_km, enough for a facet tilted by 45 deg)."""
     local = frame.to_local(vertices)
     over = np.all(np.abs(local) <= 2.0 * half_km, axis=1)
-    return max(float(local[over, 2].max(initial=0.0)), half_km) + 0.01 * half_km
+    return (float(local[over, 2].min(initial=0.0)) - half_km,
+            max(float(local[over, 2].max(initial=0.0)), half_km) + 0.01 * half_km)
 
 
 def _cast_down(tracer: RayTracer, frame: LocalFrame, x: np.ndarray, y: np.ndarray, top: float) -> Hits:
@@ -277,9 +279,10 @@ def _drop(tracer: RayTracer, frame: LocalFrame, axis: np.ndarray, near: np.ndarr
     and the number filled. near: the mesh vertices about the maplet (to bound the surface)."""
     n = len(axis)
     x, y = np.meshgrid(axis, axis)
-    top = _top_km(frame, near, half)
+    bottom, top = _span_km(frame, near, half)
     hits = _cast_down(tracer, frame, x.ravel(), y.ravel(), top)
-    hit = hits.hit.reshape(n, n)
+    # a ray through a pinhole of the surface meets the body's far side, hundreds of metres down
+    hit = (hits.hit & (top - hits.t >= bottom)).reshape(n, n)
     if not hit.any():
         raise ValueError(f"no surface under the maplet at {frame.origin} km")
     # nearest hit node for every node (itself where it hit)

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 import pwm
-from pwm.frames import LocalFrame, latlon_to_unit
+from pwm.frames import LocalFrame, latlon_to_unit, local_frame
 from pwm.io.meshio import read_obj
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
@@ -137,7 +137,16 @@ def test_sample_heights_fills_misses_and_follows_the_model():
     assert np.allclose(sample_heights(lifted, maplet), h + 0.001, atol=3e-8)
 
 
-def test_bad_arguments_are_refused(sphere):
+def test_a_node_over_a_pinhole_is_filled_not_dropped_to_the_far_side(sphere):
+    # one face of the sphere missing under a maplet: the ray there would meet the far side 0.5 km down
+    up = latlon_to_unit(10.0, 40.0)
+    face = int(RayTracer(sphere).intersect(2 * R * up[None], -up[None]).face[0])
+    holed = Mesh(sphere.vertices, np.delete(sphere.faces, face, axis=0))
+    frame = local_frame(R * up, up)
+    maplet = MapletGrid(name="hole", frame=frame, spacing_km=0.0005, heights=np.zeros((21, 21)))
+    whole, holed_h = sample_heights(sphere, maplet), sample_heights(holed, maplet)
+    assert np.abs(holed_h - whole).max() < 0.002  # within the missing face's sag and size, not 0.5 km
+
     with pytest.raises(ValueError):
         tile(sphere, spacing_km=0.001, nodes=11, centre_lat_deg=10.0, radius_km=0.01)
     with pytest.raises(ValueError):
