@@ -147,6 +147,8 @@ def test_a_node_over_a_pinhole_is_filled_not_dropped_to_the_far_side(sphere):
     whole, holed_h = sample_heights(sphere, maplet), sample_heights(holed, maplet)
     assert np.abs(holed_h - whole).max() < 0.002  # within the missing face's sag and size, not 0.5 km
 
+
+def test_bad_arguments_are_refused(sphere):
     with pytest.raises(ValueError):
         tile(sphere, spacing_km=0.001, nodes=11, centre_lat_deg=10.0, radius_km=0.01)
     with pytest.raises(ValueError):
