@@ -25,7 +25,7 @@ angles in degrees.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -206,12 +206,12 @@ def _region_centres(surface: _Surface, lat: float, lon: float, radius: float, st
     gap = np.hypot(np.maximum(np.abs(x) - step / 2, 0.0), np.maximum(np.abs(y) - step / 2, 0.0))
     keep = gap <= radius
     reach = radius + step + half
-    _, top = _span_km(site, surface.near_vertices(origin, reach), reach)
-    centres = _drop_points(surface.tracer, site, x[keep], y[keep], top)
+    span = _span_km(site, surface.near_vertices(origin, reach), reach)
+    centres = _drop_points(surface.tracer, site, x[keep], y[keep], span)
     m = int(np.ceil(radius / fine))
     sx, sy = np.meshgrid(np.arange(-m, m + 1) * fine, np.arange(-m, m + 1) * fine)
     inside = np.hypot(sx, sy).ravel() <= radius
-    samples = _drop_points(surface.tracer, site, sx.ravel()[inside], sy.ravel()[inside], top)
+    samples = _drop_points(surface.tracer, site, sx.ravel()[inside], sy.ravel()[inside], span)
     return centres[np.isfinite(centres[:, 0])], samples[np.isfinite(samples[:, 0])]
 
 
@@ -261,15 +261,24 @@ def _span_km(frame: LocalFrame, vertices: np.ndarray, half_km: float) -> tuple[f
             max(float(local[over, 2].max(initial=0.0)), half_km) + 0.01 * half_km)
 
 
-def _cast_down(tracer: RayTracer, frame: LocalFrame, x: np.ndarray, y: np.ndarray, top: float) -> Hits:
+def _cast_down(tracer: RayTracer, frame: LocalFrame, x: np.ndarray, y: np.ndarray,
+               span: tuple[float, float]) -> tuple[Hits, np.ndarray]:
+    """First hits of rays cast down the frame's z from the top of span (`_span_km`) at local (x, y),
+    and the heights (km) they meet the surface at. A hit below span's bottom is a miss: a ray
+    through a pinhole of the surface meets the body's far side, hundreds of metres down."""
+    bottom, top = span
     origins = frame.to_body(np.column_stack([x, y, np.full(len(x), top)]))
-    return tracer.intersect(origins, np.broadcast_to(-frame.normal, origins.shape))
+    hits = tracer.intersect(origins, np.broadcast_to(-frame.normal, origins.shape))
+    heights = top - hits.t
+    through = hits.hit & (heights < bottom)
+    hits = replace(hits, face=np.where(through, -1, hits.face), t=np.where(through, np.inf, hits.t))
+    return hits, heights
 
 
-def _drop_points(tracer: RayTracer, frame: LocalFrame, x: np.ndarray, y: np.ndarray, top: float) -> np.ndarray:
-    """Body-fixed surface points (km) under local (x, y) seen from height top, nan on a miss."""
-    hits = _cast_down(tracer, frame, x, y, top)
-    h = top - hits.t
+def _drop_points(tracer: RayTracer, frame: LocalFrame, x: np.ndarray, y: np.ndarray,
+                 span: tuple[float, float]) -> np.ndarray:
+    """Body-fixed surface points (km) under local (x, y) (`_cast_down`), nan on a miss."""
+    hits, h = _cast_down(tracer, frame, x, y, span)
     return np.where(hits.hit[:, None], frame.to_body(np.column_stack([x, y, np.where(hits.hit, h, 0.0)])), np.nan)
 
 
@@ -279,15 +288,13 @@ def _drop(tracer: RayTracer, frame: LocalFrame, axis: np.ndarray, near: np.ndarr
     and the number filled. near: the mesh vertices about the maplet (to bound the surface)."""
     n = len(axis)
     x, y = np.meshgrid(axis, axis)
-    bottom, top = _span_km(frame, near, half)
-    hits = _cast_down(tracer, frame, x.ravel(), y.ravel(), top)
-    # a ray through a pinhole of the surface meets the body's far side, hundreds of metres down
-    hit = (hits.hit & (top - hits.t >= bottom)).reshape(n, n)
+    hits, h = _cast_down(tracer, frame, x.ravel(), y.ravel(), _span_km(frame, near, half))
+    hit = hits.hit.reshape(n, n)
     if not hit.any():
         raise ValueError(f"no surface under the maplet at {frame.origin} km")
     # nearest hit node for every node (itself where it hit)
     src = ndimage.distance_transform_edt(~hit, return_distances=False, return_indices=True)
-    heights = (top - hits.t).reshape(n, n)[src[0], src[1]]
+    heights = h.reshape(n, n)[src[0], src[1]]
     albedo = None
     if tracer.mesh.albedo is not None:
         albedo = tracer.interpolate(tracer.mesh.albedo, hits).reshape(n, n)[src[0], src[1]]

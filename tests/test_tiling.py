@@ -148,6 +148,20 @@ def test_a_node_over_a_pinhole_is_filled_not_dropped_to_the_far_side(sphere):
     assert np.abs(holed_h - whole).max() < 0.002  # within the missing face's sag and size, not 0.5 km
 
 
+
+def test_a_region_over_a_pinhole_puts_no_maplet_on_the_far_side(sphere):
+    # the hole under one maplet's origin of the whole sphere's tiling: that centre's ray would meet
+    # the far side 0.5 km down, and a maplet would be tiled there
+    kw = dict(spacing_km=0.001, nodes=11, centre_lat_deg=30.0, centre_lon_deg=45.0, radius_km=0.02)
+    origins = np.array([m.frame.origin for m in tile(sphere, **kw)])
+    up = origins[np.argsort(np.linalg.norm(origins - origins.mean(axis=0), axis=1))[5]]
+    up = up / np.linalg.norm(up)
+    face = int(RayTracer(sphere).intersect(2 * R * up[None], -up[None]).face[0])
+    holed = tile(Mesh(sphere.vertices, np.delete(sphere.faces, face, axis=0)), **kw)
+    centre = R * latlon_to_unit(30.0, 45.0)
+    assert len(holed) == len(origins)
+    assert max(np.linalg.norm(m.frame.origin - centre) for m in holed) < 0.02 + 0.01
+
 def test_bad_arguments_are_refused(sphere):
     with pytest.raises(ValueError):
         tile(sphere, spacing_km=0.001, nodes=11, centre_lat_deg=10.0, radius_km=0.01)
