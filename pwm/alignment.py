@@ -25,6 +25,7 @@ from scipy import ndimage
 from pwm.camera import project
 from pwm.maplets import MapletGrid
 from pwm.photoclinometry import (
+    MIN_COARSE_NODES,
     MapletImages,
     bilinear,
     bilinear_gradient,
@@ -32,6 +33,7 @@ from pwm.photoclinometry import (
     image_motion,
     node_pixels,
     predict,
+    resampled,
 )
 
 
@@ -187,9 +189,9 @@ def register(
     limit = 0.25 * maplet.n * float(np.median(scales))
     for level, (factor, reach) in enumerate(levels):
         reach = min(reach, max(limit, factor))
-        if (maplet.n - 1) // factor + 1 < 8:
+        if (maplet.n - 1) // factor + 1 < MIN_COARSE_NODES:
             continue
-        coarse, weights = _resample(maplet, data.weights, factor)
+        coarse, weights = resampled(maplet, data.weights, factor)
         shading = predict(coarse, data, albedo=1.0).reshape(data.count, -1)
         margin = reach + factor * (passes + 3)
         first = node_pixels(coarse, data, offsets=out)
@@ -246,24 +248,6 @@ def _pixels_per_spacing(maplet: MapletGrid, camera, pose) -> float:
     """Pixels between neighbouring nodes at the maplet's centre in one image."""
     ends = maplet.frame.to_body(np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]) * maplet.spacing_km)
     return float(np.linalg.norm(np.diff(project(ends, camera, pose), axis=0)))
-
-
-def _resample(maplet: MapletGrid, weights: np.ndarray, factor: int) -> tuple[MapletGrid, np.ndarray]:
-    """The maplet with every `factor`-th spacing over the same square (heights smoothed to that
-    spacing and interpolated) and per-node weights (K, m*m) that are positive where the fine
-    weights are positive all around."""
-    if factor == 1:
-        return maplet, weights.reshape(len(weights), -1)
-    n = maplet.n
-    m = (n - 1) // factor + 1
-    at = np.linspace(0, n - 1, m)
-    grid = np.meshgrid(at, at, indexing="ij")
-    heights = ndimage.map_coordinates(ndimage.gaussian_filter(maplet.heights, 0.5 * factor, mode="nearest"), grid,
-                                      order=1, mode="nearest")
-    good = np.stack([ndimage.map_coordinates(ndimage.minimum_filter((w > 0).astype(float), size=factor), grid,
-                                             order=0, mode="nearest") for w in weights])
-    coarse = dataclasses.replace(maplet, heights=heights, albedo=None, spacing_km=maplet.spacing_km * (n - 1) / (m - 1))
-    return coarse, good.reshape(len(weights), -1)
 
 
 def _window(image: np.ndarray, pixels: np.ndarray, *, margin: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:

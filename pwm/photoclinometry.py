@@ -43,6 +43,7 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
+from scipy import ndimage
 from scipy.linalg import block_diag
 from scipy.sparse.linalg import splu
 
@@ -205,6 +206,55 @@ def extract(maplet: MapletGrid, data: MapletImages, *, heights: np.ndarray | Non
     """(K, n, n) image values at the nodes (bilinear), NaN outside the frames or behind a camera."""
     pixels = node_pixels(maplet, data, heights=heights, offsets=offsets)
     return np.stack([bilinear(image, pixels[k]) for k, image in enumerate(data.images)])
+
+
+def resampled(maplet: MapletGrid, weights: np.ndarray, factor: int) -> tuple[MapletGrid, np.ndarray]:
+    """The maplet with every `factor`-th spacing over the same square (heights smoothed to that
+    spacing and interpolated) and per-node weights (K, m*m) that are positive where the fine
+    weights are positive all around."""
+    if factor == 1:
+        return maplet, weights.reshape(len(weights), -1)
+    n = maplet.n
+    m = (n - 1) // factor + 1
+    at = np.linspace(0, n - 1, m)
+    grid = np.meshgrid(at, at, indexing="ij")
+    heights = ndimage.map_coordinates(ndimage.gaussian_filter(maplet.heights, 0.5 * factor, mode="nearest"), grid,
+                                      order=1, mode="nearest")
+    good = np.stack([ndimage.map_coordinates(ndimage.minimum_filter((w > 0).astype(float), size=factor), grid,
+                                             order=0, mode="nearest") for w in weights])
+    coarse = dataclasses.replace(maplet, heights=heights, albedo=None, spacing_km=maplet.spacing_km * (n - 1) / (m - 1))
+    return coarse, good.reshape(len(weights), -1)
+
+
+MIN_COARSE_NODES = 8
+"""Fewest nodes a side of a coarser grid worth solving or registering on."""
+
+
+def coarsened(maplet: MapletGrid, data: MapletImages, factor: int) -> tuple[MapletGrid, MapletImages]:
+    """The maplet every `factor`-th spacing (`resampled`) and its images smoothed to that many
+    pixels (a Gaussian of factor / 2 px, NaN where less than half its weight fell on data); each
+    coarse node keeps the masks and weight of the fine node under it, where the fine weights are
+    positive all around."""
+    coarse, good = resampled(maplet, data.weights, factor)
+    at = np.linspace(0, maplet.n - 1, coarse.n)
+    grid = np.meshgrid(at, at, indexing="ij")
+
+    def under(masks: np.ndarray) -> np.ndarray:
+        return np.stack([ndimage.map_coordinates(mask.astype(float), grid, order=0, mode="nearest")
+                         for mask in masks])
+
+    weights = under(data.weights) * good.reshape(data.count, coarse.n, coarse.n)
+    images = [_smoothed(image, 0.5 * factor) for image in data.images]
+    return coarse, MapletImages(images=images, cameras=data.cameras, poses=data.poses,
+                                sun_directions=data.sun_directions, visible=under(data.visible) > 0,
+                                lit=under(data.lit) > 0, weights=weights, region_weight=data.region_weight)
+
+
+def _smoothed(image: np.ndarray, sigma: float) -> np.ndarray:
+    valid = np.isfinite(image)
+    total = ndimage.gaussian_filter(np.where(valid, image, 0.0), sigma)
+    share = ndimage.gaussian_filter(valid.astype(float), sigma)
+    return np.where(share > 0.5, total / np.maximum(share, 0.5), np.nan)
 
 
 @lru_cache(maxsize=8)

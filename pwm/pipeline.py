@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 from scipy.interpolate import RegularGridInterpolator
 
 from pwm.alignment import parallax_height, register, rise_motion, sweep_height, window_rises
@@ -23,7 +24,7 @@ from pwm.levels import LevelGrids
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.parallel import map_processes
-from pwm.photoclinometry import MapletImages, Refinement, extract, refine
+from pwm.photoclinometry import MIN_COARSE_NODES, MapletImages, Refinement, coarsened, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
 from pwm.views import View
@@ -135,6 +136,10 @@ with the 3-6 images of a small survey from nothing they broke its closed surface
 agreement past the sweep's end (two of site A's maplets were 1.1-1.2 m low, 16 px reached
 1.3 m); with four images that ran a maplet of `tests/test_pipeline.py` 1.5 m off."""
 
+COARSE_FACTORS = (8, 4, 2)
+"""A swept maplet is solved first on grids this many times coarser, coarsest first
+(`_coarse_first`)."""
+
 RESWEEP_PX = 8.0
 """A swept maplet is swept again from its refined heights over this much parallax
 (`_swept_again`): the first sweep, from the coarser start's relief, was up to 0.37 m (4.6 px)
@@ -154,8 +159,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     maplet is raised after the solution by what its offsets took up of the parallax (`_settled`),
     and first, where the start is much coarser (SWEEP_START, or SWEEP_START_MANY under many
     images), to where its images agree best (`pwm.alignment.sweep_height`, over
-    config.height_sweep_px of parallax), and last, swept again from its refined relief
-    (`_swept_again`)."""
+    config.height_sweep_px of parallax), then solved on coarser grids (`_coarse_first`), and last,
+    swept again from its refined relief (`_swept_again`)."""
     clock = time.perf_counter()
     mode = config.mode
     data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)
@@ -189,7 +194,7 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         if swept:
             raised = sweep_height(maplet, data, offsets, reach_px=config.height_sweep_px, max_rise_km=start_edge_km,
                                   follow=many)
-            maplet = _raised(maplet, raised)
+            maplet = _coarse_first(_raised(maplet, raised), data, offsets=offsets, config=config)
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
             dark = dark_nodes(extract(maplet, data, offsets=offsets), data.weights, config.rules)
@@ -214,6 +219,27 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                         five_views=views_found, dropped=dropped, iterations=iterations, converged=converged,
                         residual_rms=rms, seconds=time.perf_counter() - clock, registrations=registrations,
                         raised_km=raised)
+
+
+def _coarse_first(maplet: MapletGrid, data: MapletImages, *, offsets: np.ndarray,
+                  config: RefinementConfig) -> MapletGrid:
+    """The maplet with the heights its images give on grids COARSE_FACTORS times coarser, coarsest
+    first (`pwm.photoclinometry.coarsened`, at least MIN_COARSE_NODES a side): each grid's change
+    interpolated onto the nodes. A coarser model lacks relief metres high and a few metres across
+    (on the campaign's site B under its 2 m survey, blobs of +-2 m): pixels of parallax over a
+    few spacings, beyond a joint solution's linear reach at the maplet's spacing, which keeps
+    most of such an error, but within a coarser grid's."""
+    n = maplet.n
+    for factor in COARSE_FACTORS:
+        if (n - 1) // factor + 1 < MIN_COARSE_NODES:
+            continue
+        coarse, coarse_data = coarsened(maplet, data, factor)
+        result = refine(coarse, coarse_data, mode=config.mode, offsets=offsets, solver=config.solver)
+        at = np.arange(n) * (coarse.n - 1) / (n - 1)
+        change = ndimage.map_coordinates(result.heights - coarse.heights, np.meshgrid(at, at, indexing="ij"),
+                                         order=1, mode="nearest")
+        maplet = dataclasses.replace(maplet, heights=maplet.heights + change)
+    return maplet
 
 
 def _swept_again(maplet: MapletGrid, data: MapletImages, result: Refinement, *, offsets: np.ndarray,

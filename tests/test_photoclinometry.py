@@ -37,7 +37,7 @@ from pwm.photoclinometry import (
     refine,
     slopes,
 )
-from pwm.pipeline import _reshaped, _swept_again
+from pwm.pipeline import _coarse_first, _reshaped, _swept_again
 from pwm.raytrace import RayTracer
 from pwm.render import render
 
@@ -497,3 +497,19 @@ def test_a_swept_maplet_is_swept_again_from_its_refined_relief(scene: Scene) -> 
     # within what is left of the start's face size: a maplet already raised that far stays
     kept, raised = again(raised_km=16 * SPACING_KM, max_rise_km=16 * SPACING_KM)
     assert kept is high and raised == 16 * SPACING_KM
+
+
+def test_relief_a_coarser_start_lacks_is_found_on_coarser_grids_first(scene: Scene) -> None:
+    # a start 10 spacings low over a patch of 14 spacings (sigma): about 6 px of parallax, beyond
+    # the joint solution's linear reach at the maplet's spacing, which keeps a fifth of it; solved
+    # on grids 8, 4 and 2 times coarser first, it is gone before the fine solution
+    x, y = np.meshgrid(scene.start.axis_km, scene.start.axis_km)
+    pit = -10 * SPACING_KM * np.exp(-((x - 5e-4) ** 2 + (y + 4e-4) ** 2) / (2 * (7 * SPACING_KM) ** 2))
+    start = dataclasses.replace(scene.truth, heights=scene.truth.heights + pit, albedo=None)
+    zero = np.zeros((scene.data.count, 2))
+    assert _shape_error(start.heights, scene.truth.heights) > 1.5 * SPACING_KM
+    fine = refine(start, scene.data, offsets=zero)
+    assert _shape_error(fine.heights, scene.truth.heights) > 0.25 * SPACING_KM
+    first = _coarse_first(start, scene.data, offsets=zero, config=RefinementConfig())
+    assert _shape_error(first.heights, scene.truth.heights) < 0.15 * SPACING_KM
+    assert _shape_error(refine(first, scene.data, offsets=zero).heights, scene.truth.heights) < 0.1 * SPACING_KM
