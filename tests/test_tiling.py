@@ -148,7 +148,6 @@ def test_a_node_over_a_pinhole_is_filled_not_dropped_to_the_far_side(sphere):
     assert np.abs(holed_h - whole).max() < 0.002  # within the missing face's sag and size, not 0.5 km
 
 
-
 def test_a_region_over_a_pinhole_puts_no_maplet_on_the_far_side(sphere):
     # the hole under one maplet's origin of the whole sphere's tiling: that centre's ray would meet
     # the far side 0.5 km down, and a maplet would be tiled there
