@@ -425,7 +425,8 @@ def _every(maplet: MapletGrid, data: MapletImages) -> tuple[MapletGrid, MapletIm
     pick = (slice(None), slice(None, None, factor), slice(None, None, factor))
     return (dataclasses.replace(maplet, heights=maplet.heights[::factor, ::factor], albedo=None,
                                 spacing_km=maplet.spacing_km * factor),
-            dataclasses.replace(data, visible=data.visible[pick], lit=data.lit[pick], weights=data.weights[pick]))
+            dataclasses.replace(data, visible=data.visible[pick], lit=data.lit[pick], weights=data.weights[pick],
+                                shade=None if data.shade is None else data.shade[pick]))
 
 
 def _mean_score(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray) -> float:

@@ -11,12 +11,19 @@ objective (METHOD.md section 5), with reflectance normalised by the mean data br
       + (slope_weight / w_PWM) sum_edges rho(p - p0) + rho(q - q0)
       + (height_weight / w_PWM) sum_nodes ((z - z0) / spacing)^2
       + albedo_weight sum_nodes ((A - A_ref) / A_ref)^2 + offset_weight sum_k |o_k - o_k,start|^2
+      + shadow_weight sum_k sum_nodes h_k(z)^2
 
 rho(d) = 2 c^2 (sqrt(1 + (d / c)^2) - 1) with c = slope_scale: the pseudo-Huber function, d^2 for
 slope changes well below c and growing only linearly beyond, so that the relief the start lacks
 (boulders, whose flanks differ from the start's slopes by far more than noise does) is not held
 down as hard as noise is. I_k(x) is sampled by cubic convolution, which does not blur detail
 between the pixel centres as bilinear sampling does.
+h_k: the shadow term, in node spacings. Where image k shows a node in a shadow (`shade`, read
+from the images: the node weighs nothing there), the node must lie below its horizon towards
+that image's Sun over the maplet's own nodes (`horizons`), and where it shows the node plainly
+lit, above it; h_k is how far the shape is on the wrong side, 0 where it is on the right one.
+A low Sun that always comes from one side leaves the far flanks of boulders and the near walls
+of craters dark in every image, and the shadows' edges are then all that the images say of them.
 x_k: the nodes projected into image k at their current heights; G: the McEwen lunar-Lambert
 function of pwm.photometry with the node normal from central differences of the heights
 (one-sided on the border). The slope tie uses forward differences, which also see the odd-even
@@ -62,7 +69,8 @@ class MapletImages:
     cameras, poses: their intrinsics (pixels) and body-fixed poses; sun_directions: (K, 3) unit
     vectors towards the Sun, body-fixed; visible, lit: (K, n, n) booleans per node (not occluded,
     not shadowed); weights: (K, n, n) per-node weight w_k (0 excludes the node from image k);
-    region_weight: the maplet's w_PWM in (0, 1].
+    region_weight: the maplet's w_PWM in (0, 1]; shade: (K, n, n) int8, -1 where the image shows
+    the node in a shadow, +1 plainly lit, 0 neither (pwm.weights.shade; None: no shadow term).
     """
 
     images: list[np.ndarray]
@@ -73,6 +81,7 @@ class MapletImages:
     lit: np.ndarray
     weights: np.ndarray
     region_weight: float = 1.0
+    shade: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         k = len(self.images)
@@ -85,6 +94,8 @@ class MapletImages:
             raise ValueError("one camera and one pose per image")
         if not (self.visible.shape == self.lit.shape == self.weights.shape) or self.weights.shape[0] != k:
             raise ValueError("visible, lit and weights must all be (K, n, n)")
+        if self.shade is not None and np.shape(self.shade) != self.weights.shape:
+            raise ValueError("shade must be (K, n, n) like the weights")
         if not 0.0 < self.region_weight <= 1.0:
             raise ValueError(f"region weight {self.region_weight} is outside (0, 1]")
 
@@ -368,6 +379,54 @@ def _initial_albedo_and_scales(maplet: MapletGrid, values: np.ndarray, rows: np.
     return albedo, scales, np.full_like(albedo, float(np.median(albedo)))
 
 
+def horizons(u: np.ndarray, sun_local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K, N) the height (node spacings) below which each node of the height grid u (n, n, in
+    node spacings; x along j, y along i) lies in the shadow that the grid's own nodes cast under
+    each Sun (K, 3, unit vectors in the maplet's frame), and (K, N) the node (flat index) that
+    casts it; -inf and -1 where none can (a Sun overhead or below the horizon). The ray towards
+    the Sun is stepped one spacing at a time, each step taken at its nearest node, whose height
+    is lowered by the Sun's rise over that node's distance along the Sun's azimuth."""
+    n = u.shape[0]
+    flat = u.ravel()
+    i, j = np.divmod(np.arange(n * n), n)
+    top = np.full((len(sun_local), n * n), -np.inf)
+    caster = np.full((len(sun_local), n * n), -1, dtype=np.int64)
+    span = float(flat.max() - flat.min())
+    for k, sun in enumerate(np.asarray(sun_local, float)):
+        horizontal = float(np.hypot(sun[0], sun[1]))
+        if horizontal < 1e-9 or sun[2] <= 0:
+            continue
+        dx, dy, rise = sun[0] / horizontal, sun[1] / horizontal, sun[2] / horizontal
+        # beyond span / rise steps no node stands high enough to shade another
+        for step in range(1, min(int(np.ceil(span / rise)) + 1, 2 * n) + 1):
+            ci = np.rint(i + step * dy).astype(np.int64)
+            cj = np.rint(j + step * dx).astype(np.int64)
+            inside = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
+            if not inside.any():
+                break
+            c = np.where(inside, ci * n + cj, 0)
+            h = np.where(inside, flat[c] - rise * ((cj - j) * dx + (ci - i) * dy), -np.inf)
+            higher = h > top[k]
+            top[k] = np.where(higher, h, top[k])
+            caster[k] = np.where(higher, c, caster[k])
+    return top, caster
+
+
+def _exit_steps(n: int, sun_local: np.ndarray) -> np.ndarray:
+    """(K, N) distance (node spacings) from each node to the grid's border along each Sun's azimuth
+    (inf for a Sun overhead)."""
+    i, j = np.divmod(np.arange(n * n), n)
+    out = np.full((len(sun_local), n * n), np.inf)
+    for k, sun in enumerate(np.asarray(sun_local, float)):
+        horizontal = float(np.hypot(sun[0], sun[1]))
+        if horizontal < 1e-9:
+            continue
+        for d, at in ((sun[0] / horizontal, j), (sun[1] / horizontal, i)):
+            if abs(d) > 1e-12:
+                out[k] = np.minimum(out[k], ((n - 1 - at) if d > 0 else at) / abs(d))
+    return out
+
+
 _RISE = 0.01  # the height step (spacings) over which the parallax of a node is differenced
 
 
@@ -403,7 +462,7 @@ class _Problem:
 
     def __init__(self, maplet: MapletGrid, data: MapletImages, *, weights: np.ndarray, region: float,
                  offsets: np.ndarray, solve_offsets: bool, slope_weight: float, slope_scale: float,
-                 height_weight: float, albedo_weight: float, offset_weight: float) -> None:
+                 height_weight: float, albedo_weight: float, offset_weight: float, shadow_weight: float) -> None:
         n = maplet.n
         self.maplet, self.data = maplet, data
         self.weights = weights.reshape(data.count, -1)
@@ -423,6 +482,10 @@ class _Problem:
             self.image_basis = block_diag(np.eye(data.count), datum_complement(maplet, data))
         self.i_ref = 1.0
         self.albedo_prior = np.ones(n * n)
+        self.shadow_weight = shadow_weight
+        self.shade = None if data.shade is None or shadow_weight <= 0 else data.shade.reshape(data.count, -1)
+        self.sun_local = data.sun_directions @ maplet.frame.rotation.T
+        self.exit_steps = _exit_steps(n, self.sun_local)
 
     def start(self) -> tuple[_State, _Evaluation]:
         """Starting state (albedo and scales estimated at the starting shape) and its evaluation."""
@@ -468,8 +531,37 @@ class _Problem:
         du = state.u - self.u0
         da = (state.albedo - self.albedo_prior) / self.albedo_prior
         do = state.offsets - self.offsets0
+        shadow = self._shadows(state.u)[0]
         return float((residuals**2).sum() + self._tie_cost(du) + self.albedo_weight * (da @ da)
-                     + self.offset_weight * (do * do).sum())
+                     + self.offset_weight * (do * do).sum() + self.shadow_weight * (shadow @ shadow))
+
+    def _shadows(self, u: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+        """The shadow term's residuals (node spacings) and their Jacobian (M, N): one row per node
+        and image where the shape contradicts what the image shows, a node it shows in a shadow
+        standing above its horizon (u - top), or one it shows lit below it (top - u). A row moves
+        the node and the node that casts its horizon, the two ends of the ray to the Sun. A dark
+        node that a node just beyond the grid's border, as high as the grid's highest, could shade
+        has no row: the grid cannot tell."""
+        n2 = len(u)
+        if self.shade is None:
+            return np.zeros(0), sp.csr_matrix((0, n2))
+        top, caster = horizons(u.reshape(self.maplet.n, self.maplet.n), self.sun_local)
+        gap = u[None, :] - top
+        with np.errstate(invalid="ignore"):
+            reach = (u.max() - u)[None, :] / np.maximum(self.sun_local[:, 2:3], 1e-9) * np.hypot(
+                self.sun_local[:, 0:1], self.sun_local[:, 1:2])
+        dark = (self.shade < 0) & (caster >= 0) & (gap > 0) & (reach <= self.exit_steps)
+        lit = (self.shade > 0) & (caster >= 0) & (gap < 0)
+        k_dark, node_dark = np.nonzero(dark)
+        k_lit, node_lit = np.nonzero(lit)
+        sign = np.concatenate([np.ones(len(k_dark)), -np.ones(len(k_lit))])
+        node = np.concatenate([node_dark, node_lit])
+        cast = np.concatenate([caster[k_dark, node_dark], caster[k_lit, node_lit]])
+        residual = sign * np.concatenate([gap[k_dark, node_dark], gap[k_lit, node_lit]])
+        m = np.arange(len(node))
+        jac = sp.csr_matrix((np.concatenate([sign, -sign]), (np.tile(m, 2), np.concatenate([node, cast]))),
+                            shape=(len(node), n2))
+        return residual, jac
 
     def _tie_cost(self, du: np.ndarray) -> float:
         """The ties to the start: pseudo-Huber on the slope changes (quadratic below slope_scale,
@@ -537,8 +629,10 @@ class _Problem:
 
         ops = self.operators
         tie = self._tie_matrix(state.u - self.u0)
-        huu = ops.T @ sp.bmat([[sp.diags(mij) for mij in row] for row in m], format="csr") @ ops + tie
-        gu = ops.T @ np.concatenate(g) + tie @ (state.u - self.u0)
+        shadow, shadow_jac = self._shadows(state.u)
+        huu = (ops.T @ sp.bmat([[sp.diags(mij) for mij in row] for row in m], format="csr") @ ops + tie
+               + self.shadow_weight * (shadow_jac.T @ shadow_jac))
+        gu = ops.T @ np.concatenate(g) + tie @ (state.u - self.u0) + self.shadow_weight * (shadow_jac.T @ shadow)
         hut = ops.T @ np.vstack([x.T for x in xt])
         # The mean height stays the start's: a Lagrange multiplier joins the per-image unknowns.
         hut = np.column_stack([hut, np.ones(len(gu))])
@@ -615,7 +709,10 @@ class Solver:
     more of the boulders the start lacks, higher keeps shadow-poor maplets closer to the start);
     albedo_weight: of the tie to the maplet's albedo (or to the median albedo if it has none);
     solve_offsets: refine the images' pointing offsets too, jointly (image gradients as their
-    derivatives), tied to the given ones by offset_weight per px^2.
+    derivatives), tied to the given ones by offset_weight per px^2. shadow_weight: of the shadow
+    term, per image and node, on the shapes of maplets whose images carry their shadows
+    (MapletImages.shade); higher pulls the shadows' casters up harder than the photometry holds
+    them (bench/RESULTS.md).
     """
 
     max_iterations: int = 30
@@ -627,6 +724,7 @@ class Solver:
     albedo_weight: float = 1e-3
     offset_weight: float = 1e-3
     solve_offsets: bool = True
+    shadow_weight: float = 0.05
 
 
 SOLVER = Solver()
@@ -653,7 +751,7 @@ def refine(
     problem = _Problem(maplet, data, weights=weights, region=region, offsets=start, solve_offsets=solver.solve_offsets,
                        slope_weight=solver.slope_weight, slope_scale=solver.slope_scale,
                        height_weight=solver.height_weight, albedo_weight=solver.albedo_weight,
-                       offset_weight=solver.offset_weight)
+                       offset_weight=solver.offset_weight, shadow_weight=solver.shadow_weight)
     state, ev = problem.start()
     converged = not ev.rows.any()
     iterations = 0

@@ -36,6 +36,7 @@ from pwm.weights import (
     Rules,
     dark_nodes,
     maplet_geometry,
+    shade,
     weigh_maplet,
 )
 
@@ -197,8 +198,9 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
             maplet = _coarse_first(_raised(maplet, raised), data, offsets=offsets, config=config)
         if mode == "pwm":
             # the start lacks the relief that casts most shadows: the images show them
-            dark = dark_nodes(extract(maplet, data, offsets=offsets), data.weights, config.rules)
-            data.weights = np.where(dark, 0.0, data.weights)
+            values = extract(maplet, data, offsets=offsets)
+            data.shade = shade(values, data.weights, data.visible, config.rules)
+            data.weights = np.where(dark_nodes(values, data.weights, config.rules), 0.0, data.weights)
         result = refine(maplet, data, mode=mode, offsets=offsets, solver=config.solver)
         if placed:
             # an image that no node weighed kept its start offset: it says nothing

@@ -85,6 +85,9 @@ class Rules:
     a shadow, cast by relief the current shape may not have yet (boulders missing from the start).
     Low enough to keep the dim faces of steep boulders, which carry their slopes; without it,
     the shadows of a low Sun are read as dark terrain (bench/RESULTS.md)."""
+    lit_fraction: float = 0.25
+    """A node brighter in an image than this fraction of the image's median over the maplet is
+    plainly lit: no relief stands between it and the Sun (`shade`)."""
     nadir_tolerance_deg: float = 10.0
     """Nadir candidates: within this of the lowest emission; the lowest phase angle among them wins."""
     side_min_emission_deg: float = 10.0
@@ -251,9 +254,30 @@ def dark_nodes(values: np.ndarray, weights: np.ndarray, rules: Rules = RULES) ->
     at shadow_keep_weight beside lit ones, they cost a long-shadowed site its held-out NCC
     (bench/RESULTS.md)."""
     used = np.isfinite(values) & (weights > 0)
-    typical = np.array([np.median(v[u]) if u.any() else np.nan for v, u in zip(values, used, strict=True)])
     with np.errstate(invalid="ignore"):
-        return used & (values < rules.dark_fraction * typical[:, None, None])
+        return used & (values < rules.dark_fraction * _typical(values, used))
+
+
+def shade(values: np.ndarray, weights: np.ndarray, visible: np.ndarray, rules: Rules = RULES) -> np.ndarray:
+    """(K, n, n) int8: -1 where an image shows a visible node in a shadow (darker than
+    rules.dark_fraction of the image's median over the nodes it weighs), +1 where it shows it
+    plainly lit (brighter than rules.lit_fraction of it), 0 elsewhere and one node either side of
+    a shadow's edge, which a pixel's blur and a node's parallax leave uncertain. The refinement's
+    shadow term (pwm.photoclinometry) holds the shape to these: what casts the shadows that the
+    start lacks."""
+    seen = np.isfinite(values) & visible
+    typical = _typical(values, seen & (weights > 0))
+    with np.errstate(invalid="ignore"):
+        dark = seen & (values < rules.dark_fraction * typical)
+        lit = seen & (values > rules.lit_fraction * typical)
+    dark &= ~ndimage.binary_dilation(~dark & seen, structure=_SAME_IMAGE)
+    lit &= ~ndimage.binary_dilation(~lit & seen, structure=_SAME_IMAGE)
+    return lit.astype(np.int8) - dark.astype(np.int8)
+
+
+def _typical(values: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """(K, 1, 1) each image's median value over the used nodes (NaN where none is)."""
+    return np.array([np.median(v[u]) if u.any() else np.nan for v, u in zip(values, used, strict=True)])[:, None, None]
 
 
 def five_views(geom: MapletGeometry, image_weight: np.ndarray, keep: np.ndarray, rules: Rules = RULES) -> FiveViews:

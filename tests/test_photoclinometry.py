@@ -18,7 +18,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
-from pwm.alignment import align, parallax_height, register, sweep_height, window_rises
+from pwm.alignment import _every, align, parallax_height, register, sweep_height, window_rises
 from pwm.camera import Camera, Pose, look_at, project
 from pwm.config import RefinementConfig
 from pwm.frames import latlon_to_unit, local_frame
@@ -34,12 +34,14 @@ from pwm.photoclinometry import (
     bilinear,
     cubic_gradient,
     extract,
+    horizons,
     refine,
     slopes,
 )
 from pwm.pipeline import _coarse_first, _reshaped, _swept_again
 from pwm.raytrace import RayTracer
 from pwm.render import render
+from pwm.weights import shade
 
 FOCAL_PX = 14729.0
 N_NODES = 60
@@ -248,7 +250,7 @@ def test_parallax_is_the_change_of_the_samples_as_the_nodes_rise(scene: Scene) -
     problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0,
                        offsets=np.zeros((scene.data.count, 2)),
                        solve_offsets=True, slope_weight=0.02, slope_scale=0.17, height_weight=1e-3, albedo_weight=1e-3,
-                       offset_weight=1e-3)
+                       offset_weight=1e-3, shadow_weight=0.0)
     state, ev = problem.start()
     h = 1e-3  # spacings: a uniform rise leaves the slopes, so only the samples change
     risen, values = problem._evaluate(dataclasses.replace(state, u=state.u + h))
@@ -382,7 +384,7 @@ def test_the_slope_tie_holds_relief_the_start_lacks_less_than_noise(scene: Scene
     problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0,
                        offsets=np.zeros((scene.data.count, 2)),
                        solve_offsets=False, slope_weight=0.02, slope_scale=0.1, height_weight=1e-3, albedo_weight=1e-3,
-                       offset_weight=1e-3)
+                       offset_weight=1e-3, shadow_weight=0.0)
     du = (robust.heights - scene.start.heights).ravel() / SPACING_KM
     step = np.random.default_rng(5).normal(size=du.size)
     h = 1e-6
@@ -397,6 +399,39 @@ def test_pwm_weights_beat_standard_photoclinometry_in_shadow() -> None:
               for mode in ("pwm", "standard")}
     assert errors["pwm"] < 0.5 * errors["standard"]
     assert _shape_error(low.start.heights, low.truth.heights) > 5 * errors["pwm"]
+
+
+def test_a_horizon_is_the_shadow_line_of_the_highest_node_towards_the_sun() -> None:
+    n = 21
+    u = np.zeros((n, n))
+    u[10, 10] = 5.0                     # a pillar 5 spacings high
+    elevation = np.radians(30.0)
+    east = np.array([[np.cos(elevation), 0.0, np.sin(elevation)], [0.0, 0.0, 1.0]])   # and one overhead
+    top, caster = horizons(u, east)
+    row = top[0].reshape(n, n)[10]
+    # west of the pillar the horizon falls by tan(30 deg) a spacing; the pillar casts it
+    assert np.allclose(row[1:10], 5.0 - np.tan(elevation) * np.arange(9, 0, -1))
+    assert (caster[0].reshape(n, n)[10, 1:10] == 10 * n + 10).all()
+    shaded = u.ravel() < top[0]
+    assert shaded.reshape(n, n)[10, 2:10].all() and not shaded.reshape(n, n)[10, 11:].any()
+    assert not shaded.reshape(n, n)[9, :].any()    # the next row: no pillar to its east
+    assert np.isneginf(top[1]).all() and (caster[1] == -1).all()
+
+
+def test_the_shadows_the_images_show_hold_the_slope_no_image_lights() -> None:
+    # The Sun always low in the south: the bump's northern flank is dark in every image, and only
+    # the ties to the flat start would shape it without the shadow term.
+    south = _scene(((70.0, 160.0), (65.0, 180.0), (75.0, 200.0), (70.0, 170.0), (65.0, 190.0)), seed=1)
+    marked = dataclasses.replace(south.data, shade=shade(extract(south.start, south.data), south.data.weights,
+                                                         south.data.visible))
+    dark = (~south.data.lit & south.data.visible).any(axis=0)
+    assert dark.sum() > 50
+
+    def error(weight: float) -> float:
+        heights = refine(south.start, marked, solver=Solver(shadow_weight=weight)).heights
+        return float(np.sqrt(np.mean((heights - south.truth.heights)[dark] ** 2)))
+
+    assert error(0.05) < 0.9 * error(0.0)
 
 
 def _mispointed(data: MapletImages, seed: int, angle_rad: float = 1e-4) -> MapletImages:
@@ -497,6 +532,19 @@ def test_a_swept_maplet_is_swept_again_from_its_refined_relief(scene: Scene) -> 
     # within what is left of the start's face size: a maplet already raised that far stays
     kept, raised = again(raised_km=16 * SPACING_KM, max_rise_km=16 * SPACING_KM)
     assert kept is high and raised == 16 * SPACING_KM
+
+
+def test_the_sweeps_sparser_grid_keeps_the_shadows_the_images_show(scene: Scene) -> None:
+    # refine_maplet marks the shadows before a swept maplet is swept again: every node mask of
+    # the sparser grid the sweep scores on must be taken alike
+    n = 58    # (n - 1) a multiple of 3: every third node spans the same square
+    data = dataclasses.replace(scene.data, visible=scene.data.visible[:, :n, :n], lit=scene.data.lit[:, :n, :n],
+                               weights=scene.data.weights[:, :n, :n])
+    data.shade = shade(extract(dataclasses.replace(scene.start, heights=scene.start.heights[:n, :n]), data),
+                       data.weights, data.visible)
+    sparse, sparse_data = _every(dataclasses.replace(scene.start, heights=scene.start.heights[:n, :n]), data)
+    assert sparse.n == 20 and sparse_data.shade is not None
+    assert np.array_equal(sparse_data.shade, data.shade[:, ::3, ::3])
 
 
 def test_relief_a_coarser_start_lacks_is_found_on_coarser_grids_first(scene: Scene) -> None:

@@ -22,6 +22,7 @@ from pwm.weights import (
     node_factors,
     region_weight,
     select_images,
+    shade,
     slope_spread_deg,
     weigh_maplet,
 )
@@ -175,6 +176,20 @@ def test_nodes_dark_in_an_image_are_shadows_whatever_the_shape_says():
     values[1, 0, 0] = 0.0
     dark = dark_nodes(values, weights)
     assert sorted(zip(*np.nonzero(dark), strict=True)) == [(0, 2, 5), (0, 3, 5), (1, 6, 6)]
+
+
+def test_shade_marks_shadows_and_plain_light_but_not_the_nodes_beside_a_shadows_edge():
+    values = np.full((1, 9, 9), 1.0)
+    values[0, 2:7, 2:7] = 0.01    # a shadow 5 nodes across
+    values[0, 0, 8] = 0.2         # dim: neither shadow nor plainly lit
+    visible = np.ones(values.shape, bool)
+    visible[0, 8, 0] = False      # hidden: neither, whatever its value
+    marks = shade(values, np.ones_like(values), visible)[0]
+    dark, lit = marks < 0, marks > 0
+    # the shadow's core (its outer ring borders light), the light away from the shadow's edge
+    assert np.array_equal(np.argwhere(dark), np.argwhere(np.pad(np.ones((3, 3), bool), 3)))
+    assert not lit[1:8, 1:8].any() and lit[0, 0] and lit[8, 8]
+    assert marks[0, 8] == 0 and marks[8, 0] == 0
 
 
 def test_weigh_maplet_on_real_shadows_and_occlusion():
