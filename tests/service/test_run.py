@@ -96,7 +96,11 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
         for revision in v3.maplet_revisions:
             assert revision.statistics["pass"] == 2 and revision.statistics["model_version"] == 2
             assert first_pass[revision.maplet_id].statistics["pass"] == 1
-            assert revision.statistics["images"] == first_pass[revision.maplet_id].statistics["images"]
+            # offered the same images; the drop rules, weighed against version 2's shape, may
+            # keep fewer (an image's shadowed share can cross its limit)
+            offered = [set(r.statistics["images"]) | set(r.statistics["dropped"])
+                       for r in (revision, first_pass[revision.maplet_id])]
+            assert offered[0] == offered[1] and revision.statistics["images"]
         inputs = _inputs(session)
         maplets = set(session.scalars(select(Maplet.id)))
         assert len(run.plan.work) == sum(len(images) >= CONFIG.min_images for images in inputs.values())
