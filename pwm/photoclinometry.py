@@ -444,8 +444,8 @@ class _State:
 class _Evaluation:
     """The problem at one state: row weights c = w / I_ref (K, N) (0 where unused), image
     gradients (K, N, 2) at the samples, the change of each sample as its node rises by one
-    spacing (K, N), shading and its slope derivatives (K, N), residuals c (I - s A G) (K, N) and
-    the objective."""
+    spacing (K, N), shading and its slope derivatives (K, N), residuals c (I - s A G) (K, N), the
+    shadow term's residuals and Jacobian (`_Problem._shadows`) and the objective."""
 
     rows: np.ndarray
     gradients: np.ndarray
@@ -454,6 +454,8 @@ class _Evaluation:
     Gp: np.ndarray
     Gq: np.ndarray
     residuals: np.ndarray
+    shadow: np.ndarray
+    shadow_jac: sp.csr_matrix
     cost: float
 
 
@@ -500,7 +502,8 @@ class _Problem:
         # the shape and offsets are the same: only the residuals change (rows were scaled by 1)
         rows = ev.rows / self.i_ref
         residuals = rows * (values - scales[:, None] * albedo * ev.G)
-        return state, dataclasses.replace(ev, rows=rows, residuals=residuals, cost=self._cost(state, residuals))
+        return state, dataclasses.replace(ev, rows=rows, residuals=residuals,
+                                          cost=self._cost(state, residuals, ev.shadow))
 
     def evaluate(self, state: _State) -> _Evaluation:
         return self._evaluate(state)[0]
@@ -523,15 +526,15 @@ class _Problem:
         rows = np.where(used, self.weights, 0.0) / self.i_ref
         G, Gp, Gq = _shading(-(self.dx @ state.u), -(self.dy @ state.u), _geometry(maplet, data, heights))
         residuals = rows * (values - state.scales[:, None] * state.albedo * G)
+        shadow, shadow_jac = self._shadows(state.u)
         return _Evaluation(rows=rows, gradients=gradients, parallax=parallax, G=G, Gp=Gp, Gq=Gq, residuals=residuals,
-                           cost=self._cost(state, residuals)), values
+                           shadow=shadow, shadow_jac=shadow_jac, cost=self._cost(state, residuals, shadow)), values
 
-    def _cost(self, state: _State, residuals: np.ndarray) -> float:
-        """The objective at the state with these residuals."""
+    def _cost(self, state: _State, residuals: np.ndarray, shadow: np.ndarray) -> float:
+        """The objective at the state with these residuals (data and shadow term)."""
         du = state.u - self.u0
         da = (state.albedo - self.albedo_prior) / self.albedo_prior
         do = state.offsets - self.offsets0
-        shadow = self._shadows(state.u)[0]
         return float((residuals**2).sum() + self._tie_cost(du) + self.albedo_weight * (da @ da)
                      + self.offset_weight * (do * do).sum() + self.shadow_weight * (shadow @ shadow))
 
@@ -629,7 +632,7 @@ class _Problem:
 
         ops = self.operators
         tie = self._tie_matrix(state.u - self.u0)
-        shadow, shadow_jac = self._shadows(state.u)
+        shadow, shadow_jac = ev.shadow, ev.shadow_jac
         huu = (ops.T @ sp.bmat([[sp.diags(mij) for mij in row] for row in m], format="csr") @ ops + tie
                + self.shadow_weight * (shadow_jac.T @ shadow_jac))
         gu = ops.T @ np.concatenate(g) + tie @ (state.u - self.u0) + self.shadow_weight * (shadow_jac.T @ shadow)
