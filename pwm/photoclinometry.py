@@ -392,11 +392,10 @@ def horizons(u: np.ndarray, sun_local: np.ndarray) -> tuple[np.ndarray, np.ndarr
     top = np.full((len(sun_local), n * n), -np.inf)
     caster = np.full((len(sun_local), n * n), -1, dtype=np.int64)
     span = float(flat.max() - flat.min())
-    for k, sun in enumerate(np.asarray(sun_local, float)):
-        horizontal = float(np.hypot(sun[0], sun[1]))
-        if horizontal < 1e-9 or sun[2] <= 0:
+    azimuths, rises = _sun_paths(sun_local)
+    for k, ((dx, dy), rise) in enumerate(zip(azimuths, rises, strict=True)):
+        if not np.isfinite(rise):
             continue
-        dx, dy, rise = sun[0] / horizontal, sun[1] / horizontal, sun[2] / horizontal
         # beyond span / rise steps no node stands high enough to shade another
         for step in range(1, min(int(np.ceil(span / rise)) + 1, 2 * n) + 1):
             ci = np.rint(i + step * dy).astype(np.int64)
@@ -412,16 +411,28 @@ def horizons(u: np.ndarray, sun_local: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return top, caster
 
 
-def _exit_steps(n: int, sun_local: np.ndarray) -> np.ndarray:
-    """(K, N) distance (node spacings) from each node to the grid's border along each Sun's azimuth
-    (inf for a Sun overhead)."""
+def _sun_paths(sun_local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 2) the unit vector of each Sun's azimuth in the maplet's (x, y), and (K,) the Sun's rise
+    per unit of distance along it; NaN for a Sun overhead or below the horizon, which casts no
+    shadow a maplet's own nodes could tell."""
+    sun = np.asarray(sun_local, float).reshape(-1, 3)
+    horizontal = np.hypot(sun[:, 0], sun[:, 1])
+    ok = (horizontal >= 1e-9) & (sun[:, 2] > 0)
+    safe = np.where(ok, horizontal, 1.0)
+    return (np.where(ok[:, None], sun[:, :2] / safe[:, None], np.nan),
+            np.where(ok, sun[:, 2] / safe, np.nan))
+
+
+def _exit_steps(n: int, azimuths: np.ndarray) -> np.ndarray:
+    """(K, N) distance (node spacings) from each node to the grid's border along each azimuth
+    (`_sun_paths`; NaN where it is)."""
     i, j = np.divmod(np.arange(n * n), n)
-    out = np.full((len(sun_local), n * n), np.inf)
-    for k, sun in enumerate(np.asarray(sun_local, float)):
-        horizontal = float(np.hypot(sun[0], sun[1]))
-        if horizontal < 1e-9:
+    out = np.full((len(azimuths), n * n), np.inf)
+    for k, (dx, dy) in enumerate(azimuths):
+        if not np.isfinite(dx):
+            out[k] = np.nan
             continue
-        for d, at in ((sun[0] / horizontal, j), (sun[1] / horizontal, i)):
+        for d, at in ((dx, j), (dy, i)):
             if abs(d) > 1e-12:
                 out[k] = np.minimum(out[k], ((n - 1 - at) if d > 0 else at) / abs(d))
     return out
@@ -487,7 +498,8 @@ class _Problem:
         self.shadow_weight = shadow_weight
         self.shade = None if data.shade is None or shadow_weight <= 0 else data.shade.reshape(data.count, -1)
         self.sun_local = data.sun_directions @ maplet.frame.rotation.T
-        self.exit_steps = _exit_steps(n, self.sun_local)
+        azimuths, self.rises = _sun_paths(self.sun_local)
+        self.exit_steps = _exit_steps(n, azimuths)
 
     def start(self) -> tuple[_State, _Evaluation]:
         """Starting state (albedo and scales estimated at the starting shape) and its evaluation."""
@@ -551,8 +563,7 @@ class _Problem:
         top, caster = horizons(u.reshape(self.maplet.n, self.maplet.n), self.sun_local)
         gap = u[None, :] - top
         with np.errstate(invalid="ignore"):
-            reach = (u.max() - u)[None, :] / np.maximum(self.sun_local[:, 2:3], 1e-9) * np.hypot(
-                self.sun_local[:, 0:1], self.sun_local[:, 1:2])
+            reach = (u.max() - u)[None, :] / self.rises[:, None]
         dark = (self.shade < 0) & (caster >= 0) & (gap > 0) & (reach <= self.exit_steps)
         lit = (self.shade > 0) & (caster >= 0) & (gap < 0)
         k_dark, node_dark = np.nonzero(dark)
