@@ -36,6 +36,11 @@ from pwm.photoclinometry import (
     resampled,
 )
 
+ALIGN_MIN_NODES = 50
+"""Fewest usable nodes an image is registered by (`align`); with fewer it keeps its offset."""
+ALIGN_MAX_ITERATIONS = 20
+"""Gauss-Newton iterations of `align`'s sub-pixel step."""
+
 
 @dataclass
 class Alignment:
@@ -54,8 +59,8 @@ def align(
     albedo: np.ndarray | float | None = None,
     offsets: np.ndarray | None = None,
     search_px: int = 4,
-    min_nodes: int = 50,
-    max_iterations: int = 20,
+    min_nodes: int = ALIGN_MIN_NODES,
+    max_iterations: int = ALIGN_MAX_ITERATIONS,
 ) -> Alignment:
     """Register each image to the maplet's predicted brightness.
 
@@ -68,6 +73,15 @@ def align(
     start = np.zeros((data.count, 2)) if offsets is None else np.asarray(offsets, float)
     pixels = node_pixels(maplet, data, heights=heights, offsets=start)
     model = predict(maplet, data, heights=heights, albedo=albedo)
+    return _align_at(data, pixels, model, start, search_px=search_px, min_nodes=min_nodes,
+                     max_iterations=max_iterations)
+
+
+def _align_at(data: MapletImages, pixels: np.ndarray, model: np.ndarray, start: np.ndarray, *, search_px: int,
+              min_nodes: int, max_iterations: int) -> Alignment:
+    """`align` over the nodes that data.weights keep, from the node pixels (K, n, n, 2) at the
+    start offsets (K, 2) and the predicted brightness (K, n, n): parts of one maplet registered in
+    turn share both."""
     out = start.copy()
     correlation = np.full(data.count, np.nan)
     for k, image in enumerate(data.images):
@@ -82,16 +96,10 @@ def align(
     return Alignment(offsets=out, correlation=correlation)
 
 
-def _ncc(a: np.ndarray, b: np.ndarray) -> float:
-    a = a - a.mean()
-    b = b - b.mean()
-    den = np.sqrt((a * a).sum() * (b * b).sum())
-    return float((a * b).sum() / den) if den > 0 else np.nan
-
-
-def _masked_ncc(values: np.ndarray, model: np.ndarray, *, min_nodes: int) -> np.ndarray:
-    """`_ncc` of values (..., N) with model (N,) over the nodes where each row of values is
-    finite; -inf where fewer than min_nodes are, or where either side is constant."""
+def _ncc(values: np.ndarray, model: np.ndarray, *, min_nodes: int) -> np.ndarray:
+    """Zero-mean normalised cross-correlation of values (..., N) with model (N,) over the nodes
+    where each row of values is finite; -inf where fewer than min_nodes are, or where either side
+    is constant."""
     ok = np.isfinite(values)
     count = ok.sum(axis=-1)
     a = np.where(ok, values, 0.0)
@@ -110,7 +118,7 @@ def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, *, search_p
     shifts = np.arange(-search_px, search_px + 1)
     # every whole shift at once: [line shift i, sample shift j, node]
     grid = np.stack(np.meshgrid(shifts, shifts), axis=-1).astype(float)
-    score = _masked_ncc(bilinear(image, pixels + grid[:, :, None, :]), model, min_nodes=min_nodes)
+    score = _ncc(bilinear(image, pixels + grid[:, :, None, :]), model, min_nodes=min_nodes)
     if not np.isfinite(score).any():
         return None
     i, j = map(int, np.unravel_index(np.argmax(score), score.shape))
@@ -138,9 +146,8 @@ def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, *, search_p
     if np.hypot(*(offset - coarse)) > 1.0:
         # Gauss-Newton left the correlation peak it started on: trust the peak.
         offset = coarse
-    values = bilinear(image, pixels + offset)
-    ok = np.isfinite(values)
-    return offset, _ncc(values[ok], model[ok])
+    final = float(_ncc(bilinear(image, pixels + offset), model, min_nodes=2))
+    return offset, final if np.isfinite(final) else float("nan")
 
 
 def _vertex(lo: float, mid: float, hi: float) -> float:
@@ -239,8 +246,7 @@ def _full_scores(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray) ->
     scores = np.full(data.count, -np.inf)
     for k in range(data.count):
         ok = use[k] & (albedo[k] > 0)
-        if ok.sum() >= 2:
-            scores[k] = np.nan_to_num(_ncc(values[k][ok], albedo[k][ok] * shading[k][ok]), nan=-np.inf)
+        scores[k] = _ncc(values[k][ok], albedo[k][ok] * shading[k][ok], min_nodes=2)
     return scores
 
 
@@ -288,17 +294,7 @@ def _search(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, steps: np.
     model, refined by a parabola through its neighbours; with that NCC."""
     ds, dl = np.meshgrid(steps, steps)
     shifts = np.column_stack([ds.ravel(), dl.ravel()])
-    values = bilinear(image, pixels[None] + shifts[:, None, :])
-    ok = np.isfinite(values)
-    counts = ok.sum(axis=1)
-    v = np.where(ok, values, 0.0)
-    t = np.where(ok, model[None], 0.0)
-    safe = np.maximum(counts, 1)
-    vm, tm = v.sum(axis=1) / safe, t.sum(axis=1) / safe
-    va = np.where(ok, v - vm[:, None], 0.0)
-    ta = np.where(ok, t - tm[:, None], 0.0)
-    den = np.sqrt((va * va).sum(axis=1) * (ta * ta).sum(axis=1))
-    score = np.where((counts >= min_nodes) & (den > 0), (va * ta).sum(axis=1) / np.where(den > 0, den, 1.0), -np.inf)
+    score = _ncc(bilinear(image, pixels[None] + shifts[:, None, :]), model, min_nodes=min_nodes)
     if not np.isfinite(score).any():
         return None
     score = score.reshape(ds.shape)
@@ -359,12 +355,16 @@ def window_rises(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,
     edges = np.linspace(0, n, windows + 1).round().astype(int)
     rises = np.zeros((windows, windows))
     sigmas = np.full((windows, windows), np.inf)
+    start = np.asarray(offsets, float)
+    pixels = node_pixels(maplet, data, offsets=start)
+    model = predict(maplet, data, albedo=albedo)
     for i in range(windows):
         for j in range(windows):
             inside = np.zeros((n, n), bool)
             inside[edges[i]:edges[i + 1], edges[j]:edges[j + 1]] = True
             part = dataclasses.replace(data, weights=np.where(inside, data.weights, 0.0))
-            found = align(maplet, part, albedo=albedo, offsets=offsets, search_px=search_px)
+            found = _align_at(part, pixels, model, start, search_px=search_px, min_nodes=ALIGN_MIN_NODES,
+                              max_iterations=ALIGN_MAX_ITERATIONS)
             said = np.where(np.isfinite(found.correlation), sigma_px, np.inf)
             centre = ((edges[i] + edges[i + 1]) // 2, (edges[j] + edges[j + 1]) // 2)
             rises[i, j], sigmas[i, j] = parallax_height(maplet, data, found.offsets, sigma_px=said, node=centre)
