@@ -310,6 +310,21 @@ def test_figures_are_written(tmp_path, scene):
         _assert_png(tmp_path / name)
 
 
+def test_an_image_comparison_draws_a_small_site_large_on_its_own_scales(tmp_path):
+    # a site of 40 x 40 px in a 1000 px frame, as a held-out view of a site cut shows it: the
+    # differences must show, not be drowned by the frame's zeros
+    rng = np.random.default_rng(5)
+    truth, model = np.zeros((1000, 1000)), np.zeros((1000, 1000))
+    mask = np.zeros(truth.shape, bool)
+    mask[500:540, 600:640] = True
+    truth[mask] = rng.uniform(0.01, 0.02, mask.sum())
+    model[mask] = truth[mask] * rng.normal(1.0, 0.05, mask.sum())
+    plots.image_comparison(tmp_path / "site.png", truth, model, mask=mask, title="site")
+    image = matplotlib.image.imread(tmp_path / "site.png")[..., :3]
+    difference_panel = image[:, 2 * image.shape[1] // 3 :]
+    assert (np.ptp(difference_panel, axis=-1) > 0.1).mean() > 0.25  # 0.02 drawn whole-frame
+
+
 def test_a_coverage_map_shows_the_few_gaps_among_many_covered_points(tmp_path):
     directions = np.random.default_rng(3).normal(size=(20000, 3))
     points = 0.25 * directions / np.linalg.norm(directions, axis=1)[:, None]

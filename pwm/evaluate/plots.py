@@ -111,11 +111,20 @@ def image_comparison(
     truth_image: np.ndarray,
     model_image: np.ndarray,
     *,
+    mask: np.ndarray | None = None,
     title: str,
 ) -> None:
-    """Truth and model images side by side on the same grey scale, and model minus truth."""
+    """Truth and model images side by side on the same grey scale, and model minus truth. With a
+    mask, only its pixels are drawn and set the scales, cropped to them: a site a few percent
+    of the frame would otherwise be a speck, its scales set by the sky."""
     truth = np.asarray(truth_image, float)
     model = np.asarray(model_image, float)
+    if mask is not None:
+        keep = np.asarray(mask, bool)
+        if keep.any():
+            rows, cols = np.flatnonzero(keep.any(axis=1)), np.flatnonzero(keep.any(axis=0))
+            crop = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+            truth, model = (np.where(keep, image, np.nan)[crop] for image in (truth, model))
     finite = truth[np.isfinite(truth)]
     low, high = np.percentile(finite, [0.5, 99.5]) if finite.size else (0.0, 1.0)
     difference = model - truth

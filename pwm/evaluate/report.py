@@ -309,8 +309,7 @@ def _views(manifest: dict, truth_dir: Path, tracer: RayTracer, *, plots_dir: Pat
         scores.append({"view": view["name"], "pixels": int(mask.sum()), "ncc": ncc(truth_img, m, mask),
                        "ssim": ssim(truth_img, scale * m, mask), "brightness_scale": scale})
         if plots_dir is not None:
-            plots.image_comparison(plots_dir / f"view_{view['name']}.png", np.where(mask, truth_img, 0.0),
-                                   np.where(mask, scale * m, 0.0),
+            plots.image_comparison(plots_dir / f"view_{view['name']}.png", truth_img, scale * m, mask=mask,
                                    title=f"held-out view {view['name']}: truth | model | difference")
     if not scores:
         return {"views": []}
