@@ -1,7 +1,12 @@
 """Ingest a hostile downlink: the simulated `tiny` downlink with one crafted file (or pair) of
-every class issue 17 lists, and others; print where each file of it ended up in the catalog,
-with the reason, and the ingest's time and peak memory. Exit status 1 when a file is not
-accounted for, or the peak passes 1 GiB.
+every class issues 17 and 44 list, and others; print where each file of it ended up in the
+catalog, with the reason, and the ingest's time and peak memory. Exit status 1 when a file is not
+accounted for, a good image lost its geometry, a product that arrived broken and then whole is
+not accepted, or the peak passes 1 GiB.
+
+Transfers (issue 44) take two ingests: before the first, some products arrive broken (a label
+without its data file, a data file cut short, a byte flipped against the manifest); before the
+second, they arrive whole, and must then be accepted.
 
     .venv/bin/python bench/hostile_ingest.py [--sim DIR] [--work DIR]
 
@@ -27,11 +32,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import numpy as np  # noqa: E402
 from sqlalchemy import select  # noqa: E402
 
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
 from service.ingest import ingest_directory  # noqa: E402
-from service.models import DownlinkFile, Image, Kernel  # noqa: E402
+from service.models import DownlinkFile, GeometryStatus, Image, ImageStatus, Kernel  # noqa: E402
 from service.settings import IngestLimits  # noqa: E402
 
 PEAK_LIMIT_BYTES = 1024**3
@@ -84,6 +90,116 @@ def _card(fits: bytes, card: str, value: str) -> bytes:
     """`fits` with the value of one header card replaced."""
     start = fits.index(card.ljust(8).encode() + b"= ")
     return fits[:start + 10] + value.rjust(20).encode() + fits[start + 30:]
+
+
+def _fits(cards: list[tuple[str, str]], data: bytes, *, pad_to: int = 0) -> bytes:
+    """A FITS file: the header cards (value strings as FITS writes them), END, padding to 2880
+    bytes (or to pad_to), then the data, padded too."""
+    text = "".join(f"{k:<8}= {v:>20}".ljust(80) for k, v in cards) + "END".ljust(80)
+    header = text.encode("ascii")
+    header += b" " * (max(pad_to, -len(header) % 2880 + len(header)) - len(header))
+    return header + data + b"\0" * (-len(data) % 2880)
+
+
+def _array_edits(*, offset: int | None = None, data_type: str | None = None,
+                 size: int | None = None) -> list[tuple[str, str]]:
+    """Label edits of the Array_2D_Image's offset and data type, and of the file's size."""
+    edits = [("re:<md5_checksum>[^<]+</md5_checksum>", "")]
+    if offset is not None:
+        edits.append(("re:(<Array_2D_Image>\\s*<offset[^>]*>)\\d+<", f"\\g<1>{offset}<"))
+    if data_type is not None:
+        edits.append(("re:<data_type>[^<]+<", f"<data_type>{data_type}<"))
+    if size is not None:
+        edits.append(("re:<file_size[^>]*>\\d+<", f'<file_size unit="byte">{size}<'))
+    return edits
+
+
+def build_issue44(batch: Batch, fits: bytes) -> None:
+    """The classes of issue 44 that one ingest judges: kernels that would poison the pool,
+    arrays their labels misdescribe, bounds a label or header controls, duplicate elements."""
+    kernels = batch.root / "kernels"
+    spk = sorted((kernels / "spk").glob("*.bsp"))[0].read_bytes()
+    batch.file("kernels/spk/zz_truncated.bsp", "an SPK cut after its summaries (DAFBEGGTEND later)",
+               spk[:len(spk) * 3 // 5])
+    radii = re.compile(r"BODY(\d+)_RADII\s*=\s*\([^)]*\)")
+    pck = next(p for p in (kernels / "pck").glob("*.tpc") if radii.search(p.read_text()))
+    body = radii.search(pck.read_text())[1]  # type: ignore[index]
+    batch.file("kernels/pck/zz_string_radii.tpc", "a PCK giving the body's radii as strings",
+               f"KPL/PCK\n\\begindata\nBODY{body}_RADII = ( 'a' 'b' 'c' )\n\\begintext\n")
+    batch.file("kernels/pck/zz_zero_radii.tpc", "a PCK giving the body radii of zero",
+               f"KPL/PCK\n\\begindata\nBODY{body}_RADII = ( 0.0 0.0 0.0 )\n\\begintext\n")
+    lsk = next((kernels / "lsk").glob("*.tls")).read_text()
+    batch.file("kernels/lsk/zz_shifted.tls", "an LSK moving DELTET/DELTA_T_A by an hour",
+               re.sub(r"DELTET/DELTA_T_A\s*=\s*32.184", "DELTET/DELTA_T_A = 3632.184", lsk))
+    header, array = fits[:2880], fits[2880:]
+    batch.clone("lsb_over_msb", "SignedLSB2 over a big-endian array (pixels byte-swapped)",
+                *_array_edits(data_type="SignedLSB2"))
+    batch.clone("offset_in_header", "the array's offset inside the header (header read as pixels)",
+                *_array_edits(offset=1440))
+    batch.clone("offset_plus_2", "the array's offset two bytes past the data start (one pixel)",
+                *_array_edits(offset=2882))
+    batch.clone("bscale_lie", "FITS BSCALE 1.0 against the label's scaling_factor",
+                *_array_edits(), data=_card(fits, "BSCALE", "1.0"))
+    side = 320
+    for name, value in (("all_inf", np.inf), ("all_nan", np.nan)):
+        data = _fits([("SIMPLE", "T"), ("BITPIX", "-32"), ("NAXIS", "2"), ("NAXIS1", str(side)),
+                      ("NAXIS2", str(side))], np.full((side, side), value, ">f4").tobytes())
+        batch.clone(name, f"an array of {value} (IEEE754MSBSingle)", *_array_edits(
+            data_type="IEEE754MSBSingle", size=len(data)), ("re:<scaling_factor>[^<]+<",
+                                                            "<scaling_factor>1.0<"), data=data)
+    batch.clone("complex", "a complex data type (ComplexMSB8) over the array",
+                *_array_edits(data_type="ComplexMSB8"))
+    batch.clone("constant_range", "a missing_constant outside SignedMSB2's range",
+                *_array_edits(), ("re:<missing_constant>[^<]+<", "<missing_constant>-99999<"))
+    big = 17 * 10**6 // 2880 * 2880
+    cards = [line.decode() for line in (header[i:i + 80] for i in range(0, 2880, 80))]
+    head = "".join(c for c in cards if not c.startswith("END") and c.strip())
+    head += ("COMMENT " + "x" * 72) * ((big - len(head)) // 80 - 1) + "END".ljust(80)
+    head_bytes = head.encode("ascii").ljust(big)
+    batch.clone("header_17mb", "a 17 MB FITS header (read whole: 7x its size in memory)",
+                *_array_edits(offset=big, size=big + len(array)),
+                ("re:(<Header>\\s*<offset[^<]+</offset>\\s*<object_length[^>]*>)\\d+<",
+                 f"\\g<1>{big}<"), data=head_bytes + array)
+    files = "<File><file_name>same_file_50k.fits</file_name></File>" * 50_000
+    batch.clone("same_file_50k", "a label naming its data file 50,000 times (hashed each time)",
+                ("<File_Area_Observational>", f"<File_Area_Observational>{files}"))
+    batch.clone("duplicate_lid", "two logical_identifier elements (first wins silently)",
+                ("re:(<logical_identifier>[^<]+</logical_identifier>)",
+                 "\\1<logical_identifier>urn:nasa:pds:other:x</logical_identifier>"))
+    batch.clone("duplicate_start", "two start_date_time elements (first wins silently)",
+                ("re:(<start_date_time>[^<]+</start_date_time>)",
+                 "\\1<start_date_time>2020-01-01T00:00:00Z</start_date_time>"))
+    batch.clone("leap_second", "a start in a leap second (PDS4 allows 23:59:60)",
+                ("re:<start_date_time>[^<]+<", "<start_date_time>2016-12-31T23:59:60.500Z<"),
+                ("re:<stop_date_time>[^<]+<", "<stop_date_time>2017-01-01T00:00:00.500Z<"))
+
+
+class Transfers:
+    """Products that arrive broken before the first ingest and whole before the second."""
+
+    def __init__(self, batch: Batch, good: Path) -> None:
+        self.whole: dict[Path, bytes] = {}
+        late, _ = batch.clone("late_data", "its label before its data file (moved in later)")
+        cut, _ = batch.clone("cut_short", "its data file cut short (re-transferred later)")
+        # a good product, not the template, whose LIDVID zz_duplicate_lidvid takes meanwhile
+        flipped_label = good
+        self.labels = [late, cut, flipped_label]
+        for label, broken in ((late, None), (cut, 0.5), (flipped_label, -1.0)):
+            data = label.with_suffix(".fits")
+            self.whole[data] = data.read_bytes()
+            if broken is None:
+                data.unlink()
+            elif broken > 0:
+                data.write_bytes(self.whole[data][:int(len(self.whole[data]) * broken)])
+            else:  # one byte flipped: the manifest's and the label's checksums disagree
+                flipped = bytearray(self.whole[data])
+                flipped[-100] ^= 0xFF
+                data.write_bytes(bytes(flipped))
+        batch.tries[flipped_label.name] = "its data file a byte off the manifest, then whole"
+
+    def deliver(self) -> None:
+        for data, content in self.whole.items():
+            data.write_bytes(content)
 
 
 def build(batch: Batch) -> None:
@@ -175,6 +291,7 @@ def build(batch: Batch) -> None:
     batch.file("kernels/fake.bsp", "a .bsp that is not a kernel", "not a DAF")
     os.mkfifo(batch.root / "pipe")
     batch.tries["pipe"] = "a named pipe"
+    build_issue44(batch, fits)
 
 
 def account(sessions, root: Path) -> list[tuple[str, str, str]]:  # type: ignore[no-untyped-def]
@@ -224,7 +341,9 @@ def main() -> int:
     shutil.copytree(sim / "downlink", root)
     outside.mkdir()
     batch = Batch(root, outside)
+    good = sorted(p.name for p in batch.images.glob("*.xml"))
     build(batch)
+    transfers = Transfers(batch, batch.images / good[-1])
     url = f"sqlite:///{work / 'catalog.sqlite'}"
     (work / "catalog.sqlite").unlink(missing_ok=True)
     upgrade(url)
@@ -232,6 +351,7 @@ def main() -> int:
     clock = time.perf_counter()
     report = ingest_directory(sessions, root, limits=IngestLimits())
     elapsed = time.perf_counter() - clock
+    transfers.deliver()
     again = ingest_directory(sessions, root, limits=IngestLimits())
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     rows = account(sessions, root)
@@ -247,8 +367,21 @@ def main() -> int:
     print(f"re-run: {again.summary()}")
     for failure in again.failures:
         print(f"  re-run failure {failure.path}: {failure.code}: {failure.reason[:100]}")
+    lost = without_geometry(sessions, [batch.images / n for n in good]
+                            + [label for label in transfers.labels if label.name not in good])
+    for name in lost:
+        print(f"NOT ACCEPTED WITH GEOMETRY after the re-run: {name}")
     print(f"ingest {elapsed:.1f} s; peak memory (max RSS) {peak / 1024**2:.0f} MiB")
-    return 1 if missing or peak >= PEAK_LIMIT_BYTES or again.failed else 0
+    return 1 if missing or lost or peak >= PEAK_LIMIT_BYTES or again.failed else 0
+
+
+def without_geometry(sessions, labels: list[Path]) -> list[str]:  # type: ignore[no-untyped-def]
+    """The good and the re-delivered products that are not accepted with geometry: the hostile
+    files must harm none of them, and a whole delivery must replace a broken one."""
+    with sessions() as session:
+        done = {image.label_path for image in session.scalars(select(Image).where(
+            Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED))}
+    return [label.name for label in labels if str(label) not in done]
 
 
 if __name__ == "__main__":

@@ -11,24 +11,37 @@ becomes one Image row:
   unknown_target, outside_coverage (no SPK of the spacecraft or no CK of the camera frames then),
   geometry (another SPICE failure), bad_time, bad_dimensions (array outside the detector);
 - conflict: the LIDVID is catalogued already with other content (label + data sha256); the
-  first copy stays authoritative.
+  first good copy stays authoritative.
+
+A product's identity is its good content. A copy rejected for how it arrived (TRANSFER_CODES: a
+data file not there yet, cut short, off its label's checksum or its downlink's manifest.json,
+unreadable; or an error of the ingest's own) holds its LIDVID only until another copy comes: a
+whole one takes its row (its id kept) and is judged as any, in the same directory or another
+downlink, in the same ingest or a later one; the broken copy, where it is still offered
+elsewhere, stays on as a conflict (a copy not used). Where the downlink's manifest lists a product's files
+with sha256, they are checked against it: a product that does not match waits as `incomplete`.
 
 Idempotent: a product already catalogued with the same content is left alone, except that one
 whose outcome depends on kernels (rejected for instrument, target, coverage or geometry, or
-accepted without geometry) is judged again, so images that arrive before their kernels are
-taken up by a later ingest. One bad file never stops the rest.
+accepted without geometry) or on its transfer is judged again, so images that arrive before
+their kernels or whole after a broken transfer are taken up by a later ingest. One bad file
+never stops the rest. Concurrent ingests of different downlinks share the unique rows
+(instruments, images) race-free: the one that loses an insert takes the winner's row.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import logging
 import os
 import re
 import socket
 import time
 import xml.etree.ElementTree as ET
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -37,6 +50,7 @@ from typing import Any, cast
 import spiceypy as sp
 from sqlalchemy import CursorResult, Engine, or_, select, update
 from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import Camera
@@ -85,6 +99,13 @@ COMMIT_EVERY = 200  # products per transaction: a crash loses at most this much,
 # Outcomes that new kernels can change: such products are judged again on every ingest.
 KERNEL_DEPENDENT_CODES = frozenset(
     {"unknown_instrument", "instrument_kernel", "unknown_target", "outside_coverage", "geometry"})
+INCOMPLETE = "incomplete"  # a product's file differs from the downlink's manifest
+UNEXPECTED = "unexpected"  # an error of the ingest's own, no verdict on the product
+# Rejections for how a copy arrived, not for what its product is (pwm.io.pds4.ProductError codes
+# and INCOMPLETE): judged again when seen again, and another copy may take their place.
+TRANSFER_CODES = frozenset({"missing_file", "size_mismatch", "md5_mismatch", "truncated",
+                            "unreadable", INCOMPLETE})
+_PROVISIONAL_CODES = TRANSFER_CODES | {UNEXPECTED}
 _UNIDENTIFIED = "unidentified:"
 _HASH_CHUNK = 1 << 20
 # Column sizes of service.models.Image: a LIDVID must leave room for a conflict's suffix.
@@ -117,7 +138,8 @@ class Failure:
 @dataclass
 class IngestReport:
     """What one ingest did. Rejections include conflicts; failures list this run's rejections
-    (files left unchanged are not repeated); warnings are about the catalog, not this downlink."""
+    (files left unchanged are not repeated); warnings are about the catalog, or a manifest not
+    read, not this downlink's files."""
 
     downlink: str
     kernels: Counts = field(default_factory=Counts)
@@ -150,7 +172,11 @@ class _Identity:
     sha256: str
     size_bytes: int
     files: frozenset[Path] = frozenset()  # the files the label names
-    problem: str | None = None  # why the label's own LIDVID cannot key it
+    # the product's rejection before it is read: a LIDVID that cannot key it (keyed by the
+    # label's sha256 then), too many files named
+    rejection: tuple[str, str] | None = None
+    # the sha256 and size of each of its files the manifest lists
+    digests: Mapping[Path, tuple[str, int]] = field(default_factory=dict)
 
     @property
     def lidvid(self) -> str:
@@ -159,19 +185,32 @@ class _Identity:
 
 @dataclass
 class _Known:
-    """A catalogued product version: enough to decide what a new copy of it means."""
+    """A catalogued product version: enough to decide what a new copy of it means. seen: judged
+    (or recorded) by this ingest already."""
 
     id: int | None
     sha256: str
     status: ImageStatus
     code: str | None
     geometry_status: GeometryStatus
+    seen: bool = False
 
     @property
     def kernel_dependent(self) -> bool:
         if self.status is ImageStatus.ACCEPTED:
             return self.geometry_status is not GeometryStatus.COMPUTED
         return self.status is ImageStatus.REJECTED and self.code in KERNEL_DEPENDENT_CODES
+
+    @property
+    def broken(self) -> bool:
+        """A copy rejected for its transfer (or on an unexpected error): no verdict on the
+        product, so it holds its LIDVID only until another copy comes."""
+        return self.status is ImageStatus.REJECTED and self.code in _PROVISIONAL_CODES
+
+    @property
+    def provisional(self) -> bool:
+        """Its outcome may change with the same content: judged again when seen again."""
+        return self.kernel_dependent or self.broken
 
 
 @dataclass(frozen=True)
@@ -189,6 +228,20 @@ class _Outcome:
     @property
     def verdict(self) -> tuple:
         return (self.status, self.code, self.reason, self.geometry_status, self.geometry_reason)
+
+
+@dataclass(frozen=True)
+class _Listed:
+    """A file as the downlink's manifest lists it."""
+
+    sha256: str
+    size_bytes: int | None
+
+
+class IngestTakenOver(RuntimeError):
+    """Another ingest took this one's downlink over, this one having gone without a commit for
+    longer than limits.stale_s: it stops, its uncommitted work rolled back, and leaves the
+    downlink to the other."""
 
 
 class _Rejected(Exception):
@@ -228,20 +281,22 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
     report = IngestReport(downlink=name)
     try:
         scope = KernelScope(directory, limits.kernel_library, limits.max_metakernel_entries)
-        with session_scope(sessions) as session:
+        with _owned(sessions, downlink_id) as session:
             outcomes = register_kernels(session, scope, downlink_id=downlink_id)
         _count_kernels(report, outcomes)
         labels, others = _walk(sessions, directory, downlink_id, report)
-        named = _ingest_images(sessions, directory, labels, downlink_id, report,
-                               None if shape is None else MeshSurface(shape), limits)
+        manifest = _read_manifest(directory, limits, report)
+        named = _ingest_images(sessions, directory, labels, downlink_id=downlink_id,
+                               report=report, shape=None if shape is None else MeshSurface(shape),
+                               limits=limits, manifest=manifest)
         used = {o.path for o in outcomes} | named | set(labels)
-        with session_scope(sessions) as session:
+        with _owned(sessions, downlink_id) as session:
             for path in others:
                 if path not in used and path.name not in _DELIVERY_FILES:
                     _unused(session, report, downlink_id, path, "unknown_type",
                             "neither a SPICE kernel nor a PDS4 label, nor a file a label names")
         if shape is not None:
-            with session_scope(sessions) as session:
+            with _owned(sessions, downlink_id) as session:
                 # A repeated ingest leaves the maplets' inputs as they are.
                 report.coverage = update_coverage(session, shape, image_ids=unweighed_images(session),
                                                   config=config)
@@ -317,9 +372,25 @@ def _release(sessions: sessionmaker[Session], downlink_id: int, status: Downlink
 
 
 def _heartbeat(session: Session, downlink_id: int) -> None:
-    session.execute(update(Downlink).where(Downlink.id == downlink_id)
-                    .values(ingest_heartbeat_at=utcnow())
-                    .execution_options(synchronize_session=False))
+    """Renew this ingest's claim in the transaction about to commit; IngestTakenOver (that
+    transaction is to be rolled back) when another ingest has taken the downlink over."""
+    renewed = cast(CursorResult[Any], session.execute(
+        update(Downlink).where(Downlink.id == downlink_id, Downlink.ingest_owner == _owner())
+        .values(ingest_heartbeat_at=utcnow())
+        .execution_options(synchronize_session=False))).rowcount
+    if renewed != 1:
+        holder = session.scalar(select(Downlink.ingest_owner).where(Downlink.id == downlink_id))
+        raise IngestTakenOver(f"downlink {downlink_id} was taken over by the ingest of {holder}: "
+                              "this one stops, what it had not committed rolled back")
+
+
+@contextmanager
+def _owned(sessions: sessionmaker[Session], downlink_id: int) -> Iterator[Session]:
+    """A transaction of this ingest's, committed only while it still holds its downlink's claim
+    (renewed with it): an ingest taken over as stale writes nothing more."""
+    with session_scope(sessions) as session:
+        yield session
+        _heartbeat(session, downlink_id)
 
 
 def _downlink(session: Session, directory: Path, name: str | None) -> tuple[Downlink, bool]:
@@ -360,7 +431,7 @@ def _walk(sessions: sessionmaker[Session], directory: Path, downlink_id: int,
     outside it (symbolic links) are recorded as unused and in neither list."""
     labels: list[Path] = []
     others: list[Path] = []
-    with session_scope(sessions) as session:
+    with _owned(sessions, downlink_id) as session:
         for path in sorted(directory.rglob("*")):
             if not path.resolve().is_relative_to(directory):
                 _unused(session, report, downlink_id, path, "outside_downlink",
@@ -386,19 +457,69 @@ def _count_kernels(report: IngestReport, outcomes: list[KernelOutcome]) -> None:
             report.failures.append(Failure(str(outcome.path), outcome.code, outcome.reason or ""))
 
 
-def _sha256(paths: list[Path]) -> str:
-    digest = hashlib.sha256()
-    for path in paths:
+def _read_manifest(directory: Path, limits: IngestLimits, report: IngestReport
+                   ) -> dict[Path, _Listed]:
+    """The files the downlink's manifest.json lists with a sha256, by path (as `pwm simulate`
+    writes it: {"files": [{"path", "bytes", "sha256"}]}, paths relative to the downlink); none
+    when there is no manifest, and none, with a warning, when it cannot be read (read whole, so
+    bounded as a label is)."""
+    manifest = directory / "manifest.json"
+    if not manifest.is_file() or manifest.is_symlink():
+        return {}
+    try:
+        if manifest.stat().st_size > limits.max_label_bytes:
+            raise ValueError(f"more than {limits.max_label_bytes} bytes")
+        entries = json.loads(manifest.read_bytes())["files"]
+        if not isinstance(entries, list):
+            raise TypeError("its files are not a list")
+    except (OSError, ValueError, LookupError, TypeError) as exc:
+        report.warnings.append(f"{manifest} not read, its products not checked against it: "
+                               f"{type(exc).__name__}: {exc}")
+        return {}
+    listed = {}
+    for entry in entries:
+        if isinstance(entry, dict) and isinstance(entry.get("path"), str) \
+                and isinstance(entry.get("sha256"), str):
+            size = entry.get("bytes")
+            listed[directory / entry["path"]] = _Listed(
+                entry["sha256"].lower(), size if isinstance(size, int) else None)
+    return listed
+
+
+def _hash_files(paths: list[Path], listed: Mapping[Path, _Listed] | None = None
+                ) -> tuple[str, dict[Path, tuple[str, int]], int]:
+    """One read of `paths`: the sha256 of their bytes one after another (a product's identity),
+    the sha256 and size of each of them `listed` (in the manifest), and the bytes read after
+    the first file."""
+    whole = hashlib.sha256()
+    own: dict[Path, tuple[str, int]] = {}
+    after_first = 0
+    for n, path in enumerate(paths):
+        single = hashlib.sha256() if listed and path in listed else None
+        size = 0
         with open(path, "rb") as fh:
             while chunk := fh.read(_HASH_CHUNK):
-                digest.update(chunk)
-    return digest.hexdigest()
+                whole.update(chunk)
+                size += len(chunk)
+                if single is not None:
+                    single.update(chunk)
+        if single is not None:
+            own[path] = (single.hexdigest(), size)
+        after_first += size if n else 0
+    return whole.hexdigest(), own, after_first
 
 
-def _identify(label: Path, directory: Path, limits: IngestLimits) -> _Identity:
+def _sha256(paths: list[Path]) -> str:
+    return _hash_files(paths)[0]
+
+
+def _identify(label: Path, directory: Path, limits: IngestLimits,
+              manifest: Mapping[Path, _Listed]) -> _Identity:
     """The product's LIDVID and content digest, read leniently: a label too broken or too large
     to name its product, or naming it by an identifier the catalog cannot hold, is keyed by its
-    own sha256 (lid 'unidentified:<sha256>', vid '0'); `problem` says why for the latter."""
+    own sha256 (lid 'unidentified:<sha256>', vid '0'); `rejection` says why for the latter.
+    Each file the label names is read once however often it is named; a label naming files
+    more often than limits.max_label_files is rejected for it, none of its files read."""
     size = label.stat().st_size
     raw = label.read_bytes() if size <= limits.max_label_bytes else None
     root = None
@@ -413,16 +534,23 @@ def _identify(label: Path, directory: Path, limits: IngestLimits) -> _Identity:
         lid = (root.findtext("{*}Identification_Area/{*}logical_identifier") or "").strip()
         vid = (root.findtext("{*}Identification_Area/{*}version_id") or "").strip()
         names = [e.text.strip() for e in root.iterfind(".//{*}File/{*}file_name") if e.text]
-    files = [label.parent / n for n in names if n and Path(n).name == n]
-    # only the downlink's own files are read: a link out of it is the product's rejection
-    existing = [f for f in files if f.is_file() and f.resolve().is_relative_to(directory)]
-    digest = _sha256([label, *existing])
+    files = list(dict.fromkeys(label.parent / n for n in names if n and Path(n).name == n))
     problem = None if not lid or not vid else _identifier_problem(lid, vid)
+    rejection = None if problem is None else ("bad_identifier", problem)
+    if len(names) > limits.max_label_files:
+        rejection = rejection or ("too_many_files", (
+            f"the label names files {len(names)} times, more than the {limits.max_label_files} "
+            "file references a product may have (PWM_MAX_LABEL_FILES)"))
+        existing = []
+    else:
+        # only the downlink's own files are read: a link out of it is the product's rejection
+        existing = [f for f in files if f.is_file() and f.resolve().is_relative_to(directory)]
+    digest, digests, size_bytes = _hash_files([label, *existing], manifest)
     if not lid or not vid or problem:
         lid, vid = _UNIDENTIFIED + _sha256([label]), "0"
     return _Identity(lid=lid, vid=vid, data_path=files[0] if files else None, sha256=digest,
-                     size_bytes=sum(f.stat().st_size for f in existing), files=frozenset(files),
-                     problem=problem)
+                     size_bytes=size_bytes, files=frozenset(files), rejection=rejection,
+                     digests=digests)
 
 
 def _identifier_problem(lid: str, vid: str) -> str | None:
@@ -444,21 +572,30 @@ class _Catalog:
     """The image pass's view of the catalog and of the loaded kernel pool."""
 
     def __init__(self, session: Session, downlink_id: int, shape: Surface | None,
-                 directory: Path, limits: IngestLimits) -> None:
+                 directory: Path, limits: IngestLimits, manifest: Mapping[Path, _Listed]) -> None:
         self.session, self.downlink_id, self.shape = session, downlink_id, shape
-        self.directory, self.limits = directory, limits
+        self.directory, self.limits, self.manifest = directory, limits, manifest
         self.spk = coverage_windows(session, KernelKind.SPK)
         self.ck = coverage_windows(session, KernelKind.CK)
         self.instruments: dict[int, Instrument | str] = {
             i.naif_id: i for i in session.scalars(select(Instrument))}
         self.ellipsoids: dict[str, Ellipsoid] = {}
         self.known: dict[tuple[str, str], list[_Known]] = {}
-        rows = session.execute(select(Image.id, Image.lid, Image.vid, Image.sha256, Image.status,
-                                      Image.rejection_code, Image.geometry_status))
-        for id_, lid, vid, digest, status, code, geometry_status in rows:
-            self.known.setdefault((lid, vid), []).append(
-                _Known(id_, digest, status, code, geometry_status))
+        for lid, vid, known in self._rows(select(Image.lid, Image.vid)):
+            self.known.setdefault((lid, vid), []).append(known)
         self.has_lsk = bool(sp.expool("DELTET/DELTA_AT"))
+
+    def _rows(self, query: Any) -> Iterator[tuple[str, str, _Known]]:
+        rows = self.session.execute(query.add_columns(
+            Image.id, Image.sha256, Image.status, Image.rejection_code, Image.geometry_status))
+        for lid, vid, *known in rows:
+            yield lid, vid, _Known(*known)
+
+    def reread(self, identity: _Identity) -> list[_Known]:
+        """The catalog's copies of the identity's LIDVID as they are now (another ingest may
+        have added one since this one read them)."""
+        return [k for *_, k in self._rows(select(Image.lid, Image.vid).where(
+            Image.lid == identity.lid, Image.vid == identity.vid))]
 
     def instrument(self, naif_id: int) -> Instrument:
         """The catalogued camera of `naif_id`, read from its IK once (_Rejected if unusable)."""
@@ -475,19 +612,21 @@ class _Catalog:
         return found
 
     def _new_instrument(self, naif_id: int) -> Instrument:
+        """The camera's row, inserted from its kernels unless another ingest has done so since
+        this one read the catalog (or does so now): then that one's row."""
         camera = camera_from_kernel(naif_id)
         source, note = _focal_source(naif_id, camera.fx)
         with sp.no_found_check():
             name, found = sp.bodc2n(naif_id)
-        row = Instrument(naif_id=naif_id, name=name if found else str(naif_id),
-                         spacecraft_id=spacecraft_of(naif_id),
-                         frame_name=instrument_frame(naif_id), width_px=camera.width,
-                         height_px=camera.height, fx_px=camera.fx, fy_px=camera.fy,
-                         cx_px=camera.cx, cy_px=camera.cy, focal_length_source=source,
-                         units_note=note)
-        self.session.add(row)
-        self.session.flush()
-        return row
+        insert = _INSERT_IGNORING_CONFLICT[self.session.get_bind().dialect.name]
+        self.session.execute(insert(Instrument).values(
+            naif_id=naif_id, name=name if found else str(naif_id),
+            spacecraft_id=spacecraft_of(naif_id), frame_name=instrument_frame(naif_id),
+            width_px=camera.width, height_px=camera.height, fx_px=camera.fx, fy_px=camera.fy,
+            cx_px=camera.cx, cy_px=camera.cy, focal_length_source=source, units_note=note)
+            .on_conflict_do_nothing(index_elements=[Instrument.naif_id]))
+        return self.session.scalars(select(Instrument).filter_by(naif_id=naif_id)
+                                    .execution_options(populate_existing=True)).one()
 
     def ellipsoid(self, target: str) -> Ellipsoid:
         if target not in self.ellipsoids:
@@ -509,9 +648,9 @@ def _focal_source(naif_id: int, fx: float) -> tuple[str, str]:
             f"unit ratio that agrees with the FOV) = {fx:.6g} px")
 
 
-def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: list[Path],
+def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: list[Path], *,
                    downlink_id: int, report: IngestReport, shape: Surface | None,
-                   limits: IngestLimits) -> set[Path]:
+                   limits: IngestLimits, manifest: Mapping[Path, _Listed]) -> set[Path]:
     """Catalogue each label; the files the labels name."""
     named: set[Path] = set()
     with sessions() as session:
@@ -519,7 +658,7 @@ def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: lis
         missing = [k.path for k in kernels if not Path(k.path).is_file()]
         report.warnings += [f"catalogued kernel {p} is missing on disk" for p in missing]
         with kernel_pool(Path(k.path) for k in kernels if k.path not in missing):
-            catalog = _Catalog(session, downlink_id, shape, directory, limits)
+            catalog = _Catalog(session, downlink_id, shape, directory, limits, manifest)
             for n, label in enumerate(labels, 1):
                 named |= _ingest_product(catalog, label, report)
                 if n % COMMIT_EVERY == 0:
@@ -534,24 +673,30 @@ def _ingest_product(catalog: _Catalog, label: Path, report: IngestReport) -> fro
     """Catalogue one label and count what it did in `report`; the files it names.
 
     The product is judged on its own, in a savepoint: any exception in its checks is its
-    rejection (code `unexpected`, with the exception), the products before it stay."""
+    rejection (code `unexpected`, with the exception), the products before it stay. A row of
+    its LIDVID that another ingest inserted since this one read the catalog (the insert lost
+    the race) is read, and the product judged once more against it."""
     try:
-        identity = _identify(label, catalog.directory, catalog.limits)
+        identity = _identify(label, catalog.directory, catalog.limits, catalog.manifest)
     except OSError as exc:  # unreadable files cannot be keyed: reported, not catalogued
         report.images.rejected += 1
         report.failures.append(Failure(str(label), "unreadable", str(exc)))
         return frozenset()
     versions = catalog.known.setdefault((identity.lid, identity.vid), [])
-    kept = ([(k, k.status, k.code, k.geometry_status) for k in versions], set(catalog.instruments))
+    kept = _keep(catalog, versions)
     try:
-        with catalog.session.begin_nested():
-            outcome = _catalogue(catalog, label, identity, versions)
-            catalog.session.flush()
+        try:
+            outcome = _catalogue_in_savepoint(catalog, label, identity, versions)
+        except IntegrityError:
+            _restore(catalog, versions, kept)
+            versions[:] = catalog.reread(identity)
+            kept = _keep(catalog, versions)
+            outcome = _catalogue_in_savepoint(catalog, label, identity, versions)
     except Exception as exc:
         log.exception("%s: rejected on an unexpected error", label)
         _restore(catalog, versions, kept)
         outcome = _store_rejection(catalog, label, identity, _Outcome(
-            ImageStatus.REJECTED, "unexpected", f"{type(exc).__name__}: {exc}"))
+            ImageStatus.REJECTED, UNEXPECTED, f"{type(exc).__name__}: {exc}"))
     if outcome is None:
         report.images.unchanged += 1
     elif outcome.status is ImageStatus.ACCEPTED:
@@ -563,6 +708,16 @@ def _ingest_product(catalog: _Catalog, label: Path, report: IngestReport) -> fro
     return identity.files
 
 
+def _catalogue_in_savepoint(catalog: _Catalog, label: Path, identity: _Identity,
+                            versions: list[_Known]) -> _Outcome | None:
+    """_catalogue with its rows flushed in a savepoint: a failed insert rolls back this product
+    only."""
+    with catalog.session.begin_nested():
+        outcome = _catalogue(catalog, label, identity, versions)
+        catalog.session.flush()
+    return outcome
+
+
 def _store_rejection(catalog: _Catalog, label: Path, identity: _Identity, outcome: _Outcome
                      ) -> _Outcome | None:
     """Record a product's rejection under its LIDVID, else (that being what failed) under its
@@ -571,10 +726,9 @@ def _store_rejection(catalog: _Catalog, label: Path, identity: _Identity, outcom
     unidentified = dataclasses.replace(identity, lid=_UNIDENTIFIED + _sha256([label]), vid="0")
     for key in (identity, unidentified):
         versions = catalog.known.setdefault((key.lid, key.vid), [])
-        kept = ([(k, k.status, k.code, k.geometry_status) for k in versions],
-                set(catalog.instruments))
+        kept = _keep(catalog, versions)
         same = next((k for k in versions if k.sha256 == key.sha256), None)
-        if same is not None and same.id is None:  # recorded by this ingest already
+        if same is not None and same.seen:
             return None
         try:
             with catalog.session.begin_nested():
@@ -587,31 +741,60 @@ def _store_rejection(catalog: _Catalog, label: Path, identity: _Identity, outcom
     return outcome
 
 
-def _restore(catalog: _Catalog, versions: list[_Known],
-             kept: tuple[list[tuple[_Known, ImageStatus, str | None, GeometryStatus]], set[int]]
-             ) -> None:
+_Kept = tuple[list[tuple[_Known, dict[str, Any]]], set[int]]
+
+
+def _keep(catalog: _Catalog, versions: list[_Known]) -> _Kept:
+    """The catalog's in-memory view of a product's copies, to restore should it roll back."""
+    return [(k, dict(vars(k))) for k in versions], set(catalog.instruments)
+
+
+def _restore(catalog: _Catalog, versions: list[_Known], kept: _Kept) -> None:
     """Put the catalog's in-memory view back as it was before a product rolled back."""
     known, instruments = kept
-    versions[:] = [k for k, *_ in known]
-    for k, status, code, geometry_status in known:
-        k.status, k.code, k.geometry_status = status, code, geometry_status
+    versions[:] = [k for k, _ in known]
+    for k, fields in known:
+        vars(k).update(fields)
     for naif_id in set(catalog.instruments) - instruments:
         del catalog.instruments[naif_id]
 
 
 def _catalogue(catalog: _Catalog, label: Path, identity: _Identity, versions: list[_Known]
                ) -> _Outcome | None:
-    """Judge and record one product; None when the catalog already says what it would."""
+    """Judge and record one product; None when the catalog already says what it would. The
+    copy holding the LIDVID is authoritative against other content unless it arrived broken."""
     same = next((k for k in versions if k.sha256 == identity.sha256), None)
-    if same is not None and (same.id is None or not same.kernel_dependent):
+    if same is not None and (same.seen or not same.provisional):
         return None
-    if same is None and any(k.status is not ImageStatus.CONFLICT for k in versions):
-        return _conflict(catalog, label, identity, versions)
-    if identity.problem is not None:
-        outcome = _Outcome(ImageStatus.REJECTED, "bad_identifier", identity.problem)
-    else:
-        outcome = _judge(catalog, label)
+    holder = next((k for k in versions if k.status is not ImageStatus.CONFLICT), None)
+    if same is None and holder is not None and not holder.broken:
+        return _conflict(catalog, label, identity, catalogued=holder.sha256)
+    outcome = _judge_copy(catalog, label, identity)
+    if same is None and holder is not None:
+        return _replace(catalog, label, identity, holder, outcome)
     return outcome if _record(catalog, label, identity, same, outcome) else None
+
+
+def _judge_copy(catalog: _Catalog, label: Path, identity: _Identity) -> _Outcome:
+    """The outcome of this copy: its rejection from keying it, else as incomplete where it is
+    off the manifest (its content not what was sent), else as its label, array and geometry say."""
+    if identity.rejection is not None:
+        return _Outcome(ImageStatus.REJECTED, *identity.rejection)
+    return _off_manifest(catalog, identity) or _judge(catalog, label)
+
+
+def _off_manifest(catalog: _Catalog, identity: _Identity) -> _Outcome | None:
+    """The product's rejection as incomplete when a file of it differs from the manifest (still
+    arriving, or cut short): judged again on the next ingest."""
+    for path, (digest, size) in sorted(identity.digests.items()):
+        listed = catalog.manifest[path]
+        if digest != listed.sha256:
+            expected = "" if listed.size_bytes is None else f" ({listed.size_bytes} bytes)"
+            return _Outcome(ImageStatus.REJECTED, INCOMPLETE, (
+                f"{path.relative_to(catalog.directory).as_posix()} differs from the downlink's "
+                f"manifest: it has sha256 {digest} ({size} bytes), the manifest lists sha256 "
+                f"{listed.sha256}{expected}; judged again when it matches"))
+    return None
 
 
 def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | None,
@@ -620,6 +803,7 @@ def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | 
     versions = catalog.known[(identity.lid, identity.vid)]
     if same is not None:
         image = catalog.session.get_one(Image, same.id)
+        same.seen = True
         if _verdict(image) == outcome.verdict:
             return False
         same.status, same.code = outcome.status, outcome.code
@@ -628,25 +812,54 @@ def _record(catalog: _Catalog, label: Path, identity: _Identity, same: _Known | 
         image = Image(lidvid=identity.lidvid, lid=identity.lid, vid=identity.vid,
                       downlink_id=catalog.downlink_id)
         catalog.session.add(image)
-        versions.append(_Known(None, identity.sha256, outcome.status, outcome.code,
-                               outcome.geometry_status))
     _apply(image, identity, label, outcome)
+    if same is None:
+        catalog.session.flush()  # its id, should another copy of it come in this ingest
+        versions.append(_Known(image.id, identity.sha256, outcome.status, outcome.code,
+                               outcome.geometry_status, seen=True))
     return True
 
 
-def _conflict(catalog: _Catalog, label: Path, identity: _Identity,
-              versions: list[_Known]) -> _Outcome:
-    """Record a copy of a catalogued LIDVID with other content; the first copy stays."""
-    original = next(k for k in versions if k.status is not ImageStatus.CONFLICT)
+def _replace(catalog: _Catalog, label: Path, identity: _Identity, holder: _Known,
+             outcome: _Outcome) -> _Outcome:
+    """Record a copy of a product whose catalogued copy (`holder`) arrived broken. A copy not
+    broken itself, or the same file again, takes the holder's row (its id kept) for this
+    downlink; the broken copy, if it is still offered elsewhere (its label there), stays on as
+    a copy not used. A broken copy of another file is itself a copy not used."""
+    image = catalog.session.get_one(Image, holder.id)
+    same_file = image.label_path == str(label)
+    if not same_file and outcome.status is ImageStatus.REJECTED and outcome.code in _PROVISIONAL_CODES:
+        return _conflict(catalog, label, identity, catalogued=holder.sha256,
+                         detail=f"; it was rejected {outcome.code}: {outcome.reason}")
+    if not same_file and Path(image.label_path).is_file():
+        broken = _Identity(lid=image.lid, vid=image.vid, sha256=image.sha256,
+                           data_path=Path(image.data_path) if image.data_path else None,
+                           size_bytes=image.size_bytes)
+        _conflict(catalog, Path(image.label_path), broken, catalogued=identity.sha256,
+                  detail=f"; it was rejected {image.rejection_code}: {image.rejection_reason}",
+                  downlink_id=image.downlink_id)
+    holder.sha256, holder.status, holder.code = identity.sha256, outcome.status, outcome.code
+    holder.geometry_status, holder.seen = outcome.geometry_status, True
+    image.downlink_id = catalog.downlink_id
+    _apply(image, identity, label, outcome)
+    return outcome
+
+
+def _conflict(catalog: _Catalog, label: Path, identity: _Identity, *, catalogued: str,
+              detail: str = "", downlink_id: int | None = None) -> _Outcome:
+    """Record a copy not used: the LIDVID is catalogued with other content (sha256
+    `catalogued`), which stays. detail: what else to say of the copy; downlink_id: the
+    downlink that offered it (default this ingest's)."""
     reason = (f"{identity.lidvid} is catalogued already with other content (sha256 "
-              f"{original.sha256}); this copy (sha256 {identity.sha256}) is not used")
+              f"{catalogued}); this copy (sha256 {identity.sha256}) is not used{detail}")
     outcome = _Outcome(status=ImageStatus.CONFLICT, code="conflict", reason=reason)
     image = Image(lidvid=f"{identity.lidvid}#{identity.sha256[:16]}", lid=identity.lid,
-                  vid=identity.vid, downlink_id=catalog.downlink_id)
+                  vid=identity.vid, downlink_id=downlink_id or catalog.downlink_id)
     _apply(image, identity, label, outcome)
     catalog.session.add(image)
-    versions.append(_Known(None, identity.sha256, outcome.status, outcome.code,
-                           outcome.geometry_status))
+    catalog.known[(identity.lid, identity.vid)].append(
+        _Known(None, identity.sha256, outcome.status, outcome.code, outcome.geometry_status,
+               seen=True))
     return outcome
 
 
@@ -682,7 +895,8 @@ def _judge(catalog: _Catalog, label: Path) -> _Outcome:
     try:
         product = read_image_label(label, root=catalog.directory,
                                    max_label_bytes=catalog.limits.max_label_bytes,
-                                   max_pixels=catalog.limits.max_pixels)
+                                   max_pixels=catalog.limits.max_pixels,
+                                   max_fits_header_bytes=catalog.limits.max_fits_header_bytes)
     except ProductError as exc:
         return _Outcome(ImageStatus.REJECTED, exc.code, str(exc))
     except OSError as exc:  # e.g. a file gone since it was hashed

@@ -14,6 +14,18 @@ elsewhere is refused with the reason (service.models.DownlinkFile), never read, 
 downlink can bring in a file of the host or change the geometry through another's kernels.
 Rejected kernels are judged again when seen again: a CK refused for
 want of its SCLK is accepted once the SCLK has arrived.
+
+A kernel is checked before it is trusted (pwm.io.kernel_checks): a binary one is read through,
+every segment's data, not only its summaries (kernel_truncated); a text one that sets a body's
+shape or rotation constants or the time system's (DELTET) must give sane numbers
+(kernel_constants), and may not change a value the kernels already accepted set
+(kernel_redefines): SPICE's pool is shared, later kernels win, and the geometry catalogued so
+far was computed with those values. "Accepted" is the catalog's: every accepted kernel of every
+downlink is loaded for every ingest (accepted_kernels), this downlink's own accepted so far
+among them. To change such a constant, an operator retires the kernel that set it
+(retire_kernel, `pwm kernels retire`) and the new one is accepted when delivered again; a
+retired kernel is never loaded again nor judged again, and the images it served are judged
+again at their downlink's next ingest.
 """
 
 from __future__ import annotations
@@ -23,11 +35,22 @@ import os
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import Any, cast
 
 import spiceypy as sp
-from sqlalchemy import select
+from sqlalchemy import CursorResult, Select, and_, delete, func, select, update
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
+from pwm.io.kernel_checks import (
+    KernelCheckError,
+    Value,
+    check_constants,
+    check_daf,
+    check_das,
+    pool_constants,
+    redefinitions,
+)
 from pwm.io.pds4 import file_sha256
 from pwm.io.spice_geometry import coverage_ck, coverage_spk
 from pwm.io.spice_kernels import (
@@ -37,7 +60,20 @@ from pwm.io.spice_kernels import (
     metakernel_files,
     spice_message,
 )
-from service.models import Acceptance, DownlinkFile, Kernel, KernelCoverage, KernelKind, utcnow
+from service.models import (
+    Acceptance,
+    Downlink,
+    DownlinkFile,
+    GeometryStatus,
+    Image,
+    ImageGeometry,
+    ImageStatus,
+    Kernel,
+    KernelCoverage,
+    KernelDelivery,
+    KernelKind,
+    utcnow,
+)
 
 log = logging.getLogger(__name__)
 
@@ -102,31 +138,54 @@ def kernel_kind(path: Path) -> KernelKind | None:
     return by_type or KIND_BY_EXTENSION.get(path.suffix.lower())
 
 
-def _windows(path: Path, kind: KernelKind, scope: KernelScope
+def _windows(path: Path, kind: KernelKind, check: _Check
              ) -> dict[int, list[tuple[float, float]]]:
-    """Check a kernel with SPICE and return its coverage windows (ET) per NAIF id.
+    """Check a kernel with SPICE and pwm.io.kernel_checks and return its coverage windows (ET)
+    per NAIF id.
 
-    Text kernels are loaded into the current pool; raises SpiceyError or KernelError. A
+    Binary kernels are read through (every segment's data); text kernels are loaded into the
+    current pool, and the body and time constants they set or change are checked against the
+    ones loaded before. Raises SpiceyError or KernelError (KernelCheckError with its code). A
     meta-kernel's entries outside the scope are refused on their own (_candidates), not here.
     """
+    # SPICE's own readers first, so that its message says what a file that is no kernel is
     if kind is KernelKind.SPK:
-        return {int(body): coverage_spk(path, int(body)) for body in sp.spkobj(str(path))}
+        bodies = sp.spkobj(str(path))
+        check_daf(path, evaluate_spk=True)
+        return {int(body): coverage_spk(path, int(body)) for body in bodies}
     if kind is KernelKind.CK:
-        return {int(frame): coverage_ck(path, int(frame)) for frame in sp.ckobj(str(path))}
+        frames = sp.ckobj(str(path))
+        check_daf(path)
+        return {int(frame): coverage_ck(path, int(frame)) for frame in frames}
     if kind is KernelKind.DSK:
         sp.dskobj(str(path))
+        check_das(path)
     elif kind is KernelKind.MK:
+        scope = check.scope
         missing = [f for f in metakernel_files(path, max_entries=scope.max_metakernel_entries)
                    if scope.allows(f) and not f.is_file()]
         if missing:
             raise KernelError(f"{len(missing)} kernels it names are missing: "
                               + ", ".join(str(f) for f in missing), missing)
-    elif kind is KernelKind.PCK and path.suffix.lower() == ".bpc":
+    elif kind is KernelKind.PCK and sp.getfat(str(path))[0] == "DAF":
         # furnsh would take an unreadable binary file for a text kernel without data.
         sp.pckfrm(str(path), sp.cell_int(1000))
+        check_daf(path)
     else:
         sp.furnsh(str(path))
+        _check_constants(check.constants, pool_constants())
     return {}
+
+
+def _check_constants(before: dict[str, Value], after: dict[str, Value]) -> None:
+    """KernelCheckError unless the constants a text kernel just loaded set or changed are
+    sane, and none already set changed (geometry already catalogued used them)."""
+    check_constants({name: value for name, value in after.items() if before.get(name) != value})
+    changed = redefinitions(before, after)
+    if changed:
+        raise KernelCheckError("kernel_redefines", "redefines constants the catalog's accepted "
+                               "kernels set (retire those first to change them): "
+                               + "; ".join(changed))
 
 
 def _coverage_rows(windows: dict[int, list[tuple[float, float]]]) -> list[KernelCoverage]:
@@ -192,10 +251,10 @@ def _candidates(scope: KernelScope, refused: list[Refused]) -> list[Path]:
 
 def accepted_kernels(session: Session) -> list[Kernel]:
     """The catalog's accepted kernels of the kinds geometry loads, in LOAD_ORDER, each kind in
-    the order it was catalogued (later kernels take precedence in SPICE)."""
+    the order it was catalogued (later kernels take precedence in SPICE); retired ones never."""
     rank = {kind: i for i, kind in enumerate(LOAD_ORDER)}
-    rows = session.scalars(select(Kernel).where(Kernel.status == Acceptance.ACCEPTED,
-                                                Kernel.kind.in_(LOAD_ORDER)).order_by(Kernel.id))
+    rows = session.scalars(select(Kernel).where(_IN_USE, Kernel.kind.in_(LOAD_ORDER))
+                           .order_by(Kernel.id))
     return sorted(rows, key=lambda k: rank[k.kind])
 
 
@@ -203,7 +262,7 @@ def coverage_windows(session: Session, kind: KernelKind) -> dict[int, list[tuple
     """ET windows per NAIF id from the accepted kernels of `kind` (SPK: bodies, CK: frames)."""
     rows = session.execute(
         select(KernelCoverage.naif_id, KernelCoverage.start_et, KernelCoverage.stop_et)
-        .join(Kernel).where(Kernel.kind == kind, Kernel.status == Acceptance.ACCEPTED))
+        .join(Kernel).where(Kernel.kind == kind, _IN_USE))
     windows: dict[int, list[tuple[float, float]]] = {}
     for naif_id, start, stop in rows:
         windows.setdefault(naif_id, []).append((start, stop))
@@ -212,13 +271,18 @@ def coverage_windows(session: Session, kind: KernelKind) -> dict[int, list[tuple
 
 def register_kernels(session: Session, scope: KernelScope, *, downlink_id: int
                      ) -> list[KernelOutcome]:
-    """Catalogue the kernels of `scope` (idempotent: known content is left alone); the files
-    refused are recorded as the downlink's unused files (record_file).
+    """Catalogue the kernels of `scope` (idempotent: known content is left alone, a retired
+    kernel stays retired); the files refused are recorded as the downlink's unused files
+    (record_file), and each kernel's delivery by this downlink (KernelDelivery).
 
     The catalog's accepted text kernels are loaded first (those still on disk), so a downlink's
-    CKs can use an SCLK and LSK delivered earlier. A kernel SPICE refuses may have filled the
-    pool before it failed (KERNELPOOLFULL): the pool is then loaded afresh with what it held,
-    so that one kernel's excess never costs the next kernels their room.
+    CKs can use an SCLK and LSK delivered earlier, and a text kernel is checked against the body
+    and time constants they set (pwm.io.kernel_checks). A kernel SPICE refuses may have filled
+    the pool before it failed (KERNELPOOLFULL): the pool is then loaded afresh with what it
+    held, so that one kernel's excess never costs the next kernels their room.
+
+    Safe beside another ingest registering the same kernels at once: each row is inserted
+    unless there already (ON CONFLICT), and the ingest that loses takes the winner's row.
     """
     known = {k.sha256: k for k in session.scalars(select(Kernel))}
     loaded = [Path(k.path) for k in accepted_kernels(session)
@@ -233,12 +297,16 @@ def register_kernels(session: Session, scope: KernelScope, *, downlink_id: int
                               reason=item.reason)
             outcomes.append(KernelOutcome(item.path, None, "rejected" if new else "unchanged",
                                           item.reason, item.code))
+        check = _Check(scope, pool_constants())
         seen: set[str] = set()
         for path in candidates:
             digest = file_sha256(path)
             kind = kernel_kind(path)
             row = known.get(digest)
-            if digest in seen or (row is not None and row.status is Acceptance.ACCEPTED):
+            if row is not None:
+                _delivered(session, row.id, downlink_id, path)
+            if digest in seen or (row is not None and (row.status is Acceptance.ACCEPTED
+                                                       or row.retired_at is not None)):
                 if row is not None and not Path(row.path).is_file():
                     row.path = str(path)  # the catalogued copy moved: keep it loadable
                 outcomes.append(KernelOutcome(path, kind, "unchanged"))
@@ -253,18 +321,20 @@ def register_kernels(session: Session, scope: KernelScope, *, downlink_id: int
                 continue
             try:
                 with session.begin_nested():
-                    outcome = _judge(session, path, kind, digest, row, downlink_id, scope)
+                    outcome, accepted = _judge(session, path, kind, digest, row, downlink_id,
+                                               check)
                     session.flush()
             except Exception as exc:  # one hostile file never stops the rest
                 log.exception("%s: rejected on an unexpected error", path)
-                outcome = KernelOutcome(path, kind, "rejected", f"{type(exc).__name__}: {exc}",
-                                        "unexpected")
+                outcome, accepted = KernelOutcome(
+                    path, kind, "rejected", f"{type(exc).__name__}: {exc}", "unexpected"), False
                 record_file(session, downlink_id=downlink_id, path=path, code="unexpected",
                             reason=outcome.reason or "")
-            if outcome.result == "rejected" and kind in _POOL_KINDS:
-                _reload(loaded)
-            elif outcome.result == "accepted" and kind in _LOADED_KINDS:
+            if kind is KernelKind.MK or (not accepted and kind in _POOL_KINDS):
+                _reload(loaded)  # what the check left in the pool goes
+            elif accepted and kind in _LOADED_KINDS:
                 loaded.append(path)
+                check.constants = pool_constants()
             outcomes.append(outcome)
     return outcomes
 
@@ -274,6 +344,9 @@ def register_kernels(session: Session, scope: KernelScope, *, downlink_id: int
 _LOADED_KINDS = frozenset({KernelKind.LSK, KernelKind.SCLK, KernelKind.PCK, KernelKind.FK,
                            KernelKind.IK})
 _POOL_KINDS = _LOADED_KINDS | {KernelKind.MK}
+_IN_USE = and_(Kernel.status == Acceptance.ACCEPTED, Kernel.retired_at.is_(None))
+_INSERT_IGNORING_CONFLICT: dict[str, Any] = {"postgresql": postgresql.insert,
+                                             "sqlite": sqlite.insert}
 
 
 def _reload(paths: list[Path]) -> None:
@@ -301,23 +374,181 @@ def record_file(session: Session, *, downlink_id: int, path: Path, code: str, re
     return True
 
 
-def _judge(session: Session, path: Path, kind: KernelKind, digest: str, row: Kernel | None,
-           downlink_id: int, scope: KernelScope) -> KernelOutcome:
-    """Check one new or previously rejected kernel and record the verdict."""
+@dataclass
+class _Check:
+    """What a kernel is checked against: where kernels may come from, and the body and time
+    constants of the kernels loaded now (the catalog's accepted ones, and this downlink's
+    accepted so far)."""
+
+    scope: KernelScope
+    constants: dict[str, Value]
+
+
+def _verdict(path: Path, kind: KernelKind, check: _Check
+             ) -> tuple[list[KernelCoverage], Acceptance, str | None, str | None]:
+    """Coverage rows, status, rejection code and reason of one kernel."""
     try:
-        coverage = _coverage_rows(_windows(path, kind, scope))
-        status, reason = Acceptance.ACCEPTED, None
+        return _coverage_rows(_windows(path, kind, check)), Acceptance.ACCEPTED, None, None
     except sp.utils.exceptions.SpiceyError as exc:
-        coverage, status, reason = [], Acceptance.REJECTED, spice_message(exc)
+        return [], Acceptance.REJECTED, "kernel", spice_message(exc)
+    except KernelCheckError as exc:
+        return [], Acceptance.REJECTED, exc.code, str(exc)
     except KernelError as exc:
-        coverage, status, reason = [], Acceptance.REJECTED, str(exc)
+        return [], Acceptance.REJECTED, "kernel", str(exc)
+
+
+def _judge(session: Session, path: Path, kind: KernelKind, digest: str, row: Kernel | None,
+           downlink_id: int, check: _Check) -> tuple[KernelOutcome, bool]:
+    """Check one new or previously rejected kernel and record the verdict; the outcome, and
+    whether the kernel is accepted (ours, or the verdict of an ingest that recorded it first)."""
+    coverage, status, code, reason = _verdict(path, kind, check)
+    values = dict(path=str(path), kind=kind, status=status, rejection_code=code,
+                  rejection_reason=reason)
     if row is None:
-        session.add(Kernel(path=str(path), kind=kind, sha256=digest,
-                           size_bytes=path.stat().st_size, status=status,
-                           rejection_reason=reason, downlink_id=downlink_id, coverage=coverage))
-        return KernelOutcome(path, kind, status.value, reason)
-    # still rejected is no news, though SPICE's message may differ (e.g. where the pool filled)
-    unchanged = (row.status, row.kind) == (status, kind)
-    row.path, row.kind, row.status, row.rejection_reason = str(path), kind, status, reason
-    row.coverage = coverage
-    return KernelOutcome(path, kind, "unchanged" if unchanged else status.value, reason)
+        row, ours = _insert_or_get(session, digest, downlink_id=downlink_id,
+                                   size_bytes=path.stat().st_size, **values)
+        _delivered(session, row.id, downlink_id, path)
+        result = status.value if ours else "unchanged"
+    else:
+        # Only while still rejected and not retired: a concurrent ingest's verdict stands.
+        ours = cast(CursorResult[Any], session.execute(
+            update(Kernel).where(Kernel.id == row.id, Kernel.status == Acceptance.REJECTED,
+                                 Kernel.retired_at.is_(None)).values(**values)
+            .execution_options(synchronize_session=False))).rowcount == 1
+        if ours:
+            session.execute(delete(KernelCoverage).where(KernelCoverage.kernel_id == row.id))
+        # still rejected is no news, though SPICE's message may differ (e.g. where the pool filled)
+        result = ("unchanged" if not ours or (row.status, row.kind) == (status, kind)
+                  else status.value)
+        row = _fresh(session, digest)
+    if ours:
+        for window in coverage:
+            window.kernel_id = row.id
+        session.add_all(coverage)
+    accepted = row.status is Acceptance.ACCEPTED and row.retired_at is None
+    return KernelOutcome(path, kind, result, row.rejection_reason,
+                         row.rejection_code or "kernel"), accepted
+
+
+def _insert_or_get(session: Session, digest: str, **values: Any) -> tuple[Kernel, bool]:
+    """The kernel row of `digest`, inserted with `values` unless another ingest did first;
+    and whether this one inserted it."""
+    insert = _INSERT_IGNORING_CONFLICT[session.get_bind().dialect.name]
+    inserted = session.execute(insert(Kernel).values(sha256=digest, **values)
+                               .on_conflict_do_nothing(index_elements=[Kernel.sha256])
+                               .returning(Kernel.id)).scalar_one_or_none()
+    return _fresh(session, digest), inserted is not None
+
+
+def _fresh(session: Session, digest: str) -> Kernel:
+    return session.scalars(select(Kernel).filter_by(sha256=digest)
+                           .execution_options(populate_existing=True)).one()
+
+
+def _delivered(session: Session, kernel_id: int, downlink_id: int, path: Path) -> None:
+    """Record that the downlink delivered the kernel (once per downlink)."""
+    insert = _INSERT_IGNORING_CONFLICT[session.get_bind().dialect.name]
+    session.execute(insert(KernelDelivery).values(kernel_id=kernel_id, downlink_id=downlink_id,
+                                                  path=str(path))
+                    .on_conflict_do_nothing(index_elements=[KernelDelivery.kernel_id,
+                                                            KernelDelivery.downlink_id]))
+
+
+# ---------------------------------------------------------------------------------------------
+# An operator's view: the kernels, and retiring one
+
+RETIRED = "retired"  # the status `pwm kernels` shows for a retired kernel, whatever its verdict
+_IDS_PER_STATEMENT = 500
+
+
+@dataclass(frozen=True)
+class KernelListing:
+    """One kernel as `pwm kernels` lists it: status accepted, rejected or retired; reason: why
+    rejected or retired; coverage: the first and last ET its windows cover (SPK, CK)."""
+
+    id: int
+    kind: KernelKind
+    name: str
+    path: str
+    status: str
+    code: str | None
+    reason: str | None
+    coverage: tuple[float, float] | None
+    downlinks: list[str]
+
+
+def kernel_listing(session: Session) -> list[KernelListing]:
+    """Every catalogued kernel, in the order catalogued, with the downlinks that delivered it."""
+    spans = {kernel_id: (start, stop) for kernel_id, start, stop in session.execute(
+        select(KernelCoverage.kernel_id, func.min(KernelCoverage.start_et),
+               func.max(KernelCoverage.stop_et)).group_by(KernelCoverage.kernel_id))}
+    delivered: dict[int, list[str]] = {}
+    for kernel_id, name in session.execute(
+            select(KernelDelivery.kernel_id, Downlink.name).join(Downlink)
+            .order_by(KernelDelivery.id)):
+        delivered.setdefault(kernel_id, []).append(name)
+    return [KernelListing(
+        id=k.id, kind=k.kind, name=Path(k.path).name, path=k.path,
+        status=RETIRED if k.retired_at is not None else k.status.value,
+        code=None if k.retired_at is not None else k.rejection_code,
+        reason=k.retirement_reason if k.retired_at is not None else k.rejection_reason,
+        coverage=spans.get(k.id), downlinks=delivered.get(k.id, []))
+        for k in session.scalars(select(Kernel).order_by(Kernel.id))]
+
+
+@dataclass(frozen=True)
+class Retirement:
+    """What retiring a kernel did: the images whose geometry it withdrew, and the downlinks that
+    hold them (each one's next ingest judges them again, with the kernels left)."""
+
+    kernel_id: int
+    name: str
+    images: int
+    downlinks: list[tuple[str, str]]  # name, directory
+
+
+def retire_kernel(session: Session, kernel_id: int, *, reason: str) -> Retirement:
+    """Retire a kernel: it is no longer loaded, nor judged again when delivered again. The
+    images whose geometry it may have served lose their geometry, with a reason naming the
+    retirement, and so become kernel-dependent: the next ingest of their downlink computes it
+    again. Served: for an SPK or CK, the accepted images with geometry whose mid-exposure time
+    lies in its coverage; for a text kernel (LSK, SCLK, PCK, FK, IK), every one. Their pose
+    corrections, made on its geometry, go too, and they are weighed again into the maplets'
+    coverage once their geometry is back. LookupError for an unknown id."""
+    kernel = session.get(Kernel, kernel_id)
+    if kernel is None:
+        raise LookupError(f"no kernel {kernel_id} in the catalog")
+    name = Path(kernel.path).name
+    served = _served(kernel) if kernel.retired_at is None else None
+    if kernel.retired_at is None:
+        kernel.retired_at, kernel.retirement_reason = utcnow(), reason
+        session.flush()
+    ids = [] if served is None else list(session.scalars(served))
+    downlinks = [(n, p) for n, p in session.execute(
+        select(Downlink.name, Downlink.path).where(Downlink.id.in_(
+            select(Image.downlink_id).where(Image.id.in_(ids)))).order_by(Downlink.id))] if ids else []
+    why = f"kernel {kernel.id} ({name}) retired: {reason}"
+    for first in range(0, len(ids), _IDS_PER_STATEMENT):
+        chunk = ids[first:first + _IDS_PER_STATEMENT]
+        session.execute(delete(ImageGeometry).where(ImageGeometry.image_id.in_(chunk)))
+        session.execute(update(Image).where(Image.id.in_(chunk)).values(
+            geometry_status=GeometryStatus.UNAVAILABLE, geometry_unavailable_reason=why,
+            coverage_computed_at=None, pose_dx_km=None, pose_dy_km=None, pose_dz_km=None,
+            pose_rx_rad=None, pose_ry_rad=None, pose_rz_rad=None, pose_corrected_at=None,
+            pose_sigma=None).execution_options(synchronize_session=False))
+    log.info("%s; %d images lose their geometry", why, len(ids))
+    return Retirement(kernel.id, name, len(ids), downlinks)
+
+
+def _served(kernel: Kernel) -> Select[Any] | None:
+    """The images whose geometry `kernel` may have given, as a query of their ids."""
+    if kernel.status is not Acceptance.ACCEPTED or kernel.kind not in LOAD_ORDER:
+        return None
+    query = select(Image.id).where(Image.status == ImageStatus.ACCEPTED,
+                                   Image.geometry_status == GeometryStatus.COMPUTED)
+    if kernel.kind in (KernelKind.SPK, KernelKind.CK):
+        mid = (Image.start_et + Image.stop_et) / 2
+        query = query.where(select(KernelCoverage.id).where(
+            KernelCoverage.kernel_id == kernel.id, KernelCoverage.start_et <= mid,
+            KernelCoverage.stop_et >= mid).exists())
+    return query.order_by(Image.id)

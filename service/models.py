@@ -241,15 +241,38 @@ class Kernel(Base):
     sha256: Mapped[str] = mapped_column(String(64), unique=True)
     size_bytes: Mapped[int] = mapped_column(BigInteger)
     status: Mapped[Acceptance] = mapped_column(_enum(Acceptance, "kernel_status"))
+    # How and why a rejected kernel was refused (kernel: SPICE refused it; kernel_truncated,
+    # kernel_constants, kernel_redefines: pwm.io.kernel_checks).
+    rejection_code: Mapped[str | None] = mapped_column(String(32))
     rejection_reason: Mapped[str | None] = mapped_column(Text)
+    # The first downlink that delivered it (KernelDelivery lists them all).
     downlink_id: Mapped[int | None] = mapped_column(
         ForeignKey("downlinks.id", ondelete="SET NULL"), index=True
     )
+    # Retired by an operator (`pwm kernels retire`): never loaded again, nor judged again when
+    # delivered again, whatever its status.
+    retired_at: Mapped[datetime | None]
+    retirement_reason: Mapped[str | None] = mapped_column(Text)
 
     downlink: Mapped[Downlink | None] = relationship(back_populates="kernels")
     coverage: Mapped[list[KernelCoverage]] = relationship(
         back_populates="kernel", cascade="all, delete-orphan"
     )
+
+
+class KernelDelivery(Base):
+    """A downlink that delivered a kernel's content, at which path (the first and each later
+    one)."""
+
+    __tablename__ = "kernel_deliveries"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    kernel_id: Mapped[int] = mapped_column(ForeignKey("kernels.id", ondelete="CASCADE"))
+    downlink_id: Mapped[int] = mapped_column(ForeignKey("downlinks.id", ondelete="CASCADE"),
+                                             index=True)
+    path: Mapped[str] = mapped_column(Text)
+
+    __table_args__ = (UniqueConstraint("kernel_id", "downlink_id"),)
 
 
 class KernelCoverage(Base):

@@ -47,7 +47,7 @@ from service.models import (
     MapletRevision,
     model_version_maplet_revisions,
 )
-from service.versions import artifact_mesh, artifact_path, latest_version, scratch_path, store_artifact
+from service.versions import artifact_mesh, artifact_path, latest_version, scratch_file, store_artifact
 from service.views import catalog_views
 
 log = logging.getLogger(__name__)
@@ -194,9 +194,9 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
     grid.heights, grid.albedo = sample_surface(tracer, grid)
     result = refine_maplet(grid, ordered, tracer, config=config)
     say(0.9, "storing the revision")
-    scratch = scratch_path(data_dir, ".npz")
-    write_maplet(scratch, result.maplet)
-    artifact = store_artifact(data_dir, scratch)
+    with scratch_file(data_dir, ".npz") as scratch:
+        write_maplet(scratch, result.maplet)
+        artifact = store_artifact(data_dir, scratch)
     statistics = {"images": result.images, "region_weight": result.region_weight,
                   "five_views": result.five_views, "dropped": result.dropped,
                   "iterations": result.iterations, "converged": result.converged,

@@ -190,6 +190,7 @@ def downlink_knowledge(session: Session, downlink_id: int,
     `configured` (PWM_POSE_KNOWLEDGE), else None."""
     kernels = session.scalars(select(Kernel).where(
         Kernel.downlink_id == downlink_id, Kernel.status == Acceptance.ACCEPTED,
+        Kernel.retired_at.is_(None),
         Kernel.kind.in_([KernelKind.SPK, KernelKind.CK])).order_by(Kernel.id)).all()
     for kernel in kernels:
         try:

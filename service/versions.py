@@ -19,7 +19,8 @@ from __future__ import annotations
 import hashlib
 import os
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +28,7 @@ import numpy as np
 from sqlalchemy import func, select, text
 from sqlalchemy.orm import Session
 
-from pwm.io.dsk import read_dsk
-from pwm.io.meshio import read_mesh, write_obj, write_ply
+from pwm.io.meshio import read_mesh, read_shape_model, write_obj, write_ply
 from pwm.mesh import Mesh
 from service.models import Downlink, MapletRevision, ModelKind, ModelVersion
 
@@ -75,9 +75,9 @@ def store_mesh(data_dir: Path, mesh: Mesh) -> dict[str, dict[str, Any]]:
     """Write `mesh` (km, body-fixed) as PLY (with albedo) and OBJ into the store."""
     records = {}
     for role, writer in (("ply", write_ply), ("obj", write_obj)):
-        scratch = scratch_path(data_dir, f".{role}")
-        writer(scratch, mesh)
-        records[role] = store_artifact(data_dir, scratch)
+        with scratch_file(data_dir, f".{role}") as scratch:
+            writer(scratch, mesh)
+            records[role] = store_artifact(data_dir, scratch)
     return records
 
 
@@ -117,8 +117,9 @@ def publish_version(session: Session, *, data_dir: Path, mesh: Mesh, kind: Model
 
 def import_model(session: Session, *, data_dir: Path, path: Path,
                  kind: ModelKind = ModelKind.IMPORTED) -> ModelVersion:
-    """Publish a shape model file (OBJ or PLY in km, or a SPICE DSK type 2) as a new version."""
-    mesh = read_dsk(path) if path.suffix.lower() == ".bds" else read_mesh(path)
+    """Publish a shape model file as a new version: any format pwm exports, told by its content
+    (pwm.io.meshio.read_shape_model; km, body-fixed). ValueError if it is none of them."""
+    mesh = read_shape_model(path)
     return publish_version(session, data_dir=data_dir, mesh=mesh, kind=kind,
                            statistics={"source": str(path.resolve()),
                                        "source_sha256": _sha256(path)})
@@ -137,7 +138,7 @@ def get_version(session: Session, ref: str | int) -> ModelVersion:
     Raises LookupError when there is none."""
     if ref in ("latest", "released"):
         version = latest_version(session, released_only=ref == "released")
-    elif isinstance(ref, int) or str(ref).isdigit():
+    elif isinstance(ref, int) or (str(ref).isascii() and str(ref).isdigit()):  # '²' is a digit too
         version = session.scalar(select(ModelVersion).filter_by(version=int(ref)))
     else:
         version = session.scalar(select(ModelVersion).filter_by(release_tag=str(ref)))
@@ -178,6 +179,17 @@ def scratch_path(data_dir: Path, suffix: str) -> Path:
     handle, name = tempfile.mkstemp(suffix=suffix, dir=directory)
     os.close(handle)
     return Path(name)
+
+
+@contextmanager
+def scratch_file(data_dir: Path, suffix: str) -> Iterator[Path]:
+    """A scratch file (`scratch_path`) for the block to write and move into the store; whatever
+    is left of it afterwards (a write that failed, a disk that filled) is removed."""
+    path = scratch_path(data_dir, suffix)
+    try:
+        yield path
+    finally:
+        path.unlink(missing_ok=True)
 
 
 def _sha256(path: Path) -> str:

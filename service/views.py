@@ -80,7 +80,8 @@ def image_view(image: Image, *, pixels: bool = False, kernel_poses: bool = False
     if pixels or window is None:
         limits = get_settings().ingest_limits()
         label = read_image_label(Path(image.label_path), max_label_bytes=limits.max_label_bytes,
-                                 max_pixels=limits.max_pixels)
+                                 max_pixels=limits.max_pixels,
+                                 max_fits_header_bytes=limits.max_fits_header_bytes)
         window = (label.first_line, label.first_sample, label.lines, label.samples)
         data = read_array(label).data if pixels else None
     first_line, first_sample, lines, samples = window

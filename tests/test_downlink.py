@@ -22,8 +22,12 @@ WIDE = ("img001", "img003")  # relabelled as ONC-W1's
 
 
 def copy_downlink(sim: Path, dest: Path) -> Path:
-    """A copy of a simulated downlink (its meta-kernel still names the original's kernels)."""
-    return Path(shutil.copytree(sim / "downlink", dest / "downlink"))
+    """A copy of a simulated downlink (its meta-kernel still names the original's kernels),
+    without its manifest: the tests edit its files, which ingest would otherwise take for
+    products still arriving (incomplete)."""
+    copy = Path(shutil.copytree(sim / "downlink", dest / "downlink"))
+    (copy / "manifest.json").unlink()
+    return copy
 
 
 def relabel(downlink: Path, stems: tuple[str, ...], instrument: str) -> None:

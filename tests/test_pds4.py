@@ -120,7 +120,7 @@ def _flip_byte(path: Path) -> None:
     (lambda label, data: _flip_byte(data), "md5_mismatch"),
     # 4000 lines run past the end of the file; 41 still fit in the FITS padding but disagree
     # with the FITS header's NAXIS2.
-    (lambda label, data: _edit_label(label, "<elements>40<", "<elements>4000<"), "bad_dimensions"),
+    (lambda label, data: _edit_label(label, "<elements>40<", "<elements>4000<"), "truncated"),
     (lambda label, data: _edit_label(label, "<elements>40<", "<elements>41<"), "bad_dimensions"),
     (lambda label, data: _edit_label(label, ".fits</file_name>", "/../x.fits</file_name>"),
      "bad_file_name"),

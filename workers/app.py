@@ -39,7 +39,7 @@ from pwm.parallel import share_cores
 from service.db import make_engine, make_sessionmaker
 from service.kernels import accepted_kernels
 from service.models import JobKind
-from service.settings import Settings
+from service.settings import Settings, from_environment
 
 QUEUES = tuple(kind.value for kind in JobKind)
 # Tasks are routed by name: workers.tasks.<kind>_<what> goes to the queue of that kind.
@@ -76,16 +76,17 @@ class WorkerSettings(Settings):
     def _check_limits(self) -> WorkerSettings:
         if self.visibility_timeout_s <= self.job_time_limit_s:
             raise ValueError(
-                f"visibility_timeout_s ({self.visibility_timeout_s:g} s) must exceed "
-                f"job_time_limit_s ({self.job_time_limit_s:g} s), or Redis hands running "
+                f"PWM_VISIBILITY_TIMEOUT_S ({self.visibility_timeout_s:g} s) must exceed "
+                f"PWM_JOB_TIME_LIMIT_S ({self.job_time_limit_s:g} s), or Redis hands running "
                 "tasks to a second worker")
         return self
 
 
 @lru_cache(maxsize=1)
 def get_worker_settings() -> WorkerSettings:
-    """The process-wide worker settings, read from the environment once."""
-    return WorkerSettings()
+    """The process-wide worker settings, read from the environment once (BadEnvironment if they
+    cannot be)."""
+    return from_environment(WorkerSettings)
 
 
 def make_app(settings: WorkerSettings) -> Celery:

@@ -12,7 +12,7 @@ HAYABUSA_AMICA, BENNU). Nothing here knows a mission: only the labels and the ke
 from __future__ import annotations
 
 import re
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import spiceypy as sp
@@ -139,12 +139,19 @@ def instrument_named(name: str) -> int:
 # SPICE reads years 0 to 99 as abbreviations (0019 as 2019) and Python as written: a time this
 # early is refused, so that the catalog's UTC and its ET never disagree.
 FIRST_YEAR = 1000
+# A leap second, which PDS4 allows: the 61st second of a day's last minute.
+_LEAP_SECOND = re.compile(r"(.+T23:59:)60(\.\d*)?")
 
 
 def parse_utc(stamp: str) -> datetime:
     """A PDS4 date_time (calendar or day-of-year form, UTC) as an aware datetime; ProductError
-    (bad_time) otherwise, and for a year before FIRST_YEAR."""
+    (bad_time) otherwise, and for a year before FIRST_YEAR. A time in a leap second (23:59:60.x),
+    which a datetime cannot hold, is the first instant of the next day (as
+    service.kernels.et_to_datetime gives it); exposure_et has its exact ET."""
     text = stamp.strip().removesuffix("Z")
+    leap = _LEAP_SECOND.fullmatch(text)
+    if leap:
+        text = leap[1] + "59"
     try:
         if re.fullmatch(r"\d{4}-\d{3}T.*", text):
             parsed = datetime.strptime(text, "%Y-%jT%H:%M:%S.%f" if "." in text
@@ -158,6 +165,8 @@ def parse_utc(stamp: str) -> datetime:
     if parsed.year < FIRST_YEAR:
         raise ProductError("bad_time", f"time {stamp!r}: year {parsed.year} is before "
                            f"{FIRST_YEAR} (SPICE would read {parsed.year:04d} as an abbreviated year)")
+    if leap:
+        parsed += timedelta(seconds=1)
     return parsed.replace(tzinfo=UTC)
 
 
@@ -172,9 +181,29 @@ def exposure_times(product: ImageLabel) -> tuple[datetime, datetime]:
 
 def exposure_et(product: ImageLabel) -> tuple[float, float]:
     """Start and stop of the exposure, ET s, from the pool's leapseconds kernel; ProductError
-    (bad_time) when parse_utc refuses them or SPICE cannot read them."""
-    parse_utc(product.start_utc), parse_utc(product.stop_utc)
+    (bad_time) when parse_utc refuses them, SPICE cannot read them, one is in a leap second the
+    kernel does not have (SPICE would read it as the next day's first second) or the stop
+    precedes the start (within one leap second, which exposure_times cannot tell)."""
+    start, stop = (_et(stamp) for stamp in (product.start_utc, product.stop_utc))
+    if stop < start:
+        raise ProductError("bad_time", f"stop {product.stop_utc} precedes start {product.start_utc}")
+    return start, stop
+
+
+def _et(stamp: str) -> float:
+    after = parse_utc(stamp)
     try:
-        return sp.str2et(product.start_utc), sp.str2et(product.stop_utc)
+        if _LEAP_SECOND.fullmatch(stamp.strip().removesuffix("Z")) and not _leap_second_before(after):
+            raise ProductError("bad_time", f"time {stamp!r}: the leapseconds kernel has no leap "
+                               f"second at the end of {(after - timedelta(days=1)).date()}")
+        return sp.str2et(stamp)
     except sp.utils.exceptions.SpiceyError as exc:
         raise ProductError("bad_time", spice_message(exc)) from exc
+
+
+def _leap_second_before(midnight: datetime) -> bool:
+    """Whether the minute before `midnight` UTC has 61 seconds in the pool's leapseconds
+    kernel: two seconds of ET, not one, from its 23:59:59 to midnight."""
+    stamps = (midnight - timedelta(seconds=1), midnight)
+    before, at = (sp.str2et(s.strftime("%Y-%m-%dT%H:%M:%S")) for s in stamps)
+    return at - before > 1.5

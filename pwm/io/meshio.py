@@ -8,6 +8,9 @@ import numpy as np
 
 from pwm.mesh import Mesh
 
+# The first bytes of a DSK file: a DAS file's ID word, its file type DSK.
+DSK_ID_WORD = b"DAS/DSK"
+
 
 def read_obj(path: str | Path) -> Mesh:
     """Read a triangle OBJ (v and f records; polygons are fanned). An albedo is read from
@@ -124,6 +127,35 @@ def read_ply(path: str | Path) -> Mesh:
     if verts is None or faces is None:
         raise ValueError(f"{path}: missing vertex or face element")
     return Mesh(verts, faces, albedo)
+
+
+def read_shape_model(path: str | Path) -> Mesh:
+    """A shape model in any format pwm exports (service.exports), told by its content whatever
+    the file is called: a SPICE DSK type 2 (a DAS file, `DAS/DSK` first), binary PLY (`ply`),
+    Gaskell's ICQ (q alone on the first line), else OBJ. Raises ValueError for a file that is
+    none of them, or a damaged one."""
+    with open(path, "rb") as fh:
+        first = fh.readline(64).strip()
+    if first.startswith(DSK_ID_WORD):
+        return _read_dsk(path)
+    if first == b"ply":
+        return read_ply(path)
+    if first.isdigit():
+        from pwm.io.icq import icq_to_mesh, read_icq
+
+        return icq_to_mesh(read_icq(path))
+    return read_obj(path)
+
+
+def _read_dsk(path: str | Path) -> Mesh:
+    from spiceypy.utils.exceptions import SpiceyError
+
+    from pwm.io.dsk import read_dsk
+
+    try:
+        return read_dsk(path)
+    except SpiceyError as exc:  # a truncated or damaged file: SPICE says why in its short message
+        raise ValueError(f"{path}: not a readable DSK file: {exc.short} {exc.long}".rstrip()) from None
 
 
 def read_mesh(path: str | Path) -> Mesh:

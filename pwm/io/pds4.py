@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -37,6 +38,19 @@ _SECONDS = {"s": 1.0, "ms": 1e-3, "microseconds": 1e-6, "ns": 1e-9, "min": 60.0}
 # overrides both.
 MAX_LABEL_BYTES = 4 * 1024**2
 MAX_PIXELS = 4096 * 4096
+# A FITS header's length is known only at its END card, which a hostile file may put a gigabyte
+# in: it is read a 2880-byte block at a time up to this bound (364 blocks, 13,000 cards; mission
+# headers take 2 to 10 blocks). service.settings.Settings overrides it.
+MAX_FITS_HEADER_BYTES = 1024**2
+FITS_BLOCK = 2880
+_FITS_CARD = 80
+_FITS_END = b"END".ljust(_FITS_CARD)
+_FITS_SIGNATURE = b"SIMPLE  ="
+# The array each FITS BITPIX stores: big-endian, signed integers except bytes (FITS standard 4.0
+# table 8); an unsigned 16-bit FITS image is a signed one with BZERO 32768.
+_FITS_DTYPES: dict[int, np.dtype] = {
+    8: np.dtype("u1"), 16: np.dtype(">i2"), 32: np.dtype(">i4"), 64: np.dtype(">i8"),
+    -32: np.dtype(">f4"), -64: np.dtype(">f8")}
 
 
 class ProductError(ValueError):
@@ -81,7 +95,7 @@ class ImageLabel:
 class ArrayLayout:
     """Where and how the array lies in the data file: numpy dtype (with byte order), byte
     offset, the scaling to physical values and the stored values that flag a pixel (the
-    label's Special_Constants)."""
+    label's Special_Constants, each a value of the array's type)."""
 
     dtype: str
     offset: int
@@ -243,12 +257,28 @@ def write_image_product(*, directory: Path, basename: str, dn: np.ndarray, scali
     return label_path, data_path
 
 
+def _one(node: ET.Element, path: str) -> ET.Element | None:
+    """The element at `path`, None if none; ProductError (duplicate_element) if several: read
+    first-wins, a second logical_identifier, start time or data_type would be ignored here and
+    believed by another reader."""
+    found = node.findall(path, _NS)
+    if len(found) > 1:
+        raise ProductError("duplicate_element", f"label has {len(found)} "
+                           f"{path.replace('pds:', '').replace('.//', '')} elements")
+    return found[0] if found else None
+
+
 @overload
-def _text(node: ET.Element, path: str, required: Literal[True] = True) -> str: ...
+def _text(node: ET.Element, path: str, required: Literal[True] = True, *,
+          repeatable: bool = False) -> str: ...
 @overload
-def _text(node: ET.Element, path: str, required: bool) -> str | None: ...
-def _text(node: ET.Element, path: str, required: bool = True) -> str | None:
-    found = node.find(path, _NS)
+def _text(node: ET.Element, path: str, required: bool, *, repeatable: bool = False
+          ) -> str | None: ...
+def _text(node: ET.Element, path: str, required: bool = True, *, repeatable: bool = False
+          ) -> str | None:
+    """The element's text, stripped; `repeatable` for an element the schema lets repeat (a
+    product's investigations and targets): the first is read."""
+    found = node.find(path, _NS) if repeatable else _one(node, path)
     if found is None or found.text is None:
         if required:
             raise ProductError("missing_element", f"label lacks {path.replace('pds:', '')}")
@@ -311,31 +341,55 @@ def _scaling(image: ET.Element) -> tuple[float, float]:
     return 1.0 if scaling is None else scaling, 0.0 if offset is None else offset
 
 
-def _special_constants(image: ET.Element) -> tuple[float, ...]:
-    """The stored values the label's Special_Constants flag (decimal, or 0x hexadecimal)."""
-    found = image.find("pds:Special_Constants", _NS)
+def _special_constants(image: ET.Element, dtype: np.dtype, data_type: str) -> tuple[float, ...]:
+    """The stored values the label's Special_Constants flag (decimal, or 0x hexadecimal: the
+    value of an integer, the bit pattern of a float), each checked to be a value of the array's
+    type: one it cannot hold flags nothing, and says the label is not of this array."""
+    found = _one(image, "pds:Special_Constants")
     values = []
     for element in [] if found is None else list(found):
         name, text = element.tag.rpartition("}")[2], (element.text or "").strip()
         if name.startswith("valid_"):  # a valid range, not a flagged value
             continue
         try:
-            values.append(float(int(text, 0)) if text.lower().startswith("0x") else float(text))
-        except ValueError:
-            raise ProductError("bad_value", f"special constant {name} = {text!r} is not a "
-                               "number") from None
+            value = _constant(text, dtype)
+        except (ValueError, OverflowError):
+            raise ProductError("bad_special_constant", f"special constant {name} = {text!r} is "
+                               f"not a {data_type} value") from None
+        values.append(value)
     return tuple(values)
 
 
+def _constant(text: str, dtype: np.dtype) -> float:
+    """A special constant as a value of `dtype`; ValueError when it is none."""
+    is_hex = text.lower().startswith("0x")
+    if dtype.kind == "f" and is_hex:
+        return float(np.array(int(text, 16), dtype=f">u{dtype.itemsize}").view(f">f{dtype.itemsize}"))
+    value = float(int(text, 16)) if is_hex else float(text)
+    if dtype.kind == "f":
+        # -3.4028235E38, the usual float32 constant, is a double just past float32's range:
+        # rounded to the type it is float32's lowest value, as the array stores it.
+        with np.errstate(over="ignore"):
+            rounded = dtype.type(value)
+        if np.isfinite(value) and not np.isfinite(rounded):
+            raise ValueError(text)
+        return float(rounded)
+    limits = np.iinfo(dtype)
+    if not value.is_integer() or not limits.min <= value <= limits.max:
+        raise ValueError(text)
+    return value
+
+
 def _fits_bitpix(dtype: np.dtype) -> int:
-    """The FITS BITPIX of an array of `dtype`: bits, negative for floating point."""
+    """The FITS BITPIX of an array of `dtype`'s size and kind: bits, negative for floating
+    point (_check_fits then checks its sign and byte order)."""
     return -8 * dtype.itemsize if dtype.kind == "f" else 8 * dtype.itemsize
 
 
-def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int, max_pixels: int
-                 ) -> tuple[ArrayLayout, dict | None]:
-    """Check the array's size, that it fits in the data file and agrees with a FITS header
-    (BITPIX, NAXIS and the axes); return its layout and that header."""
+def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int, *, max_pixels: int,
+                 max_fits_header_bytes: int) -> tuple[ArrayLayout, dict | None]:
+    """Check the array's size and type, that it fits in the data file and agrees with the FITS
+    header it follows, if any (_check_fits); return its layout and that header."""
     image = area.find("pds:Array_2D_Image", _NS)
     if image is None:
         raise ProductError("missing_element", f"{data_path.name}: the file area lacks Array_2D_Image")
@@ -346,50 +400,153 @@ def _check_array(area: ET.Element, data_path: Path, lines: int, samples: int, ma
                            f"{max_pixels} an image may have")
     data_type = _text(image, "pds:Element_Array/pds:data_type")
     dtype = pds_to_numpy_type(data_type)  # unknown names come back as a zero-length string type
-    if dtype.kind not in "iufc":
+    if dtype.kind == "c":  # read as real values, its imaginary part would be dropped
+        raise ProductError("unsupported", f"array data_type {data_type} is complex, not an "
+                           "image of real values")
+    if dtype.kind not in "iuf":
         raise ProductError("unsupported", f"array data_type {data_type!r} is not binary numeric")
     if (order := _text(image, "pds:axis_index_order", False)) not in (None, "Last Index Fastest"):
         raise ProductError("unsupported", f"axis_index_order {order!r}")
     array_offset = _int(image, "pds:offset")
     if array_offset < 0:
         raise ProductError("bad_dimensions", f"array offset {array_offset} is negative")
-    layout = ArrayLayout(dtype.str, array_offset, *_scaling(image), _special_constants(image))
+    layout = ArrayLayout(dtype.str, array_offset, *_scaling(image),
+                         _special_constants(image, dtype, data_type))
     file_size = data_path.stat().st_size
     end = array_offset + lines * samples * dtype.itemsize
     if end > file_size:
-        raise ProductError("bad_dimensions", f"{lines}x{samples} {data_type} array ends at byte "
-                           f"{end}, past the end of {data_path.name}")
-    header = area.find("pds:Header", _NS)
-    if header is None or "FITS" not in (_text(header, "pds:parsing_standard_id", False) or ""):
+        # A file cut short in transfer, as far as can be told without the label's file_size.
+        raise ProductError("truncated", f"{lines}x{samples} {data_type} array ends at byte "
+                           f"{end}, past the end of {data_path.name} ({file_size} bytes)")
+    located = _fits_header_at(area, data_path, array_offset)
+    if located is None:
         return layout, None
-    offset, length = _int(header, "pds:offset"), _int(header, "pds:object_length")
-    if offset < 0 or length < 0 or offset + length > file_size:
-        # checked before reading: a declared length of 1e20 bytes would be read as asked
-        raise ProductError("bad_header", f"Header of {length} bytes at byte {offset} does not "
-                           f"fit in {data_path.name} ({file_size} bytes)")
+    start, declared_length = located
+    if declared_length is not None and (declared_length < 0 or start + declared_length > file_size):
+        # refused unread: a declared length of 1e20 bytes would be a header never found
+        raise ProductError("bad_header", f"Header of {declared_length} bytes at byte {start} "
+                           f"does not fit in {data_path.name} ({file_size} bytes)")
+    cards, length = _read_fits_header(data_path, start, max_fits_header_bytes)
+    if declared_length is not None and declared_length != length:
+        raise ProductError("fits_mismatch", f"the label's Header object_length {declared_length} "
+                           f"is not the {length} bytes of the FITS header of {data_path.name}")
+    _check_fits(cards, layout, data_type=data_type, lines=lines, samples=samples,
+                data_start=start + length, name=data_path.name)
+    return layout, {c.keyword: c.value for c in cards.cards
+                    if c.keyword not in ("", "COMMENT", "HISTORY")}
+
+
+def _fits_header_at(area: ET.Element, data_path: Path, array_offset: int
+                    ) -> tuple[int, int | None] | None:
+    """Where the FITS header the array follows starts, and the length the label declares for
+    it: the label's last FITS Header before the array or, where it declares none, the primary
+    header of a file that starts as FITS does (a label cannot hide it by leaving it out). None
+    for a plain binary array. An array in an extension HDU needs its Header declared."""
+    declared = [(_int(h, "pds:offset"), _int(h, "pds:object_length"))
+                for h in area.findall("pds:Header", _NS)
+                if "FITS" in (_text(h, "pds:parsing_standard_id", False) or "")]
+    if before := [(offset, length) for offset, length in declared if offset <= array_offset]:
+        return max(before)
+    with open(data_path, "rb") as fh:
+        return (0, None) if fh.read(len(_FITS_SIGNATURE)) == _FITS_SIGNATURE else None
+
+
+def _read_fits_header(data_path: Path, offset: int, max_bytes: int) -> tuple[fits.Header, int]:
+    """The FITS header at `offset` and its length, read a block at a time up to its END card:
+    ProductError (too_large) rather than read past max_bytes, bad_header when it is no FITS
+    header (no END before the end of the file, not ASCII, not block-aligned)."""
+    if offset < 0 or offset % FITS_BLOCK:
+        raise ProductError("bad_header", f"a FITS header starts on a {FITS_BLOCK}-byte block, "
+                           f"not at byte {offset} of {data_path.name}")
+    blocks: list[bytes] = []
     with open(data_path, "rb") as fh:
         fh.seek(offset)
-        raw = fh.read(length)
+        while not blocks or not _ends_header(blocks[-1]):
+            if (len(blocks) + 1) * FITS_BLOCK > max_bytes:
+                raise ProductError("too_large", f"the FITS header of {data_path.name} runs past "
+                                   f"{len(blocks) * FITS_BLOCK} bytes with no END card, more "
+                                   f"than the {max_bytes} a header may have")
+            block = fh.read(FITS_BLOCK)
+            if len(block) < FITS_BLOCK:
+                raise ProductError("bad_header", f"the FITS header of {data_path.name} has no "
+                                   "END card before the end of the file")
+            blocks.append(block)
+    raw = b"".join(blocks)
     try:
-        cards = fits.Header.fromstring(raw.decode("ascii"))
+        return fits.Header.fromstring(raw.decode("ascii")), len(raw)
     except (UnicodeDecodeError, ValueError) as exc:
         raise ProductError("bad_header", f"FITS header of {data_path.name} unreadable") from exc
+
+
+def _ends_header(block: bytes) -> bool:
+    return any(block[i:i + _FITS_CARD] == _FITS_END for i in range(0, len(block), _FITS_CARD))
+
+
+def _check_fits(cards: fits.Header, layout: ArrayLayout, *, data_type: str, lines: int,
+                samples: int, data_start: int, name: str) -> None:
+    """Check everything the FITS header says of its array against the label: a label that
+    misdescribes it would have its pixels byte-swapped, shifted or scaled wrongly, or header
+    text read as pixels."""
+    first = cards.cards[0] if len(cards) else None
+    if first is None or (first.keyword, first.value) not in (("SIMPLE", True), ("XTENSION", "IMAGE")):
+        raise ProductError("bad_header", f"{name}: the Header is not a FITS primary or IMAGE "
+                           "extension header")
+    dtype = np.dtype(layout.dtype)
     declared = {"BITPIX": _fits_bitpix(dtype), "NAXIS": 2, "NAXIS1": samples, "NAXIS2": lines}
     found = {key: cards.get(key) for key in declared}
     if found != declared:
         differ = ", ".join(f"{k} {found[k]} (label: {v})" for k, v in declared.items()
                            if found[k] != v)
-        raise ProductError("bad_dimensions", f"the FITS header of {data_path.name} disagrees "
-                           f"with the label's {lines}x{samples} {data_type} array: {differ}")
-    return layout, {c.keyword: c.value for c in cards.cards
-                    if c.keyword not in ("", "COMMENT", "HISTORY")}
+        raise ProductError("bad_dimensions", f"the FITS header of {name} disagrees with the "
+                           f"label's {lines}x{samples} {data_type} array: {differ}")
+    bitpix = declared["BITPIX"]
+    if (stored := _FITS_DTYPES[bitpix]) != dtype:  # the same size, another sign or byte order
+        endian = " (FITS arrays are big-endian)" if stored.newbyteorder("<") == dtype else ""
+        raise ProductError("fits_mismatch", f"the FITS header of {name} says BITPIX {bitpix}, "
+                           f"a big-endian {stored.name} array, not the label's {data_type}{endian}")
+    if layout.offset != data_start:
+        raise ProductError("fits_mismatch", f"the label puts the array of {name} at byte "
+                           f"{layout.offset}, but its FITS header ends at byte {data_start}, "
+                           "where the data starts")
+    _check_fits_scaling(cards, layout, integer=bitpix > 0, name=name)
+
+
+def _check_fits_scaling(cards: fits.Header, layout: ArrayLayout, *, integer: bool, name: str
+                        ) -> None:
+    """BSCALE and BZERO equal to the label's scaling (to a millionth of BSCALE, and a
+    thousandth of a stored unit for BZERO: headers and labels print numbers to other
+    precisions), and an integer array's BLANK among the label's special constants (else its
+    pixels would be read as signal)."""
+    bscale, bzero = (_card_number(cards, key, default, name) for key, default in
+                     (("BSCALE", 1.0), ("BZERO", 0.0)))
+    if not math.isclose(bscale, layout.scaling_factor, rel_tol=1e-6):
+        raise ProductError("fits_mismatch", f"the FITS header of {name} says BSCALE {bscale}, "
+                           f"the label scaling_factor {layout.scaling_factor}")
+    if not math.isclose(bzero, layout.value_offset, rel_tol=1e-9,
+                        abs_tol=1e-3 * abs(layout.scaling_factor)):
+        raise ProductError("fits_mismatch", f"the FITS header of {name} says BZERO {bzero}, "
+                           f"the label value_offset {layout.value_offset}")
+    if integer and "BLANK" in cards:
+        blank = _card_number(cards, "BLANK", 0, name)
+        if blank not in layout.special_constants:
+            raise ProductError("fits_mismatch", f"the FITS header of {name} says BLANK {blank}, "
+                               "a value no special constant of the label flags")
+
+
+def _card_number(cards: fits.Header, key: str, default: float, name: str) -> float:
+    value = cards.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ProductError("bad_header", f"the FITS header of {name} has {key} = {value!r}, "
+                           "not a finite number")
+    return float(value)
 
 
 def read_array(label: ImageLabel) -> ImageProduct:
     """The product of a checked label with its array read: physical values as float64, NaN
     where a special constant flags a pixel. Read straight from the data file at the layout the
     label was checked for (pds4_tools would parse the label again, in time that grows with the
-    square of its size)."""
+    square of its size). ProductError for an array with no valid pixel or an infinite one
+    (_check_finite)."""
     layout = label.layout
     count = label.lines * label.samples
     try:
@@ -407,28 +564,51 @@ def read_array(label: ImageLabel) -> ImageProduct:
         data *= layout.scaling_factor
         data += layout.value_offset
     if layout.special_constants:
-        data[np.isin(stored, np.asarray(layout.special_constants))] = np.nan
+        # compared in the array's own type: a float32 constant is not the double it was read as
+        constants = np.asarray(layout.special_constants).astype(stored.dtype)
+        data[np.isin(stored, constants)] = np.nan
+    _check_finite(data, label.data_path.name)
     fields = {f.name: getattr(label, f.name) for f in dataclasses.fields(ImageLabel)}
     return ImageProduct(**fields, data=data)
 
 
+def _check_finite(data: np.ndarray, name: str) -> None:
+    """NaN is how FITS marks a missing floating-point pixel, and a calibrated product may hold
+    many (off the detector's valid area, or where a special constant flags them): kept, as long
+    as one pixel is valid. No convention makes an infinite pixel missing, and a radiance or DN
+    is never infinite: one there, stored or made by the scaling, says the array is not what the
+    label describes (or holds a flag the label does not declare)."""
+    finite = np.isfinite(data)
+    if finite.all():
+        return
+    if infinite := int(np.isinf(data).sum()):
+        raise ProductError("non_finite", f"{name}: {infinite} infinite pixel values that no "
+                           "special constant flags")
+    if not finite.any():
+        raise ProductError("no_valid_pixels", f"{name}: every pixel is NaN or flagged by a "
+                           "special constant; the image holds no data")
+
+
 def read_image_product(label: Path, *, root: Path | None = None,
-                       max_label_bytes: int = MAX_LABEL_BYTES,
-                       max_pixels: int = MAX_PIXELS) -> ImageProduct:
+                       max_label_bytes: int = MAX_LABEL_BYTES, max_pixels: int = MAX_PIXELS,
+                       max_fits_header_bytes: int = MAX_FITS_HEADER_BYTES) -> ImageProduct:
     """Read a Product_Observational with one Array_2D_Image: its label (read_image_label), then
     its array."""
     return read_array(read_image_label(label, root=root, max_label_bytes=max_label_bytes,
-                                       max_pixels=max_pixels))
+                                       max_pixels=max_pixels,
+                                       max_fits_header_bytes=max_fits_header_bytes))
 
 
 def read_image_label(label: Path, *, root: Path | None = None,
-                     max_label_bytes: int = MAX_LABEL_BYTES,
-                     max_pixels: int = MAX_PIXELS) -> ImageLabel:
+                     max_label_bytes: int = MAX_LABEL_BYTES, max_pixels: int = MAX_PIXELS,
+                     max_fits_header_bytes: int = MAX_FITS_HEADER_BYTES) -> ImageLabel:
     """Read and check a Product_Observational with one Array_2D_Image without reading its array:
     the data file's size and md5 (where the label declares them), the array's extent, type and
-    scaling. Nothing is read past max_label_bytes of label, and an array of more than max_pixels
-    is refused before it is read. The label and its data file must resolve (symbolic links
-    followed) inside `root` (default: the label's directory)."""
+    scaling, and all that a FITS header it follows says of it. Nothing is read past
+    max_label_bytes of label or max_fits_header_bytes of FITS header, and an array of more than
+    max_pixels is refused before it is read. Elements that say what the product is or where and
+    how its array lies must each appear once. The label and its data file must resolve
+    (symbolic links followed) inside `root` (default: the label's directory)."""
     label = Path(label)
     within = (Path(root) if root is not None else label.parent).resolve()
     if not label.resolve().is_relative_to(within):
@@ -442,10 +622,12 @@ def read_image_label(label: Path, *, root: Path | None = None,
         root_element = ET.fromstring(label.read_bytes())
     except ET.ParseError as exc:
         raise ProductError("malformed_xml", f"{label.name} is not well-formed XML: {exc}") from exc
-    return _image_label(label, root_element, within, max_pixels)
+    return _image_label(label, root_element, within, max_pixels=max_pixels,
+                        max_fits_header_bytes=max_fits_header_bytes)
 
 
-def _image_label(label: Path, root: ET.Element, within: Path, max_pixels: int) -> ImageLabel:
+def _image_label(label: Path, root: ET.Element, within: Path, *, max_pixels: int,
+                 max_fits_header_bytes: int) -> ImageLabel:
     kind = root.tag.rpartition("}")[2]
     areas = [a for a in root if a.tag.rpartition("}")[2].startswith("File_Area")]
     objects = sorted({o.tag.rpartition("}")[2] for a in areas for o in a} - {"File"})
@@ -458,8 +640,12 @@ def _image_label(label: Path, root: ET.Element, within: Path, max_pixels: int) -
     area = images[0]
     if len(images) > 1 or len(area.findall("pds:Array_2D_Image", _NS)) > 1:
         raise ProductError("unsupported", f"{label.name} holds more than one Array_2D_Image")
-    axes = sorted(area.findall("pds:Array_2D_Image/pds:Axis_Array", _NS),
-                  key=lambda a: _int(a, "pds:sequence_number"))
+    numbered = [(_int(a, "pds:sequence_number"), a)
+                for a in area.findall("pds:Array_2D_Image/pds:Axis_Array", _NS)]
+    if len({n for n, _ in numbered}) < len(numbered):
+        raise ProductError("duplicate_element", f"{label.name}: two Axis_Array elements share "
+                           "a sequence_number")
+    axes = [a for _, a in sorted(numbered, key=lambda pair: pair[0])]
     if [(_text(a, "pds:axis_name") or "").lower() for a in axes] != ["line", "sample"]:
         raise ProductError("unsupported", f"{label.name}: axes are not Line, Sample")
     if (declared := _int(area, "pds:Array_2D_Image/pds:axes", False)) not in (None, 2):
@@ -473,9 +659,10 @@ def _image_label(label: Path, root: ET.Element, within: Path, max_pixels: int) -
     size = _int(area, "pds:File/pds:file_size", False)
     md5 = _text(area, "pds:File/pds:md5_checksum", False)
     _check_file(data_path, within, size, md5)
-    layout, fits_header = _check_array(area, data_path, lines, samples, max_pixels)
+    layout, fits_header = _check_array(area, data_path, lines, samples, max_pixels=max_pixels,
+                                       max_fits_header_bytes=max_fits_header_bytes)
 
-    obs = root.find("pds:Observation_Area", _NS)
+    obs = _one(root, "pds:Observation_Area")
     if obs is None:
         raise ProductError("missing_element", f"{label.name} lacks Observation_Area")
     return ImageLabel(
@@ -484,12 +671,12 @@ def _image_label(label: Path, root: ET.Element, within: Path, max_pixels: int) -
         title=_text(root, "pds:Identification_Area/pds:title"),
         start_utc=_text(obs, "pds:Time_Coordinates/pds:start_date_time"),
         stop_utc=_text(obs, "pds:Time_Coordinates/pds:stop_date_time"),
-        mission=_text(obs, "pds:Investigation_Area/pds:name", False),
+        mission=_text(obs, "pds:Investigation_Area/pds:name", False, repeatable=True),
         # older labels (IM < 1.9) call the host "Spacecraft"
         host_name=_component(obs, ("Host", "Spacecraft")),
         instrument_name=_component(obs, ("Instrument",)),
-        target_name=_text(obs, "pds:Target_Identification/pds:name", False),
-        target_type=_text(obs, "pds:Target_Identification/pds:type", False),
+        target_name=_text(obs, "pds:Target_Identification/pds:name", False, repeatable=True),
+        target_type=_text(obs, "pds:Target_Identification/pds:type", False, repeatable=True),
         exposure_s=_exposure_s(obs),
         first_line=_subframe_start(obs, "first_line"), first_sample=_subframe_start(obs, "first_sample"),
         data_path=data_path, file_size=size, md5=md5,
@@ -499,7 +686,7 @@ def _image_label(label: Path, root: ET.Element, within: Path, max_pixels: int) -
 def _exposure_s(obs: ET.Element) -> float | None:
     """img:exposure_duration in seconds, None without one; ProductError unless a finite,
     non-negative number in a PDS4 time unit."""
-    exposure = obs.find(".//img:exposure_duration", _NS)
+    exposure = _one(obs, ".//img:exposure_duration")
     if exposure is None:
         return None
     if (unit := exposure.get("unit")) is None or unit not in _SECONDS:
@@ -517,7 +704,7 @@ def _exposure_s(obs: ET.Element) -> float | None:
 
 def _subframe_start(obs: ET.Element, name: str) -> int:
     """Zero-based detector offset from img:Subframe (1-based there), 0 without one."""
-    element = obs.find(f".//img:Subframe/img:{name}", _NS)
+    element = _one(obs, f".//img:Subframe/img:{name}")
     if element is None:
         return 0
     try:

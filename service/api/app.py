@@ -1,16 +1,24 @@
 """The FastAPI application: routers per resource, the catalog per request, a request body
 limit, security headers on every response, CORS only for configured origins, 503 with
-Retry-After when exports or the catalog's connections are all busy, and the OpenAPI schema at
-/openapi.json."""
+Retry-After when exports or the catalog's connections are all busy, error answers that render
+whatever a client sent, a logged 500 without a traceback for what nothing else handled, requests
+framed two ways refused, and the OpenAPI schema at /openapi.json."""
 
 from __future__ import annotations
 
+import json
+import logging
+import math
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI, HTTPException, Request, status
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from fastapi.utils import is_body_allowed_for_status_code
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -21,6 +29,8 @@ from service.catalog import open_catalog
 from service.exports import RETRY_AFTER_S, ExportBusy
 from service.jobs import JobQueue
 from service.settings import Settings, get_settings
+
+log = logging.getLogger(__name__)
 
 # Request bodies are small JSON documents; anything larger is refused with 413.
 MAX_BODY_BYTES = 64 * 1024
@@ -69,12 +79,16 @@ def create_app(settings: Settings | None = None, *, job_queue: JobQueue | None =
     app.mount("/console", console.static_files(), name="console")
     app.add_exception_handler(ExportBusy, _busy_exports)
     app.add_exception_handler(PoolTimeout, _busy_catalog)
+    app.add_exception_handler(RequestValidationError, _invalid_request)
+    app.add_exception_handler(HTTPException, _http_error)
+    app.add_middleware(Unhandled)
     app.add_middleware(BodyLimit, max_bytes=MAX_BODY_BYTES)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST"],
                            allow_headers=["Authorization", "Content-Type"],
                            expose_headers=["ETag", "Retry-After", "Content-Disposition"])
+    app.add_middleware(SingleFraming)
     app.add_middleware(SecurityHeaders)  # outermost: on the other middlewares' answers too
     return app
 
@@ -90,6 +104,89 @@ async def _busy_catalog(_request: Request, _exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": "the catalog is busy; try again shortly"},
                         status_code=status.HTTP_503_SERVICE_UNAVAILABLE,
                         headers={"Retry-After": str(RETRY_AFTER_S)})
+
+
+class ClientJSONResponse(JSONResponse):
+    """JSON of an answer that may repeat what a client sent: a lone surrogate (valid in a JSON
+    string, not in UTF-8) becomes '?', and a non-finite number (Python's JSON reader takes NaN
+    and Infinity) its name as a string, so that the answer renders instead of failing with 500."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(_encodable(content), ensure_ascii=False, allow_nan=False,
+                          separators=(",", ":")).encode("utf-8", "replace")
+
+
+def _encodable(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {_encodable(key): _encodable(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_encodable(item) for item in value]
+    return value
+
+
+async def _invalid_request(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    return ClientJSONResponse({"detail": jsonable_encoder(exc.errors())},
+                              status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+
+async def _http_error(_request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, HTTPException)
+    if not is_body_allowed_for_status_code(exc.status_code):
+        return Response(status_code=exc.status_code, headers=exc.headers)
+    return ClientJSONResponse({"detail": exc.detail}, status_code=exc.status_code,
+                              headers=exc.headers)
+
+
+class Unhandled:
+    """Answer an exception that nothing else handled with a plain 500 (the traceback goes to the
+    log, never to the client), so that the outer middlewares still add their headers."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def watched(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, watched)
+        except Exception:
+            log.exception("unhandled error answering %s %s", scope["method"], scope["path"])
+            if started:  # too late for another answer: the server drops the connection
+                raise
+            await JSONResponse({"detail": "internal error; the server's log has the details"},
+                               status_code=status.HTTP_500_INTERNAL_SERVER_ERROR)(
+                scope, receive, send)
+
+
+class SingleFraming:
+    """Refuse a request that gives both Content-Length and Transfer-Encoding with 400 and close
+    its connection (RFC 9112 section 6.1): a proxy in front that frames it by the other header
+    sees another request boundary, which smuggles a request past it; what follows on the
+    connection cannot be trusted."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        names = {name for name, _ in scope["headers"]} if scope["type"] == "http" else set()
+        if {b"content-length", b"transfer-encoding"} <= names:
+            await JSONResponse({"detail": "a request gives Content-Length or Transfer-Encoding, "
+                                          "not both"},
+                               status_code=status.HTTP_400_BAD_REQUEST,
+                               headers={"Connection": "close"})(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
 
 
 class SecurityHeaders:

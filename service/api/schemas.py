@@ -23,6 +23,8 @@ RESERVED_TAGS = frozenset({"latest", "released"})
 # A version reference: a number, a tag, `latest` or `released`.
 VERSION_REF_PATTERN = r"^([0-9]{1,9}|[A-Za-z][A-Za-z0-9._-]{0,63})$"
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+# The longest name of one directory entry, in bytes (Linux's NAME_MAX).
+NAME_MAX_BYTES = 255
 
 
 class _Body(BaseModel):
@@ -100,6 +102,9 @@ class IngestRequest(_Body):
     def _printable(cls, path: str) -> str:
         if _CONTROL.search(path):
             raise ValueError("the path holds control characters")
+        # pydantic refuses lone surrogates, so every str here encodes
+        if any(len(part.encode()) > NAME_MAX_BYTES for part in path.split("/")):
+            raise ValueError(f"a component of the path is over {NAME_MAX_BYTES} bytes")
         return path
 
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import shutil
+import tempfile
 from pathlib import Path
 
 import typer
 
-from service.cli.app import app
+from service.cli.app import LATITUDE, LONGITUDE, app, finite, version_ref
 
 
 @app.command()
@@ -34,15 +36,15 @@ def serve(
 
 @app.command()
 def export(
-    version: str = typer.Argument(..., help="version number, release tag, latest or released"),
+    version: str = typer.Argument(..., parser=version_ref, help="version number, release tag, latest or released"),
     format: str = typer.Option(..., "--format", help="obj | ply | icq | dsk | site"),
     out: Path = typer.Option(..., "--out", dir_okay=False, help="file to write"),
     surface: str = typer.Option("model", "--surface",
                                 help="model (every level) | global (the whole body's levels, beneath the sites)"),
     faces: int | None = typer.Option(None, min=4, help="decimate to about this many faces first"),
-    lat: float | None = typer.Option(None, min=-90.0, max=90.0, help="site latitude, deg (site)"),
-    lon: float | None = typer.Option(None, help="site east longitude, deg (site)"),
-    radius: float | None = typer.Option(None, min=0.0, help="site half-width, km (site)"),
+    lat: float | None = typer.Option(None, parser=LATITUDE, help="site latitude, deg (site)"),
+    lon: float | None = typer.Option(None, parser=LONGITUDE, help="site east longitude, deg (site)"),
+    radius: float | None = typer.Option(None, parser=finite(gt=0.0, le=100.0), help="site half-width, km (site)"),
     body: str | None = typer.Option(None, help="NAIF body name or ID (dsk, site; default: the catalog's)"),
     frame: str | None = typer.Option(None, help="body-fixed frame (dsk, site; default: the catalog's)"),
 ) -> None:
@@ -76,14 +78,30 @@ def export(
         except (LookupError, ExportError) as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
-    out.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(made.path, out)
+    try:
+        _copy_whole(made.path, out)
+    except OSError as exc:
+        typer.echo(f"error: cannot write {out}: {exc.strerror or exc}", err=True)
+        raise typer.Exit(1) from None
     typer.echo(f"{out} ({made.path.stat().st_size} bytes, sha256 {made.sha256})")
+
+
+def _copy_whole(source: Path, out: Path) -> None:
+    """Copy `source` to `out` whole or not at all: through a scratch file beside `out`, renamed
+    over it once complete, and removed if the copy fails (a full disk leaves nothing behind)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    handle, name = tempfile.mkstemp(prefix=f".{out.name}.", dir=out.parent)
+    os.close(handle)
+    try:
+        shutil.copyfile(source, name)
+        os.replace(name, out)
+    finally:
+        Path(name).unlink(missing_ok=True)
 
 
 @app.command()
 def release(
-    version: str = typer.Argument(..., help="version number, or latest"),
+    version: str = typer.Argument(..., parser=version_ref, help="version number, or latest"),
     tag: str = typer.Option(..., "--tag", help="release tag, set once (a letter first)"),
 ) -> None:
     """Mark a model version released under a tag; a release is never changed or undone."""

@@ -5,11 +5,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections.abc import Iterable
+import math
+import re
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import typer
+from typer.core import TyperGroup
 
 from pwm.config import DEFAULTS, RefinementConfig
 
@@ -18,8 +21,33 @@ if TYPE_CHECKING:
     from pwm.io.downlink import DownlinkViews
     from service.ingest import Failure
 
+# The largest exit status a command gives for its failed files (`exit_status`): below the
+# shells' 126 and up, which mean "not run" and "killed by a signal".
+MAX_EXIT_STATUS = 100
+# The largest id, row count or offset a command passes to the catalog (ids are 32-bit integers).
+MAX_ROW_ID = 2**31 - 1
+
+
+class _Commands(TyperGroup):
+    """pwm's commands, with one answer to PWM_* settings that make no valid settings
+    (service.settings.BadEnvironment), whichever command read them: a line per bad variable on
+    stderr, exit status 2."""
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except Exception as exc:
+            from service.settings import BadEnvironment  # imported already when it is one
+
+            if not isinstance(exc, BadEnvironment):
+                raise
+            for problem in exc.problems:
+                typer.echo(f"error: {problem}", err=True)
+            raise typer.Exit(2) from None
+
+
 app = typer.Typer(help="Shape modeling of an asteroid with pixel-weighted maplets.", no_args_is_help=True,
-                  add_completion=False, pretty_exceptions_enable=False)
+                  add_completion=False, pretty_exceptions_enable=False, cls=_Commands)
 
 # Overrides of the commands that read a downlink directory through its SPICE kernels: by
 # default the labels and the kernels say what each image is (pwm.io.downlink).
@@ -27,6 +55,47 @@ INSTRUMENT = typer.Option(None, help="only this camera's images (NAIF name or id
                           "whose label names no known instrument; default: each image's own")
 TARGET = typer.Option(None, help="target body (SPICE name or id) in place of the labels'")
 BODY_FRAME = typer.Option(None, help="body-fixed frame in place of the target's")
+
+
+def finite(*, ge: float | None = None, gt: float | None = None,
+           le: float | None = None) -> Callable[[str], float]:
+    """The `parser` of a number option: a finite number within the bounds given, else a usage
+    error saying what the option takes (typer's own float takes inf and nan, and its range check
+    lets nan through)."""
+    bounds = [f"{sign} {bound:g}" for sign, bound in ((">=", ge), (">", gt), ("<=", le)) if bound is not None]
+    accepted = " ".join(["a finite number", " and ".join(bounds)]).strip()
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (ge is None or value >= ge) and (gt is None or value > gt)
+                and (le is None or value <= le)):
+            raise typer.BadParameter(f"{text!r} is not {accepted}")
+        return value
+
+    return parse
+
+
+# The parsers of a surface point's latitude and east longitude (deg), as the API takes them.
+LATITUDE = finite(ge=-90.0, le=90.0)
+LONGITUDE = finite(ge=-360.0, le=360.0)
+
+
+def version_ref(text: str) -> str:
+    """The `parser` of a version argument: a version number, a release tag, `latest` or
+    `released` (service.api.schemas.VERSION_REF_PATTERN), else a usage error."""
+    from service.api.schemas import VERSION_REF_PATTERN
+
+    if not re.fullmatch(VERSION_REF_PATTERN, text):
+        raise typer.BadParameter(f"{text!r} is not a version number, release tag, latest or released")
+    return text
+
+
+def exit_status(failed: int) -> int:
+    """A command's exit status for its failed files: their number, at most MAX_EXIT_STATUS."""
+    return min(failed, MAX_EXIT_STATUS)
 
 
 def setup_logging(verbose: bool) -> None:

@@ -7,7 +7,18 @@ from typing import Literal, cast
 
 import typer
 
-from service.cli.app import app, echo_json, echo_rejected, refinement_config, setup_logging
+from service.cli.app import (
+    LATITUDE,
+    LONGITUDE,
+    MAX_ROW_ID,
+    app,
+    echo_json,
+    echo_rejected,
+    exit_status,
+    finite,
+    refinement_config,
+    setup_logging,
+)
 
 
 @app.command()
@@ -39,13 +50,13 @@ def ingest(
                               shape=read_mesh(shape) if shape else None, config=config)
     echo_rejected(report.failures)
     typer.echo(report.summary())
-    raise typer.Exit(min(report.failed, 100))
+    raise typer.Exit(exit_status(report.failed))
 
 
 @app.command()
 def images(
     status: str | None = typer.Option(None, help="accepted | rejected | conflict"),
-    limit: int = typer.Option(50, min=1, help="at most this many rows"),
+    limit: int = typer.Option(50, min=1, max=MAX_ROW_ID, help="at most this many rows"),
 ) -> None:
     """List catalogued images: LIDVID, status, time, range and angles at the boresight intercept,
     and the pose correction photogrammetry stored (offset m, rotation microradians)."""
@@ -82,11 +93,12 @@ def images(
 
 @app.command()
 def images_near(
-    lat: float = typer.Option(..., min=-90.0, max=90.0, help="planetocentric latitude of the surface point, deg"),
-    lon: float = typer.Option(..., help="east longitude of the surface point, deg"),
-    radius: float = typer.Option(0.0, min=0.0, help="also through maplets within this distance of the point, km"),
+    lat: float = typer.Option(..., parser=LATITUDE, help="planetocentric latitude of the surface point, deg"),
+    lon: float = typer.Option(..., parser=LONGITUDE, help="east longitude of the surface point, deg"),
+    radius: float = typer.Option(0.0, parser=finite(ge=0.0),
+                                 help="also through maplets within this distance of the point, km"),
     order: str = typer.Option("weight", help="weight (highest first) | time (earliest first)"),
-    limit: int = typer.Option(50, min=1, help="at most this many rows"),
+    limit: int = typer.Option(50, min=1, max=MAX_ROW_ID, help="at most this many rows"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
     """Images that see a surface point, through the maplets that hold it: each image once, with its angles there."""
@@ -113,13 +125,13 @@ def images_near(
 
 @app.command()
 def maplets(
-    lat: float | None = typer.Option(None, min=-90.0, max=90.0, help="only maplets holding this latitude (deg) ..."),
-    lon: float | None = typer.Option(None, help="... and east longitude (deg), nearest first"),
-    radius: float = typer.Option(0.0, min=0.0, help="or within this distance of that point, km"),
+    lat: float | None = typer.Option(None, parser=LATITUDE, help="only maplets holding this latitude (deg) ..."),
+    lon: float | None = typer.Option(None, parser=LONGITUDE, help="... and east longitude (deg), nearest first"),
+    radius: float = typer.Option(0.0, parser=finite(ge=0.0), help="or within this distance of that point, km"),
     level: int | None = typer.Option(
         None, min=-64, max=64, help="only maplets of this level: node spacings within a factor sqrt(2) of 2^level m"),
-    limit: int = typer.Option(50, min=1, help="at most this many rows"),
-    offset: int = typer.Option(0, min=0, help="skip this many rows first"),
+    limit: int = typer.Option(50, min=1, max=MAX_ROW_ID, help="at most this many rows"),
+    offset: int = typer.Option(0, min=0, max=MAX_ROW_ID, help="skip this many rows first"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
     """List maplets by name, or those at a surface point: centre, size, spacing and level, region weight,

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import typer
 
-from service.cli.app import app, echo_json
+from service.cli.app import MAX_ROW_ID, app, echo_json
 
 
 @app.command()
 def downlinks(
     status: str | None = typer.Option(None, help="received | ingesting | ingested | failed"),
-    limit: int = typer.Option(50, min=1, help="at most this many rows, newest first"),
+    limit: int = typer.Option(50, min=1, max=MAX_ROW_ID, help="at most this many rows, newest first"),
     files: bool = typer.Option(False, "--files", help="also list each unused file and why"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:

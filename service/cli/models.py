@@ -7,7 +7,17 @@ from pathlib import Path
 
 import typer
 
-from service.cli.app import app, echo_json, echo_rejected, refinement_config, setup_logging
+from service.cli.app import (
+    MAX_ROW_ID,
+    app,
+    echo_json,
+    echo_rejected,
+    exit_status,
+    finite,
+    refinement_config,
+    setup_logging,
+    version_ref,
+)
 
 version_app = typer.Typer(help="One model version.", no_args_is_help=True)
 app.add_typer(version_app, name="version")
@@ -18,8 +28,8 @@ def run(
     directory: Path = typer.Argument(..., exists=True, file_okay=False,
                                      help="a downlink directory (PDS4 labels, SPICE kernels)"),
     start: Path | None = typer.Option(None, exists=True, dir_okay=False,
-                                      help="start model (.obj/.ply/.bds, km) when the catalog has no version yet; "
-                                           "default DIR/start_model.obj"),
+                                      help="start model (km, any format pwm exports) when the catalog has no "
+                                           "version yet; default DIR/start_model.obj"),
     mode: str | None = typer.Option(None,
                                     help="pwm (pixel and region weights) | standard (weights off); default "
                                          "PWM_REFINE_MODE"),
@@ -29,13 +39,16 @@ def run(
     maplet_nodes: int | None = typer.Option(None,
                                             help="nodes per side of maplets tiled where the images look and none is "
                                                  "catalogued; default PWM_MAPLET_NODES"),
-    tile_radius: float | None = typer.Option(None,
+    tile_radius: float | None = typer.Option(None, parser=finite(gt=0.0),
                                              help="radius (km) of the region tiled about where the images look; "
                                                   "default PWM_TILE_RADIUS_KM, else from their footprints"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Ingest a downlink, refine the maplets whose images changed, and publish a new model version per pass, in this
-    process."""
+    process.
+
+    The exit status is the number of files that failed (capped at 100), as `pwm ingest` gives it.
+    """
     from service.catalog import open_catalog
     from service.run import run_directory
     from service.settings import get_settings
@@ -52,12 +65,14 @@ def run(
         raise typer.Exit(1) from None
     echo_rejected(report.plan.ingest.failures)
     typer.echo(report.summary())
+    raise typer.Exit(exit_status(report.plan.ingest.failed))
 
 
 @app.command(name="import")
 def import_(
     model: Path = typer.Argument(..., exists=True, dir_okay=False,
-                                 help="shape model: .obj or .ply (km, body-fixed) or a SPICE DSK type 2 (.bds)"),
+                                 help="shape model (km, body-fixed) in any format pwm exports, told by its content: "
+                                      "OBJ, PLY, SPICE DSK type 2 or ICQ"),
     kind: str = typer.Option("imported", help="imported | start | photogrammetric"),
 ) -> None:
     """Publish a shape model file as a new model version."""
@@ -70,15 +85,19 @@ def import_(
     if kind not in ("imported", "start", "photogrammetric"):
         raise typer.BadParameter("kind is imported, start or photogrammetric", param_hint="--kind")
     settings = get_settings()
-    with session_scope(open_catalog(settings)) as session:
-        version = import_model(session, data_dir=settings.data_dir, path=model, kind=ModelKind(kind))
-        typer.echo(f"version {version.version} ({kind}): {version.statistics['vertices']} vertices, "
-                   f"{version.statistics['faces']} faces")
+    try:
+        with session_scope(open_catalog(settings)) as session:
+            version = import_model(session, data_dir=settings.data_dir, path=model, kind=ModelKind(kind))
+    except (ValueError, OSError) as exc:  # not a shape model, or it could not be read or stored
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"version {version.version} ({kind}): {version.statistics['vertices']} vertices, "
+               f"{version.statistics['faces']} faces")
 
 
 @app.command()
 def versions(
-    limit: int = typer.Option(50, min=1, help="at most this many, newest first"),
+    limit: int = typer.Option(50, min=1, max=MAX_ROW_ID, help="at most this many, newest first"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
     """List model versions, newest first: kind, parent, time, size, maplets and downlinks."""
@@ -105,7 +124,7 @@ def versions(
 
 @version_app.command("show")
 def version_show(
-    version: str = typer.Argument(..., help="version number, release tag, latest or released"),
+    version: str = typer.Argument(..., parser=version_ref, help="version number, release tag, latest or released"),
 ) -> None:
     """A version in full (JSON): kind, parent, lineage, statistics and artifacts with checksums."""
     from service.catalog import open_catalog
@@ -121,10 +140,11 @@ def version_show(
 
 @app.command()
 def diff(
-    old: str = typer.Argument(..., help="the earlier version (number, tag, latest or released)"),
-    new: str = typer.Argument(..., help="the later version"),
+    old: str = typer.Argument(..., parser=version_ref, help="the earlier version (number, tag, latest or released)"),
+    new: str = typer.Argument(..., parser=version_ref, help="the later version"),
     png: Path | None = typer.Option(None, dir_okay=False, help="write a latitude/longitude map of the change here"),
-    threshold: float = typer.Option(0.01, min=0.0, help="height change (m) above which the surface counts as changed"),
+    threshold: float = typer.Option(0.01, parser=finite(ge=0.0),
+                                    help="height change (m) above which the surface counts as changed"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
     """Height change from one version to another along the new model's outward normal (m): mean, RMS, max, area

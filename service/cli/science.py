@@ -13,10 +13,13 @@ from pwm.config import DEFAULTS
 from service.cli.app import (
     BODY_FRAME,
     INSTRUMENT,
+    LATITUDE,
+    LONGITUDE,
     TARGET,
     app,
     downlink_report,
     downlink_views,
+    finite,
     refinement_config,
     setup_logging,
 )
@@ -38,12 +41,14 @@ def _knowledge_error(value: str | None) -> KnowledgeErrors:
 
 def _start_error(value: str) -> dict:
     """RMS_GSD[,SHORTEST_M,LONGEST_M] as the scenario's start-error fields."""
+    expected = "expected RMS_GSD or RMS_GSD,SHORTEST_M,LONGEST_M, finite and >= 0, e.g. 1.0,10,40"
+    parse = finite(ge=0.0)
     try:
-        numbers = [float(x) for x in value.split(",")]
-    except ValueError:
-        raise typer.BadParameter("expected RMS_GSD or RMS_GSD,SHORTEST_M,LONGEST_M, e.g. 1.0,10,40") from None
+        numbers = [parse(x) for x in value.split(",")]
+    except typer.BadParameter:
+        raise typer.BadParameter(expected, param_hint="--start-error") from None
     if len(numbers) not in (1, 3):
-        raise typer.BadParameter("expected RMS_GSD or RMS_GSD,SHORTEST_M,LONGEST_M, e.g. 1.0,10,40")
+        raise typer.BadParameter(expected, param_hint="--start-error")
     fields: dict = {"start_error_rms_gsd": numbers[0]}
     if len(numbers) == 3:
         fields["start_error_band_m"] = (numbers[1], numbers[2])
@@ -56,7 +61,7 @@ def simulate(
     scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-hard | site-polar | global-coarse "
                                               "| global-tiny; or a campaign of downlinks in time order under "
                                               "OUT/downlinks/: campaign | campaign-tiny"),
-    seed: int = typer.Option(0, help="random seed: the same seed gives the same products"),
+    seed: int = typer.Option(0, min=0, help="random seed: the same seed gives the same products"),
     knowledge_error: str | None = typer.Option(
         None, help="errors of the kernels' poses (the images are rendered from the truth). POS_M,POINT_RAD: "
                    "independent per image, 1 sigma per axis, position (m) and pointing (rad); "
@@ -65,10 +70,11 @@ def simulate(
                    "pointing drift over the downlink (microradians)"),
     photometry: str | None = typer.Option(None, help="the truth's reflectance law: mcewen (the solver's), "
                                                      "lunar-lambert-slow or hapke (default: the scenario's)"),
-    supersample: int | None = typer.Option(None, help="rays per pixel along each axis, averaged"),
-    psf_px: float | None = typer.Option(None, help="Gaussian point-spread function sigma, pixels"),
-    smear_px: float | None = typer.Option(None, help="motion smear length, pixels"),
-    flat_field: float | None = typer.Option(None, help="relative RMS of the flat-field residual, e.g. 0.01"),
+    supersample: int | None = typer.Option(None, min=1, help="rays per pixel along each axis, averaged"),
+    psf_px: float | None = typer.Option(None, parser=finite(), help="Gaussian point-spread function sigma, pixels"),
+    smear_px: float | None = typer.Option(None, parser=finite(), help="motion smear length, pixels"),
+    flat_field: float | None = typer.Option(None, parser=finite(),
+                                            help="relative RMS of the flat-field residual, e.g. 0.01"),
     start_error: str | None = typer.Option(None, help="RMS_GSD[,SHORTEST_M,LONGEST_M]: smooth undulations added "
                                                       "to the start model (default band 10-40 m)"),
     with_start_model: bool = typer.Option(False, "--with-start-model",
@@ -163,16 +169,19 @@ def refine(
                                help="starting shape model (.obj/.ply, km, body-fixed)"),
     out: Path = typer.Option(..., help="output directory: refined.ply (with albedo), refined.obj, maplets.json"),
     mode: str = typer.Option(DEFAULTS.mode, help="pwm (pixel and region weights) | standard (weights off)"),
-    lat: float | None = typer.Option(None, help="region centre latitude, deg (default: where the images look)"),
-    lon: float | None = typer.Option(None, help="region centre east longitude, deg"),
-    radius: float | None = typer.Option(None, min=0.0, help="region radius, km"),
+    lat: float | None = typer.Option(None, parser=LATITUDE,
+                                     help="region centre latitude, deg (default: where the images look)"),
+    lon: float | None = typer.Option(None, parser=LONGITUDE, help="region centre east longitude, deg"),
+    radius: float | None = typer.Option(None, parser=finite(gt=0.0), help="region radius, km"),
     nodes: int = typer.Option(DEFAULTS.nodes, help="maplet nodes per side"),
-    spacing_gsd: float = typer.Option(DEFAULTS.spacing_gsd, help="node spacing in image GSDs (median pixel scale)"),
-    overlap: float = typer.Option(DEFAULTS.overlap, help="fraction of a maplet shared with each neighbour"),
+    spacing_gsd: float = typer.Option(DEFAULTS.spacing_gsd, parser=finite(),
+                                      help="node spacing in image GSDs (median pixel scale)"),
+    overlap: float = typer.Option(DEFAULTS.overlap, parser=finite(),
+                                  help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
     passes: int = typer.Option(DEFAULTS.passes,
                                help="refinement passes; each later one re-tiles the previous pass's fused model"),
-    search_px: float = typer.Option(DEFAULTS.search_px,
+    search_px: float = typer.Option(DEFAULTS.search_px, parser=finite(),
                                     help="how far images may be off the maplets (px), from the pose knowledge"),
     corrections: Path | None = typer.Option(None, exists=True, dir_okay=False,
                                             help="pose corrections to apply (corrections.json of pwm spg)"),

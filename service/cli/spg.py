@@ -10,10 +10,10 @@ from pathlib import Path
 import typer
 
 from pwm.camera import PoseCorrection
-from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, downlink_report, downlink_views, setup_logging
+from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, downlink_report, downlink_views, finite, setup_logging
 
 # options both commands take
-SIGMA_POINTING = typer.Option(1e-4, min=0.0, help="pointing knowledge, 1 sigma per axis, rad")
+SIGMA_POINTING = typer.Option(1e-4, parser=finite(ge=0.0), help="pointing knowledge, 1 sigma per axis, rad")
 MAX_FEATURES = typer.Option(8192, min=64, help="SIFT features per image at most")
 FIRST_OCTAVE = typer.Option(None, min=-1, max=1,
                             help="SIFT first octave: -1 doubles the images (more features, ~3x slower); "
@@ -42,7 +42,8 @@ def spg(
     start: Path = typer.Option(..., exists=True, dir_okay=False,
                                help="previous shape model (.obj/.ply, km, body-fixed): fills where points are missing"),
     out: Path = typer.Option(..., help="output directory: spg.ply, spg.obj, corrections.json, spg.json"),
-    sigma_position: float = typer.Option(1.0, min=0.0, help="navigation position knowledge, 1 sigma per axis, m"),
+    sigma_position: float = typer.Option(1.0, parser=finite(ge=0.0),
+                                         help="navigation position knowledge, 1 sigma per axis, m"),
     sigma_pointing: float = SIGMA_POINTING,
     max_features: int = MAX_FEATURES,
     first_octave: int | None = FIRST_OCTAVE,
@@ -77,7 +78,7 @@ def spg(
 
 @app.command(name="spg-catalog")
 def spg_catalog(
-    sigma_position: float = typer.Option(1.0, min=0.0,
+    sigma_position: float = typer.Option(1.0, parser=finite(ge=0.0),
                                          help="pose knowledge about the images' current poses, 1 sigma per axis, m"),
     sigma_pointing: float = SIGMA_POINTING,
     max_features: int = MAX_FEATURES,

@@ -12,7 +12,7 @@ from typing import TypeVar
 
 import typer
 
-from service.cli.app import app, echo_json, setup_logging
+from service.cli.app import MAX_ROW_ID, app, echo_json, finite, setup_logging
 
 E = TypeVar("E", bound=enum.StrEnum)
 
@@ -24,10 +24,10 @@ app.add_typer(jobs_app, name="jobs")
 def watch(
     directory: Path = typer.Argument(..., exists=True, file_okay=False,
                                      help="folder where downlink directories arrive"),
-    quiet_seconds: float = typer.Option(60.0, min=0.0,
+    quiet_seconds: float = typer.Option(60.0, parser=finite(ge=0.0),
                                         help="a directory without manifest.json is complete once unchanged this "
                                              "long, s"),
-    poll_seconds: float = typer.Option(5.0, min=0.01, help="look for new directories this often, s"),
+    poll_seconds: float = typer.Option(5.0, parser=finite(ge=0.01), help="look for new directories this often, s"),
     once: bool = typer.Option(False, "--once", help="look once and exit"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
@@ -90,7 +90,7 @@ def jobs_list(
     kind: str | None = typer.Option(None, help="ingest, refine or fuse"),
     key: str | None = typer.Option(None, help="the job with this key"),
     limit: int = typer.Option(50, min=1, max=1000),
-    offset: int = typer.Option(0, min=0),
+    offset: int = typer.Option(0, min=0, max=MAX_ROW_ID),
     as_json: bool = typer.Option(False, "--json", help="the page as the API's GET /jobs gives it (with the "
                                  "token)"),
 ) -> None:
@@ -124,7 +124,7 @@ def jobs_list(
 
 
 @jobs_app.command("show")
-def jobs_show(job_id: int = typer.Argument(..., min=1)) -> None:
+def jobs_show(job_id: int = typer.Argument(..., min=1, max=MAX_ROW_ID)) -> None:
     """One job as the API's GET /jobs/ID gives it (with the token: the traceback too)."""
     from service.api.schemas import JobOut
     from service.catalog import open_catalog
@@ -141,7 +141,7 @@ def jobs_show(job_id: int = typer.Argument(..., min=1)) -> None:
 
 
 @jobs_app.command("retry")
-def jobs_retry(job_id: int = typer.Argument(..., min=1)) -> None:
+def jobs_retry(job_id: int = typer.Argument(..., min=1, max=MAX_ROW_ID)) -> None:
     """Run a failed or lost job again: queued and handed to the workers (PWM_BROKER_URL), or run here without a
     broker. Its attempts so far are kept."""
     from service.catalog import open_catalog

@@ -78,4 +78,7 @@ def start_ingest(request: Request, settings: SettingsDep, jobs: JobsDep, body: I
         raise HTTPException(status.HTTP_400_BAD_REQUEST, str(exc)) from None
     except FileNotFoundError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, str(exc)) from None
+    except OSError as exc:  # too long a path, a loop of links, ...: the client's path
+        raise HTTPException(status.HTTP_400_BAD_REQUEST,
+                            f"the path cannot be looked up: {exc.strerror}") from None
     return JobSubmitted(key=jobs.submit_ingest(directory, sessions=request.app.state.sessions))
