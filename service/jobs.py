@@ -67,8 +67,8 @@ class JobState(enum.StrEnum):
 
 
 def ingest_key(directory: str | Path) -> str:
-    """The idempotency key of ingesting `directory`: its absolute path. A directory whose
-    content changes after it was ingested needs a key of its own to be ingested again."""
+    """The idempotency key of ingesting `directory`: its absolute path. A directory whose content
+    changes after its ingest started is ingested again under the same key (reopen_job)."""
     return f"ingest:{Path(directory).resolve()}"
 
 
@@ -322,6 +322,20 @@ def retry_job(session: Session, job_id: int, *, grace_s: float,
         JobStatus.QUEUED, None, None, None)
     session.flush()
     return job
+
+
+def reopen_job(session: Session, job: Job, *, changed_at: datetime) -> bool:
+    """Make a done job queued again when its input changed after its last attempt started (a
+    downlink's directory written to during or after its ingest: a product whose data arrived
+    late, a re-transfer); True when it was reopened, to be handed to the broker. Its attempts
+    are kept."""
+    if job.status is not JobStatus.DONE or job.started_at is None or job.started_at >= changed_at:
+        return False
+    job.status, job.worker, job.enqueued_at, job.enqueue_error = (
+        JobStatus.QUEUED, None, None, None)
+    job.progress, job.message = 0.0, f"queued again: its input changed at {changed_at.isoformat()}"
+    session.flush()
+    return True
 
 
 def report_progress(session: Session, job: Job, fraction: float, message: str | None = None

@@ -6,9 +6,14 @@ has changed for quiet_s seconds: no file or folder in it was written, created, r
 its metadata changed since (the newer of mtime and ctime, so that a copy keeping the source's
 modification times still counts as a change). Empty directories wait.
 
+A directory written to after it was submitted (a data file that arrived after its label, a
+re-transfer of a file cut short) is submitted again once it has been quiet for quiet_s seconds
+since: its products that were rejected for how they arrived are then judged again
+(service.ingest), and the ingest job, done already, is queued again (service.jobs.reopen_job).
+
 The watcher remembers what it submitted only while it runs; submitting is idempotent (the ingest
 job key, workers.tasks.submit_ingest), so a restarted watcher submits everything again and only
-what is not done yet is enqueued.
+what is not done yet, or changed since its ingest started, is enqueued.
 """
 
 from __future__ import annotations
@@ -48,14 +53,16 @@ def completeness(directory: Path, *, quiet_s: float, now: float | None = None) -
 
 
 class Watcher:
-    """Submits each complete downlink directory under `root` once: submit(directory) -> the job
-    key. A submission that raises is logged and tried again at the next poll."""
+    """Submits each complete downlink directory under `root` once, and again when it has changed
+    since and been quiet for quiet_s: submit(directory) -> the job key. A submission that raises
+    is logged and tried again at the next poll."""
 
     def __init__(self, root: Path, *, submit: Callable[[Path], str], quiet_s: float) -> None:
         self.root = Path(root).resolve()
         self.submit = submit
         self.quiet_s = quiet_s
         self.submitted: dict[Path, str] = {}
+        self.changed: dict[Path, float | None] = {}  # each one's last change when submitted
 
     def poll(self) -> list[Path]:
         """Look once; the directories submitted this time."""
@@ -64,16 +71,23 @@ class Watcher:
         for directory in sorted(p for p in self.root.iterdir()
                                 if p.is_dir() and not p.name.startswith(".")):
             if directory in self.submitted:
-                continue
-            reason = completeness(directory, quiet_s=self.quiet_s, now=now)
-            if reason is None:
-                continue
+                changed = last_change(directory)
+                before = self.changed[directory]
+                if changed is None or (before is not None and changed <= before) \
+                        or now - changed < self.quiet_s:
+                    continue
+                reason: str | None = "changed since its submission, then quiet"
+            else:
+                reason = completeness(directory, quiet_s=self.quiet_s, now=now)
+                if reason is None:
+                    continue
+                changed = last_change(directory)
             try:
                 key = self.submit(directory)
             except Exception:
                 log.exception("could not submit the ingest of %s; trying again later", directory)
                 continue
-            self.submitted[directory] = key
+            self.submitted[directory], self.changed[directory] = key, changed
             submitted.append(directory)
             log.info("%s is complete (%s): ingest submitted as %s", directory, reason, key)
         return submitted

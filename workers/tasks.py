@@ -39,6 +39,7 @@ import traceback
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,7 @@ from service.jobs import (
     mark_enqueued,
     refine_key,
     refine_key_parts,
+    reopen_job,
     report_progress,
     retry_job,
     submit_job,
@@ -73,6 +75,7 @@ from service.publish import first_version_with, fuse_and_publish
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
 from service.run import feed_back, ingest_and_plan
 from service.spg import fed_back
+from service.watch import last_change
 from workers.app import QUEUES, ProcessState, app, get_worker_settings, process_state
 
 log = logging.getLogger(__name__)
@@ -102,13 +105,17 @@ class CeleryQueue:
 
 
 def submit_ingest(directory: Path, *, sessions: sessionmaker[Session] | None = None) -> str:
-    """Submit the ingest of the downlink in `directory` and enqueue it unless it is done; its
-    job key. Idempotent: the key is ingest_key(directory). sessions: the catalog (default this
-    process's, workers.app.process_state)."""
+    """Submit the ingest of the downlink in `directory` and enqueue it unless it is done and
+    the directory unchanged since its ingest started; its job key. Idempotent: the key is
+    ingest_key(directory). sessions: the catalog (default this process's,
+    workers.app.process_state)."""
     path = Path(directory).resolve()
     key = ingest_key(path)
+    changed = last_change(path)
     with session_scope(sessions or process_state().sessions) as session:
-        done = submit_job(session, kind=JobKind.INGEST, key=key).status is JobStatus.DONE
+        job = submit_job(session, kind=JobKind.INGEST, key=key)
+        done = job.status is JobStatus.DONE and not (changed is not None and reopen_job(
+            session, job, changed_at=datetime.fromtimestamp(changed, UTC)))
     if not done:
         _enqueue(sessions or process_state().sessions, key,
                  lambda: ingest_downlink.apply_async(args=[str(path)], kwargs={"key": key}))

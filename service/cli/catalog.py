@@ -40,14 +40,18 @@ def ingest(
     """
     from pwm.io.meshio import read_mesh
     from service.catalog import open_catalog
-    from service.ingest import ingest_directory
+    from service.ingest import IngestTakenOver, ingest_directory
     from service.settings import get_settings
 
     setup_logging(verbose)
     settings = get_settings()
     config = refinement_config(settings.refinement(), nodes=maplet_nodes)
-    report = ingest_directory(open_catalog(settings), directory, downlink_name=name,
-                              shape=read_mesh(shape) if shape else None, config=config)
+    try:
+        report = ingest_directory(open_catalog(settings), directory, downlink_name=name,
+                                  shape=read_mesh(shape) if shape else None, config=config)
+    except IngestTakenOver as exc:  # the other ingest finishes the downlink
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from None
     echo_rejected(report.failures)
     typer.echo(report.summary())
     raise typer.Exit(exit_status(report.failed))

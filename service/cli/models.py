@@ -50,6 +50,7 @@ def run(
     The exit status is the number of files that failed (capped at 100), as `pwm ingest` gives it.
     """
     from service.catalog import open_catalog
+    from service.ingest import IngestTakenOver
     from service.run import run_directory
     from service.settings import get_settings
 
@@ -60,7 +61,7 @@ def run(
     try:
         report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,
                                config=config, workers=workers)
-    except FileNotFoundError as exc:
+    except (FileNotFoundError, IngestTakenOver) as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(1) from None
     echo_rejected(report.plan.ingest.failures)

@@ -267,3 +267,20 @@ def test_a_failed_export_write_leaves_nothing_behind(pwm, tmp_path, monkeypatch)
     result = pwm.invoke(app, ["export", "1", "--format", "ply", "--out", str(out)])
     assert result.exit_code == 1 and "No space left on device" in result.stderr, result.output
     assert list(out.parent.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["ingest", "run"])
+def test_an_ingest_taken_over_ends_in_one_line_not_a_traceback(pwm, tmp_path, monkeypatch,
+                                                               command) -> None:
+    import service.ingest
+
+    def taken_over(*_args, **_kwargs):
+        raise service.ingest.IngestTakenOver("downlink 1 was taken over by the ingest of h:2")
+
+    monkeypatch.setattr(service.ingest, "ingest_directory", taken_over)
+    monkeypatch.setattr("service.run.ingest_directory", taken_over)
+    (tmp_path / "dl").mkdir()
+    result = pwm.invoke(app, [command, str(tmp_path / "dl")])
+    assert result.exit_code == 1
+    assert "taken over by the ingest of h:2" in result.output
+    assert "Traceback" not in result.output

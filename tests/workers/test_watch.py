@@ -14,7 +14,7 @@ from sqlalchemy import select
 
 from pwm.config import DEFAULTS
 from service.db import make_engine, make_sessionmaker
-from service.models import Job, JobKind, JobStatus, ModelVersion
+from service.models import Image, Job, JobKind, JobStatus, ModelVersion
 from service.watch import MANIFEST_NAME, Watcher, completeness
 from workers.tasks import ingest_key
 
@@ -94,3 +94,64 @@ def test_watch_once_without_a_broker_runs_the_downlink_in_process(tiny_sim: Path
     refined = [j.maplet_id for j in jobs if j.kind is JobKind.REFINE]
     assert refined and sorted(refined) == sorted(2 * list(set(refined)))
     assert all((j.status, j.attempts) == (JobStatus.DONE, 1) for j in jobs)
+
+
+def test_a_directory_written_to_after_its_submission_is_submitted_again_once_quiet(
+        tmp_path: Path) -> None:
+    root = tmp_path / "incoming"
+    late = _deliver(root / "dl-1", "a.xml", MANIFEST_NAME)
+    submitted: list[Path] = []
+
+    def submit(directory: Path) -> str:
+        submitted.append(directory)
+        return ingest_key(directory)
+
+    watcher = Watcher(root, submit=submit, quiet_s=0.0)
+    assert watcher.poll() == [late]
+    assert watcher.poll() == []
+    time.sleep(0.01)
+    _deliver(late, "a.fits")  # the data file, after its label and the manifest
+    assert watcher.poll() == [late]
+    assert watcher.poll() == []
+    waiting = Watcher(root, submit=submit, quiet_s=QUIET_S)
+    assert waiting.poll() == [late]  # the manifest is there
+    time.sleep(0.01)
+    _deliver(late, "b.fits")
+    assert waiting.poll() == []  # changed, but not quiet yet
+    assert submitted == [late, late, late]
+
+
+def test_a_downlink_whose_data_arrived_after_its_ingest_is_ingested_again(
+        tiny_sim: Path, tmp_path: Path) -> None:
+    """`pwm watch --once` without a broker, twice: the first time one image's data file is not
+    there yet (rejected missing_file); the second finds the directory changed since its ingest
+    started, queues the done ingest job again, and the image is accepted."""
+    incoming = tmp_path / "incoming"
+    downlink = incoming / "dl-001"
+    shutil.copytree(tiny_sim / "downlink", downlink)
+    data_file = sorted((downlink / "images").glob("*.fits"))[0]
+    held = tmp_path / data_file.name
+    data_file.rename(held)
+    data = tmp_path / "data"
+    env = os.environ | {"PWM_DATA_DIR": str(data), "PWM_BROKER_URL": "",
+                        "PWM_DATABASE_URL": "", "PWM_MAPLET_NODES": "24",
+                        "PWM_TILE_RADIUS_KM": "0.0008"}
+
+    def image() -> tuple[str, str | None, int]:
+        engine = make_engine(f"sqlite:///{data / 'catalog.sqlite'}")
+        with make_sessionmaker(engine)() as session:
+            row = session.scalars(select(Image).where(
+                Image.label_path == str(data_file.with_suffix(".xml")))).one()
+            job = session.scalars(select(Job).where(Job.kind == JobKind.INGEST)).one()
+            found = (row.status.value, row.rejection_code, job.attempts)
+        engine.dispose()
+        return found
+
+    for _ in range(2):
+        run = subprocess.run([str(PWM), "watch", str(incoming), "--once"], cwd=REPO, env=env,
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        if held.exists():
+            assert image() == ("rejected", "missing_file", 1)
+            held.rename(data_file)
+    assert image() == ("accepted", None, 2)
