@@ -67,7 +67,8 @@ def retire(
     """Retire a kernel: it is no longer loaded for any ingest, and a later delivery of the same
     file does not bring it back. The images whose geometry it may have served lose it, with a
     reason naming the retirement; each one's downlink's next ingest computes it again from the
-    kernels left (`pwm ingest DIR`)."""
+    kernels left, against the current model (`pwm run DIR`, which also adjusts their poses again
+    and refines the maplets whose images changed)."""
     from service.catalog import open_catalog
     from service.db import session_scope
     from service.kernels import retire_kernel
@@ -81,4 +82,4 @@ def retire(
     typer.echo(f"kernel {done.kernel_id} ({done.name}) retired; {done.images} images lost their "
                "geometry")
     for name, path in done.downlinks:
-        typer.echo(f"  judged again at the next ingest of downlink {name}: pwm ingest {path}")
+        typer.echo(f"  judged again at the next ingest of downlink {name}: pwm run {path}")

@@ -298,7 +298,7 @@ def test_a_retired_kernel_withdraws_the_geometry_it_served_for_good(
                    "--reason", "navigation team: bad solution")
     assert retired.exit_code == 0, retired.output
     assert "3 images lost their geometry" in retired.output
-    assert f"pwm ingest {downlink.resolve()}" in retired.output
+    assert f"pwm run {downlink.resolve()}" in retired.output
     for k in range(3):
         image = _image(catalog, f"good{k}")
         assert (image.status, image.geometry_status) == (ImageStatus.ACCEPTED,
