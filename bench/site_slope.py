@@ -35,7 +35,6 @@ sys.path.insert(0, str(REPO))
 from pwm.evaluate.report import in_site, register_to_truth  # noqa: E402
 from pwm.frames import LocalFrame  # noqa: E402
 from pwm.mesh import Mesh  # noqa: E402
-from pwm.raytrace import RayTracer  # noqa: E402
 from pwm.simulate.truth import load as load_truth  # noqa: E402
 from pwm.site import BASELINE_M, slope_deg  # noqa: E402
 from service.catalog import open_catalog  # noqa: E402
@@ -72,7 +71,6 @@ def main() -> None:
     transform, _ = register_to_truth(mesh, truth_model, region=in_site(mesh.vertices, truth_model),
                                      gsd_km=manifest["scenario"]["gsd_km"], whole_body=False)
     mesh = Mesh(transform.apply(mesh.vertices), mesh.faces, mesh.albedo)
-    tracer = RayTracer(mesh)
     print(f"version {number} against the truth of {args.sim}, within {reach_km * 1e3:.0f} m of "
           f"the site centre")
     print("| spacing m | slope | nodes | slope mean deg: truth, truth averaged, model | RMS diff deg: "
@@ -81,7 +79,7 @@ def main() -> None:
     for spacing_m in args.spacing_m:
         half = int(np.ceil(reach_km * 1e3 / spacing_m))
         axis = np.arange(-half, half + 1) * spacing_m * 1e-3
-        model = sample_grid(mesh, frame, axis, axis, tracer=tracer).height_km * 1e3
+        model = sample_grid(mesh, frame, axis, axis).height_km * 1e3
         yy, xx = np.meshgrid(axis, axis, indexing="ij")
         nodes = np.stack([yy, xx], axis=-1)
         box = max(1, round(spacing_m / truth_step_m))

@@ -63,12 +63,11 @@ class MeshSurface:
 
     def __init__(self, mesh: Mesh) -> None:
         self._tracer = RayTracer(mesh)
-        self._normals = mesh.face_normals()
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
         hits = self._tracer.intersect(origins, directions)
-        normals = self._normals[np.where(hits.hit, hits.face, 0)]
+        normals = self._tracer.face_normals[np.where(hits.hit, hits.face, 0)]
         normals[~hits.hit] = np.nan
         return self._tracer.hit_points(origins, directions, hits), normals
 

@@ -2,12 +2,19 @@
 
 Coordinates stay body-centred (km) so float32 keeps ~10 micrometre resolution on a
 kilometre-sized body. Callers offset ray origins off the surface (see `surface_offset`).
+
+A mesh's scene is built once, by its first tracer, and shared by every tracer of a mesh of the
+same vertices and faces arrays (the same Mesh, or one made of its arrays, as with its albedo
+dropped) in the process until they are freed: a tracer costs nothing to make again.
 """
 
 from __future__ import annotations
 
+import threading
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cached_property
+from typing import Any
 
 import numpy as np
 from embreex import rtcore_scene
@@ -33,20 +40,62 @@ class Hits:
         return self.face >= 0
 
 
-class RayTracer:
-    """An Embree scene over one mesh; thread-compatible but not shared across processes.
+class _Scene:
+    """The Embree scene of a mesh's vertices and faces arrays and what its tracers derive from
+    them (normals, surface offset); it holds neither the arrays nor the mesh."""
 
-    The mesh must not change while the tracer lives: its normals and surface offset are cached.
+    def __init__(self, mesh: Mesh) -> None:
+        self.embree = rtcore_scene.EmbreeScene()
+        TriangleMesh(
+            self.embree,
+            np.ascontiguousarray(mesh.vertices, dtype=np.float32),
+            np.ascontiguousarray(mesh.faces, dtype=np.int32),
+        )
+        # embreex commits (builds the hierarchy) on a scene's first query: make that query here,
+        # under the cache's lock, so that threads sharing the scene never commit it together.
+        self.embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), query="OCCLUDED")
+        self.derived: dict[str, np.ndarray | float] = {}
+        self.finalizers: list[weakref.finalize] = []
+
+
+_SCENES: dict[tuple[int, int], _Scene] = {}  # by id() of live vertices and faces arrays
+_SCENES_LOCK = threading.Lock()
+
+
+def _scene_of(mesh: Mesh) -> _Scene:
+    """The mesh's shared scene, built on first use (one build even when threads ask at once)."""
+    key = (id(mesh.vertices), id(mesh.faces))
+    with _SCENES_LOCK:
+        scene = _SCENES.get(key)
+        if scene is None:
+            scene = _SCENES[key] = _Scene(mesh)
+            # the entry goes as either array is freed, before its id can be another object's
+            scene.finalizers = [weakref.finalize(array, _forget, key) for array in (mesh.vertices, mesh.faces)]
+        return scene
+
+
+def _forget(key: tuple[int, int]) -> None:
+    # Called by the garbage collector, perhaps while this thread holds the lock: no lock here
+    # (dict.pop is atomic), and none needed: with one of its arrays gone, no one asks for the key.
+    scene = _SCENES.pop(key, None)
+    if scene is not None:
+        for finalizer in scene.finalizers:
+            finalizer.detach()
+
+
+class RayTracer:
+    """Ray queries on one mesh, through the Embree scene its tracers share (module docstring);
+    thread-safe, but not shared across processes.
+
+    Its mesh's vertices and faces arrays must not be changed in place once traced: their scene
+    would go stale. A changed mesh is made of new arrays (or given them: `mesh.vertices = ...`),
+    which get a scene of their own. (They are not made read-only: compiled libraries such as
+    fast_simplification refuse read-only arrays.)
     """
 
     def __init__(self, mesh: Mesh) -> None:
         self.mesh = mesh
-        self._scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(
-            self._scene,
-            np.ascontiguousarray(mesh.vertices, dtype=np.float32),
-            np.ascontiguousarray(mesh.faces, dtype=np.int32),
-        )
+        self._scene = _scene_of(mesh)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """First hit for each ray. directions need not be unit; t is in units of |direction|."""
@@ -57,7 +106,7 @@ class RayTracer:
         v = np.zeros(n)
         for s in range(0, n, CHUNK):
             e = min(n, s + CHUNK)
-            out = self._scene.run(
+            out = self._scene.embree.run(
                 np.ascontiguousarray(origins[s:e], dtype=np.float32),
                 np.ascontiguousarray(directions[s:e], dtype=np.float32),
                 output=1,
@@ -78,7 +127,7 @@ class RayTracer:
         for s in range(0, n, CHUNK):
             e = min(n, s + CHUNK)
             d = np.minimum(tmax[s:e], np.finfo(np.float32).max).astype(np.float32)
-            out = self._scene.run(
+            out = self._scene.embree.run(
                 np.ascontiguousarray(origins[s:e], dtype=np.float32),
                 np.ascontiguousarray(directions[s:e], dtype=np.float32),
                 dists=np.ascontiguousarray(d),
@@ -87,18 +136,28 @@ class RayTracer:
             result[s:e] = out >= 0
         return result
 
-    @cached_property
+    @property
     def face_normals(self) -> np.ndarray:
-        return self.mesh.face_normals()
+        return self._derived("face_normals", self.mesh.face_normals)
 
-    @cached_property
+    @property
     def vertex_normals(self) -> np.ndarray:
-        return self.mesh.vertex_normals()
+        return self._derived("vertex_normals", self.mesh.vertex_normals)
 
-    @cached_property
+    @property
     def offset(self) -> float:
         """Distance (km) to lift ray origins off this mesh's surface (see `surface_offset`)."""
-        return surface_offset(self.mesh)
+        return self._derived("offset", lambda: surface_offset(self.mesh))
+
+    def _derived(self, name: str, compute: Callable[[], Any]) -> Any:
+        """`compute()` once per mesh, kept with its scene; arrays read-only, as they are shared."""
+        derived = self._scene.derived
+        if name not in derived:
+            value = compute()
+            if isinstance(value, np.ndarray):
+                value.flags.writeable = False
+            derived.setdefault(name, value)
+        return derived[name]
 
     def hit_points(self, origins: np.ndarray, directions: np.ndarray, hits: Hits) -> np.ndarray:
         """Hit positions recomputed in float64 from the face and barycentrics (km), nan on miss."""

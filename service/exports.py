@@ -426,14 +426,13 @@ def resample_site(mesh: Mesh, site: Site) -> SiteGrid:
     edge = float(np.linalg.norm(corners[near] - np.roll(corners[near], 1, axis=1), axis=2).mean())
     half = min(MAX_SITE_HALF_NODES, max(1, math.ceil(site.radius_km / edge)))
     axis = np.linspace(-site.radius_km, site.radius_km, 2 * half + 1)
-    return sample_grid(mesh, frame, axis, axis, tracer=tracer)
+    return sample_grid(mesh, frame, axis, axis)
 
 
-def sample_grid(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray, *,
-                tracer: RayTracer | None = None) -> SiteGrid:
+def sample_grid(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray) -> SiteGrid:
     """The heights and albedo of `mesh` at the nodes x_km, y_km of `frame`: where a ray down the
     frame's z axis first meets the surface (NaN where it misses)."""
-    tracer = tracer or RayTracer(mesh)
+    tracer = RayTracer(mesh)
     # Rays start above everything within the grid's horizontal reach, so the first hit is the top.
     local = frame.to_local(mesh.vertices)
     reach = 1.5 * max(np.abs(x_km).max(), np.abs(y_km).max())

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import gc
+import weakref
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 import trimesh
@@ -130,3 +134,33 @@ def test_angles_are_those_of_the_given_normals(scene):
                                 to_cam / np.linalg.norm(to_cam, axis=1, keepdims=True))
         assert np.allclose(vis.mu[k], mu) and np.allclose(vis.mu0[k], mu0) and np.allclose(vis.phase[k], phase)
     assert vis.visible.shape == vis.lit.shape == (2, len(points))
+
+
+def test_tracers_of_one_mesh_share_its_scene_until_the_mesh_is_freed(scene):
+    mesh, frame = scene
+    first, again = RayTracer(mesh), RayTracer(mesh)
+    assert again._scene is first._scene and again.vertex_normals is first.vertex_normals
+    assert RayTracer(Mesh(mesh.vertices, mesh.faces))._scene is first._scene  # the same arrays
+    other = Mesh(mesh.vertices.copy(), mesh.faces.copy())
+    assert RayTracer(other)._scene is not first._scene
+    down = np.broadcast_to(-frame.normal, (50, 3))
+    starts = frame.to_body(np.column_stack([np.linspace(-4, 4, 50) * M, np.zeros(50), np.full(50, 5 * M)]))
+    hits = [RayTracer(m).intersect(starts, down) for m in (mesh, mesh, other)]
+    assert hits[0].hit.all() and all(np.array_equal(h.t, hits[0].t) for h in hits[1:])
+    # the cache holds a scene for as long as its mesh lives, and no longer
+    built = weakref.ref(RayTracer(other)._scene)
+    gc.collect()
+    assert built() is not None
+    del other
+    gc.collect()
+    assert built() is None
+
+
+def test_a_scene_is_built_once_for_threads_and_again_for_new_arrays(scene):
+    mesh, _ = scene
+    fresh = Mesh(mesh.vertices.copy(), mesh.faces.copy())
+    with ThreadPoolExecutor(8) as pool:
+        scenes = list(pool.map(lambda _: RayTracer(fresh)._scene, range(32)))
+    assert all(s is scenes[0] for s in scenes)
+    fresh.vertices = fresh.vertices + 1.0
+    assert RayTracer(fresh)._scene is not scenes[0]
