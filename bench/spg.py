@@ -30,6 +30,7 @@ from pwm.io.downlink import read_downlink
 from pwm.io.meshio import read_mesh
 from pwm.raytrace import RayTracer
 from pwm.spg import PoseCorrection
+from pwm.spg.config import SpgConfig
 from pwm.spg.photogrammetry import match_views
 from service.cli.spg import read_corrections
 
@@ -76,7 +77,7 @@ def feature_timing(sims: Path, names: list[str], count: int) -> dict:
         chosen.append((views[: count - sum(len(v) for v, _ in chosen)], read_mesh(downlink / "start_model.obj")))
         if sum(len(v) for v, _ in chosen) >= count:
             break
-    runs = [match_views(views, RayTracer(model), threads=2) for views, model in chosen]
+    runs = [match_views(views, RayTracer(model), config=SpgConfig(threads=2)) for views, model in chosen]
     return {"images": sum(len(v) for v, _ in chosen), "extract_s": sum(m.extract_s for m in runs),
             "match_s": sum(m.match_s for m in runs),
             "pairs": sum(len(m.pairs) for m in runs),

@@ -25,7 +25,6 @@ from scipy import ndimage
 from pwm.camera import project
 from pwm.maplets import MapletGrid
 from pwm.photoclinometry import (
-    MIN_COARSE_NODES,
     MapletImages,
     bilinear,
     bilinear_gradient,
@@ -36,10 +35,24 @@ from pwm.photoclinometry import (
     resampled,
 )
 
-ALIGN_MIN_NODES = 50
-"""Fewest usable nodes an image is registered by (`align`); with fewer it keeps its offset."""
-ALIGN_MAX_ITERATIONS = 20
-"""Gauss-Newton iterations of `align`'s sub-pixel step."""
+
+@dataclass(frozen=True)
+class Registration:
+    """The settings of registering images to a maplet that no call gives (pwm.config nests them
+    in RefinementConfig, whose digest names them).
+
+    align_min_nodes: fewest usable nodes an image is registered by (`align`, `window_rises`); with
+    fewer it keeps its offset. align_max_iterations: Gauss-Newton iterations of `align`'s
+    sub-pixel step. min_coarse_nodes: fewest nodes a side of a coarser grid worth solving or
+    registering on (`register`'s levels, pwm.pipeline's coarse-first solution).
+    """
+
+    align_min_nodes: int = 50  # fewest usable nodes an image is registered by
+    align_max_iterations: int = 20  # Gauss-Newton iterations of align's sub-pixel step
+    min_coarse_nodes: int = 8  # fewest nodes a side of a coarser grid worth solving or registering on
+
+
+REGISTRATION = Registration()
 
 
 @dataclass
@@ -59,22 +72,21 @@ def align(
     albedo: np.ndarray | float | None = None,
     offsets: np.ndarray | None = None,
     search_px: int = 4,
-    min_nodes: int = ALIGN_MIN_NODES,
-    max_iterations: int = ALIGN_MAX_ITERATIONS,
+    registration: Registration = REGISTRATION,
 ) -> Alignment:
     """Register each image to the maplet's predicted brightness.
 
     heights, albedo: the maplet's shape and albedo to predict from (default the maplet's own;
     albedo 1 if it has none: then only shading carries the signal). offsets: (K, 2) starting
     offsets, px (zero if None); the search covers +-search_px whole pixels around them. Nodes with
-    data weight 0 are not compared. An image with fewer than min_nodes usable nodes keeps its
-    starting offset.
+    data weight 0 are not compared. An image with fewer than registration.align_min_nodes usable
+    nodes keeps its starting offset.
     """
     start = np.zeros((data.count, 2)) if offsets is None else np.asarray(offsets, float)
     pixels = node_pixels(maplet, data, heights=heights, offsets=start)
     model = predict(maplet, data, heights=heights, albedo=albedo)
-    return _align_at(data, pixels, model, start, search_px=search_px, min_nodes=min_nodes,
-                     max_iterations=max_iterations)
+    return _align_at(data, pixels, model, start, search_px=search_px, min_nodes=registration.align_min_nodes,
+                     max_iterations=registration.align_max_iterations)
 
 
 def _align_at(data: MapletImages, pixels: np.ndarray, model: np.ndarray, start: np.ndarray, *, search_px: int,
@@ -173,6 +185,7 @@ def register(
     passes: int = 2,
     min_nodes: int = 30,
     keep_datum: bool = False,
+    registration: Registration = REGISTRATION,
 ) -> Alignment:
     """Offsets (K, 2, px) that register every image to the maplet's shape and to the other images.
 
@@ -188,6 +201,7 @@ def register(
     sideways shift of the whole maplet would cause: the shading anchor is only good to about a
     pixel, maplet by maplet, whereas the poses' own datum error is common to the maplets that
     share images (a rigid shift of the fused model); `pwm.photoclinometry.refine` keeps that part.
+    A level whose grid has fewer than registration.min_coarse_nodes a side is skipped.
     """
     out = np.zeros((data.count, 2)) if offsets is None else np.asarray(offsets, float).copy()
     correlation = np.full(data.count, np.nan)
@@ -196,7 +210,7 @@ def register(
     limit = 0.25 * maplet.n * float(np.median(scales))
     for level, (factor, reach) in enumerate(levels):
         reach = min(reach, max(limit, factor))
-        if (maplet.n - 1) // factor + 1 < MIN_COARSE_NODES:
+        if (maplet.n - 1) // factor + 1 < registration.min_coarse_nodes:
             continue
         coarse, weights = resampled(maplet, data.weights, factor)
         shading = predict(coarse, data, albedo=1.0).reshape(data.count, -1)
@@ -338,14 +352,16 @@ def parallax_height(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray,
 
 
 def window_rises(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *, albedo: np.ndarray,
-                 sigma_px: np.ndarray, windows: int, search_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 sigma_px: np.ndarray, windows: int, search_px: int,
+                 registration: Registration = REGISTRATION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The rise (km, along the maplet's local z) of each of windows x windows square parts of the
     maplet that the parallax of its images' offsets there shows (`parallax_height` at the part's
     centre), with its 1 sigma (km; inf where fewer than two images register there), and the
     parts' centres (node index along either axis, (windows,)): (centres, rises, sigmas).
 
     offsets: the images' offsets for the whole maplet (K, 2, px); each part is registered
-    (`align`, within search_px of them) to the maplet's brightness with this albedo. A start
+    (`align`, within search_px of them, with `registration`'s settings) to the maplet's brightness
+    with this albedo. A start
     tilted or bent across the maplet keeps its tilt through photoclinometry: the images' brightness
     scales take up a uniform tilt, and its parallax, several pixels across a survey maplet, lies
     beyond the joint solution's reach. Each part's own offsets measure it, as SPC's landmarks do.
@@ -363,8 +379,9 @@ def window_rises(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,
             inside = np.zeros((n, n), bool)
             inside[edges[i]:edges[i + 1], edges[j]:edges[j + 1]] = True
             part = dataclasses.replace(data, weights=np.where(inside, data.weights, 0.0))
-            found = _align_at(part, pixels, model, start, search_px=search_px, min_nodes=ALIGN_MIN_NODES,
-                              max_iterations=ALIGN_MAX_ITERATIONS)
+            found = _align_at(part, pixels, model, start, search_px=search_px,
+                              min_nodes=registration.align_min_nodes,
+                              max_iterations=registration.align_max_iterations)
             said = np.where(np.isfinite(found.correlation), sigma_px, np.inf)
             centre = ((edges[i] + edges[i + 1]) // 2, (edges[j] + edges[j + 1]) // 2)
             rises[i, j], sigmas[i, j] = parallax_height(maplet, data, found.offsets, sigma_px=said, node=centre)

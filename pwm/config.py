@@ -3,8 +3,12 @@ defaults for `pwm refine`, `pwm run`, ingest, the workers and the API.
 
 Its `digest` names the settings that change what one maplet's refinement gives; the catalog
 puts it in each refinement's input hash (service.refinement), so that a changed setting
-re-refines. The tiling settings (nodes, overlap, spacing) are not in it: they make other maplets,
-and a maplet's own grid is part of its input hash already.
+re-refines. Every constant that changes a maplet's refinement (pwm.pipeline.refine_maplet and
+what it calls) has its one default here or in the frozen settings nested here (`Placement`,
+pwm.alignment.Registration, pwm.weights.Rules, pwm.photoclinometry.Solver); the module constants
+left in those modules change no refinement (tests/test_config.py lists each with why). The
+tiling settings (nodes, overlap, spacing) are not in the digest: they make other maplets, and a
+maplet's own grid is part of its input hash already.
 """
 
 from __future__ import annotations
@@ -15,12 +19,70 @@ import json
 from dataclasses import dataclass, field
 from typing import Any, get_args
 
+from pwm.alignment import REGISTRATION, Registration
 from pwm.knowledge import KnowledgeErrors
 from pwm.photoclinometry import SOLVER, Mode, Solver
 from pwm.weights import RULES, Rules
 
 MODES: tuple[str, ...] = get_args(Mode)
 """The refinement modes: 'pwm' (pixel and region weights) and 'standard' (weights off)."""
+
+
+@dataclass(frozen=True)
+class Placement:
+    """How pwm.pipeline.refine_maplet places a maplet whose start is off by pixels of parallax:
+    the height sweep's gates, the coarse-first solution, the parallax rounds and the bending.
+
+    registration_px: how well a maplet's registration places an image with exact poses (px, 1
+    sigma). parallax_rounds: at most this many times a maplet is raised by its offsets' parallax
+    and solved again. runaway: a parallax rise after which the solution still shows this much of
+    it or more (measured on the campaign survey: 0.05-0.75 where the start was metres off,
+    0.85-0.95 where the rise ran away) is undone with those after it. window_search_px: how far
+    (px) each part of a maplet is registered about the maplet's offsets when it is bent.
+
+    sweep_start: a maplet is first swept (pwm.alignment.sweep_height) where its start's faces are
+    this many of its spacings or more (five levels, a survey over a site): a coarser model's
+    heights are off by about a sixth of its faces (measured on campaign-tiny's survey under its
+    sites and on the surveys' photogrammetric starts), which is then several spacings of
+    parallax, beyond the joint solution's reach; nearer, the sweep's false optima cost more than
+    it finds (bench/RESULTS.md: the survey from nothing).
+
+    sweep_start_many, sweep_many_images: a maplet seen by sweep_many_images usable images or more
+    is swept from sweep_start_many spacings (four levels): the campaign's 10 cm sites lie on its
+    survey's 2 m faces (20 spacings), 0.4-1.1 m off (2-6 px of parallax), beyond the reach of the
+    solution and the parallax placement; a plane sweep's false optima grow rarer with its views (2
+    of 20 there, with 22-24 images), and with the 3-6 images of a small survey from nothing they
+    broke its closed surface (bench/RESULTS.md: the campaign's site A swept under its survey).
+    Its sweep also follows the agreement past the sweep's end (two of site A's maplets were
+    1.1-1.2 m low, 16 px reached 1.3 m); with four images that ran a maplet of
+    `tests/test_pipeline.py` 1.5 m off.
+
+    coarse_factors: a swept maplet is solved first on grids this many times coarser, coarsest
+    first (pwm.pipeline._coarse_first). resweep_px: a swept maplet is swept again from its
+    refined heights over this much parallax (pwm.pipeline._swept_again): the first sweep, from
+    the coarser start's relief, was up to 0.37 m (4.6 px) off on the campaign's site A.
+    """
+
+    registration_px: float = 0.1  # 1 sigma (px) of an image's registration with exact poses
+    parallax_rounds: int = 3  # most parallax rises of one maplet
+    runaway: float = 0.8  # share of a rise left in the solution after it that undoes the rises
+    window_search_px: int = 4  # registration search (px) of each part of a bent maplet
+    sweep_start: float = 32.0  # start faces (in spacings) from which a maplet is swept
+    sweep_start_many: float = 16.0  # the same under sweep_many_images or more
+    sweep_many_images: int = 12  # usable images from which sweep_start_many applies (and the sweep follows)
+    coarse_factors: tuple[int, ...] = (8, 4, 2)  # coarser grids a swept maplet is solved on first
+    resweep_px: float = 8.0  # parallax (px) a swept maplet is swept again over from its refined heights
+
+    def __post_init__(self) -> None:
+        if self.registration_px < 0:
+            raise ValueError(f"registration of {self.registration_px} px: must be non-negative")
+        if self.parallax_rounds < 0:
+            raise ValueError(f"{self.parallax_rounds} parallax rounds: must be non-negative")
+        if any(f < 1 for f in self.coarse_factors):
+            raise ValueError(f"coarse factors {self.coarse_factors}: each at least 1")
+
+
+PLACEMENT = Placement()
 
 
 @dataclass(frozen=True)
@@ -43,8 +105,12 @@ class RefinementConfig:
     rules: the weighting (pwm.weights.Rules); solver: the iteration (pwm.photoclinometry.Solver).
     knowledge: the 1-sigma pose knowledge (pwm.knowledge) of kernels that state none; None: as
     good as the images need. With it, the operations adjust a downlink's poses before refining
-    (service.spg.adjust_downlink), and each image's registration search grows to three sigma of
-    its line of sight after the adjustment.
+    (service.spg.adjust_downlink), and each image's registration search grows to
+    knowledge_sigmas sigma of its line of sight after the adjustment.
+    knowledge_sigmas: an image is searched for this many sigmas of its line of sight
+    (View.los_sigma_px); service.spg.within_a_pixel judges by it whether an adjustment can matter.
+    placement: how a maplet whose start is off by pixels of parallax is placed (`Placement`);
+    registration: the images' registration to a maplet (pwm.alignment.Registration).
     """
 
     mode: Mode = "pwm"
@@ -60,6 +126,9 @@ class RefinementConfig:
     rules: Rules = field(default=RULES)
     solver: Solver = field(default=SOLVER)
     knowledge: KnowledgeErrors | None = None
+    knowledge_sigmas: float = 3.0  # an image is searched for this many sigmas of its line of sight
+    placement: Placement = field(default=PLACEMENT)
+    registration: Registration = field(default=REGISTRATION)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -82,15 +151,22 @@ class RefinementConfig:
             raise ValueError("a maplet is refined from at least one image")
         if self.tile_radius_km is not None and not self.tile_radius_km > 0:
             raise ValueError(f"tile radius {self.tile_radius_km} km: must be positive")
+        if not self.knowledge_sigmas > 0:
+            raise ValueError(f"knowledge sigmas {self.knowledge_sigmas}: must be positive")
 
     def digest(self) -> str:
-        """sha256 of the settings that change one maplet's refinement (mode, search, image count,
-        weighting rules, solver)."""
-        payload: dict[str, Any] = {"mode": self.mode, "search_px": self.search_px,
-                                   "height_sweep_px": self.height_sweep_px,
-                                   "shape_window_nodes": self.shape_window_nodes, "min_images": self.min_images,
-                                   "rules": dataclasses.asdict(self.rules), "solver": dataclasses.asdict(self.solver)}
-        return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+        """sha256 of the settings that change one maplet's refinement (`digested`)."""
+        return hashlib.sha256(json.dumps(self.digested(), sort_keys=True).encode()).hexdigest()
+
+    def digested(self) -> dict[str, Any]:
+        """The settings that change one maplet's refinement, as JSON values: mode, search, knowledge
+        sigmas, height sweep, shape windows, image count, placement, registration, weighting rules,
+        solver (not the tiling's, the passes or the pose knowledge: module docstring)."""
+        return {"mode": self.mode, "search_px": self.search_px, "knowledge_sigmas": self.knowledge_sigmas,
+                "height_sweep_px": self.height_sweep_px, "shape_window_nodes": self.shape_window_nodes,
+                "min_images": self.min_images, "placement": dataclasses.asdict(self.placement),
+                "registration": dataclasses.asdict(self.registration),
+                "rules": dataclasses.asdict(self.rules), "solver": dataclasses.asdict(self.solver)}
 
 
 DEFAULTS = RefinementConfig()

@@ -237,10 +237,6 @@ def resampled(maplet: MapletGrid, weights: np.ndarray, factor: int) -> tuple[Map
     return coarse, good.reshape(len(weights), -1)
 
 
-MIN_COARSE_NODES = 8
-"""Fewest nodes a side of a coarser grid worth solving or registering on."""
-
-
 def coarsened(maplet: MapletGrid, data: MapletImages, factor: int) -> tuple[MapletGrid, MapletImages]:
     """The maplet every `factor`-th spacing (`resampled`) and its images smoothed to that many
     pixels (a Gaussian of factor / 2 px, NaN where less than half its weight fell on data); each

@@ -24,7 +24,7 @@ from pwm.levels import LevelGrids
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.parallel import map_processes
-from pwm.photoclinometry import MIN_COARSE_NODES, MapletImages, Refinement, coarsened, extract, refine
+from pwm.photoclinometry import MapletImages, Refinement, coarsened, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
 from pwm.views import View
@@ -107,46 +107,6 @@ def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
             & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
 
 
-KNOWLEDGE_SIGMAS = 3.0
-"""An image is searched for this many sigmas of its line of sight (View.los_sigma_px)."""
-REGISTRATION_PX = 0.1
-"""How well a maplet's registration places an image with exact poses (px, 1 sigma)."""
-PARALLAX_ROUNDS = 3
-"""At most this many times a maplet is raised by its offsets' parallax and solved again."""
-RUNAWAY = 0.8
-"""A parallax rise after which the solution still shows this much of it or more (measured on
-the campaign survey: 0.05-0.75 where the start was metres off, 0.85-0.95 where the rise ran
-away) is undone with those after it."""
-WINDOW_SEARCH_PX = 4
-"""How far (px) each part of a maplet is registered about the maplet's offsets when it is bent."""
-SWEEP_START = 32.0
-"""A maplet is first swept (pwm.alignment.sweep_height) where its start's faces are this many of
-its spacings or more (five levels, a survey over a site): a coarser model's heights are off by
-about a sixth of its faces (measured on campaign-tiny's survey under its sites and on the
-surveys' photogrammetric starts), which is then several spacings of parallax, beyond the joint
-solution's reach; nearer, the sweep's false optima cost more than it finds (bench/RESULTS.md:
-the survey from nothing)."""
-SWEEP_START_MANY = 16.0
-SWEEP_MANY_IMAGES = 12
-"""A maplet seen by SWEEP_MANY_IMAGES usable images or more is swept from SWEEP_START_MANY
-spacings (four levels): the campaign's 10 cm sites lie on its survey's 2 m faces (20 spacings),
-0.4-1.1 m off (2-6 px of parallax), beyond the reach of the solution and the parallax placement;
-a plane sweep's false optima grow rarer with its views (2 of 20 there, with 22-24 images), and
-with the 3-6 images of a small survey from nothing they broke its closed surface
-(bench/RESULTS.md: the campaign's site A swept under its survey). Its sweep also follows the
-agreement past the sweep's end (two of site A's maplets were 1.1-1.2 m low, 16 px reached
-1.3 m); with four images that ran a maplet of `tests/test_pipeline.py` 1.5 m off."""
-
-COARSE_FACTORS = (8, 4, 2)
-"""A swept maplet is solved first on grids this many times coarser, coarsest first
-(`_coarse_first`)."""
-
-RESWEEP_PX = 8.0
-"""A swept maplet is swept again from its refined heights over this much parallax
-(`_swept_again`): the first sweep, from the coarser start's relief, was up to 0.37 m (4.6 px)
-off on the campaign's site A."""
-
-
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                   config: RefinementConfig = DEFAULTS) -> MapletResult:
     """Weigh and refine one maplet; with fewer than config.min_images usable images it keeps its
@@ -158,14 +118,14 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     (`pwm.alignment.register`) within it before the joint solution; within it, the joint solution
     holds the start's mean height, which a coarser start gets wrong by pixels of parallax, so the
     maplet is raised after the solution by what its offsets took up of the parallax (`_settled`),
-    and first, where the start is much coarser (SWEEP_START, or SWEEP_START_MANY under many
-    images), to where its images agree best (`pwm.alignment.sweep_height`, over
+    and first, where the start is much coarser (config.placement.sweep_start, or sweep_start_many
+    under many images), to where its images agree best (`pwm.alignment.sweep_height`, over
     config.height_sweep_px of parallax), then solved on coarser grids (`_coarse_first`), and last,
     swept again from its refined relief (`_swept_again`)."""
     clock = time.perf_counter()
     mode = config.mode
     data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)
-    search_px = max([config.search_px] + [KNOWLEDGE_SIGMAS * views[k].los_sigma_px for k in keep])
+    search_px = max([config.search_px] + [config.knowledge_sigmas * views[k].los_sigma_px for k in keep])
     views_found = {role: views[i].name for role, i in vars(weights.views).items() if i is not None}
     dropped = {views[k].name: reasons for k, reasons in enumerate(weights.reasons) if reasons}
     refined = MapletGrid(name=maplet.name, frame=maplet.frame, spacing_km=maplet.spacing_km,
@@ -179,8 +139,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         # solution, which only corrects offsets within its linear reach (about a pixel); within
         # that, registering against the start's shading, itself off by its height errors, only
         # moves the joint solution's starting point away from the poses
-        offsets = (register(maplet, data, levels=search_levels(search_px)).offsets if search_px > 1.0
-                   else np.zeros((data.count, 2)))
+        offsets = (register(maplet, data, levels=search_levels(search_px), registration=config.registration).offsets
+                   if search_px > 1.0 else np.zeros((data.count, 2)))
         # A start can be off by pixels of parallax, and the joint solution holds its mean height;
         # where the poses are known within a pixel, their parallax places the maplet instead,
         # within the start's face size: a model's heights are not off by more than its faces are
@@ -189,9 +149,10 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         start_edge_km = _start_edge_km(maplet, tracer)
         placed = search_px <= 1.0
         coarse = start_edge_km / maplet.spacing_km
-        many = data.count >= SWEEP_MANY_IMAGES
+        placement = config.placement
+        many = data.count >= placement.sweep_many_images
         swept = placed and config.height_sweep_px > 0 and (
-            coarse >= SWEEP_START or (coarse >= SWEEP_START_MANY and many))
+            coarse >= placement.sweep_start or (coarse >= placement.sweep_start_many and many))
         if swept:
             raised = sweep_height(maplet, data, offsets, reach_px=config.height_sweep_px, max_rise_km=start_edge_km,
                                   follow=many)
@@ -205,7 +166,7 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         if placed:
             # an image that no node weighed kept its start offset: it says nothing
             sigma = np.where(np.isfinite(result.rms),
-                             np.hypot([views[k].los_sigma_px for k in keep], REGISTRATION_PX), np.inf)
+                             np.hypot([views[k].los_sigma_px for k in keep], placement.registration_px), np.inf)
             result, raised = _settled(maplet, data, result, sigma_px=sigma, config=config, raised_km=raised,
                                       max_rise_km=start_edge_km)
             result = _reshaped(maplet, data, result, sigma_px=sigma, config=config, max_rise_km=start_edge_km)
@@ -225,15 +186,16 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
 
 def _coarse_first(maplet: MapletGrid, data: MapletImages, *, offsets: np.ndarray,
                   config: RefinementConfig) -> MapletGrid:
-    """The maplet with the heights its images give on grids COARSE_FACTORS times coarser, coarsest
-    first (`pwm.photoclinometry.coarsened`, at least MIN_COARSE_NODES a side): each grid's change
-    interpolated onto the nodes. A coarser model lacks relief metres high and a few metres across
-    (on the campaign's site B under its 2 m survey, blobs of +-2 m): pixels of parallax over a
-    few spacings, beyond a joint solution's linear reach at the maplet's spacing, which keeps
-    most of such an error, but within a coarser grid's."""
+    """The maplet with the heights its images give on grids config.placement.coarse_factors times
+    coarser, coarsest first (`pwm.photoclinometry.coarsened`, at least
+    config.registration.min_coarse_nodes a side): each grid's change interpolated onto the nodes.
+    A coarser model lacks relief metres high and a few metres across (on the campaign's site B
+    under its 2 m survey, blobs of +-2 m): pixels of parallax over a few spacings, beyond a joint
+    solution's linear reach at the maplet's spacing, which keeps most of such an error, but within
+    a coarser grid's."""
     n = maplet.n
-    for factor in COARSE_FACTORS:
-        if (n - 1) // factor + 1 < MIN_COARSE_NODES:
+    for factor in config.placement.coarse_factors:
+        if (n - 1) // factor + 1 < config.registration.min_coarse_nodes:
             continue
         coarse, coarse_data = coarsened(maplet, data, factor)
         result = refine(coarse, coarse_data, mode=config.mode, offsets=offsets, solver=config.solver)
@@ -247,16 +209,17 @@ def _coarse_first(maplet: MapletGrid, data: MapletImages, *, offsets: np.ndarray
 def _swept_again(maplet: MapletGrid, data: MapletImages, result: Refinement, *, offsets: np.ndarray,
                  config: RefinementConfig, raised_km: float, max_rise_km: float,
                  follow: bool) -> tuple[Refinement, float]:
-    """The swept maplet's refinement swept again over RESWEEP_PX of parallax from its refined
-    heights and, where it moves, solved again from there: the start it was first swept with, a
-    coarser model's relief, blurs where its images agree (a peak +-0.3 m wide on a start 0.5 m
-    RMS off), and the refined relief sharpens it. The solution and the whole rise (km) from the
-    start, within max_rise_km."""
+    """The swept maplet's refinement swept again over config.placement.resweep_px of parallax from
+    its refined heights and, where it moves, solved again from there: the start it was first
+    swept with, a coarser model's relief, blurs where its images agree (a peak +-0.3 m wide on a
+    start 0.5 m RMS off), and the refined relief sharpens it. The solution and the whole rise
+    (km) from the start, within max_rise_km."""
     room = max_rise_km - abs(raised_km)
     if room <= 0:
         return result, raised_km
     refined = dataclasses.replace(maplet, heights=result.heights)  # the start's albedo stays the prior
-    rise = sweep_height(refined, data, offsets, reach_px=RESWEEP_PX, max_rise_km=room, follow=follow)
+    rise = sweep_height(refined, data, offsets, reach_px=config.placement.resweep_px, max_rise_km=room,
+                        follow=follow)
     if rise == 0.0:
         return result, raised_km
     again = refine(_raised(refined, rise), data, mode=config.mode, offsets=offsets, solver=config.solver)
@@ -267,14 +230,14 @@ def _settled(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sigm
              config: RefinementConfig, raised_km: float, max_rise_km: float) -> tuple[Refinement, float]:
     """The refinement solved again from a maplet raised by what its offsets took up of a height
     the start got wrong (`pwm.alignment.parallax_height`), while that is more than three sigma
-    and the maplet stays within max_rise_km of its start, at most PARALLAX_ROUNDS times; and the
-    whole rise (km) from the start, of which raised_km was done before. All of them are undone
-    where a rise leaves RUNAWAY of itself in the solution after it."""
+    and the maplet stays within max_rise_km of its start, at most config.placement.parallax_rounds
+    times; and the whole rise (km) from the start, of which raised_km was done before. All of them
+    are undone where a rise leaves config.placement.runaway of itself in the solution after it."""
     raised, start, last = raised_km, (result, raised_km), None
-    for _ in range(PARALLAX_ROUNDS):
+    for _ in range(config.placement.parallax_rounds):
         rise, sigma = parallax_height(dataclasses.replace(maplet, heights=result.heights), data, result.offsets,
                                       sigma_px=sigma_px)
-        if last is not None and abs(rise) > RUNAWAY * abs(last):
+        if last is not None and abs(rise) > config.placement.runaway * abs(last):
             # the rise did not take up the parallax it was measured from: what the offsets show
             # is not the start's height (a common pointing error, a misregistered image), and
             # following it runs the maplet off by tens of metres
@@ -299,10 +262,11 @@ def _reshaped(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sig
     if windows < 2:
         return result
     # a part's offsets rest on a windows-th of the nodes a side: the registration's error grows so
-    part_sigma_px = np.hypot(sigma_px, REGISTRATION_PX * windows)
+    part_sigma_px = np.hypot(sigma_px, config.placement.registration_px * windows)
     centres, rises, sigmas = window_rises(dataclasses.replace(maplet, heights=result.heights), data, result.offsets,
                                           albedo=result.albedo, sigma_px=part_sigma_px, windows=windows,
-                                          search_px=WINDOW_SEARCH_PX)
+                                          search_px=config.placement.window_search_px,
+                                          registration=config.registration)
     rises = np.where(np.abs(rises) > 3 * sigmas, rises, 0.0)
     if not rises.any():
         return result

@@ -23,12 +23,13 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import PoseCorrection
+from pwm.config import DEFAULTS as REFINEMENT_DEFAULTS
 from pwm.io.spice_geometry import ellipsoid_of
 from pwm.io.spice_kernels import KernelError, kernel_pool, spice_message, stated_knowledge
 from pwm.knowledge import KnowledgeErrors, NavigationErrors, format_knowledge_errors
 from pwm.mesh import Mesh
-from pwm.pipeline import KNOWLEDGE_SIGMAS
 from pwm.spg import stereo_photogrammetry
+from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 from pwm.spg.photogrammetry import adjust_poses
 from pwm.spg.pose_models import PoseModel, free_poses, navigation_poses
 from pwm.spg.triangulation import Tracks
@@ -59,10 +60,7 @@ log = logging.getLogger(__name__)
 
 def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
                            image_ids: Collection[int] | None = None, figure: Mesh | None = None,
-                           knowledge: KnowledgeErrors | None = None,
-                           sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
-                           max_features: int = 8192, first_octave: int | None = None, per_image: int = 6,
-                           threads: int = 2) -> int:
+                           knowledge: KnowledgeErrors | None = None, config: SpgConfig = SPG_DEFAULTS) -> int:
     """Run stereo photogrammetry on the accepted images with geometry (those of image_ids, or
     all) from the latest version, or from the body's `figure` (its PCK ellipsoid) when the catalog
     has none, over which the points are interpolated everywhere; publish the model
@@ -70,9 +68,9 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
     correction. Its version number.
 
     knowledge: the stated pose knowledge of the images' current poses (pwm.knowledge), modelled
-    as `adjust_downlink` models it; without it, sigma_position_km, sigma_pointing_rad: the 1-sigma
-    pose knowledge assumed per axis (km, rad). The other options are
-    pwm.spg.stereo_photogrammetry's.
+    as `adjust_downlink` models it; without it, config.sigma_position_km and
+    config.sigma_pointing_rad: the 1-sigma pose knowledge assumed per axis (km, rad). config: the
+    photogrammetry's settings (pwm.spg.config).
     Raises LookupError when the catalog has no version and no figure is given, ValueError when
     photogrammetry cannot work (fewer than two images, no pair that overlaps).
     """
@@ -94,10 +92,7 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
     result = stereo_photogrammetry([views[i] for i in ids], previous,
                                    pose_model=None if knowledge is None else _pose_model(knowledge,
                                                                                          [views[i] for i in ids]),
-                                   sigma_position_km=sigma_position_km,
-                                   sigma_pointing_rad=sigma_pointing_rad,
-                                   max_features=max_features, first_octave=first_octave,
-                                   per_image=per_image, from_figure=base_id is None, threads=threads)
+                                   from_figure=base_id is None, config=config)
     with session_scope(sessions) as session:
         images = session.scalars(select(Image).where(Image.id.in_(ids)).order_by(Image.id)).all()
         now = utcnow()
@@ -122,13 +117,14 @@ def photogrammetry_version(sessions: sessionmaker[Session], *, data_dir: Path,
 
 
 def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int,
-                      configured: KnowledgeErrors | None = None) -> int | None:
+                      configured: KnowledgeErrors | None = None, config: SpgConfig = SPG_DEFAULTS) -> int | None:
     """When the catalog has no model version: stereo photogrammetry on every catalogued image
     with geometry, from the images' target's PCK ellipsoid, published as the first version (kind
     photogrammetric, pose corrections stored), under the downlink's pose knowledge
     (`downlink_knowledge`; assumed when none is stated). Its number, or None when photogrammetry
     cannot work (too few images, too little overlap, no target radii); the downlink's model_note
     says what happened either way, and the next downlink tries again with every image so far.
+    config: the photogrammetry's settings (pwm.spg.config).
     """
     with sessions() as session:
         knowledge, source = downlink_knowledge(session, downlink_id, configured)
@@ -153,7 +149,7 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
         else:
             try:
                 number = photogrammetry_version(sessions, data_dir=data_dir, figure=ellipsoid.mesh(),
-                                                knowledge=knowledge)
+                                                knowledge=knowledge, config=config)
             except ValueError as exc:
                 note = f"no model: stereo photogrammetry cannot work yet: {exc}"
     if number is not None and made is None:
@@ -204,7 +200,7 @@ def downlink_knowledge(session: Session, downlink_id: int,
 
 
 def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id: int,
-                    configured: KnowledgeErrors | None, threads: int = 2) -> list[int]:
+                    configured: KnowledgeErrors | None, config: SpgConfig = SPG_DEFAULTS) -> list[int]:
     """Adjust the poses of a downlink's images on `shape` under their pose knowledge
     (`downlink_knowledge`): a navigation-like knowledge is modelled per arc with one shared
     misalignment and drift, an independent one per image (pwm.spg.pose_models), and the block is
@@ -214,7 +210,8 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
     weighing; the downlink keeps what was done (Downlink.pose_adjustment). Nothing is adjusted
     when no knowledge is stated, or when the knowledge already keeps every image's line of
     sight within a pixel (three sigma), or when the same images were adjusted before (a
-    downlink ingested again). The ids of the images corrected.
+    downlink ingested again). config: the photogrammetry's settings (pwm.spg.config). The ids of
+    the images corrected.
     """
     with sessions() as session:
         knowledge, source = downlink_knowledge(session, downlink_id, configured)
@@ -247,7 +244,7 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
             views = catalog_views(session, image_ids=ids, pixels=True)
         view_list = [views[i] for i in ids]
         try:
-            result = adjust_poses(view_list, shape, pose_model=pose_model, anchor=True, threads=threads)
+            result = adjust_poses(view_list, shape, pose_model=pose_model, anchor=True, config=config)
         except ValueError as exc:
             report["note"] = f"not adjusted: {exc}"
         else:
@@ -282,13 +279,14 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
 
 def within_a_pixel(los_px: np.ndarray) -> bool:
     """Whether lines of sight with these 1-sigma errors (px, both axes together) all stay within
-    a pixel, three sigma per axis: then no adjustment can move an image by anything that
-    matters."""
-    return bool(KNOWLEDGE_SIGMAS * np.max(los_px, initial=0.0) / np.sqrt(2) <= 1.0)
+    a pixel, RefinementConfig.knowledge_sigmas per axis, as refinement searches them: then no
+    adjustment can move an image by anything that matters."""
+    sigmas = REFINEMENT_DEFAULTS.knowledge_sigmas  # no PWM_* setting changes it: the default is the effective one
+    return bool(sigmas * np.max(los_px, initial=0.0) / np.sqrt(2) <= 1.0)
 
 
 def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, version: int, downlink_id: int,
-                            configured: KnowledgeErrors | None, threads: int = 2) -> list[int]:
+                            configured: KnowledgeErrors | None, config: SpgConfig = SPG_DEFAULTS) -> list[int]:
     """Adjust a downlink's images again, once, after its maplets were first refined: the feature
     tracks with, as observations, where each image saw each maplet's landmark once registered to
     it (the revisions' `registrations`, pwm.pipeline.landmark_pixels), from the kernels' poses
@@ -299,8 +297,8 @@ def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, 
 
     Only when some image of the downlink is still not known within a pixel (`within_a_pixel` of
     its posterior, or of its prior where nothing adjusted it) and the downlink was not fed back
-    before; the downlink's pose_adjustment keeps what was done under "feedback". The ids of the
-    images corrected.
+    before; the downlink's pose_adjustment keeps what was done under "feedback". config: the
+    photogrammetry's settings (pwm.spg.config). The ids of the images corrected.
     """
     with sessions() as session:
         knowledge, source = downlink_knowledge(session, downlink_id, configured)
@@ -331,7 +329,7 @@ def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, 
     else:
         try:
             result = adjust_poses(views, shape, pose_model=_pose_model(knowledge, views), anchor=True,
-                                  landmarks=landmarks, threads=threads)
+                                  landmarks=landmarks, config=config)
         except ValueError as exc:
             feedback["note"] = f"not adjusted: {exc}"
         else:

@@ -3,13 +3,20 @@ end to end on the tiny simulation."""
 
 from __future__ import annotations
 
+import ast
+import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
+import typer
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
+import pwm.spg as pwm_spg
+import service.cli.spg as service_cli_spg
+import service.spg as service_spg
 from pwm.camera import Camera, Pose, corrected_pose, look_at, project
 from pwm.io.downlink import read_downlink
 from pwm.knowledge import NavigationErrors
@@ -17,6 +24,7 @@ from pwm.mesh import Mesh
 from pwm.simulate.knowledge import Knowledge, perturb
 from pwm.spg import PoseCorrection
 from pwm.spg.adjustment import bundle_adjust
+from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 from pwm.spg.features import fundamental
 from pwm.spg.photogrammetry import adjust_poses, anchor_shift
 from pwm.spg.pose_models import navigation_poses
@@ -26,6 +34,7 @@ from pwm.spg.uncertainty import DETERMINED, determined, image_sigmas, pose_uncer
 from pwm.trajectory import track_frames
 from pwm.views import View
 from service.cli import app
+from service.cli.spg import spg_config
 
 CAMERA = Camera(width=1024, height=1024, fx=14729.4, fy=14729.4, cx=511.5, cy=511.5)
 
@@ -324,3 +333,65 @@ def test_landmarks_adjust_views_that_no_feature_joins():
 
     assert los_px(kernels) > 20.0
     assert los_px(fixed) < 0.3 * los_px(kernels)
+
+
+SPG_SOURCES = sorted(Path(pwm_spg.__file__).parent.glob("*.py")) + [
+    Path(service_spg.__file__), Path(service_cli_spg.__file__)]
+
+
+def _spg_default_values() -> set:
+    """SpgConfig's defaults that no other number is likely to equal by chance: neither None, a
+    bool, nor a small whole number (0 to 3)."""
+    values: set = set()
+    for f in dataclasses.fields(SpgConfig):
+        for v in f.default if isinstance(f.default, tuple) else (f.default,):
+            if v is not None and not isinstance(v, bool) and v not in {0, 1, 2, 3}:
+                values.add(v)
+    return values
+
+
+def test_photogrammetry_defaults_are_written_once():
+    """Every photogrammetry default lives in pwm.spg.config alone: no function under pwm/spg, in
+    service/spg.py or service/cli/spg.py has a literal keyword default for a setting of SpgConfig
+    (by its name; None, deferring to the configuration, aside) or equal to one of its defaults
+    (by value), and the commands' options read
+    their defaults from SPG_DEFAULTS, so that a default repeated elsewhere cannot come back."""
+    names = {f.name for f in dataclasses.fields(SpgConfig)}
+    values = _spg_default_values()
+    assert {8192, 6, 1e-4, 1e-3, 25.0} <= values
+    found = []
+    for path in SPG_SOURCES:
+        if path.name == "config.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                args = node.args.posonlyargs + node.args.args
+                pairs = list(zip(args[len(args) - len(node.args.defaults):], node.args.defaults, strict=True))
+                pairs += [(a, d) for a, d in zip(node.args.kwonlyargs, node.args.kw_defaults, strict=True)
+                          if d is not None]
+                for arg, default in pairs:
+                    try:
+                        value = ast.literal_eval(default)
+                    except ValueError:
+                        continue  # an expression: SPG_DEFAULTS, a typer option, another module's constant
+                    flat = value if isinstance(value, tuple) else (value,)
+                    if (arg.arg in names and value is not None) or any(v in values for v in flat
+                                                                       if not isinstance(v, bool | str)):
+                        found.append(f"{path.name}:{node.lineno} {node.name}({arg.arg}={value!r})")
+            elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "Option"
+                  and node.args and isinstance(node.args[0], ast.Constant)):
+                value = node.args[0].value
+                if isinstance(value, int | float) and not isinstance(value, bool):
+                    found.append(f"{path.name}:{node.lineno} typer.Option({value!r})")
+    assert not found, "photogrammetry defaults outside pwm.spg.config: " + ", ".join(found)
+
+
+def test_spg_commands_default_to_spg_config():
+    """`pwm spg` and `pwm spg-catalog` with no options run with SPG_DEFAULTS."""
+    commands = typer.main.get_command(app).commands
+    for name in ("spg", "spg-catalog"):
+        given = {p.name: p.default for p in commands[name].params}
+        config = spg_config(sigma_position_m=given["sigma_position"], sigma_pointing_rad=given["sigma_pointing"],
+                            max_features=given["max_features"], first_octave=given["first_octave"],
+                            per_image=given["per_image"], threads=given["threads"])
+        assert config == SPG_DEFAULTS, name

@@ -19,6 +19,7 @@ from scipy import sparse
 from scipy.spatial.transform import Rotation
 
 from pwm.camera import Camera, Pose
+from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 from pwm.spg.pose_models import PoseModel, free_poses
 from pwm.spg.triangulation import Tracks
 
@@ -69,17 +70,22 @@ def _project(points: np.ndarray, position: np.ndarray, rotation: np.ndarray, cam
 
 
 def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], poses: list[Pose], *,
-                  model: PoseModel | None = None, sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
-                  huber_px: float = 2.0, max_iterations: int = 20, tolerance: float = 1e-6) -> Adjustment:
-    """Adjust `points` and the poses' corrections to the observations in `tracks`.
+                  model: PoseModel | None = None, sigma_position_km: float | None = None,
+                  sigma_pointing_rad: float | None = None, config: SpgConfig = SPG_DEFAULTS) -> Adjustment:
+    """Adjust `points` and the poses' corrections to the observations in `tracks` (Huber
+    threshold, iterations and tolerance: `config`'s).
 
     model: how the corrections depend on their unknowns (default: every image free, with priors
-    sigma_position_km and sigma_pointing_rad per axis). Point unknowns are in metres and the
+    sigma_position_km and sigma_pointing_rad per axis, by default `config`'s). Point unknowns are in metres and the
     model's in units of their prior sigma, which keeps the normal equations well conditioned.
     """
     n_img, n_pt, obs_img, obs_pt = len(poses), len(points), tracks.image, tracks.point
     if model is None:
-        model = free_poses(n_img, sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
+        model = free_poses(n_img, sigma_position_km=config.sigma_position_km if sigma_position_km is None
+                           else sigma_position_km,
+                           sigma_pointing_rad=config.sigma_pointing_rad if sigma_pointing_rad is None
+                           else sigma_pointing_rad)
+    huber_px = config.huber_px
     if model.n_images != n_img:
         raise ValueError(f"a pose model of {model.n_images} images for {n_img} images")
     cam = np.array([[c.fx, c.fy, c.cx, c.cy] for c in cameras])[obs_img]
@@ -109,7 +115,7 @@ def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], pos
     current = cost(r, theta)
     damping = 1e-3
     iterations = 0
-    for iterations in range(1, max_iterations + 1):  # noqa: B007 (the count done is returned)
+    for iterations in range(1, config.max_iterations + 1):  # noqa: B007 (the count done is returned)
         eq = normal(theta, r)
         step_pts, step_theta = _solve(eq, design, theta, damping)
         while True:
@@ -125,7 +131,7 @@ def bundle_adjust(points: np.ndarray, tracks: Tracks, cameras: list[Camera], pos
         improvement = (current - new) / max(current, 1e-300)
         x_pts, theta, r, current = trial_pts, trial_theta, r_trial, new
         damping = max(damping / 10.0, 1e-7)
-        if improvement < tolerance:
+        if improvement < config.tolerance:
             break
     d = model.corrections(theta)
     eq = normal(theta, r)

@@ -16,6 +16,7 @@ import numpy as np
 import pycolmap
 
 from pwm.camera import Camera, Pose
+from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 
 COLMAP_OFFSET = 0.5  # COLMAP's pixel centres sit at +0.5
 
@@ -40,22 +41,22 @@ def normalise(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(out, dtype=np.float32)
 
 
-def extract(images: list[np.ndarray], *, max_features: int = 8192, first_octave: int | Sequence[int] = 0,
-            peak_threshold: float = 0.002, windows: Sequence[tuple[slice, slice]] | None = None,
-            threads: int = 2) -> list[Features]:
+def extract(images: list[np.ndarray], *, first_octave: int | Sequence[int],
+            windows: Sequence[tuple[slice, slice]] | None = None, config: SpgConfig = SPG_DEFAULTS) -> list[Features]:
     """SIFT features of each image (reflectance-like values, NaN where missing), in full-frame
-    pixels. first_octave (one, or one per image) -1 doubles the image first: more, finer
-    features at about three times the cost per pixel. windows: per image the (lines, samples)
-    slices to search, e.g. where the target is, so that a small target can be doubled cheaply."""
+    pixels, at most `config.max_features` each. first_octave (one, or one per image) -1 doubles
+    the image first: more, finer features at about three times the cost per pixel. windows: per
+    image the (lines, samples) slices to search, e.g. where the target is, so that a small target
+    can be doubled cheaply."""
     octaves = [first_octave] * len(images) if isinstance(first_octave, int) else list(first_octave)
     boxes = windows or [(slice(None), slice(None))] * len(images)
 
     def one(k: int) -> Features:
         options = pycolmap.FeatureExtractionOptions()
         options.num_threads = 1
-        options.sift.max_num_features = max_features
+        options.sift.max_num_features = config.max_features
         options.sift.first_octave = octaves[k]
-        options.sift.peak_threshold = peak_threshold
+        options.sift.peak_threshold = config.peak_threshold
         lines, samples = boxes[k]
         extractor = pycolmap.FeatureExtractor.create(options, device=pycolmap.Device.cpu)
         keypoints, descriptors = extractor.extract_from_float32_array(normalise(images[k][lines, samples]))
@@ -65,7 +66,7 @@ def extract(images: list[np.ndarray], *, max_features: int = 8192, first_octave:
             keypoints = pycolmap.keypoints_from_matrix(rows)
         return Features(xy=rows[:, :2].astype(float) - COLMAP_OFFSET, keypoints=keypoints, descriptors=descriptors)
 
-    with ThreadPoolExecutor(max_workers=threads) as pool:
+    with ThreadPoolExecutor(max_workers=config.threads) as pool:
         return list(pool.map(one, range(len(images))))
 
 
@@ -88,15 +89,15 @@ def _colmap_camera(camera: Camera) -> pycolmap.Camera:
 
 
 def match_guided(a: Features, b: Features, *, camera_a: Camera, pose_a: Pose, camera_b: Camera, pose_b: Pose,
-                 max_error_px: float, max_ratio: float = 0.9, threads: int = 2) -> np.ndarray:
+                 max_error_px: float, config: SpgConfig = SPG_DEFAULTS) -> np.ndarray:
     """Matches (k, 2) of keypoint indices (a, b): mutual nearest descriptors passing the ratio
-    test among the candidates within `max_error_px` (Sampson distance) of the epipolar geometry
+    test (`config.max_ratio`) among the candidates within `max_error_px` (Sampson distance) of the epipolar geometry
     that the poses predict."""
     if len(a.xy) == 0 or len(b.xy) == 0:
         return np.zeros((0, 2), np.int64)
     options = pycolmap.FeatureMatchingOptions()
-    options.num_threads = threads
-    options.sift.max_ratio = max_ratio
+    options.num_threads = config.threads
+    options.sift.max_ratio = config.max_ratio
     matcher = pycolmap.FeatureMatcher.create(options, device=pycolmap.Device.cpu)
     geometry = pycolmap.TwoViewGeometry()
     geometry.config = pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED

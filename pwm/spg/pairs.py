@@ -10,6 +10,7 @@ import numpy as np
 
 from pwm.camera import Camera, project
 from pwm.raytrace import RayTracer
+from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 from pwm.views import View
 
 
@@ -45,8 +46,10 @@ class Footprint:
         return (slice(max(lo[1], 0), min(hi[1], camera.height)), slice(max(lo[0], 0), min(hi[0], camera.width)))
 
 
-def footprints(views: list[View], tracer: RayTracer, *, grid: int = 32) -> list[Footprint]:
-    """Where a `grid` x `grid` lattice of each view's pixels meets the model."""
+def footprints(views: list[View], tracer: RayTracer, *, config: SpgConfig = SPG_DEFAULTS) -> list[Footprint]:
+    """Where a lattice of `config.footprint_grid` x `config.footprint_grid` of each view's pixels
+    meets the model."""
+    grid = config.footprint_grid
     out = []
     for v in views:
         s, line = np.meshgrid(np.linspace(0, v.camera.width - 1, grid), np.linspace(0, v.camera.height - 1, grid))
@@ -75,20 +78,20 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def choose_pairs(views: list[View], prints: list[Footprint], *, min_overlap: float = 0.2,
-                 stereo_deg: tuple[float, float] = (2.0, 50.0), max_sun_deg: float = 25.0,
-                 per_image: int = 6) -> list[Pair]:
-    """Pairs (first < second) that overlap by at least `min_overlap` (of either footprint), see
-    the common ground at a stereo angle within `stereo_deg` (deg) and under Suns at most
-    `max_sun_deg` apart. Each image keeps its `per_image` best partners (by overlap over the
-    Sun angle); a pair stays when either image keeps it. prints: the views' `footprints`."""
+def choose_pairs(views: list[View], prints: list[Footprint], *, config: SpgConfig = SPG_DEFAULTS) -> list[Pair]:
+    """Pairs (first < second) that overlap by at least `config.min_overlap` (of either
+    footprint), see the common ground at a stereo angle within `config.stereo_deg` (deg) and
+    under Suns at most `config.max_sun_deg` apart. Each image keeps its `config.per_image` best
+    partners (by overlap over the Sun angle); a pair stays when either image keeps it. prints:
+    the views' `footprints`."""
+    min_overlap, stereo_deg = config.min_overlap, config.stereo_deg
     candidates: dict[tuple[int, int], Pair] = {}
     for i, fi in enumerate(prints):
         for j in range(i + 1, len(views)):
             if len(fi.points) == 0 or len(prints[j].points) == 0:
                 continue
             sun = _angle_deg(views[i].sun, views[j].sun)
-            if sun > max_sun_deg:
+            if sun > config.max_sun_deg:
                 continue
             seen_ij, seen_ji = _seen_by(fi, views[j]), _seen_by(prints[j], views[i])
             overlap = max(seen_ij.mean(), seen_ji.mean())
@@ -102,5 +105,5 @@ def choose_pairs(views: list[View], prints: list[Footprint], *, min_overlap: flo
     for k in range(len(views)):
         mine = [p for key, p in candidates.items() if k in key]
         mine.sort(key=lambda p: p.overlap / (1.0 + p.sun_deg / 10.0), reverse=True)
-        kept.update((p.first, p.second) for p in mine[:per_image])
+        kept.update((p.first, p.second) for p in mine[:config.per_image])
     return [candidates[key] for key in sorted(kept)]

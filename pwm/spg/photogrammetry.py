@@ -18,6 +18,7 @@ from pwm.evaluate.distance import ClosestPoint
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.spg.adjustment import bundle_adjust
+from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 from pwm.spg.features import Features, extract, match_guided
 from pwm.spg.pairs import Pair, choose_pairs, footprints
 from pwm.spg.pose_models import PoseModel, free_poses
@@ -27,9 +28,6 @@ from pwm.spg.uncertainty import PoseSigma, image_sigmas, pose_uncertainty, prior
 from pwm.views import View
 
 log = logging.getLogger(__name__)
-
-FOOTPRINT_GRID = 32
-"""Pixels per side of the lattice on which each view's footprint is traced."""
 
 
 @dataclass
@@ -62,34 +60,31 @@ class Matching:
 
 
 def match_views(views: list[View], tracer: RayTracer, *, ranges: np.ndarray | None = None,
-                sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4,
-                los_sigma_px: np.ndarray | None = None, max_features: int = 8192,
-                first_octave: int | None = None, peak_threshold: float = 0.002, per_image: int = 6,
-                max_sun_deg: float = 25.0, double_below: float = 0.25, threads: int = 2) -> Matching:
+                los_sigma_px: np.ndarray | None = None, config: SpgConfig = SPG_DEFAULTS) -> Matching:
     """Choose pairs on the model (`tracer`), extract SIFT features where each view sees the model
-    and match them along the epipolar band the pose knowledge allows.
+    and match them along the epipolar band the pose knowledge allows (los_sigma_px: each view's
+    1-sigma line of sight per axis, px; default: from `config`'s sigmas).
 
-    first_octave None: -1 (images doubled) for views where the model fills less than
-    `double_below` of the frame, so that a small target yields features at its finest scale for
-    little cost, else 0.
+    config.first_octave None: -1 (images doubled) for views where the model fills less than
+    `config.double_below` of the frame, so that a small target yields features at its finest
+    scale for little cost, else 0.
     """
     clock = time.perf_counter()
-    prints = footprints(views, tracer, grid=FOOTPRINT_GRID)
-    pairs = choose_pairs(views, prints, per_image=per_image, max_sun_deg=max_sun_deg)
+    prints = footprints(views, tracer, config=config)
+    pairs = choose_pairs(views, prints, config=config)
     if not pairs:
         raise ValueError("no image pair overlaps with a usable stereo angle and illumination")
     ranges = _ranges(views, tracer) if ranges is None else ranges
-    bands = _bands(views, ranges, sigma_position_km, sigma_pointing_rad, los_sigma_px)
-    windows = [p.window(v.camera, margin_px=max(v.camera.width, v.camera.height) / (FOOTPRINT_GRID - 1))
+    bands = _bands(views, ranges, config, los_sigma_px)
+    windows = [p.window(v.camera, margin_px=max(v.camera.width, v.camera.height) / (config.footprint_grid - 1))
                for p, v in zip(prints, views, strict=True)]
-    if first_octave is None:
+    if config.first_octave is None:
         octaves = [-1 if (w[0].stop - w[0].start) * (w[1].stop - w[1].start)
-                   < double_below * v.camera.width * v.camera.height else 0
+                   < config.double_below * v.camera.width * v.camera.height else 0
                    for w, v in zip(windows, views, strict=True)]
     else:
-        octaves = [first_octave] * len(views)
-    features = extract([v.image for v in views], max_features=max_features, first_octave=octaves,
-                       peak_threshold=peak_threshold, windows=windows, threads=threads)
+        octaves = [config.first_octave] * len(views)
+    features = extract([v.image for v in views], first_octave=octaves, windows=windows, config=config)
     extract_s = time.perf_counter() - clock
     matches = {}
     for p in pairs:
@@ -97,7 +92,7 @@ def match_views(views: list[View], tracer: RayTracer, *, ranges: np.ndarray | No
         band = bands[p.first] + bands[p.second]
         matches[(p.first, p.second)] = match_guided(features[p.first], features[p.second], camera_a=a.camera,
                                                     pose_a=a.pose, camera_b=b.camera, pose_b=b.pose,
-                                                    max_error_px=band, threads=threads)
+                                                    max_error_px=band, config=config)
     return Matching(pairs=pairs, features=features, matches=matches, ranges=ranges, bands=bands,
                     extract_s=extract_s, match_s=time.perf_counter() - clock - extract_s)
 
@@ -117,18 +112,16 @@ class PoseAdjustment:
     stats: dict
 
 
-def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None = None,
-                 sigma_position_km: float = 1e-3, sigma_pointing_rad: float = 1e-4, max_features: int = 8192,
-                 first_octave: int | None = None, per_image: int = 6, max_sun_deg: float = 25.0,
-                 model_tolerance_px: float = 30.0, max_residual_px: float = 3.0, anchor: bool = False,
-                 landmarks: Tracks | None = None, threads: int = 2) -> PoseAdjustment:
+def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None = None, anchor: bool = False,
+                 landmarks: Tracks | None = None, config: SpgConfig = SPG_DEFAULTS) -> PoseAdjustment:
     """Match `views` on `model` and adjust their poses (pwm.spg.adjustment.bundle_adjust).
 
     pose_model: what the adjustment may change (pwm.spg.pose_models; default: every image free,
-    with priors sigma_position_km and sigma_pointing_rad per axis); its prior line of sight sizes
-    each view's matching band. model_tolerance_px: how far (in pixels of the image) a
-    triangulated point may lie from `model` along its line of sight before it counts as a
-    mismatch. first_octave: see `match_views`.
+    with priors config.sigma_position_km and config.sigma_pointing_rad per axis); its prior line
+    of sight sizes each view's matching band. config.model_tolerance_px: how far (in pixels of
+    the image) a triangulated point may lie from `model` along its line of sight before it
+    counts as a mismatch; observations whose residual exceeds config.max_residual_px are left
+    out and the adjustment made again. The matching's settings: see `match_views`.
 
     anchor: tie the block to `model`. A shift of every camera and point together leaves the
     images as they are, so only the priors place the block; when `model` is a shape to keep (not
@@ -144,15 +137,15 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
     """
     clock = time.perf_counter()
     if pose_model is None:
-        pose_model = free_poses(len(views), sigma_position_km=sigma_position_km, sigma_pointing_rad=sigma_pointing_rad)
+        pose_model = free_poses(len(views), sigma_position_km=config.sigma_position_km,
+                                sigma_pointing_rad=config.sigma_pointing_rad)
     tracer = RayTracer(model)
     cameras, poses = [v.camera for v in views], [v.pose for v in views]
     ranges = _ranges(views, tracer)
     prior_los = np.array([s.los_px for s in prior_sigmas(pose_model, cameras, poses, ranges)]) / np.sqrt(2)  # per axis
     stats: dict = {}
     try:
-        m = match_views(views, tracer, ranges=ranges, los_sigma_px=prior_los, max_features=max_features,
-                        first_octave=first_octave, per_image=per_image, max_sun_deg=max_sun_deg, threads=threads)
+        m = match_views(views, tracer, ranges=ranges, los_sigma_px=prior_los, config=config)
     except ValueError:
         if landmarks is None or landmarks.n_points == 0:
             raise
@@ -165,7 +158,7 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
                  time.perf_counter() - clock)
         tracks = build_tracks(m.matches, [f.xy for f in m.features])
         if tracks.n_points:
-            tracks = _consistent(tracks, cameras, poses, tracer, ranges, m.bands, model_tolerance_px)
+            tracks = _consistent(tracks, cameras, poses, tracer, ranges, m.bands, config.model_tolerance_px)
     stats["feature_tracks"] = tracks.n_points
     if landmarks is not None:
         stats["landmarks"] = landmarks.n_points
@@ -173,18 +166,19 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
     if tracks.n_points == 0:
         raise ValueError("no feature track is consistent with the model and the pose knowledge")
     points, _ = triangulate(tracks, cameras, poses)
-    adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model)
-    keep = adjusted.residuals_px <= max_residual_px
+    adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model, config=config)
+    keep = adjusted.residuals_px <= config.max_residual_px
     if not keep.all():
         # once more without the mismatches, which the Huber weights only damped
         tracks = tracks.subset(keep)
         points, _ = triangulate(tracks, cameras, poses)
-        adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model)
+        adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model, config=config)
     positions, rotations = adjusted.position_corrections, adjusted.rotation_corrections
     final = [corrected_pose(p, positions[i], rotations[i]) for i, p in enumerate(poses)]
     points, angles = triangulate(tracks, cameras, final)
     if anchor:
-        measured, measured_covariance = anchor_shift(points[angles >= np.radians(ANCHOR_MIN_ANGLE_DEG) / 2], model)
+        anchoring = angles >= np.radians(config.anchor_min_angle_deg) / 2
+        measured, measured_covariance = anchor_shift(points[anchoring], model, config=config)
         # weighed against what the adjustment knows of the block's place: the covariance of the
         # images' mean position correction
         noise = max(float(np.sqrt(np.mean(adjusted.residuals_px**2))), 0.1) / np.sqrt(2)
@@ -215,24 +209,18 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
 
 
 def stereo_photogrammetry(views: list[View], previous: Mesh, *, pose_model: PoseModel | None = None,
-                          sigma_position_km: float = 1e-3,
-                          sigma_pointing_rad: float = 1e-4, max_features: int = 8192, first_octave: int | None = None,
-                          per_image: int = 6, max_sun_deg: float = 25.0, model_tolerance_px: float = 30.0,
-                          min_angle_deg: float = 2.0, max_residual_px: float = 3.0, from_figure: bool = False,
-                          threads: int = 2) -> SpgResult:
+                          from_figure: bool = False, config: SpgConfig = SPG_DEFAULTS) -> SpgResult:
     """The photogrammetric model and pose corrections from `views`, starting from `previous`:
     `adjust_poses` (pose_model: what it may change, by default every image free with
-    sigma_position_km and sigma_pointing_rad, the 1-sigma navigation knowledge per axis), then a
-    surface through the points seen at a stereo angle of at least min_angle_deg: `previous` moved
-    towards the points near them (fit_surface), or, from_figure (`previous` is only the body's
-    reference figure, no model yet), the points interpolated over the whole of it (fit_figure)."""
+    config.sigma_position_km and config.sigma_pointing_rad, the 1-sigma navigation knowledge per
+    axis), then a surface through the points seen at a stereo angle of at least
+    config.min_angle_deg: `previous` moved towards the points near them (fit_surface), or,
+    from_figure (`previous` is only the body's reference figure, no model yet), the points
+    interpolated over the whole of it (fit_figure)."""
     clock = time.perf_counter()
-    adjusted = adjust_poses(views, previous, pose_model=pose_model, sigma_position_km=sigma_position_km,
-                            sigma_pointing_rad=sigma_pointing_rad, max_features=max_features,
-                            first_octave=first_octave, per_image=per_image, max_sun_deg=max_sun_deg,
-                            model_tolerance_px=model_tolerance_px, max_residual_px=max_residual_px, threads=threads)
+    adjusted = adjust_poses(views, previous, pose_model=pose_model, config=config)
     stats = adjusted.stats
-    good_point = adjusted.angles >= np.radians(min_angle_deg) / 2
+    good_point = adjusted.angles >= np.radians(config.min_angle_deg) / 2
     points = adjusted.points[good_point]
     stats["points"] = int(good_point.sum())
     spacing = point_spacing(points)
@@ -248,22 +236,21 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, pose_model: Pose
 
 MIN_SCATTER_KM = 1e-6  # the anchor's pairs are never taken to fit better than a millimetre
 UNCONSTRAINED_KM2 = 1e6  # the variance of a shift no normal constrains
-ANCHOR_MIN_ANGLE_DEG = 2.0
-"""Points seen at a narrower stereo angle are too far off along their rays to anchor the block."""
 
 
-def anchor_shift(points: np.ndarray, model: Mesh, *, iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+def anchor_shift(points: np.ndarray, model: Mesh, *,
+                 config: SpgConfig = SPG_DEFAULTS) -> tuple[np.ndarray, np.ndarray]:
     """The shift (km) that moves `points` onto `model` (point to plane, the shift alone),
     leaving out the worst fifth of the pairs (mismatches, and relief the model lacks), and its
     covariance (km^2): the pairs' scatter through the normals they constrain (a direction no
     normal constrains, a plane's sliding, keeps a zero shift of vast variance) plus half the
     model's local edge length in every direction, since a model places nothing more finely
-    than it is sampled."""
+    than it is sampled. At most config.anchor_iterations steps."""
     shift = np.zeros(3)
     if len(points) < 6:
         return shift, np.eye(3)
     surface = ClosestPoint(model)
-    for _ in range(iterations):
+    for _ in range(config.anchor_iterations):
         distance, closest, face = surface.query(points + shift)
         keep = distance <= 2.0 * np.quantile(distance, 0.8)
         normals = surface.face_normals[face[keep]]
@@ -296,11 +283,11 @@ def _ranges(views: list[View], tracer: RayTracer) -> np.ndarray:
     return np.where(hits.hit, hits.t, np.linalg.norm(origins, axis=1))
 
 
-def _bands(views: list[View], ranges: np.ndarray, sigma_position_km: float, sigma_pointing_rad: float,
-           los_sigma_px: np.ndarray | None) -> np.ndarray:
-    """Per view, three sigma of the image displacement its pose knowledge allows (px), plus one."""
+def _bands(views: list[View], ranges: np.ndarray, config: SpgConfig, los_sigma_px: np.ndarray | None) -> np.ndarray:
+    """Per view, three sigma of the image displacement its pose knowledge allows (px), plus one:
+    from los_sigma_px, else from config's sigmas."""
     if los_sigma_px is None:
-        los_sigma_px = np.array([v.camera.fx * float(np.hypot(sigma_position_km / r, sigma_pointing_rad))
+        los_sigma_px = np.array([v.camera.fx * float(np.hypot(config.sigma_position_km / r, config.sigma_pointing_rad))
                                  for v, r in zip(views, ranges, strict=True)])
     return 1.0 + 3.0 * np.asarray(los_sigma_px, float)
 

@@ -10,16 +10,27 @@ from pathlib import Path
 import typer
 
 from pwm.camera import PoseCorrection
+from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 from service.cli.app import BODY_FRAME, INSTRUMENT, TARGET, app, downlink_report, downlink_views, finite, setup_logging
 
-# options both commands take
-SIGMA_POINTING = typer.Option(1e-4, parser=finite(ge=0.0), help="pointing knowledge, 1 sigma per axis, rad")
-MAX_FEATURES = typer.Option(8192, min=64, help="SIFT features per image at most")
-FIRST_OCTAVE = typer.Option(None, min=-1, max=1,
+# options both commands take, their defaults pwm.spg.config's
+SIGMA_POSITION_M = SPG_DEFAULTS.sigma_position_km * 1e3
+SIGMA_POINTING = typer.Option(SPG_DEFAULTS.sigma_pointing_rad, parser=finite(ge=0.0),
+                              help="pointing knowledge, 1 sigma per axis, rad")
+MAX_FEATURES = typer.Option(SPG_DEFAULTS.max_features, min=64, help="SIFT features per image at most")
+FIRST_OCTAVE = typer.Option(SPG_DEFAULTS.first_octave, min=-1, max=1,
                             help="SIFT first octave: -1 doubles the images (more features, ~3x slower); "
-                                 "default -1 where the target fills under a quarter of the frame, else 0")
-PER_IMAGE = typer.Option(6, min=1, help="stereo partners matched per image")
-THREADS = typer.Option(2, min=1, help="threads for extraction and matching")
+                                 f"default -1 where the target fills under {SPG_DEFAULTS.double_below:.0%} of the "
+                                 "frame, else 0")
+PER_IMAGE = typer.Option(SPG_DEFAULTS.per_image, min=1, help="stereo partners matched per image")
+THREADS = typer.Option(SPG_DEFAULTS.threads, min=1, help="threads for extraction and matching")
+
+
+def spg_config(*, sigma_position_m: float, sigma_pointing_rad: float, max_features: int, first_octave: int | None,
+               per_image: int, threads: int) -> SpgConfig:
+    """The photogrammetry's settings from the options (the rest at their defaults)."""
+    return SpgConfig(sigma_position_km=sigma_position_m * 1e-3, sigma_pointing_rad=sigma_pointing_rad,
+                     max_features=max_features, first_octave=first_octave, per_image=per_image, threads=threads)
 
 
 def write_corrections(path: Path, corrections: dict[str, PoseCorrection], *, body_frame: str) -> None:
@@ -42,7 +53,7 @@ def spg(
     start: Path = typer.Option(..., exists=True, dir_okay=False,
                                help="previous shape model (.obj/.ply, km, body-fixed): fills where points are missing"),
     out: Path = typer.Option(..., help="output directory: spg.ply, spg.obj, corrections.json, spg.json"),
-    sigma_position: float = typer.Option(1.0, parser=finite(ge=0.0),
+    sigma_position: float = typer.Option(SIGMA_POSITION_M, parser=finite(ge=0.0),
                                          help="navigation position knowledge, 1 sigma per axis, m"),
     sigma_pointing: float = SIGMA_POINTING,
     max_features: int = MAX_FEATURES,
@@ -61,10 +72,9 @@ def spg(
     setup_logging(verbose)
     read = downlink_views(downlink, instrument=instrument, target=target, body_frame=body_frame)
     views = read.views
-    result = stereo_photogrammetry(views, read_mesh(start), sigma_position_km=sigma_position * 1e-3,
-                                   sigma_pointing_rad=sigma_pointing,
-                                   max_features=max_features, first_octave=first_octave, per_image=per_image,
-                                   threads=threads)
+    config = spg_config(sigma_position_m=sigma_position, sigma_pointing_rad=sigma_pointing, max_features=max_features,
+                        first_octave=first_octave, per_image=per_image, threads=threads)
+    result = stereo_photogrammetry(views, read_mesh(start), config=config)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "spg.ply", result.mesh)
     write_obj(out / "spg.obj", result.mesh)
@@ -78,7 +88,7 @@ def spg(
 
 @app.command(name="spg-catalog")
 def spg_catalog(
-    sigma_position: float = typer.Option(1.0, parser=finite(ge=0.0),
+    sigma_position: float = typer.Option(SIGMA_POSITION_M, parser=finite(ge=0.0),
                                          help="pose knowledge about the images' current poses, 1 sigma per axis, m"),
     sigma_pointing: float = SIGMA_POINTING,
     max_features: int = MAX_FEATURES,
@@ -96,12 +106,10 @@ def spg_catalog(
 
     setup_logging(verbose)
     settings = get_settings()
+    config = spg_config(sigma_position_m=sigma_position, sigma_pointing_rad=sigma_pointing, max_features=max_features,
+                        first_octave=first_octave, per_image=per_image, threads=threads)
     try:
-        number = photogrammetry_version(open_catalog(settings), data_dir=settings.data_dir,
-                                        sigma_position_km=sigma_position * 1e-3,
-                                        sigma_pointing_rad=sigma_pointing, max_features=max_features,
-                                        first_octave=first_octave,
-                                        per_image=per_image, threads=threads)
+        number = photogrammetry_version(open_catalog(settings), data_dir=settings.data_dir, config=config)
     except (LookupError, ValueError) as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(1) from None

@@ -8,34 +8,19 @@ import errno
 import re
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
-from typer.testing import CliRunner
 
 from pwm.io.dsk import write_dsk
 from pwm.io.icq import icq_to_mesh, mesh_to_icq, read_icq, write_icq
 from pwm.io.meshio import read_shape_model, write_obj, write_ply
 from pwm.mesh import Mesh
 from service.cli import app
-from service.settings import get_settings
 
 PWM = Path(sys.executable).with_name("pwm")
-
-
-@pytest.fixture
-def pwm(tmp_path, monkeypatch) -> Iterator[CliRunner]:
-    """A runner of `pwm` on a new SQLite catalog in tmp_path/data, the settings read afresh."""
-    for variable in ("PWM_DATABASE_URL", "PWM_REFINE_PASSES", "PWM_CORS_ORIGINS",
-                     "PWM_EXPORT_CACHE_BYTES", "PWM_REFINE_MODE", "PWM_BROKER_URL"):
-        monkeypatch.delenv(variable, raising=False)
-    monkeypatch.setenv("PWM_DATA_DIR", str(tmp_path / "data"))
-    get_settings.cache_clear()
-    yield CliRunner()
-    get_settings.cache_clear()
 
 
 def _said(output: str) -> str:
