@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import fcntl
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -11,6 +11,7 @@ from typing import Any
 from alembic import command
 from alembic.config import Config
 from sqlalchemy import URL, Connection, Engine, create_engine, event, make_url, text
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, sessionmaker
 
 # The repository's top-level migrations/ folder; the package is installed editable next to it.
@@ -19,6 +20,23 @@ MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 SQLITE_BUSY_TIMEOUT_MS = 30_000
 # The PostgreSQL advisory lock key that serializes migrations (any fixed 64-bit number: "pwm").
 MIGRATION_LOCK_KEY = 0x70776D
+
+
+_INSERTS: dict[str, Callable[..., postgresql.Insert | sqlite.Insert]] = {
+    "postgresql": postgresql.insert, "sqlite": sqlite.insert}
+
+
+def insert_ignoring_conflict(session: Session, table: type, *, unique: Sequence[Any],
+                             **values: Any) -> postgresql.Insert | sqlite.Insert:
+    """INSERT of `values` into `table` that does nothing where a row with the same `unique`
+    columns exists (ON CONFLICT DO NOTHING), rather than select-then-insert: concurrent first
+    inserts never fail on the unique key, the loser reads the winner's row, and on SQLite the
+    write lock is taken before the row is read. NotImplementedError on another database."""
+    dialect = session.get_bind().dialect.name
+    insert = _INSERTS.get(dialect)
+    if insert is None:
+        raise NotImplementedError(f"the catalog needs PostgreSQL or SQLite, not {dialect}")
+    return insert(table).values(**values).on_conflict_do_nothing(index_elements=list(unique))
 
 
 def normalize_url(url: str | URL) -> URL:

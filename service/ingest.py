@@ -49,7 +49,6 @@ from typing import Any, cast
 
 import spiceypy as sp
 from sqlalchemy import CursorResult, Engine, or_, select, update
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -69,7 +68,7 @@ from pwm.io.spice_geometry import ABCORR, camera_from_kernel, ellipsoid_of, inst
 from pwm.io.spice_kernels import KernelError, kernel_pool
 from pwm.mesh import Mesh
 from service.coverage import CoverageReport, unweighed_images, update_coverage
-from service.db import make_sessionmaker, session_scope
+from service.db import insert_ignoring_conflict, make_sessionmaker, session_scope
 from service.kernels import (
     KernelOutcome,
     KernelScope,
@@ -114,8 +113,6 @@ _VID = re.compile(r"\d+\.\d+")
 # Files of a downlink that are neither kernels nor products, and are expected: its manifest
 # and the start model service.run imports (START_MODEL_NAME).
 _DELIVERY_FILES = frozenset({"manifest.json", "start_model.obj"})
-_INSERT_IGNORING_CONFLICT: dict[str, Any] = {"postgresql": postgresql.insert,
-                                             "sqlite": sqlite.insert}
 _WAIT_S = 1.0  # how often an ingest waiting for another's downlink looks again
 
 
@@ -416,11 +413,10 @@ def _downlink(session: Session, directory: Path, name: str | None) -> tuple[Down
         name = next(n for n in (directory.name if i == 0 else f"{directory.name}-{i + 1}"
                                 for i in range(len(taken) + 1)) if n not in taken)
     # Inserted unless a concurrent ingest just did: two first ingests share one row.
-    insert = _INSERT_IGNORING_CONFLICT[session.get_bind().dialect.name]
-    session.execute(insert(Downlink).values(
-        name=name, path=str(directory), manifest_sha256=digest, received_at=utcnow(),
-        status=DownlinkStatus.RECEIVED, repeat_count=0, last_seen_at=utcnow())
-        .on_conflict_do_nothing(index_elements=[Downlink.name]))
+    session.execute(insert_ignoring_conflict(
+        session, Downlink, unique=[Downlink.name], name=name, path=str(directory),
+        manifest_sha256=digest, received_at=utcnow(), status=DownlinkStatus.RECEIVED,
+        repeat_count=0, last_seen_at=utcnow()))
     return session.scalars(select(Downlink).filter_by(name=name)
                            .execution_options(populate_existing=True)).one(), True
 
@@ -618,13 +614,12 @@ class _Catalog:
         source, note = _focal_source(naif_id, camera.fx)
         with sp.no_found_check():
             name, found = sp.bodc2n(naif_id)
-        insert = _INSERT_IGNORING_CONFLICT[self.session.get_bind().dialect.name]
-        self.session.execute(insert(Instrument).values(
-            naif_id=naif_id, name=name if found else str(naif_id),
-            spacecraft_id=spacecraft_of(naif_id), frame_name=instrument_frame(naif_id),
-            width_px=camera.width, height_px=camera.height, fx_px=camera.fx, fy_px=camera.fy,
-            cx_px=camera.cx, cy_px=camera.cy, focal_length_source=source, units_note=note)
-            .on_conflict_do_nothing(index_elements=[Instrument.naif_id]))
+        self.session.execute(insert_ignoring_conflict(
+            self.session, Instrument, unique=[Instrument.naif_id], naif_id=naif_id,
+            name=name if found else str(naif_id), spacecraft_id=spacecraft_of(naif_id),
+            frame_name=instrument_frame(naif_id), width_px=camera.width,
+            height_px=camera.height, fx_px=camera.fx, fy_px=camera.fy, cx_px=camera.cx,
+            cy_px=camera.cy, focal_length_source=source, units_note=note))
         return self.session.scalars(select(Instrument).filter_by(naif_id=naif_id)
                                     .execution_options(populate_existing=True)).one()
 

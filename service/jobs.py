@@ -34,19 +34,17 @@ from __future__ import annotations
 
 import enum
 import re
-from collections.abc import Callable, Collection, Iterable
+from collections.abc import Collection, Iterable
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any, Protocol, cast
 
 from sqlalchemy import ColumnElement, CursorResult, and_, func, or_, select, update
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.db import insert_ignoring_conflict
 from service.models import Job, JobKind, JobStatus, Maplet, MapletRevision, utcnow
 
-_INSERT_IGNORING_CONFLICT: dict[str, Callable[..., postgresql.Insert | sqlite.Insert]] = {
-    "postgresql": postgresql.insert, "sqlite": sqlite.insert}
 # An absolute path in a message: a quoted one whole (it may hold spaces), else from a slash at
 # the start or after a space, bracket or `=` up to the next space, quote or bracket.
 _ABSOLUTE_PATH = re.compile(r"(?<=')/[^']*(?=')|(?<=\")/[^\"]*(?=\")"
@@ -383,16 +381,8 @@ def error_reason(error: str | None) -> str | None:
 
 def _insert_if_missing(session: Session, *, kind: JobKind, key: str, downlink_id: int | None,
                        maplet_id: int | None) -> None:
-    # INSERT .. ON CONFLICT DO NOTHING rather than select-then-insert: concurrent first
-    # deliveries never fail on the unique key, and on SQLite the write lock is taken before
-    # the row is read.
-    dialect = session.get_bind().dialect.name
-    insert = _INSERT_IGNORING_CONFLICT.get(dialect)
-    if insert is None:
-        raise NotImplementedError(f"jobs need PostgreSQL or SQLite, not {dialect}")
-    session.execute(insert(Job).values(kind=kind, key=key, downlink_id=downlink_id,
-                                       maplet_id=maplet_id)
-                    .on_conflict_do_nothing(index_elements=[Job.key]))
+    session.execute(insert_ignoring_conflict(session, Job, unique=[Job.key], kind=kind, key=key,
+                                             downlink_id=downlink_id, maplet_id=maplet_id))
 
 
 def _last_sign_of_life(job: Job) -> datetime | None:

@@ -39,7 +39,6 @@ from typing import Any, cast
 
 import spiceypy as sp
 from sqlalchemy import CursorResult, Select, and_, delete, func, select, update
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
 from pwm.io.kernel_checks import (
@@ -60,6 +59,7 @@ from pwm.io.spice_kernels import (
     metakernel_files,
     spice_message,
 )
+from service.db import insert_ignoring_conflict
 from service.models import (
     Acceptance,
     Downlink,
@@ -345,8 +345,6 @@ _LOADED_KINDS = frozenset({KernelKind.LSK, KernelKind.SCLK, KernelKind.PCK, Kern
                            KernelKind.IK})
 _POOL_KINDS = _LOADED_KINDS | {KernelKind.MK}
 _IN_USE = and_(Kernel.status == Acceptance.ACCEPTED, Kernel.retired_at.is_(None))
-_INSERT_IGNORING_CONFLICT: dict[str, Any] = {"postgresql": postgresql.insert,
-                                             "sqlite": sqlite.insert}
 
 
 def _reload(paths: list[Path]) -> None:
@@ -433,10 +431,9 @@ def _judge(session: Session, path: Path, kind: KernelKind, digest: str, row: Ker
 def _insert_or_get(session: Session, digest: str, **values: Any) -> tuple[Kernel, bool]:
     """The kernel row of `digest`, inserted with `values` unless another ingest did first;
     and whether this one inserted it."""
-    insert = _INSERT_IGNORING_CONFLICT[session.get_bind().dialect.name]
-    inserted = session.execute(insert(Kernel).values(sha256=digest, **values)
-                               .on_conflict_do_nothing(index_elements=[Kernel.sha256])
-                               .returning(Kernel.id)).scalar_one_or_none()
+    inserted = session.execute(insert_ignoring_conflict(
+        session, Kernel, unique=[Kernel.sha256], sha256=digest, **values)
+        .returning(Kernel.id)).scalar_one_or_none()
     return _fresh(session, digest), inserted is not None
 
 
@@ -447,11 +444,9 @@ def _fresh(session: Session, digest: str) -> Kernel:
 
 def _delivered(session: Session, kernel_id: int, downlink_id: int, path: Path) -> None:
     """Record that the downlink delivered the kernel (once per downlink)."""
-    insert = _INSERT_IGNORING_CONFLICT[session.get_bind().dialect.name]
-    session.execute(insert(KernelDelivery).values(kernel_id=kernel_id, downlink_id=downlink_id,
-                                                  path=str(path))
-                    .on_conflict_do_nothing(index_elements=[KernelDelivery.kernel_id,
-                                                            KernelDelivery.downlink_id]))
+    session.execute(insert_ignoring_conflict(
+        session, KernelDelivery, unique=[KernelDelivery.kernel_id, KernelDelivery.downlink_id],
+        kernel_id=kernel_id, downlink_id=downlink_id, path=str(path)))
 
 
 # ---------------------------------------------------------------------------------------------
