@@ -22,7 +22,7 @@ from pwm.simulate.truth import load as load_truth
 from pwm.tiling import sample_heights, tile
 from service.catalog import open_catalog
 from service.cli import app
-from service.models import Image, ImageStatus
+from service.rows import Image, ImageStatus
 from service.settings import get_settings
 
 # one pass over a small region keeps the refinement to seconds

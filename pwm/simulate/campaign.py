@@ -18,8 +18,8 @@ import numpy as np
 import spiceypy as sp
 
 from pwm.camera import Camera, Pose
-from pwm.frames import local_sun
-from pwm.io.meshio import read_obj, write_obj
+from pwm.frames import local_sun, unit_to_latlon
+from pwm.io.meshio import write_obj
 from pwm.io.pds4 import file_sha256, write_image_product
 from pwm.io.spice_geometry import camera_from_kernel, camera_pose, instrument_frame, spacecraft_of, sun_direction
 from pwm.io.spice_kernels import (
@@ -40,9 +40,9 @@ from pwm.render import render_supersampled
 from pwm.simulate.detector import choose_exposure, to_dn
 from pwm.simulate.knowledge import manifest_entries, perturb
 from pwm.simulate.landforms import Clearing, Landform, apply_landforms, sample_landforms
-from pwm.simulate.missions import MISSIONS, SHAPES_DIR, Mission
+from pwm.simulate.missions import MISSIONS, Mission
 from pwm.simulate.optics import blur, flat_field
-from pwm.simulate.plan import Observation, plan_global, plan_site, sun_states
+from pwm.simulate.plan import Observation, frame_room_px, plan_approach, plan_global, plan_site, sun_states
 from pwm.simulate.scenarios import Campaign, Scenario
 from pwm.simulate.truth import (
     SiteSpec,
@@ -66,6 +66,7 @@ OPTICS_STREAM = 21  # the random stream of the camera's flat field
 KNOWLEDGE_STREAM = 22  # the random stream of navigation-like knowledge errors
 CAMPAIGN_STREAM = 23  # a campaign's downlinks each draw from their own stream
 LANDFORM_STREAM = 24  # the craters and boulders over a campaign's body
+SKY_MARGIN = 0.05  # an approach survey's body stays this fraction of the half frame clear of its edges
 
 
 def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
@@ -82,7 +83,7 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
     """
     out = Path(out)
     clock = time.perf_counter()
-    base = read_obj(SHAPES_DIR / MISSIONS[scenario.mission].shape)
+    base = MISSIONS[scenario.mission].base_shape()
     log.info("building the truth asteroid (%s)", scenario.name)
     truth = build_truth(
         base=base, site_lat_deg=scenario.site_lat_deg, site_lon_deg=scenario.site_lon_deg,
@@ -112,7 +113,7 @@ def simulate_campaign(out: str | Path, *, campaign: Campaign, seed: int = 0, kno
     out = Path(out)
     clock = time.perf_counter()
     survey = campaign.survey
-    base = read_obj(SHAPES_DIR / MISSIONS[survey.mission].shape)
+    base = MISSIONS[survey.mission].base_shape()
     log.info("building the campaign's truth asteroid (%s)", campaign.name)
     body = build_base(base, base_edge_km=survey.base_edge_km, seed=seed, global_roughness_km=survey.global_roughness_km)
     sites = [SiteSpec(lat_deg=s.site_lat_deg, lon_deg=s.site_lon_deg, size_km=s.site_size_km,
@@ -172,8 +173,7 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
     clock = time.perf_counter()
     mission = MISSIONS[scenario.mission]
     fixed = _copy_fixed_kernels(downlink / "kernels", mission)
-    if mission.write_kernels is not None:
-        fixed += mission.write_kernels(downlink / "kernels")
+    fixed += mission.made_up_kernels(downlink / "kernels")
 
     with kernel_pool(fixed):
         detector = camera_from_kernel(scenario.instrument_id)
@@ -183,7 +183,7 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
         sun_spk = downlink / "kernels" / "spk" / f"pwm_{scenario.name}_sun.bsp"
         _write_sun(sun_spk, scenario=scenario, start_et=start_et, campaign_s=campaign_s)
         sp.furnsh(str(sun_spk))
-        observations, validation = _plan(scenario, truth=truth, camera=detector, start_et=start_et,
+        observations, validation = _plan(scenario, truth=truth, camera=camera, start_et=start_et,
                                          campaign_s=campaign_s, rng=rng)
         _apart(observations + validation)
         for obs in observations + validation:
@@ -244,6 +244,7 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
         "scenario": scenario.model_dump(mode="json"),
         "seed": seed,
         "gsd_m": scenario.gsd_km * 1e3,
+        "base_shape": {"file": mission.shape, "scale": mission.scale},
         "image_count": len(images),
         "knowledge_error": drawn[0],
         "subframe": None if window is None else {"first_line": window[0], "first_sample": window[1]},
@@ -321,9 +322,19 @@ def _plan(scenario: Scenario, *, truth: Truth, camera: Camera, start_et: float, 
 
     range_km = scenario.gsd_km * camera.fx
     if scenario.global_views:
-        radius = float(np.linalg.norm(truth.mesh.vertices, axis=1).mean())
-        kw: dict[str, Any] = dict(sun=sun, campaign_s=campaign_s, range_km=range_km + radius,
+        radii = np.linalg.norm(truth.mesh.vertices, axis=1)
+        kw: dict[str, Any] = dict(sun=sun, campaign_s=campaign_s, range_km=range_km + float(radii.mean()),
                                   phases_deg=scenario.incidences_deg, rng=rng)
+        if scenario.survey_latitudes_deg:
+            room = frame_room_px(camera, range_km=kw["range_km"], radius_km=float(radii.max()))
+            if room < SKY_MARGIN * min(camera.width, camera.height) / 2:
+                raise ValueError(f"{scenario.name}: at {scenario.gsd_km * 1e3:g} m GSD the body, {radii.max():.3f} "
+                                 f"km from its centre at most, does not fit in the {camera.width}x{camera.height} px "
+                                 f"frame with sky round it ({room:.0f} px to spare)")
+            kw["latitudes_deg"] = scenario.survey_latitudes_deg
+            return (plan_approach(start_et=start_et, n=scenario.n_azimuths, prefix="img", **kw),
+                    plan_approach(start_et=start_et + 0.37 * 86400.0, n=scenario.n_validation, prefix="val",
+                                  rounds=1, **kw))
         return (plan_global(start_et=start_et, n=scenario.n_azimuths, prefix="img", **kw),
                 plan_global(start_et=start_et + 0.37 * 86400.0, n=scenario.n_validation, prefix="val", **kw))
     views = [(0.0, 0.0)] * scenario.n_nadir + scenario.off_nadir_views()
@@ -455,14 +466,19 @@ def _write_product(directory: Path, *, obs: Observation, view: np.ndarray, scena
 
 
 def _true_geometry(obs: Observation, *, pose: Pose, sun: np.ndarray, truth: Truth, camera: Camera) -> dict:
-    """The geometry the proving ground knows: true pose, Sun, and angles at the site centre."""
+    """The geometry the proving ground knows: true pose, Sun, the sub-spacecraft point and phase
+    angle at the body centre, and angles at the site centre."""
     frame = truth.site_frame
     incidence, sun_az = local_sun(sun, frame)
     to_cam = pose.position - frame.origin
     rng_km = float(np.linalg.norm(to_cam))
     emission = float(np.degrees(np.arccos(np.clip(to_cam @ frame.normal / rng_km, -1, 1))))
     phase = float(np.degrees(np.arccos(np.clip(to_cam @ sun / rng_km, -1, 1))))
+    lat, lon = unit_to_latlon(pose.position)
+    body_phase = np.degrees(np.arccos(np.clip(pose.position @ sun / np.linalg.norm(pose.position), -1, 1)))
     return {"position_km": pose.position.tolist(), "rotation": pose.rotation.tolist(), "sun_direction": sun.tolist(),
+            "sub_spacecraft_lat_deg": float(lat), "sub_spacecraft_lon_deg": float(lon),
+            "phase_deg": float(body_phase),
             "site_incidence_deg": float(incidence), "site_sun_azimuth_deg": float(sun_az),
             "site_emission_deg": emission,
             "site_phase_deg": phase, "site_range_km": rng_km, "site_gsd_m": rng_km / camera.fx * 1e3}

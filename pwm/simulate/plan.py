@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pwm.camera import look_at
-from pwm.frames import LocalFrame, local_sun
+from pwm.camera import Camera, look_at
+from pwm.frames import LocalFrame, latlon_to_unit, local_sun
 
 AU_KM = 149_597_870.7
 SunFunction = Callable[[np.ndarray], np.ndarray]
@@ -112,3 +112,46 @@ def plan_global(*, sun: SunFunction, start_et: float, campaign_s: float, range_k
         pose = look_at(range_km * direction, np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
         obs.append(Observation(f"{prefix}{k:03d}", et, pose.position, pose.rotation, 0.0, 0.0, float(np.degrees(g))))
     return obs
+
+
+def plan_approach(*, sun: SunFunction, start_et: float, campaign_s: float, range_km: float, n: int,
+                  latitudes_deg: tuple[float, ...], phases_deg: tuple[float, ...], rng: np.random.Generator,
+                  prefix: str, rounds: int = 2, search_s: float = 6 * 3600.0, step_s: float = 60.0,
+                  ) -> list[Observation]:
+    """Whole-body images as an approach survey takes them: the camera looks at the body centre
+    from sub-spacecraft longitudes stepped evenly round the body `rounds` times (each round
+    between the last's, from a random first longitude), at latitudes cycling through
+    latitudes_deg. Image k is taken within search_s (a rotation or more) of its slot,
+    campaign_s * k / n after start_et, when the phase angle comes closest to the next of
+    phases_deg, the Sun alternately east and west of the view; where the latitude rules that
+    phase out (it is at least the angle between the view's and the Sun's latitudes), at the
+    closest one it allows."""
+    per_round = -(-n // rounds)
+    step = 360.0 / per_round
+    first = rng.uniform(0.0, step)
+    obs = []
+    for k in range(n):
+        lon = first + step * (k % per_round) + step * (k // per_round) / rounds
+        lat = latitudes_deg[k % len(latitudes_deg)]
+        direction = latlon_to_unit(lat, lon)
+        ets = start_et + campaign_s * k / n + np.arange(0.0, search_s, step_s)
+        s = sun(ets)
+        phase = np.degrees(np.arccos(np.clip(s @ direction, -1.0, 1.0)))
+        east = np.cross([0.0, 0.0, 1.0], direction)
+        side = (s @ east > 0) == (k % 2 == 0)
+        cost = np.abs(phase - phases_deg[k % len(phases_deg)])
+        best = int(np.argmin(np.where(side, cost, np.inf) if side.any() else cost))
+        pose = look_at(range_km * direction, np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
+        obs.append(Observation(f"{prefix}{k:03d}", float(ets[best]), pose.position, pose.rotation, 0.0, 0.0,
+                               float(phase[best])))
+    return obs
+
+
+def frame_room_px(camera: Camera, *, range_km: float, radius_km: float) -> float:
+    """Pixels between the outline of a sphere of radius_km about the boresight's aim point, seen
+    from range_km, and the nearest edge of the camera's frame (negative: it does not fit)."""
+    if range_km <= radius_km:
+        return -np.inf
+    outline = camera.fx * radius_km / np.sqrt(range_km**2 - radius_km**2)
+    edges = (camera.cx + 0.5, camera.cy + 0.5, camera.width - camera.cx - 0.5, camera.height - camera.cy - 0.5)
+    return float(min(edges) - outline)

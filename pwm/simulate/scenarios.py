@@ -8,6 +8,7 @@ from datetime import datetime, timedelta
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from pwm.photometry import PHOTOMETRY
+from pwm.simulate.missions import MISSIONS
 from pwm.simulate.optics import Optics
 
 MAPCAM = -64361
@@ -40,6 +41,10 @@ class Scenario(BaseModel):
     cobble_cover: float = Field(0.8, description="fraction of the site strewn with 0.3-3 m rocks")
 
     global_views: bool = Field(False, description="look at the whole body instead of a site")
+    survey_latitudes_deg: tuple[float, ...] = Field(
+        (), description="global views as an approach takes them (pwm.simulate.plan.plan_approach): the whole body "
+                        "in frame, every longitude twice, at sub-spacecraft latitudes cycling through these; "
+                        "none: views placed about the Sun (plan_global)")
     n_nadir: int = 6
     emissions_deg: tuple[float, ...] = (20.0, 32.0, 45.0)
     n_azimuths: int = 8
@@ -76,6 +81,20 @@ class Scenario(BaseModel):
         shortest, longest = self.start_error_band_m
         if not 0 < shortest < longest:
             raise ValueError(f"start_error_band_m must be 0 < shortest < longest, not {self.start_error_band_m}")
+        return self
+
+    @model_validator(mode="after")
+    def _approach_of_a_known_body(self) -> Scenario:
+        if self.survey_latitudes_deg and not self.global_views:
+            raise ValueError("survey_latitudes_deg plans global views: set global_views")
+        if any(abs(lat) >= 80.0 for lat in self.survey_latitudes_deg):
+            raise ValueError("survey latitudes must lie within 80 deg of the equator (the views keep north up)")
+        if self.mission not in MISSIONS:
+            raise ValueError(f"unknown mission {self.mission!r}; choose one of {', '.join(MISSIONS)}")
+        body = MISSIONS[self.mission].body
+        if body is not None and (self.target, self.body_frame) != (body.name, body.frame):
+            raise ValueError(f"mission {self.mission} writes the kernels of {body.name} in {body.frame}, "
+                             f"not of {self.target} in {self.body_frame}")
         return self
 
     @property
@@ -158,6 +177,55 @@ SCENARIOS: dict[str, Scenario] = {
             global_views=True, n_nadir=0, emissions_deg=(0.0,), n_azimuths=12, subframe_px=320,
             incidences_deg=(30.0, 50.0), n_validation=1, campaign_days=5.0,
         ),
+        # Bodies far from their ellipsoid (issue 45), surveyed as an approach would: the PCK's
+        # ellipsoid (the shape's half extents) misses their surface by many survey GSDs.
+        Scenario(
+            name="castalia-survey",
+            description="an approach survey of a contact binary: Castalia's radar shape at a third of its size "
+                        "(0.54 km long, Bennu's length, so Bennu's landforms and survey costs carry over), 36 "
+                        "MapCam images of 1024 px with the whole body in frame at 1.5 m GSD (about 360 px long), "
+                        "every longitude twice, latitudes -45 to +45, phase 20-70 deg; a 0.54 m truth with 0.5 m "
+                        "roughness",
+            mission="osiris-rex-castalia", target="CASTALIA", body_frame="CASTALIA_FIXED",
+            site_lat_deg=10.0, site_lon_deg=20.0, site_size_km=0.05,
+            gsd_km=1.5e-3, truth_resolution_km=1.0e-4, base_edge_km=6.0e-4, global_roughness_km=5.0e-4,
+            global_views=True, survey_latitudes_deg=(-45.0, -15.0, 15.0, 45.0), n_nadir=0, emissions_deg=(0.0,),
+            n_azimuths=36, incidences_deg=(20.0, 30.0, 40.0, 50.0, 60.0, 70.0), n_validation=4,
+            campaign_days=10.0,
+        ),
+        Scenario(
+            name="castalia-tiny",
+            description="castalia-survey's design for tests, seconds: 12 images of the whole body at 2.5 m GSD "
+                        "through a 320 px detector window, over a coarse truth (2.2 m)",
+            mission="osiris-rex-castalia", target="CASTALIA", body_frame="CASTALIA_FIXED",
+            site_lat_deg=10.0, site_lon_deg=20.0, site_size_km=0.05,
+            gsd_km=2.5e-3, truth_resolution_km=2.5e-4, base_edge_km=2.5e-3, global_roughness_km=1.0e-3,
+            global_views=True, survey_latitudes_deg=(-45.0, -15.0, 15.0, 45.0), n_nadir=0, emissions_deg=(0.0,),
+            n_azimuths=12, subframe_px=320, incidences_deg=(20.0, 45.0, 70.0), n_validation=1, campaign_days=5.0,
+        ),
+        Scenario(
+            name="eros-survey",
+            description="an approach survey of an elongated body with a saddle: Eros's SPC shape at a twentieth of "
+                        "its size (1.63 km long: the GSD stays in metres, whole in MapCam's frame), 36 images of "
+                        "1024 px at 3.5 m GSD (about 470 px long), every longitude twice, latitudes -45 to +45, "
+                        "phase 20-70 deg; a 1.3 m truth with 1 m roughness",
+            mission="osiris-rex-eros", target="EROS", body_frame="EROS_FIXED",
+            site_lat_deg=10.0, site_lon_deg=90.0, site_size_km=0.1,
+            gsd_km=3.5e-3, truth_resolution_km=2.0e-4, base_edge_km=1.3e-3, global_roughness_km=1.0e-3,
+            global_views=True, survey_latitudes_deg=(-45.0, -15.0, 15.0, 45.0), n_nadir=0, emissions_deg=(0.0,),
+            n_azimuths=36, incidences_deg=(20.0, 30.0, 40.0, 50.0, 60.0, 70.0), n_validation=4,
+            campaign_days=10.0,
+        ),
+        Scenario(
+            name="eros-tiny",
+            description="eros-survey's design for tests, seconds: 12 images of the whole body at 7 m GSD through a "
+                        "320 px detector window, over a coarse truth (5.1 m)",
+            mission="osiris-rex-eros", target="EROS", body_frame="EROS_FIXED",
+            site_lat_deg=10.0, site_lon_deg=90.0, site_size_km=0.1,
+            gsd_km=7.0e-3, truth_resolution_km=5.0e-4, base_edge_km=6.0e-3, global_roughness_km=2.0e-3,
+            global_views=True, survey_latitudes_deg=(-45.0, -15.0, 15.0, 45.0), n_nadir=0, emissions_deg=(0.0,),
+            n_azimuths=12, subframe_px=320, incidences_deg=(20.0, 45.0, 70.0), n_validation=1, campaign_days=5.0,
+        ),
     ]
 }
 
@@ -232,6 +300,30 @@ CAMPAIGNS: dict[str, Campaign] = {
                    _campaign_part("tiny", name="campaign-tiny-site-b", start_utc="2019-03-20T00:00:00",
                                   site_lat_deg=-30.0, site_lon_deg=200.0)),
             craters=6, crater_diameter_m=(20.0, 60.0), boulders=8, steep_boulders=2, boulder_diameter_m=(12.0, 30.0),
+        ),
+        Campaign(
+            name="campaign-castalia",
+            description="castalia-survey (36 images, 1.5 m GSD) of a Castalia with the Bennu campaign's craters and "
+                        "boulders at Bennu's density (20 craters of 10-80 m, 40 boulders of 6-30 m), then site's "
+                        "reconnaissance (10 cm GSD) on the end of a lobe",
+            survey=_campaign_part("castalia-survey", name="campaign-castalia-survey"),
+            sites=(_campaign_part("site", name="campaign-castalia-site", mission="osiris-rex-castalia",
+                                  target="CASTALIA", body_frame="CASTALIA_FIXED", start_utc="2019-03-20T00:00:00",
+                                  site_lat_deg=10.0, site_lon_deg=20.0),),
+            craters=20, crater_diameter_m=(10.0, 80.0), boulders=40, steep_boulders=10,
+            boulder_diameter_m=(6.0, 30.0),
+        ),
+        Campaign(
+            name="campaign-eros",
+            description="eros-survey (36 images, 3.5 m GSD) of an Eros with craters and boulders at the Bennu "
+                        "campaign's density and sizes in survey GSD (35 craters of 18-140 m, 70 boulders of "
+                        "10-50 m), then site's reconnaissance (10 cm GSD) on the flank of the long axis",
+            survey=_campaign_part("eros-survey", name="campaign-eros-survey"),
+            sites=(_campaign_part("site", name="campaign-eros-site", mission="osiris-rex-eros", target="EROS",
+                                  body_frame="EROS_FIXED", start_utc="2019-03-20T00:00:00", site_lat_deg=10.0,
+                                  site_lon_deg=90.0),),
+            craters=35, crater_diameter_m=(18.0, 140.0), boulders=70, steep_boulders=18,
+            boulder_diameter_m=(10.0, 50.0),
         ),
     ]
 }

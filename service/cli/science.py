@@ -59,8 +59,10 @@ def _start_error(value: str) -> dict:
 def simulate(
     out: Path = typer.Argument(..., help="output directory (downlink/ and truth/ are written in it)"),
     scenario: str = typer.Option("tiny", help="tiny | ryugu-tiny | site | site-hard | site-polar | global-coarse "
-                                              "| global-tiny; or a campaign of downlinks in time order under "
-                                              "OUT/downlinks/: campaign | campaign-tiny"),
+                                              "| global-tiny | castalia-survey | castalia-tiny | eros-survey | "
+                                              "eros-tiny; or a campaign of downlinks in time order under "
+                                              "OUT/downlinks/: campaign | campaign-tiny | campaign-castalia | "
+                                              "campaign-eros"),
     seed: int = typer.Option(0, min=0, help="random seed: the same seed gives the same products"),
     knowledge_error: str | None = typer.Option(
         None, help="errors of the kernels' poses (the images are rendered from the truth). POS_M,POINT_RAD: "
