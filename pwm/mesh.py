@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 
 @dataclass
@@ -78,6 +80,15 @@ def compact(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     used = np.zeros(n_vertices, dtype=bool)
     used[faces] = True
     return used, (np.cumsum(used) - 1)[faces]
+
+
+def largest_piece(n_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """Mask of the faces of the largest edge-connected piece (by faces)."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
+    _, labels = connected_components(graph, directed=False)
+    face_label = labels[faces[:, 0]]
+    return face_label == np.bincount(face_label).argmax()
 
 
 def surface_points(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:

@@ -30,14 +30,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from pwm.fusion import VoxelGrid, edge_taper, fill_gaps
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh, compact
+from pwm.mesh import Mesh, compact, largest_piece
 from pwm.raytrace import RayTracer
 from pwm.voxels import SparseSums, pack, sum_by_key, unpack
 from pwm.weights import raised_cosine
@@ -207,7 +205,7 @@ class DistanceGrid(SparseSums):
         vertices, faces, albedo = _extract(sums)
         if not len(faces):
             raise ValueError("the fused distances have no zero crossing")
-        used, faces = compact(len(vertices), faces[_largest_piece(len(vertices), faces)])
+        used, faces = compact(len(vertices), faces[largest_piece(len(vertices), faces)])
         vertices, albedo = vertices[used], albedo[used]
         return Mesh(vertices * self.voxel_km, faces,
                     None if np.isnan(albedo).all() else fill_gaps(albedo, vertices))
@@ -361,12 +359,3 @@ def _interpolate(values: np.ndarray, at: np.ndarray) -> np.ndarray:
     t = frac.max(axis=1)
     out = np.where(np.isnan(a), b, np.where(np.isnan(b), a, (1 - t) * a + t * b))
     return out
-
-
-def _largest_piece(n_vertices: int, faces: np.ndarray) -> np.ndarray:
-    """Mask of the faces of the largest edge-connected piece (by faces)."""
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
-    _, labels = connected_components(graph, directed=False)
-    face_label = labels[faces[:, 0]]
-    return face_label == np.bincount(face_label).argmax()

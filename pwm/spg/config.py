@@ -8,7 +8,47 @@ Each function of pwm.spg that uses a setting takes the whole configuration (`con
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class HullConfig:
+    """How a body's visual hull is carved from its outlines (pwm.spg.hull)."""
+
+    # a pixel is lit above this share of the way from the image's background to its bright end
+    lit_fraction: float = 0.05
+    # the percentiles of an image's values taken for its background and its bright end
+    background_percentile: float = 1.0
+    bright_percentile: float = 99.5
+    # pixels about a lit one never taken for space (blur, a limb's partial pixels), besides the pose's 3 sigma
+    margin_px: float = 1.0
+    # a cell fewer views than this have in frame is not kept (nothing says it is the body)
+    min_views: int = 3
+    # the finest lattice step, in the views' finest ground samples
+    cell_gsd: float = 1.0
+    # lattice cells a side at the coarsest level, and at most at the finest
+    coarse_cells: int = 32
+    max_cells: int = 256
+    # the cube carved, in the body's largest reference radius (its PCK ellipsoid's)
+    bound_radii: float = 1.5
+    # the hull replaces the reference figure where the stereo points lie this many times closer to it (RMS)
+    preference: float = 2.0
+    # a hull larger than this many times the reference figure's volume is taken for a failed carving
+    max_figure_volumes: float = 1.5
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.lit_fraction < 1.0:
+            raise ValueError(f"lit fraction {self.lit_fraction}: between 0 and 1")
+        if not 0.0 <= self.background_percentile < self.bright_percentile <= 100.0:
+            raise ValueError("hull percentiles: 0 <= background < bright <= 100")
+        if self.min_views < 1:
+            raise ValueError(f"{self.min_views} views to keep a hull cell: at least one")
+        if self.coarse_cells < 4 or self.max_cells < self.coarse_cells:
+            raise ValueError(f"hull lattice {self.coarse_cells}..{self.max_cells} cells: at least 4, coarse first")
+        if min(self.preference, self.cell_gsd, self.max_figure_volumes) <= 0 or self.margin_px < 0:
+            raise ValueError("hull preference, cell, margin and volume limit must be positive")
+        if self.bound_radii <= 1.0:
+            raise ValueError(f"a hull bound of {self.bound_radii} radii: over one")
 
 
 @dataclass(frozen=True)
@@ -57,6 +97,8 @@ class SpgConfig:
     tolerance: float = 1e-6
     # threads for feature extraction and matching (no effect on the results)
     threads: int = 2
+    # the visual hull a start from nothing carves before matching (pwm.spg.hull)
+    hull: HullConfig = field(default_factory=HullConfig)
 
     def __post_init__(self) -> None:
         if self.sigma_position_km < 0 or self.sigma_pointing_rad < 0:

@@ -12,6 +12,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import trimesh
 
 from pwm.camera import PoseCorrection, corrected_pose
 from pwm.evaluate.distance import ClosestPoint
@@ -20,6 +21,7 @@ from pwm.raytrace import RayTracer
 from pwm.spg.adjustment import bundle_adjust
 from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 from pwm.spg.features import Features, extract, match_guided
+from pwm.spg.hull import Hull, clip_to, visual_hull
 from pwm.spg.pairs import Pair, choose_pairs, footprints
 from pwm.spg.pose_models import PoseModel, free_poses
 from pwm.spg.surface import at_resolution, fit_figure, fit_surface, point_spacing
@@ -214,24 +216,68 @@ def stereo_photogrammetry(views: list[View], previous: Mesh, *, pose_model: Pose
     `adjust_poses` (pose_model: what it may change, by default every image free with
     config.sigma_position_km and config.sigma_pointing_rad, the 1-sigma navigation knowledge per
     axis), then a surface through the points seen at a stereo angle of at least
-    config.min_angle_deg: `previous` moved towards the points near them (fit_surface), or,
-    from_figure (`previous` is only the body's reference figure, no model yet), the points
-    interpolated over the whole of it (fit_figure)."""
+    config.min_angle_deg: `previous` moved towards the points near them (fit_surface).
+
+    from_figure: `previous` is only the body's reference figure (its PCK ellipsoid), no model
+    yet: the points are interpolated over the whole of a figure (fit_figure). Where the views'
+    visual hull can be made (pwm.spg.hull, carved in config.hull.bound_radii of the figure's
+    largest radius: closed, and no larger than config.hull.max_figure_volumes figures), the
+    matching runs on the hull; the figure interpolated is the hull where the points lie
+    config.hull.preference times closer to it than to the reference figure (RMS; a hull carved by
+    few views is loose between the points, bumps the smooth interpolation cannot take out, so
+    it must be clearly the better figure: a contact binary's ellipsoid bridging the neck and
+    missing the lobes' ends), else the reference figure; and the surface is clipped to the
+    hull, which holds the body.
+    """
     clock = time.perf_counter()
-    adjusted = adjust_poses(views, previous, pose_model=pose_model, config=config)
-    stats = adjusted.stats
+    stats: dict = {}
+    hull = _hull(views, previous, config=config) if from_figure else None
+    if hull is not None:
+        stats.update(hull_cell_km=hull.cell_km, hull_volume_km3=hull.volume_km3, hull_views=hull.carving_views)
+    adjusted = adjust_poses(views, previous if hull is None else hull.mesh, pose_model=pose_model, config=config)
+    stats.update(adjusted.stats)
     good_point = adjusted.angles >= np.radians(config.min_angle_deg) / 2
     points = adjusted.points[good_point]
     stats["points"] = int(good_point.sum())
     spacing = point_spacing(points)
+    if hull is not None:
+        misfit = {name: float(np.sqrt(np.mean(ClosestPoint(shape).query(points)[0] ** 2)))
+                  for name, shape in (("visual hull", hull.mesh), ("reference figure", previous))}
+        stats["figure_misfit_m"] = {name: value * 1e3 for name, value in misfit.items()}
+        closer = misfit["visual hull"] * config.hull.preference < misfit["reference figure"]
+        stats["figure"] = "visual hull" if closer else "reference figure"
+        if closer:
+            previous = hull.mesh
     resampled = at_resolution(previous, 2.0 * spacing, points)
     surface = (fit_figure(resampled, points) if from_figure
                else fit_surface(resampled, points, radius_km=2.0 * spacing))
+    if hull is not None:
+        surface = clip_to(surface, hull.mesh)
     stats.update(point_spacing_km=spacing, surface_vertices=len(surface.vertices), seconds=time.perf_counter() - clock)
     log.info("SPG: %d points at %.2f m spacing, residual %.2f px RMS, %d vertices (%.1f s)", len(points), spacing * 1e3,
              stats["residual_rms_px"], len(surface.vertices), stats["seconds"])
     return SpgResult(mesh=surface, corrections=adjusted.corrections, points=points, pairs=adjusted.pairs, stats=stats,
                      sigmas=adjusted.sigmas)
+
+
+def _volume(mesh: Mesh) -> float:
+    return float(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).volume)
+
+
+def _hull(views: list[View], figure: Mesh, *, config: SpgConfig) -> Hull | None:
+    """The views' visual hull in place of the reference `figure`, or None where it failed: not
+    closed, or larger than config.hull.max_figure_volumes figures (what no outline carved)."""
+    radius = float(np.linalg.norm(figure.vertices, axis=1).max())
+    hull = visual_hull(views, bound_km=config.hull.bound_radii * radius, config=config.hull)
+    if hull is None:
+        log.info("no visual hull: no view carved anything; starting from the reference figure")
+        return None
+    figure_volume = _volume(figure)
+    if not hull.closed or hull.volume_km3 > config.hull.max_figure_volumes * figure_volume:
+        log.info("visual hull of %.4g km^3 against a figure of %.4g km^3 (closed: %s): the outlines do not hold "
+                 "the body; starting from the reference figure", hull.volume_km3, figure_volume, hull.closed)
+        return None
+    return hull
 
 
 MIN_SCATTER_KM = 1e-6  # the anchor's pairs are never taken to fit better than a millimetre
