@@ -50,6 +50,7 @@ from pwm.maplets import MapletGrid  # noqa: E402
 from pwm.simulate.campaign import simulate  # noqa: E402
 from pwm.simulate.scenarios import get_scenario  # noqa: E402
 from pwm.tiling import level_of, tile  # noqa: E402
+from service.conductor import weigh  # noqa: E402
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
 from service.ingest import ingest_directory  # noqa: E402
 from service.queries import images_covering, list_maplets, maplet_coverage, maplets_seen_by  # noqa: E402
@@ -359,14 +360,14 @@ def downlink_into_catalog(url: str, root: Path) -> dict:
             import_model(session, data_dir=root / "data", path=downlink / "start_model.obj")
         clock = time.perf_counter()
         report = ingest_directory(sessions, downlink, shape=shape)
+        coverage = weigh(sessions, shape)
         elapsed = time.perf_counter() - clock
     finally:
         engine.dispose()
-    if report.failed or report.images.accepted != scenario.n_images or report.coverage is None:
+    if report.failed or report.images.accepted != scenario.n_images:
         raise RuntimeError(f"ingest went wrong: {report.summary()}")
-    return {"images": report.images.accepted, "seconds": elapsed, "tiled": report.coverage.maplets_added,
-            "weighed": report.coverage.maplets_weighed, "traced": report.coverage.pairs_traced,
-            "rows": report.coverage.rows_added}
+    return {"images": report.images.accepted, "seconds": elapsed, "tiled": coverage.maplets_added,
+            "weighed": coverage.maplets_weighed, "traced": coverage.pairs_traced, "rows": coverage.rows_added}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ from sqlalchemy import select  # noqa: E402
 
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
 from service.ingest import ingest_directory  # noqa: E402
-from service.models import DownlinkFile, GeometryStatus, Image, ImageStatus, Kernel  # noqa: E402
+from service.rows import DownlinkFile, GeometryStatus, Image, ImageStatus, Kernel  # noqa: E402
 from service.settings import IngestLimits  # noqa: E402
 
 PEAK_LIMIT_BYTES = 1024**3

@@ -37,10 +37,10 @@ def main() -> None:
 
     from pwm.io.downlink import read_downlink
     from pwm.io.meshio import read_mesh
-    from pwm.pipeline import imaged_region, refine_maplet, views_over_maplet
+    from pwm.pipeline import imaged_region, refine_maplet
     from pwm.raytrace import RayTracer
     from pwm.tiling import tile
-    from pwm.weights import weigh_maplet
+    from pwm.weights import views_over_maplet, weigh_maplet
 
     try:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})

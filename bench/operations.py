@@ -46,7 +46,7 @@ from pwm.simulate.campaign import simulate  # noqa: E402
 from pwm.simulate.scenarios import get_scenario  # noqa: E402
 from pwm.simulate.windows import window_downlink  # noqa: E402
 from service.db import make_engine, make_sessionmaker, upgrade  # noqa: E402
-from service.models import Job, JobKind, ModelVersion  # noqa: E402
+from service.rows import Job, JobKind, ModelVersion  # noqa: E402
 from tests import conftest as test_servers  # noqa: E402
 from workers.app import WorkerSettings, make_app  # noqa: E402
 from workers.tasks import ingest_downlink, ingest_key  # noqa: E402

@@ -57,7 +57,7 @@ def catalog_poses(work: Path) -> tuple[dict[str, tuple[Pose, Pose]], dict | None
     of the adjustment."""
     os.environ["PWM_DATA_DIR"] = str(work / "data")
     from service.db import make_engine, make_sessionmaker
-    from service.models import Downlink, Image
+    from service.rows import Downlink, Image
     from service.settings import get_settings
     from service.views import image_pose, kernel_pose
 

@@ -9,7 +9,7 @@ SIM: the simulation (`pwm simulate SIM --scenario site`), whose truth/grid.npz h
 heights on the frame of truth/truth.json. The version is first registered to the truth by ICP over
 the site (pwm.evaluate.report.register_to_truth, as `pwm evaluate` does). For each spacing, its
 surface is sampled on a square grid of that spacing in the truth frame (rays down its z axis,
-service.exports.sample_grid, as the site maps and products are), the truth heights are
+pwm.site.sample_grid, as the site maps and products are), the truth heights are
 interpolated bilinearly at the same nodes, raw and after a box average over the spacing (the
 truth at that resolution: raw, the truth's relief finer than the grid aliases into its slopes),
 and the slope of each is taken the same way: at the nodes (central differences) and over the
@@ -36,9 +36,8 @@ from pwm.evaluate.report import in_site, register_to_truth  # noqa: E402
 from pwm.frames import LocalFrame  # noqa: E402
 from pwm.mesh import Mesh  # noqa: E402
 from pwm.simulate.truth import load as load_truth  # noqa: E402
-from pwm.site import BASELINE_M, slope_deg  # noqa: E402
+from pwm.site import BASELINE_M, sample_grid, slope_deg  # noqa: E402
 from service.catalog import open_catalog  # noqa: E402
-from service.exports import sample_grid  # noqa: E402
 from service.settings import Settings  # noqa: E402
 from service.versions import get_version, version_mesh  # noqa: E402
 

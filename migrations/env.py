@@ -13,7 +13,7 @@ from alembic import context
 from sqlalchemy.engine import Connection
 
 from service.db import make_engine, migration_transaction
-from service.models import Base
+from service.rows import Base
 from service.settings import get_settings
 
 config = context.config

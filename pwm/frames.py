@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +28,12 @@ class LocalFrame:
     @property
     def normal(self) -> np.ndarray:
         return self.rotation[2].copy()
+
+
+def stored_frame(origin_km: Sequence[float] | np.ndarray, rotation: Sequence[float] | np.ndarray) -> LocalFrame:
+    """A frame as a catalog stores it: its origin (km) and its rotation's nine numbers row by row
+    (or its 3 x 3 rows)."""
+    return LocalFrame(origin=np.array(origin_km, dtype=float), rotation=np.asarray(rotation, float).reshape(3, 3))
 
 
 def local_frame(origin: np.ndarray, normal: np.ndarray) -> LocalFrame:

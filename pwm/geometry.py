@@ -2,8 +2,8 @@
 and where the boresight and the four image corners meet the surface, which is the target's
 triaxial ellipsoid or a shape model.
 
-Pure: pwm.io.spice_geometry.observe gives the same geometry from the SPICE kernel pool (PCK
-radii, camera position and Sun at an epoch).
+Pure: the pose and the Sun come from the SPICE kernel pool by pwm.io.resolve.pose_and_sun, the
+target's radii by pwm.io.spice_geometry.ellipsoid_of.
 """
 
 from __future__ import annotations

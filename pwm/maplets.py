@@ -53,3 +53,9 @@ class MapletGrid:
     def nodes_body(self, heights: np.ndarray | None = None) -> np.ndarray:
         """(n, n, 3) body-fixed coordinates of the nodes (km)."""
         return self.frame.to_body(self.nodes_local(heights).reshape(-1, 3)).reshape(self.n, self.n, 3)
+
+
+def flat_grid(name: str, frame: LocalFrame, *, size_km: float, nodes: int) -> MapletGrid:
+    """A maplet of nodes x nodes over the square of side size_km of `frame`, its heights zero
+    (to be sampled from a shape, pwm.tiling.sample_surface): a catalogued maplet's grid."""
+    return MapletGrid(name=name, frame=frame, spacing_km=size_km / (nodes - 1), heights=np.zeros((nodes, nodes)))

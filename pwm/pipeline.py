@@ -28,15 +28,13 @@ from pwm.photoclinometry import MapletImages, Refinement, coarsened, extract, re
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
 from pwm.views import View
-from pwm.visibility import Visibility, node_visibility
 from pwm.weights import (
     RULES,
-    MapletGeometry,
     MapletWeights,
     Rules,
     dark_nodes,
-    maplet_geometry,
     shade,
+    views_over_maplet,
     weigh_maplet,
 )
 
@@ -78,33 +76,6 @@ def maplet_images(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         weights=weights.pixel[keep], region_weight=weights.region,
     )
     return data, weights, keep.tolist()
-
-
-def views_over_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
-                      spacing_km: float | None = None) -> tuple[Visibility, np.ndarray, MapletGeometry]:
-    """Visibility of the maplet's nodes in `views` against the tracer's shape, which nodes fall
-    in each image's frame (K, n*n), and the images' geometry over the maplet. Only the views'
-    camera, pose and Sun are used. spacing_km: the spacing the resolution is judged against
-    (default the maplet's; a subsampled copy of a maplet gives its parent's)."""
-    points = maplet.nodes_body().reshape(-1, 3)
-    normals = maplet.normals_body().reshape(-1, 3)
-    cams = np.array([v.pose.position for v in views])
-    suns = np.array([v.sun for v in views])
-    vis = node_visibility(tracer, points, normals, camera_positions=cams, sun_directions=suns)
-    in_frame = np.array([_in_frame(points, v) for v in views])
-    ranges = np.linalg.norm(cams - maplet.frame.origin, axis=1)
-    scale = ranges / np.array([0.5 * (v.camera.fx + v.camera.fy) for v in views])
-    geom = maplet_geometry(maplet.frame, vis, camera_positions=cams, sun_directions=suns, pixel_scale_km=scale,
-                          spacing_km=maplet.spacing_km if spacing_km is None else spacing_km, in_frame=in_frame)
-    return vis, in_frame, geom
-
-
-def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
-    """Points that project inside the image (half a pixel in from the edges, for interpolation)."""
-    px = project(points, view.camera, view.pose)
-    in_front = view.pose.to_camera(points)[:, 2] > 0
-    return (in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1)
-            & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
 
 
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,

@@ -5,6 +5,10 @@ of the site's mean normal), on a square grid of `spacing_m` between nodes, array
 = [y, x]; NaN where there is no surface. A result is NaN (roughness, relief, slope) where its
 stencil or window reaches a node without data or past the grid's edge.
 
+A site's grid comes from a mesh (`resample_site`, `sample_grid`): the site frame at the surface
+point of a latitude and longitude, the grid at the spacing of the faces there, each node where a
+ray down the frame's z first meets the surface (pwm.sampling).
+
 Slope, roughness and relief of a site are taken over one baseline: the least-squares plane
 fitted over a square window of that side about each node gives the slope (its tilt), the
 roughness (the RMS residual about it) and the relief (the height above it). The baseline is the
@@ -14,14 +18,82 @@ spacing (central differences, no baseline) are what the evaluation uses to find 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import correlate, uniform_filter
 
+from pwm.frames import LocalFrame, latlon_to_unit, local_frame
+from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
+from pwm.sampling import drop_rays
+
 BASELINE_M = 1.0
 """Side (m) of the square window a plane is fitted over for slope, roughness and relief, by
 default."""
+
+
+@dataclass(frozen=True)
+class SiteGrid:
+    """Heights (km, along the frame's z) and albedo on the regular grid x_km, y_km of the site
+    frame; arrays (ny, nx), NaN where the surface is not found or has no albedo."""
+
+    frame: LocalFrame
+    x_km: np.ndarray
+    y_km: np.ndarray
+    height_km: np.ndarray
+    albedo: np.ndarray
+
+
+def resample_site(mesh: Mesh, *, lat_deg: float, lon_deg: float, radius_km: float,
+                  max_half_nodes: int) -> SiteGrid:
+    """Resample `mesh` (km, body-fixed) on a square grid about the site at planetocentric
+    latitude and east longitude (deg).
+
+    The site frame's origin is the outermost surface point along the site's radial line; its
+    z axis the area-weighted mean normal of the faces within radius_km of it (x east, y north,
+    pwm.frames.local_frame); the grid spacing the mean edge of those faces, at most
+    2 max_half_nodes + 1 nodes a side, spanning +-radius_km. Each node is where a ray down
+    the frame's z axis first meets the surface (`sample_grid`). ValueError if the radial line
+    misses.
+    """
+    tracer = RayTracer(mesh)
+    reach = 2.0 * float(np.linalg.norm(mesh.vertices, axis=1).max())
+    direction = latlon_to_unit(lat_deg, lon_deg)
+    down = tracer.intersect((reach * direction)[None], -direction[None])
+    if not down.hit[0]:
+        raise ValueError(f"no surface along latitude {lat_deg}, longitude {lon_deg}")
+    origin = tracer.hit_points((reach * direction)[None], -direction[None], down)[0]
+    corners = mesh.vertices[mesh.faces]
+    near = np.linalg.norm(corners.mean(axis=1) - origin, axis=1) <= radius_km
+    near[down.face[0]] = True
+    normals = np.cross(corners[near, 1] - corners[near, 0], corners[near, 2] - corners[near, 0])
+    frame = local_frame(origin, normals.sum(axis=0))
+    edge = float(np.linalg.norm(corners[near] - np.roll(corners[near], 1, axis=1), axis=2).mean())
+    half = min(max_half_nodes, max(1, math.ceil(radius_km / edge)))
+    axis = np.linspace(-radius_km, radius_km, 2 * half + 1)
+    return sample_grid(mesh, frame, axis, axis)
+
+
+def sample_grid(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray) -> SiteGrid:
+    """The heights and albedo of `mesh` at the nodes x_km, y_km of `frame`: where a ray down the
+    frame's z axis first meets the surface (NaN where it misses). ValueError when no vertex lies
+    within the grid's reach of the frame's z axis."""
+    tracer = RayTracer(mesh)
+    # Rays start above everything within the grid's horizontal reach, so the first hit is the top.
+    local = frame.to_local(mesh.vertices)
+    reach = 1.5 * max(np.abs(x_km).max(), np.abs(y_km).max())
+    beside = np.hypot(local[:, 0], local[:, 1]) <= reach
+    if not beside.any():
+        raise ValueError("the grid lies beside the surface")
+    top = float(local[beside, 2].max()) + 1e-3 * reach
+    xx, yy = np.meshgrid(x_km, y_km)
+    hits, height = drop_rays(tracer, frame, xx.ravel(), yy.ravel(), top_km=top, on_facets=True)
+    albedo = (np.where(hits.hit, tracer.interpolate(mesh.albedo, hits), np.nan)
+              if mesh.albedo is not None else np.full(len(height), np.nan))
+    return SiteGrid(frame=frame, x_km=np.asarray(x_km), y_km=np.asarray(y_km),
+                    height_km=height.reshape(xx.shape), albedo=albedo.reshape(xx.shape))
 
 
 @dataclass(frozen=True)

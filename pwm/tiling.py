@@ -25,7 +25,7 @@ angles in degrees.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -36,7 +36,8 @@ from scipy.spatial import cKDTree
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame, unit_to_latlon
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
-from pwm.raytrace import Hits, RayTracer
+from pwm.raytrace import RayTracer
+from pwm.sampling import drop_rays
 
 COVERAGE_SAMPLES_PER_SIDE = 20
 """Surface samples per maplet side used to check, and complete, the coverage."""
@@ -261,24 +262,11 @@ def _span_km(frame: LocalFrame, vertices: np.ndarray, half_km: float) -> tuple[f
             max(float(local[over, 2].max(initial=0.0)), half_km) + 0.01 * half_km)
 
 
-def _cast_down(tracer: RayTracer, frame: LocalFrame, x: np.ndarray, y: np.ndarray,
-               span: tuple[float, float]) -> tuple[Hits, np.ndarray]:
-    """First hits of rays cast down the frame's z from the top of span (`_span_km`) at local (x, y),
-    and the heights (km) they meet the surface at. A hit below span's bottom is a miss: a ray
-    through a pinhole of the surface meets the body's far side, hundreds of metres down."""
-    bottom, top = span
-    origins = frame.to_body(np.column_stack([x, y, np.full(len(x), top)]))
-    hits = tracer.intersect(origins, np.broadcast_to(-frame.normal, origins.shape))
-    heights = top - hits.t
-    through = hits.hit & (heights < bottom)
-    hits = replace(hits, face=np.where(through, -1, hits.face), t=np.where(through, np.inf, hits.t))
-    return hits, heights
-
-
 def _drop_points(tracer: RayTracer, frame: LocalFrame, x: np.ndarray, y: np.ndarray,
                  span: tuple[float, float]) -> np.ndarray:
-    """Body-fixed surface points (km) under local (x, y) (`_cast_down`), nan on a miss."""
-    hits, h = _cast_down(tracer, frame, x, y, span)
+    """Body-fixed surface points (km) under local (x, y) within span (`_span_km`), nan on a miss."""
+    bottom, top = span
+    hits, h = drop_rays(tracer, frame, x, y, top_km=top, bottom_km=bottom)
     return np.where(hits.hit[:, None], frame.to_body(np.column_stack([x, y, np.where(hits.hit, h, 0.0)])), np.nan)
 
 
@@ -288,7 +276,8 @@ def _drop(tracer: RayTracer, frame: LocalFrame, axis: np.ndarray, near: np.ndarr
     and the number filled. near: the mesh vertices about the maplet (to bound the surface)."""
     n = len(axis)
     x, y = np.meshgrid(axis, axis)
-    hits, h = _cast_down(tracer, frame, x.ravel(), y.ravel(), _span_km(frame, near, half))
+    bottom, top = _span_km(frame, near, half)
+    hits, h = drop_rays(tracer, frame, x.ravel(), y.ravel(), top_km=top, bottom_km=bottom)
     hit = hits.hit.reshape(n, n)
     if not hit.any():
         raise ValueError(f"no surface under the maplet at {frame.origin} km")

@@ -38,9 +38,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from pwm.camera import project
 from pwm.frames import LocalFrame, local_sun
 from pwm.maplets import MapletGrid
-from pwm.visibility import Visibility
+from pwm.raytrace import RayTracer
+from pwm.views import View
+from pwm.visibility import Visibility, node_visibility
 
 DIRECTIONS = {"east": 90.0, "west": 270.0, "north": 0.0, "south": 180.0}
 """Camera azimuths of the four side views."""
@@ -188,6 +191,33 @@ def maplet_geometry(
         visible_fraction=n_seen / seen.shape[1],
         shadow_fraction=np.where(n_seen > 0, dark / np.maximum(n_seen, 1), 1.0),
     )
+
+
+def views_over_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
+                      spacing_km: float | None = None) -> tuple[Visibility, np.ndarray, MapletGeometry]:
+    """Visibility of the maplet's nodes in `views` against the tracer's shape, which nodes fall
+    in each image's frame (K, n*n), and the images' geometry over the maplet. Only the views'
+    camera, pose and Sun are used. spacing_km: the spacing the resolution is judged against
+    (default the maplet's; a subsampled copy of a maplet gives its parent's)."""
+    points = maplet.nodes_body().reshape(-1, 3)
+    normals = maplet.normals_body().reshape(-1, 3)
+    cams = np.array([v.pose.position for v in views])
+    suns = np.array([v.sun for v in views])
+    vis = node_visibility(tracer, points, normals, camera_positions=cams, sun_directions=suns)
+    in_frame = np.array([_in_frame(points, v) for v in views])
+    ranges = np.linalg.norm(cams - maplet.frame.origin, axis=1)
+    scale = ranges / np.array([0.5 * (v.camera.fx + v.camera.fy) for v in views])
+    geom = maplet_geometry(maplet.frame, vis, camera_positions=cams, sun_directions=suns, pixel_scale_km=scale,
+                          spacing_km=maplet.spacing_km if spacing_km is None else spacing_km, in_frame=in_frame)
+    return vis, in_frame, geom
+
+
+def _in_frame(points: np.ndarray, view: View) -> np.ndarray:
+    """Points that project inside the image (half a pixel in from the edges, for interpolation)."""
+    px = project(points, view.camera, view.pose)
+    in_front = view.pose.to_camera(points)[:, 2] > 0
+    return (in_front & (px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1)
+            & (px[:, 1] >= 0) & (px[:, 1] <= view.camera.height - 1))
 
 
 def raised_cosine(t: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ After a downlink's images are in, and given the current shape model (body-fixed,
    10 cm inside a survey tiled at 2 m gets maplets of its own level (pwm.tiling.level_of),
    nested under the survey's, which stay; places no image sees stay untiled;
 2. every maplet that one of the downlink's images may see is weighed with the refinement's own
-   rules (pwm.pipeline.views_over_maplet, pwm.weights.weigh_images): the new images are traced
+   rules (pwm.weights.views_over_maplet, pwm.weights.weigh_images): the new images are traced
    by Embree against the shape (in frame, not occluded, lit) on a subsample of the maplet's
    nodes, angles at the maplet origin in its frame; the images already catalogued bring their
    stored rows, so that the work grows with the downlink, not with the catalog (a maplet tiled
@@ -35,15 +35,14 @@ from sqlalchemy.orm import Session
 from pwm.camera import project
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.footprints import Samples, footprint_samples, judge_samples, places
-from pwm.frames import LocalFrame, unit_to_latlon
+from pwm.frames import unit_to_latlon
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
-from pwm.pipeline import views_over_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_heights, tile
 from pwm.views import Cones, View
-from pwm.weights import MapletGeometry, weigh_images
-from service.models import Coverage, CoverageRole, Image, Maplet, utcnow
+from pwm.weights import MapletGeometry, views_over_maplet, weigh_images
+from service.rows import Coverage, CoverageRole, Image, Maplet, utcnow
 from service.views import catalog_cones, catalog_views
 
 log = logging.getLogger(__name__)
@@ -242,12 +241,7 @@ def _covered(maplets: Sequence[Sequence[Any]], points: np.ndarray) -> np.ndarray
 
 def _subsample(maplet: Maplet, tracer: RayTracer, sample_nodes: int) -> MapletGrid:
     """The maplet's square on at most sample_nodes x sample_nodes nodes, heights from the shape."""
-    n = min(sample_nodes, maplet.nodes_per_side)
-    frame = LocalFrame(origin=np.array([maplet.origin_x_km, maplet.origin_y_km,
-                                        maplet.origin_z_km]),
-                       rotation=np.asarray(maplet.rotation, float).reshape(3, 3))
-    grid = MapletGrid(name=maplet.name, frame=frame, spacing_km=maplet.size_km / (n - 1),
-                      heights=np.zeros((n, n)))
+    grid = maplet.grid(nodes=min(sample_nodes, maplet.nodes_per_side))
     grid.heights = sample_heights(tracer, grid)
     return grid
 

@@ -1,9 +1,10 @@
 """`pwm diff V1 V2`: how the surface moved from one model version to another (pwm.compare), as
-figures and a latitude/longitude map."""
+figures and a latitude/longitude map; the API's maps kept in the artifact store's cache."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -14,6 +15,8 @@ from sqlalchemy.orm import Session
 from pwm.compare import HeightChange, height_change
 from pwm.frames import unit_to_latlon
 from pwm.mesh import Mesh
+from service.artifacts import cached_artifact, digest
+from service.rows import ModelVersion
 from service.versions import get_version, version_mesh
 
 THRESHOLD_M = 0.01
@@ -62,6 +65,25 @@ def diff_versions(session: Session, *, data_dir: Path, old: int | str, new: int 
                        threshold_m=threshold_m, vertices_changed=int(changed.sum()),
                        area_changed_m2=float(change.area_m2[changed].sum()),
                        png=None if png is None else str(png))
+
+
+def change_map(session: Session, *, data_dir: Path, old: ModelVersion, new: ModelVersion,
+               cache_bytes: int, threshold_m: float = THRESHOLD_M,
+               max_distance_km: float = 0.01) -> dict[str, Any]:
+    """The record of the map (PNG) of `diff_versions`, made once and kept in the artifact
+    store's cache (service.artifacts.cached_artifact; cache_bytes as there). The session's
+    transaction is ended first, so that no connection is held while the map waits for the
+    making lock (making it reads the catalog again)."""
+    key = digest({"diff": [v.artifacts["ply"]["sha256"] for v in (old, new)],
+                  "threshold_m": threshold_m, "max_distance_km": max_distance_km})
+    numbers = old.version, new.version
+
+    def make(path: Path) -> None:
+        diff_versions(session, data_dir=data_dir, old=numbers[0], new=numbers[1], png=path,
+                      threshold_m=threshold_m, max_distance_km=max_distance_km)
+
+    session.rollback()
+    return cached_artifact(data_dir, key, suffix=".png", make=make, cache_bytes=cache_bytes)
 
 
 def _plot(path: Path, mesh: Mesh, change: HeightChange, changed: np.ndarray, *,

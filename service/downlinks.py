@@ -1,10 +1,13 @@
 """Each downlink's outcome: how many of its products were accepted, rejected or in conflict,
 its kernels, the files it offered that are not used, and how often it was delivered; the one
-source of `pwm downlinks` and the API's /downlinks."""
+source of `pwm downlinks` and the API's /downlinks. Also what `pwm downlinks` says of the
+catalog as a whole: the maplets whose current revision was made with another refinement
+configuration, which no downlink re-refines unless asked (service.refinement.stale_maplets)."""
 
 from __future__ import annotations
 
 import enum
+from collections import Counter
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
@@ -12,7 +15,8 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from service.models import Downlink, DownlinkFile, DownlinkStatus, Image, ImageStatus, Kernel
+from pwm.config import RefinementConfig
+from service.rows import Downlink, DownlinkFile, DownlinkStatus, Image, ImageStatus, Kernel, Maplet, MapletRevision
 
 
 class Outcome(enum.StrEnum):
@@ -101,3 +105,41 @@ def downlink_summaries(session: Session, ids: list[int]) -> list[DownlinkSummary
                             images=images.get(d.id, {}), unused_files=unused.get(d.id, 0),
                             model_note=d.model_note, pose_adjustment=d.pose_adjustment)
             for d in rows]
+
+
+@dataclass(frozen=True)
+class ConfigurationNote:
+    """The maplets whose current revision was made with another refinement configuration: how
+    many, the digests they were made with (the most common first) and the present one."""
+
+    maplets: int
+    digests: tuple[str, ...]
+    current: str
+
+    def line(self) -> str:
+        made = ", ".join(f"{d[:12]}..." for d in self.digests)
+        whose, them = ("maplet's current revision was", "it") if self.maplets == 1 else (
+            "maplets' current revisions were", "them")
+        return (f"{self.maplets} {whose} made with another configuration (digest {made}, current "
+                f"{self.current[:12]}...); `pwm refine-catalog --because-config-changed` refines {them}")
+
+
+def other_configurations(session: Session, config: RefinementConfig) -> dict[int, str]:
+    """The maplets whose current revision was made with a configuration other than `config`
+    (by its digest): maplet id -> the digest it was made with. Revisions made before digests
+    were recorded are not among them: their configuration is not known."""
+    return {m: d for m, d in session.execute(
+        select(Maplet.id, MapletRevision.config_digest)
+        .join(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
+        .where(MapletRevision.config_digest.is_not(None),
+               MapletRevision.config_digest != config.digest())) if d is not None}
+
+
+def configuration_note(session: Session, config: RefinementConfig) -> ConfigurationNote | None:
+    """What to tell the operator of the maplets of another configuration than `config`
+    (`other_configurations`); None when there are none."""
+    other = other_configurations(session, config)
+    if not other:
+        return None
+    return ConfigurationNote(maplets=len(other), current=config.digest(),
+                             digests=tuple(d for d, _ in Counter(other.values()).most_common()))

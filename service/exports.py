@@ -10,33 +10,22 @@ and each segment's index sized to its plates; the global DSK is one segment. A s
 sampled from the whole model at the spacing of its faces there, the finest level's.
 
 Every export may be decimated to a requested face count first. An export is made once and kept
-in `<data_dir>/exports/`: the file `<key><suffix>` and its record `<key>.json`, where the key
-hashes the version's mesh checksum with the format and the parameters as asked (so that a
-request already served needs neither SPICE nor a lock). The mesh formats at full resolution are
-the version's own artifacts. What is kept is bounded: once the kept files pass the configured
-bytes, the least recently served ones are removed (they are made again when asked for).
+in the artifact store's cache (service.artifacts.cached_artifact), keyed by the version's mesh
+checksum with the format and the parameters as asked; the mesh formats at full resolution are
+the version's own artifacts.
 
 An export is planned from the catalog first (plan_export) and made without it (make_export), so
-that no database connection is held while a request waits for its turn or while the file is
-made. spiceypy's kernel pool and fast-simplification keep process-global state: making is
-serialised by one lock, and only MAX_QUEUED_EXPORTS requests of a process may wait for it or
-hold it; the others are refused at once (ExportBusy), so that exports never take all the API's
-worker threads.
+that no database connection is held while a request waits for its turn (the cache's making
+lock, which SPICE's kernel pool needs) or while the file is made.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import enum
-import hashlib
-import json
 import math
-import os
-import tempfile
-import threading
 import zipfile
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Iterable
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -49,18 +38,17 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from pwm.decimate import decimate
-from pwm.frames import LocalFrame, latlon_to_unit, local_frame
 from pwm.io.dsk import write_dsk
 from pwm.io.fusion_state import read_composition
 from pwm.io.icq import mesh_to_icq, write_icq
 from pwm.io.meshio import write_obj, write_ply
-from pwm.io.pds4 import file_sha256
 from pwm.io.site_product import write_site_product
 from pwm.io.spice_kernels import kernel_pool
 from pwm.mesh import Mesh
-from pwm.raytrace import RayTracer
+from pwm.site import SiteGrid, resample_site
+from service.artifacts import artifact_mesh, artifact_path, cached_artifact, digest
 from service.kernels import accepted_kernels
-from service.models import (
+from service.rows import (
     Image,
     ImageGeometry,
     ImageStatus,
@@ -69,22 +57,12 @@ from service.models import (
     ModelVersion,
     model_version_downlinks,
 )
-from service.versions import ArtifactError, artifact_mesh, artifact_path
 
-EXPORTS_DIRNAME = "exports"
 # Bump when an export's content changes for the same inputs, so that old cache entries are
 # not served for new requests.
 EXPORT_REVISION = 4
 # The site grid has at most (2 * MAX_SITE_HALF_NODES + 1)^2 nodes.
 MAX_SITE_HALF_NODES = 500
-# Requests of one process that may wait for the making lock or hold it; one more is refused.
-MAX_QUEUED_EXPORTS = 4
-# The longest a queued request waits for the making lock (s) before it is refused.
-EXPORT_WAIT_S = 60.0
-# What a refused request is told to wait before it asks again (s).
-RETRY_AFTER_S = 5
-_PROCESS_GLOBAL = threading.Lock()
-_QUEUE = threading.BoundedSemaphore(MAX_QUEUED_EXPORTS)
 
 
 class ExportFormat(enum.StrEnum):
@@ -111,14 +89,6 @@ MEDIA_TYPES = {ExportFormat.OBJ: "model/obj", ExportFormat.PLY: "application/oct
 
 class ExportError(Exception):
     """The export cannot be made from this version with these parameters."""
-
-
-class ExportBusy(Exception):
-    """Too many exports are being made: ask again after `retry_after_s` (s)."""
-
-    def __init__(self, retry_after_s: int = RETRY_AFTER_S) -> None:
-        super().__init__(f"too many exports are being made; try again in {retry_after_s} s")
-        self.retry_after_s = retry_after_s
 
 
 class Site(BaseModel):
@@ -149,18 +119,6 @@ class Target:
     body_id: int
     name: str
     frame: str
-
-
-@dataclass(frozen=True)
-class SiteGrid:
-    """Heights (km, along the frame's z) and albedo on the regular grid x_km, y_km of the site
-    frame; arrays (ny, nx), NaN where the surface is not found or has no albedo."""
-
-    frame: LocalFrame
-    x_km: np.ndarray
-    y_km: np.ndarray
-    height_km: np.ndarray
-    albedo: np.ndarray
 
 
 def icq_size(faces: int) -> int:
@@ -260,10 +218,10 @@ def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt:
 
 def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
     """The file of an export plan, made and kept on first request (cache_bytes: how many bytes
-    of exports the data directory keeps; see cached_artifact).
+    of derived files the data directory keeps; service.artifacts.cached_artifact).
 
-    Raises ExportError when the export cannot be made, ArtifactError when the version's files
-    are damaged, ExportBusy when too many exports are being made.
+    Raises ExportError when the export cannot be made, service.artifacts.ArtifactError when the
+    version's files are damaged, service.artifacts.CacheBusy when too many files are being made.
     """
     fmt, faces = plan.fmt, plan.faces
     if plan.own is not None:
@@ -296,92 +254,6 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
                       record["sha256"])
 
 
-def cached_artifact(data_dir: Path, key: str, *, suffix: str, make: Callable[[Path], None],
-                    cache_bytes: int | None) -> dict[str, Any]:
-    """The record ({"path", "sha256", "bytes"}) of the file kept for `key` (a hex digest), made
-    by `make(path)` (which writes the file `path`) the first time, or again when it went missing.
-
-    Making holds the process's making lock (so `make` may use SPICE and fast-simplification);
-    of requests that must make their file, MAX_QUEUED_EXPORTS wait for it at most EXPORT_WAIT_S,
-    and the others are refused with ExportBusy. Once made, the least recently served files are
-    removed until the kept ones total at most `cache_bytes` (the new one always stays); None
-    (a process without the service's settings, such as a publication) leaves that to the next
-    request that makes a file.
-    """
-    record = _kept(data_dir, key)
-    if record is not None:
-        return record
-    if not _QUEUE.acquire(blocking=False):
-        raise ExportBusy()
-    try:
-        if not _PROCESS_GLOBAL.acquire(timeout=EXPORT_WAIT_S):
-            raise ExportBusy()
-        try:
-            # made meanwhile by the request this one waited for
-            record = _kept(data_dir, key)
-            if record is None:
-                record = _make_and_keep(data_dir, key, suffix=suffix, make=make)
-                if cache_bytes is not None:
-                    _evict(data_dir, cache_bytes=cache_bytes, keep=key)
-        finally:
-            _PROCESS_GLOBAL.release()
-    finally:
-        _QUEUE.release()
-    return record
-
-
-def _kept(data_dir: Path, key: str) -> dict[str, Any] | None:
-    """The record kept for `key` if its file is there, marked as just served."""
-    index = data_dir / EXPORTS_DIRNAME / f"{key}.json"
-    try:
-        record = json.loads(index.read_text())
-        artifact_path(data_dir, record)
-        os.utime(index)  # the eviction order: least recently served first
-    except (OSError, ValueError, KeyError, TypeError, ArtifactError):
-        return None  # missing, being replaced, or damaged: made again
-    return record
-
-
-def _make_and_keep(data_dir: Path, key: str, *, suffix: str,
-                   make: Callable[[Path], None]) -> dict[str, Any]:
-    directory = data_dir / EXPORTS_DIRNAME
-    with _workspace(data_dir) as scratch:
-        path = scratch / f"export{suffix}"
-        make(path)
-        relative = Path(EXPORTS_DIRNAME) / f"{key}{suffix}"
-        record = {"path": relative.as_posix(), "sha256": file_sha256(path),
-                  "bytes": path.stat().st_size}
-        os.replace(path, data_dir / relative)  # same filesystem: atomic
-        staged = scratch / "index.json"
-        staged.write_text(json.dumps(record))
-        os.replace(staged, directory / f"{key}.json")  # a concurrent reader sees old or new
-    return record
-
-
-def _evict(data_dir: Path, *, cache_bytes: int, keep: str) -> None:
-    """Remove the least recently served kept files, other than `keep`'s, until the kept files
-    total at most cache_bytes. Only files inside the exports folder are removed."""
-    directory = data_dir / EXPORTS_DIRNAME
-    entries = []
-    for index in directory.glob("*.json"):
-        try:
-            record = json.loads(index.read_text())
-            entries.append((index.stat().st_mtime, index, record, int(record["bytes"])))
-        except (OSError, ValueError, KeyError, TypeError):
-            continue  # removed meanwhile by another process, or not a record of ours
-    total = sum(size for *_, size in entries)
-    for _, index, record, size in sorted(entries, key=lambda entry: entry[0]):
-        if total <= cache_bytes:
-            break
-        if index.stem == keep:
-            continue
-        index.unlink(missing_ok=True)
-        file = data_dir / str(record.get("path", ""))
-        if file.parent.resolve() == directory.resolve():
-            file.unlink(missing_ok=True)
-        total -= size
-
-
 def resolve_target(kernels: Iterable[Path], *, body: str | None, frame: str) -> Target:
     """The body-fixed `frame` and the body at its centre (or `body`: NAIF name or ID), known to
     SPICE from its built-in names and the given frame and constants kernels. Raises ExportError
@@ -402,53 +274,15 @@ def resolve_target(kernels: Iterable[Path], *, body: str | None, frame: str) -> 
     return Target(body_id=int(code), name=name if named else str(code), frame=frame)
 
 
-def resample_site(mesh: Mesh, site: Site) -> SiteGrid:
-    """Resample `mesh` (km, body-fixed) on a square grid about a site.
-
-    The site frame's origin is the outermost surface point along the site's radial line; its
-    z axis the area-weighted mean normal of the faces within radius_km of it (x east, y north,
-    pwm.frames.local_frame); the grid spacing the mean edge of those faces, at most
-    2 MAX_SITE_HALF_NODES + 1 nodes a side, spanning +-radius_km. Each node is where a ray down
-    the frame's z axis first meets the surface. Raises ExportError if the radial line misses.
-    """
-    tracer = RayTracer(mesh)
-    reach = 2.0 * float(np.linalg.norm(mesh.vertices, axis=1).max())
-    direction = latlon_to_unit(site.lat_deg, site.lon_deg)
-    down = tracer.intersect((reach * direction)[None], -direction[None])
-    if not down.hit[0]:
-        raise ExportError(f"no surface along latitude {site.lat_deg}, longitude {site.lon_deg}")
-    origin = tracer.hit_points((reach * direction)[None], -direction[None], down)[0]
-    corners = mesh.vertices[mesh.faces]
-    near = np.linalg.norm(corners.mean(axis=1) - origin, axis=1) <= site.radius_km
-    near[down.face[0]] = True
-    normals = np.cross(corners[near, 1] - corners[near, 0], corners[near, 2] - corners[near, 0])
-    frame = local_frame(origin, normals.sum(axis=0))
-    edge = float(np.linalg.norm(corners[near] - np.roll(corners[near], 1, axis=1), axis=2).mean())
-    half = min(MAX_SITE_HALF_NODES, max(1, math.ceil(site.radius_km / edge)))
-    axis = np.linspace(-site.radius_km, site.radius_km, 2 * half + 1)
-    return sample_grid(mesh, frame, axis, axis)
-
-
-def sample_grid(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray) -> SiteGrid:
-    """The heights and albedo of `mesh` at the nodes x_km, y_km of `frame`: where a ray down the
-    frame's z axis first meets the surface (NaN where it misses)."""
-    tracer = RayTracer(mesh)
-    # Rays start above everything within the grid's horizontal reach, so the first hit is the top.
-    local = frame.to_local(mesh.vertices)
-    reach = 1.5 * max(np.abs(x_km).max(), np.abs(y_km).max())
-    beside = np.hypot(local[:, 0], local[:, 1]) <= reach
-    if not beside.any():
-        raise ExportError("the grid lies beside the surface")
-    top = float(local[beside, 2].max()) + 1e-3 * reach
-    xx, yy = np.meshgrid(x_km, y_km)
-    starts = frame.to_body(np.stack([xx, yy, np.full_like(xx, top)], axis=-1).reshape(-1, 3))
-    downward = np.broadcast_to(-frame.normal, starts.shape)
-    hits = tracer.intersect(starts, downward)
-    height = frame.to_local(tracer.hit_points(starts, downward, hits))[:, 2]
-    albedo = (np.where(hits.hit, tracer.interpolate(mesh.albedo, hits), np.nan)
-              if mesh.albedo is not None else np.full(len(starts), np.nan))
-    return SiteGrid(frame=frame, x_km=np.asarray(x_km), y_km=np.asarray(y_km),
-                    height_km=height.reshape(xx.shape), albedo=albedo.reshape(xx.shape))
+def site_grid(mesh: Mesh, site: Site) -> SiteGrid:
+    """`mesh` resampled about the site (pwm.site.resample_site, at most
+    2 MAX_SITE_HALF_NODES + 1 nodes a side), as the site product and the console's site maps
+    take it. Raises ExportError where the site meets no surface."""
+    try:
+        return resample_site(mesh, lat_deg=site.lat_deg, lon_deg=site.lon_deg, radius_km=site.radius_km,
+                             max_half_nodes=MAX_SITE_HALF_NODES)
+    except ValueError as exc:
+        raise ExportError(str(exc)) from exc
 
 
 def _write_icq(path: Path, mesh: Mesh, q: int) -> None:
@@ -475,7 +309,7 @@ def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan, parts: np.ndarray | 
 def _write_site(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
     assert plan.site is not None and plan.time_span is not None  # plan_export sets them
     target = _target(plan)
-    grid = resample_site(mesh, plan.site)
+    grid = site_grid(mesh, plan.site)
     if np.isnan(grid.height_km).all():
         raise ExportError("the site grid meets no surface")
     start, stop = plan.time_span
@@ -534,18 +368,3 @@ def _most_common(session: Session, query: Any) -> Any:
     row = session.execute(select(column, func.count()).group_by(column)
                           .order_by(func.count().desc(), column).limit(1)).first()
     return None if row is None else row[0]
-
-
-@contextmanager
-def _workspace(data_dir: Path) -> Iterator[Path]:
-    """A scratch directory inside the data directory (one filesystem: stored files are renamed,
-    not copied), removed afterwards."""
-    root = data_dir / EXPORTS_DIRNAME / "tmp"
-    root.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=root) as scratch:
-        yield Path(scratch)
-
-
-def digest(value: Any) -> str:
-    """A hex SHA-256 of `value` as canonical JSON: a cache key of parameters."""
-    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()

@@ -4,12 +4,14 @@ viewing geometry of each image.
 Kernels come first (service.kernels). Then every *.xml label is read with
 pwm.io.pds4.read_image_product, inside a kernel pool holding the catalog's accepted kernels, and
 becomes one Image row:
-- accepted with its geometry (pwm.geometry, from the kernel pool by pwm.io.spice_geometry.observe);
-- accepted with geometry unavailable, and why, when the catalog has no kernels at all for its
-  observer (products of other missions, ground telescopes);
-- rejected with a code and a reason: a ProductError code, unknown_instrument, instrument_kernel,
-  unknown_target, outside_coverage (no SPK of the spacecraft or no CK of the camera frames then),
-  geometry (another SPICE failure), bad_time, bad_dimensions (array outside the detector);
+- accepted with its geometry (its label resolved against the kernel pool by pwm.io.resolve,
+  the same resolver as the catalog-free commands', its view by pwm.geometry.view_geometry);
+- accepted with geometry unavailable, and why ("no kernels: ..."), when the resolver refuses it
+  as no_kernels: the catalog has no kernels at all for its observer (products of other
+  missions, ground telescopes, or of kernels still to come);
+- rejected with a code and a reason: a ProductError code, or the resolver's (pwm.io.resolve:
+  bad_time, unknown_instrument, instrument_kernel, unknown_target, geometry, outside_coverage,
+  bad_dimensions);
 - conflict: the LIDVID is catalogued already with other content (label + data sha256); the
   first good copy stays authoritative.
 
@@ -43,7 +45,7 @@ import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from datetime import datetime, timedelta
+from datetime import timedelta
 from pathlib import Path
 from typing import Any, cast
 
@@ -53,33 +55,32 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import Camera
-from pwm.config import DEFAULTS, RefinementConfig
-from pwm.geometry import Ellipsoid, MeshSurface, Surface, ViewGeometry
-from pwm.io.labels import (
-    COVERAGE_ERRORS,
-    exposure_et,
-    exposure_times,
-    instrument_code,
-    observer_code,
-    target_frame,
-)
+from pwm.geometry import Ellipsoid, MeshSurface, Surface, ViewGeometry, view_geometry
 from pwm.io.pds4 import ImageLabel, ProductError, read_array, read_image_label
-from pwm.io.spice_geometry import ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, observe, spacecraft_of
-from pwm.io.spice_kernels import KernelError, kernel_pool
+from pwm.io.resolve import (
+    NO_KERNELS,
+    Exposure,
+    KernelWindows,
+    Refusal,
+    exposure,
+    pose_and_sun,
+    read_once,
+    resolve_label,
+)
+from pwm.io.spice_geometry import ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, spacecraft_of
+from pwm.io.spice_kernels import kernel_pool
 from pwm.mesh import Mesh
-from service.coverage import CoverageReport, unweighed_images, update_coverage
 from service.db import insert_ignoring_conflict, make_sessionmaker, session_scope
 from service.kernels import (
     KernelOutcome,
     KernelScope,
     accepted_kernels,
     coverage_windows,
-    et_to_datetime,
     record_file,
     register_kernels,
     spice_message,
 )
-from service.models import (
+from service.rows import (
     Downlink,
     DownlinkStatus,
     GeometryStatus,
@@ -107,11 +108,11 @@ TRANSFER_CODES = frozenset({"missing_file", "size_mismatch", "md5_mismatch", "tr
 _PROVISIONAL_CODES = TRANSFER_CODES | {UNEXPECTED}
 _UNIDENTIFIED = "unidentified:"
 _HASH_CHUNK = 1 << 20
-# Column sizes of service.models.Image: a LIDVID must leave room for a conflict's suffix.
+# Column sizes of service.rows.Image: a LIDVID must leave room for a conflict's suffix.
 _LIDVID_CHARS, _VID_CHARS, _CONFLICT_SUFFIX = 255, 32, 17
 _VID = re.compile(r"\d+\.\d+")
 # Files of a downlink that are neither kernels nor products, and are expected: its manifest
-# and the start model service.run imports (START_MODEL_NAME).
+# and the start model the conductor imports (service.conductor.START_MODEL_NAME).
 _DELIVERY_FILES = frozenset({"manifest.json", "start_model.obj"})
 _WAIT_S = 1.0  # how often an ingest waiting for another's downlink looks again
 
@@ -144,7 +145,6 @@ class IngestReport:
     geometry_unavailable: int = 0
     failures: list[Failure] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
-    coverage: CoverageReport | None = None
     elapsed_s: float = 0.0
 
     @property
@@ -219,7 +219,7 @@ class _Outcome:
     geometry_reason: str | None = None
     product: ImageLabel | None = None
     instrument_id: int | None = None
-    times: tuple[datetime, datetime, float | None, float | None] | None = None
+    times: Exposure | None = None
     geometry: ImageGeometry | None = None
 
     @property
@@ -241,26 +241,19 @@ class IngestTakenOver(RuntimeError):
     downlink to the other."""
 
 
-class _Rejected(Exception):
-    def __init__(self, code: str, reason: str, instrument_id: int | None = None) -> None:
-        super().__init__(reason)
-        self.code, self.instrument_id = code, instrument_id
-
-
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
                      downlink_name: str | None = None, shape: Mesh | None = None,
-                     config: RefinementConfig = DEFAULTS,
                      limits: IngestLimits | None = None) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
     holds that name); a directory whose manifest.json is a catalogued downlink's is a repeat
     delivery of that downlink (its repeat_count and last_seen_at record it). shape: the current
-    shape model of the target (body-fixed, km); boresight
-    and corner intercepts use it instead of the PCK ellipsoid, and the catalog's images not
-    weighed yet (Image.coverage_computed_at) get their coverage rows against it
-    (service.coverage; maplets tiled there as config says). limits: what is accepted (default
-    service.settings); kernels come only from `directory` and limits.kernel_library.
+    shape model of the target (body-fixed, km); boresight and corner intercepts use it instead
+    of the PCK ellipsoid. The images are catalogued only: weighing them against a model is a
+    later stage's (service.conductor.weigh), once their poses are final. limits: what is
+    accepted (default service.settings); kernels come only from `directory` and
+    limits.kernel_library.
 
     One ingest of a downlink at a time: another waits while the first's claim is live
     (Downlink.ingest_owner, renewed at each commit) and takes it over once its owner is gone or
@@ -292,11 +285,6 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
                 if path not in used and path.name not in _DELIVERY_FILES:
                     _unused(session, report, downlink_id, path, "unknown_type",
                             "neither a SPICE kernel nor a PDS4 label, nor a file a label names")
-        if shape is not None:
-            with _owned(sessions, downlink_id) as session:
-                # A repeated ingest leaves the maplets' inputs as they are.
-                report.coverage = update_coverage(session, shape, image_ids=unweighed_images(session),
-                                                  config=config)
     except BaseException:
         _release(sessions, downlink_id, DownlinkStatus.FAILED)
         raise
@@ -571,15 +559,14 @@ class _Catalog:
                  directory: Path, limits: IngestLimits, manifest: Mapping[Path, _Listed]) -> None:
         self.session, self.downlink_id, self.shape = session, downlink_id, shape
         self.directory, self.limits, self.manifest = directory, limits, manifest
-        self.spk = coverage_windows(session, KernelKind.SPK)
-        self.ck = coverage_windows(session, KernelKind.CK)
+        self.windows = KernelWindows(spk=coverage_windows(session, KernelKind.SPK),
+                                     ck=coverage_windows(session, KernelKind.CK))
         self.instruments: dict[int, Instrument | str] = {
             i.naif_id: i for i in session.scalars(select(Instrument))}
         self.ellipsoids: dict[str, Ellipsoid] = {}
         self.known: dict[tuple[str, str], list[_Known]] = {}
         for lid, vid, known in self._rows(select(Image.lid, Image.vid)):
             self.known.setdefault((lid, vid), []).append(known)
-        self.has_lsk = bool(sp.expool("DELTET/DELTA_AT"))
 
     def _rows(self, query: Any) -> Iterator[tuple[str, str, _Known]]:
         rows = self.session.execute(query.add_columns(
@@ -594,18 +581,13 @@ class _Catalog:
             Image.lid == identity.lid, Image.vid == identity.vid))]
 
     def instrument(self, naif_id: int) -> Instrument:
-        """The catalogued camera of `naif_id`, read from its IK once (_Rejected if unusable)."""
-        if naif_id not in self.instruments:
-            try:
-                self.instruments[naif_id] = self._new_instrument(naif_id)
-            except KernelError as exc:
-                self.instruments[naif_id] = f"instrument {naif_id}: {exc}"
-            except sp.utils.exceptions.SpiceyError as exc:
-                self.instruments[naif_id] = f"instrument {naif_id}: {spice_message(exc)}"
-        found = self.instruments[naif_id]
-        if isinstance(found, str):
-            raise _Rejected("instrument_kernel", found)
-        return found
+        """The catalogued camera of `naif_id`, read from its IK once (Refusal if unusable)."""
+        return read_once(self.instruments, naif_id, self._new_instrument)
+
+    def instrument_row_id(self, naif_id: int | None) -> int | None:
+        """The catalog id of a camera `instrument` gave, None for none."""
+        found = None if naif_id is None else self.instruments.get(naif_id)
+        return found.id if isinstance(found, Instrument) else None
 
     def _new_instrument(self, naif_id: int) -> Instrument:
         """The camera's row, inserted from its kernels unless another ingest has done so since
@@ -897,14 +879,14 @@ def _judge(catalog: _Catalog, label: Path) -> _Outcome:
     except OSError as exc:  # e.g. a file gone since it was hashed
         return _Outcome(ImageStatus.REJECTED, "unreadable", str(exc))
     try:
-        times = _times(product, catalog.has_lsk)
-    except _Rejected as exc:
+        times = exposure(product)
+    except ProductError as exc:
         return _Outcome(ImageStatus.REJECTED, exc.code, str(exc), product=product)
     try:
         outcome = _geometry(catalog, product, times)
-    except _Rejected as exc:
+    except Refusal as exc:
         return _Outcome(ImageStatus.REJECTED, exc.code, str(exc), product=product, times=times,
-                        instrument_id=exc.instrument_id)
+                        instrument_id=catalog.instrument_row_id(exc.instrument_id))
     except sp.utils.exceptions.SpiceyError as exc:  # kernels that resolve names but lack data
         return _Outcome(ImageStatus.REJECTED, "geometry", spice_message(exc), product=product,
                         times=times)
@@ -916,85 +898,31 @@ def _judge(catalog: _Catalog, label: Path) -> _Outcome:
     return outcome
 
 
-def _times(product: ImageLabel, has_lsk: bool
-           ) -> tuple[datetime, datetime, float | None, float | None]:
+def _geometry(catalog: _Catalog, product: ImageLabel, times: Exposure) -> _Outcome:
+    """The product's geometry on the current shape (else the target's ellipsoid), its label
+    resolved against the pool (pwm.io.resolve); accepted without geometry where the catalog has
+    no kernels for its observer, Refusal where they do not resolve it."""
     try:
-        start, stop = exposure_times(product)
-        return (start, stop, *exposure_et(product)) if has_lsk else (start, stop, None, None)
-    except ProductError as exc:
-        raise _Rejected(exc.code, str(exc)) from exc
-
-
-def _covered(windows: list[tuple[float, float]], et: float) -> bool:
-    return any(start <= et <= stop for start, stop in windows)
-
-
-def _geometry(catalog: _Catalog, product: ImageLabel,
-              times: tuple[datetime, datetime, float | None, float | None]) -> _Outcome:
-    host = product.host_name or ""
-    observer = observer_code(host)
-    if observer is None or observer not in catalog.spk:
-        why = ("the label names no host (spacecraft)" if not host else
-               f"observer {host!r} is not a body SPICE knows" if observer is None else
-               f"the catalog has no SPK for observer {host!r} ({observer})")
-        return _Outcome(ImageStatus.ACCEPTED, geometry_reason=f"no kernels: {why}",
-                        product=product, times=times)
-    instrument_id = instrument_code(product, observer)
-    if instrument_id is None:
-        raise _Rejected("unknown_instrument", f"instrument {product.instrument_name!r} of "
-                        f"{host!r} is not an instrument of {observer} in the catalog's kernels")
-    instrument = catalog.instrument(instrument_id)
-    target, body_frame = target_frame(product.target_name)
-    if target is None or body_frame is None:
-        raise _Rejected("unknown_target", f"target {product.target_name!r} is "
-                        + ("not a body SPICE knows" if target is None
-                           else f"{target}, which has no body-fixed frame in the catalog"),
-                        instrument.id)
-    start_et, stop_et = times[2:]
-    if start_et is None or stop_et is None:
-        raise _Rejected("geometry", "the catalog has no leapseconds kernel (LSK)", instrument.id)
-    et = (start_et + stop_et) / 2  # mid-exposure
-    when = f"{sp.et2utc(et, 'ISOC', 3)} UTC (ET {et:.3f})"
-    if not _covered(catalog.spk[observer], et):
-        raise _Rejected("outside_coverage", f"{when} is outside the SPK coverage of observer "
-                        f"{observer}: {_describe(catalog.spk[observer])}", instrument.id)
-    camera = _image_camera(instrument, product)
-    surface = catalog.shape or catalog.ellipsoid(str(target))
-    try:
-        view = observe(et=et, instrument_id=instrument_id, target=str(target),
-                       body_frame=body_frame, camera=camera, surface=surface)
-    except sp.utils.exceptions.SpiceyError as exc:
-        gaps = [f for f, w in catalog.ck.items()
-                if f <= -1000 and spacecraft_of(f) == observer and not _covered(w, et)]
-        if exc.short in COVERAGE_ERRORS or gaps:
-            detail = (f"; no CK data then for frames {', '.join(map(str, sorted(gaps)))}"
-                      if gaps else "")
-            raise _Rejected("outside_coverage", f"no geometry at {when}{detail}: "
-                            f"{spice_message(exc)}", instrument.id) from exc
-        raise _Rejected("geometry", f"no geometry at {when}: {spice_message(exc)}",
-                        instrument.id) from exc
+        image = resolve_label(product, times, windows=catalog.windows,
+                              detector=lambda naif_id: _detector(catalog.instrument(naif_id)))
+    except Refusal as exc:
+        if exc.code != NO_KERNELS:
+            raise
+        return _Outcome(ImageStatus.ACCEPTED, geometry_reason=str(exc), product=product,
+                        times=times)
+    surface = catalog.shape or catalog.ellipsoid(str(image.target))
+    pose, sun = pose_and_sun(image, windows=catalog.windows)
+    view = view_geometry(pose=pose, sun=sun, camera=image.camera, surface=surface)
     return _Outcome(ImageStatus.ACCEPTED, geometry_status=GeometryStatus.COMPUTED,
-                    product=product, instrument_id=instrument.id, times=times,
-                    geometry=_geometry_row(view, body_frame))
+                    product=product, instrument_id=catalog.instrument_row_id(image.instrument_id),
+                    times=times, geometry=_geometry_row(view, image.body_frame))
 
 
-def _describe(windows: list[tuple[float, float]]) -> str:
-    first, last = min(w[0] for w in windows), max(w[1] for w in windows)
-    return (f"{len(windows)} window(s) spanning {et_to_datetime(first).isoformat()} to "
-            f"{et_to_datetime(last).isoformat()}")
-
-
-def _image_camera(instrument: Instrument, product: ImageLabel) -> Camera:
-    """The camera of the product's array: the detector window it covers (img:Subframe; a
-    product without one starts at the detector's first line and sample)."""
-    detector = Camera(width=instrument.width_px, height=instrument.height_px,
-                      fx=instrument.fx_px, fy=instrument.fy_px, cx=instrument.cx_px,
-                      cy=instrument.cy_px)
-    try:
-        return detector.subframe(first_sample=product.first_sample, first_line=product.first_line,
-                                 samples=product.samples, lines=product.lines)
-    except ValueError as exc:
-        raise _Rejected("bad_dimensions", f"{instrument.name}: {exc}", instrument.id) from exc
+def _detector(instrument: Instrument) -> Camera:
+    """The camera of the instrument's whole detector, as the catalog holds it."""
+    return Camera(width=instrument.width_px, height=instrument.height_px,
+                  fx=instrument.fx_px, fy=instrument.fy_px, cx=instrument.cx_px,
+                  cy=instrument.cy_px)
 
 
 def _geometry_row(view: ViewGeometry, body_frame: str) -> ImageGeometry:

@@ -43,7 +43,7 @@ from sqlalchemy import ColumnElement, CursorResult, and_, func, or_, select, upd
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import insert_ignoring_conflict
-from service.models import Job, JobKind, JobStatus, Maplet, MapletRevision, utcnow
+from service.rows import Job, JobKind, JobStatus, Maplet, MapletRevision, utcnow
 
 # An absolute path in a message: a quoted one whole (it may hold spaces), else from a slash at
 # the start or after a space, bracket or `=` up to the next space, quote or bracket.

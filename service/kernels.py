@@ -10,7 +10,7 @@ registered, and the files they name (relative PATH_VALUES resolved against the m
 SPICE does) are registered too, ahead of the other files of their kind so that their order
 carries over into load order. Kernels come only from inside the downlink being ingested or the
 configured kernel library (KernelScope): a symbolic link or a meta-kernel's entry resolving
-elsewhere is refused with the reason (service.models.DownlinkFile), never read, so that no
+elsewhere is refused with the reason (service.rows.DownlinkFile), never read, so that no
 downlink can bring in a file of the host or change the geometry through another's kernels.
 Rejected kernels are judged again when seen again: a CK refused for
 want of its SCLK is accepted once the SCLK has arrived.
@@ -60,7 +60,7 @@ from pwm.io.spice_kernels import (
     spice_message,
 )
 from service.db import insert_ignoring_conflict
-from service.models import (
+from service.rows import (
     Acceptance,
     Downlink,
     DownlinkFile,
@@ -218,7 +218,7 @@ class KernelScope:
 
 @dataclass(frozen=True)
 class Refused:
-    """A file refused before it is read as a kernel: a code and why (service.models.DownlinkFile)."""
+    """A file refused before it is read as a kernel: a code and why (service.rows.DownlinkFile)."""
 
     path: Path
     code: str

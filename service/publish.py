@@ -13,7 +13,9 @@ surface was made: while the closed levels' sums and the base are the same, that 
 made again, and the laid levels' regions that no changed maplet touches keep the parent's faces.
 
 All of it runs under the publication lock (service.versions.publication_lock), taken before the
-parent is read, so two fusions never build on the same parent.
+parent is read, so two fusions never build on the same parent. Publication only publishes: what
+is made from a version for its readers (the console's documents, exports) is made by their own
+modules, after publication or on request.
 """
 
 from __future__ import annotations
@@ -29,26 +31,18 @@ from sqlalchemy.orm import Session, selectinload, sessionmaker
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.fusion_state import read_composition, read_levels, write_composition, write_levels
 from pwm.levels import LevelGrids
-from service.console.documents import MeshRequest, mesh_document
+from service.artifacts import artifact_path, scratch_path
 from service.db import session_scope
 from service.jobs import refined_downlinks
-from service.models import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion, model_version_downlinks
 from service.refinement import load_revision_maplet
-from service.versions import (
-    artifact_path,
-    get_version,
-    latest_version,
-    publication_lock,
-    publish_version,
-    scratch_path,
-    version_mesh,
-)
+from service.rows import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion, model_version_downlinks
+from service.versions import latest_version, publication_lock, publish_version, version_mesh
 
 log = logging.getLogger(__name__)
 
 
 def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlink_ids: Sequence[int] = (),
-                     config: RefinementConfig = DEFAULTS, document: bool = True) -> int | None:
+                     config: RefinementConfig = DEFAULTS) -> int | None:
     """Fuse the maplets' current revisions into the latest version and publish the result as a
     new version (kind refined); its number, or None when no maplet's current revision differs
     from the latest version's (nothing is published then).
@@ -62,8 +56,6 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
     "stitched"), voxels, each level's surface, voxel size and voxels, how the surface was
     composed (regions laid and carried over, whether the closed levels' surface was made again),
     and seconds (with the mesh's own).
-    The console's 3D document of the new version (service.console.mesh_document) is made too,
-    unless `document` is False (a version that the caller's next pass supersedes at once).
     """
     clock = time.perf_counter()
     with session_scope(sessions) as session:
@@ -128,27 +120,7 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
         log.info("fusion: version %d from version %d, %d of %d maplets changed (%.1f s)",
                  version.version, parent.version, len(changed), len(current),
                  time.perf_counter() - clock)
-        request = MeshRequest.of(version)
-    if document:  # outside the publication lock
-        _make_document(data_dir, request)
-    return request.version
-
-
-def make_document(sessions: sessionmaker[Session], *, data_dir: Path, version: int) -> None:
-    """Make the console's 3D document of a version now (see `fuse_and_publish`)."""
-    with sessions() as session:
-        request = MeshRequest.of(get_version(session, version))
-    _make_document(data_dir, request)
-
-
-def _make_document(data_dir: Path, request: MeshRequest) -> None:
-    """Made at publication, so that the console's first 3D view of a version is read, not
-    decimated while the user waits (a minute for two million faces); a failure here loses
-    nothing (the first request makes it)."""
-    try:
-        mesh_document(data_dir, request, cache_bytes=None)
-    except Exception:
-        log.exception("the console's mesh of version %d was not made now", request.version)
+        return version.version
 
 
 def first_version_with(session: Session, *, downlink_id: int) -> int | None:

@@ -28,7 +28,7 @@ from sqlalchemy.orm import Session
 
 from pwm.frames import LocalFrame, latlon_to_unit
 from pwm.weights import azimuth_spread_deg
-from service.models import Coverage, CoverageRole, Image, ImageGeometry, Maplet, MapletRevision
+from service.rows import Coverage, CoverageRole, Image, ImageGeometry, Maplet, MapletRevision
 
 
 class _Result(BaseModel):
@@ -285,9 +285,7 @@ def _maplets_near(
     direction = latlon_to_unit(lat_deg, lon_deg)
     near = []
     for row in session.execute(_maplet_rows(level).where(prefilter)):
-        frame = LocalFrame(origin=np.array([row.origin_x_km, row.origin_y_km, row.origin_z_km]),
-                           rotation=np.asarray(row.rotation, dtype=float).reshape(3, 3))
-        distance = distance_to_square_km(frame, direction, row.size_km / 2)
+        distance = distance_to_square_km(Maplet.frame_of(row), direction, row.size_km / 2)
         if distance <= radius_km:
             near.append((row, distance))
     return near

@@ -3,9 +3,16 @@
 A maplet's input is the set of images its coverage rows weigh above zero (the refinement's own
 rules, service.coverage), each with its pose correction, plus the refinement settings
 (pwm.config.RefinementConfig.digest), the maplet's grid and the pass. Its input hash names that
-input: a maplet whose current revision was made from another input is stale. Refining a maplet
-stores a new revision, keyed by the input hash, so the same input is never solved twice; the
-maplet's current revision moves to it while the hash is still one of the maplet's inputs.
+input: a maplet whose current revision was made from other images is stale. Refining a maplet
+stores a new revision, keyed by the input hash and recording the configuration's digest, so the
+same input is never solved twice; the maplet's current revision moves to it while the hash is
+still one of the maplet's inputs.
+
+A changed configuration alone re-refines only when the operator asks (refine_on_config_change:
+PWM_REFINE_ON_CONFIG_CHANGE, `pwm refine-catalog --because-config-changed`): otherwise a
+revision made from the maplet's current images under the configuration it records is up to date
+(`stale_maplets`), and `pwm downlinks` counts those maplets for the operator
+(service.downlinks.other_configurations).
 
 Passes, as `pwm refine` makes them: a maplet is refined from the same images config.passes
 times, each later pass against the model that fused the pass before (pass p + 1 is due once the
@@ -21,7 +28,7 @@ import hashlib
 import json
 import logging
 from collections.abc import Callable, Collection
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -31,14 +38,14 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
-from pwm.frames import LocalFrame
 from pwm.io.fusion_state import read_maplet, write_maplet
 from pwm.maplets import MapletGrid
 from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface
+from service.artifacts import artifact_mesh, artifact_path, scratch_file, store_artifact
 from service.db import session_scope
-from service.models import (
+from service.rows import (
     Coverage,
     GeometryStatus,
     Image,
@@ -47,7 +54,7 @@ from service.models import (
     MapletRevision,
     model_version_maplet_revisions,
 )
-from service.versions import artifact_mesh, artifact_path, latest_version, scratch_file, store_artifact
+from service.versions import latest_version
 from service.views import catalog_views
 
 log = logging.getLogger(__name__)
@@ -69,26 +76,40 @@ class MapletWork:
 
 @dataclass(frozen=True)
 class _Input:
-    """A maplet's images and the input hash of each pass (pass 1 first)."""
+    """A maplet's images (ids, and keys as input_hash takes them), its grid (nodes per side,
+    side in km) and the input hash of each pass (pass 1 first) under one configuration."""
 
     image_ids: tuple[int, ...]
+    image_keys: tuple[str, ...]
+    grid: tuple[int, float]
     hashes: tuple[str, ...]
 
     def pass_of(self, input_hash: str | None) -> int | None:
         """The pass of this input that `input_hash` names, or None when it names another input."""
         return self.hashes.index(input_hash) + 1 if input_hash in self.hashes else None
 
+    def under(self, digest: str) -> _Input:
+        """The same images and grid under the configuration whose digest is `digest`, as many
+        passes."""
+        return replace(self, hashes=_pass_hashes(self.image_keys, self.grid, digest, len(self.hashes)))
 
-def input_hash(image_keys: Collection[str], *, config: RefinementConfig, nodes_per_side: int,
-               size_km: float, pass_number: int = 1) -> str:
+
+def input_hash(image_keys: Collection[str], *, digest: str, nodes_per_side: int, size_km: float,
+               pass_number: int = 1) -> str:
     """sha256 naming a refinement's input: the images' keys (sha256 of the product, with its
-    pose correction), the refinement settings (config.digest()), the maplet's grid (nodes per
-    side, side in km) and, after the first, the pass."""
-    payload: dict[str, object] = {"images": sorted(image_keys), "config": config.digest(),
+    pose correction), the refinement settings (`digest`, pwm.config.RefinementConfig.digest),
+    the maplet's grid (nodes per side, side in km) and, after the first, the pass."""
+    payload: dict[str, object] = {"images": sorted(image_keys), "config": digest,
                                   "nodes_per_side": nodes_per_side, "size_km": repr(float(size_km))}
     if pass_number > 1:
         payload["pass"] = pass_number
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+
+
+def _pass_hashes(image_keys: Collection[str], grid: tuple[int, float], digest: str, passes: int
+                 ) -> tuple[str, ...]:
+    return tuple(input_hash(image_keys, digest=digest, nodes_per_side=grid[0], size_km=grid[1],
+                            pass_number=p) for p in range(1, passes + 1))
 
 
 def _inputs(session: Session, config: RefinementConfig, maplet_ids: Collection[int] | None
@@ -112,32 +133,48 @@ def _inputs(session: Session, config: RefinementConfig, maplet_ids: Collection[i
     grids = dict((i, (n, s)) for i, n, s in session.execute(
         select(Maplet.id, Maplet.nodes_per_side, Maplet.size_km).where(
             Maplet.id.in_(list(images)))))
-    return {m: _Input(tuple(i for i, _ in rows), tuple(
-        input_hash([k for _, k in rows], config=config, nodes_per_side=grids[m][0],
-                   size_km=grids[m][1], pass_number=p) for p in range(1, config.passes + 1)))
-            for m, rows in images.items()}
+    digest = config.digest()
+    inputs = {}
+    for m, rows in images.items():
+        keys = tuple(k for _, k in rows)
+        inputs[m] = _Input(tuple(i for i, _ in rows), keys, grids[m],
+                           _pass_hashes(keys, grids[m], digest, config.passes))
+    return inputs
 
 
 def stale_maplets(session: Session, *, config: RefinementConfig = DEFAULTS,
-                  maplet_ids: Collection[int] | None = None) -> list[MapletWork]:
+                  maplet_ids: Collection[int] | None = None,
+                  refine_on_config_change: bool = False) -> list[MapletWork]:
     """The maplets (of maplet_ids, or all) with at least config.min_images images that are due
     for refinement, by id: at pass 1 when their current revision is of another input, at pass
     p + 1 when it is the pass-p revision of their input and the latest version fused it. A
-    revision not fused yet is awaited: its next pass starts from the model that holds it."""
+    revision not fused yet is awaited: its next pass starts from the model that holds it.
+
+    A current revision made with another configuration (its config_digest) from the maplet's
+    current images, at any of config.passes passes, is up to date: a changed configuration
+    alone re-refines only with refine_on_config_change (then such a maplet is due at pass 1).
+    Revisions made before digests were recorded (config_digest None) are of another input once
+    the configuration changed: due, once."""
     inputs = _inputs(session, config, maplet_ids)
     latest = latest_version(session)
     held = model_version_maplet_revisions.c
+    digest = config.digest()
     # whether the latest version holds the current revision, for these maplets alone
     rows = session.execute(
-        select(Maplet.id, Maplet.name, MapletRevision.input_hash, held.maplet_revision_id.is_not(None))
+        select(Maplet.id, Maplet.name, MapletRevision.input_hash, MapletRevision.config_digest,
+               held.maplet_revision_id.is_not(None))
         .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
         .outerjoin(model_version_maplet_revisions,
                    (held.maplet_revision_id == MapletRevision.id)
                    & (held.model_version_id == (None if latest is None else latest.id)))
         .where(Maplet.id.in_(list(inputs))).order_by(Maplet.id))
     work = []
-    for m, name, current, fused in rows:
+    for m, name, current, made_with, fused in rows:
         if len(inputs[m].image_ids) < config.min_images:
+            continue
+        # up to date under the configuration it was made with: the operator chooses when to change
+        if (made_with not in (None, digest) and not refine_on_config_change
+                and inputs[m].under(made_with).pass_of(current) is not None):
             continue
         done = inputs[m].pass_of(current)
         if done == config.passes or (done is not None and not fused):
@@ -187,7 +224,7 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
         say(0.05, f"reading {len(current.image_ids)} images")
         views = catalog_views(session, image_ids=current.image_ids, pixels=True)
         ordered = [views[i] for i in current.image_ids if i in views]
-        grid = _grid(row)
+        grid = row.grid()
         model_version, model_ply = model.version, model.artifacts["ply"]
     say(0.2, f"refining (pass {pass_number}) against version {model_version}")
     tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
@@ -234,15 +271,6 @@ def _revision_id(session: Session, maplet_id: int, input_hash: str) -> int | Non
                                                              input_hash=input_hash))
 
 
-def _grid(row: Maplet) -> MapletGrid:
-    """The catalogued maplet's grid, flat (heights still to sample)."""
-    n = row.nodes_per_side
-    frame = LocalFrame(origin=np.array([row.origin_x_km, row.origin_y_km, row.origin_z_km]),
-                       rotation=np.asarray(row.rotation, float).reshape(3, 3))
-    return MapletGrid(name=row.name, frame=frame, spacing_km=row.size_km / (n - 1),
-                      heights=np.zeros((n, n)))
-
-
 def _store_revision(sessions: sessionmaker[Session], *, maplet_id: int, input_hash: str,
                     config: RefinementConfig, artifact: dict, statistics: dict) -> int:
     """Insert the revision (next number for its maplet) unless a concurrent job stored the same
@@ -261,6 +289,7 @@ def _store_revision(sessions: sessionmaker[Session], *, maplet_id: int, input_ha
                                          .where(MapletRevision.maplet_id == maplet_id)) or 0) + 1
                 revision = MapletRevision(maplet_id=maplet_id, revision=number,
                                           input_hash=input_hash, mode=config.mode,
+                                          config_digest=config.digest(),
                                           statistics=statistics, artifact_path=artifact["path"],
                                           sha256=artifact["sha256"])
                 session.add(revision)

@@ -9,7 +9,7 @@ from sqlalchemy import CursorResult, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from service.models import ModelVersion
+from service.rows import ModelVersion
 from service.versions import get_version
 
 

@@ -1,12 +1,14 @@
 """`pwm run DIR`: a downlink from directory to published model versions in one process, with no
-servers: ingest (with the coverage of its images against the current model; a catalog with no
-model and none given first makes one from the images, service.spg.start_from_images),
-refinement of the maplets whose input changed, fusion into a new version; then each further
-pass (RefinementConfig.passes) refines those maplets again against that version and fuses the
-next. After the first fusion, poses that are still not known within a pixel are adjusted again
-with the maplets' registrations (`feed_back`), and the maplets refined again with them.
+servers, its stages in the conductor's order (service.conductor): ingest, pose adjustment and
+weighing up to the plan (service.conductor.ingest_and_plan), refinement of the maplets whose
+input changed (in processes, pwm.parallel.map_processes), fusion into a new version, the
+feedback after the first fusion (service.conductor.feed_back); then the maplets the conductor's
+pass rule says are due (service.conductor.due_after_fusion) are refined against that version and
+fused into the next, until none is due (`refine_and_fuse`). `pwm refine-catalog
+--because-config-changed` (`refine_other_configurations`) refines and fuses the same way the
+maplets whose current revision was made with another configuration.
 
-The distributed setup (workers/) runs the same three steps as Celery tasks.
+The distributed setup (workers.tasks) runs the same stages as Celery tasks, one per task.
 """
 
 from __future__ import annotations
@@ -17,36 +19,27 @@ from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.parallel import map_processes
-from service.coverage import unweighed_images, update_coverage
-from service.db import make_engine, make_sessionmaker, session_scope
-from service.ingest import IngestReport, ingest_directory
-from service.models import Downlink, ModelKind
-from service.publish import fuse_and_publish, make_document
+from service.conductor import Plan, due_after_fusion, feed_back, ingest_and_plan
+from service.console.documents import make_mesh_document
+from service.db import make_engine, make_sessionmaker
+from service.downlinks import other_configurations
+from service.publish import fuse_and_publish
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
-from service.spg import adjust_downlink, feed_back_registrations, start_from_images
-from service.versions import get_version, import_model, latest_version, publication_lock, version_mesh
 
 log = logging.getLogger(__name__)
 
-START_MODEL_NAME = "start_model.obj"
-"""The start model a simulated downlink carries when asked for (pwm simulate --with-start-model)."""
-
 
 @dataclass
-class Plan:
-    """What a downlink asks for: its id, its ingest, the maplets to refine, and the version
-    (number) that the refinement starts from (None: the catalog has no model, and none could be
-    made from the images yet; the downlink's model_note says why)."""
+class Refinements:
+    """What `refine_and_fuse` did: the revisions refined (ids, of every pass) and the versions
+    published (one per pass that changed a maplet)."""
 
-    downlink_id: int
-    ingest: IngestReport
-    work: list[MapletWork]
-    base_version: int | None
+    revisions: list[int] = field(default_factory=list)
+    versions: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -75,75 +68,51 @@ class RunReport:
                 f"version {self.plan.base_version}; {outcome}; {self.seconds:.1f} s")
 
 
-def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_dir: Path,
-                    start: Path | None = None, config: RefinementConfig = DEFAULTS) -> Plan:
-    """Ingest a downlink against the current model and list the maplets whose input changed:
-    those its images weigh into (their image sets changed), and those a stopped run left stale.
-
-    Where the downlink's pose knowledge is stated (its kernels, or config.knowledge), its poses
-    are adjusted on the current model first (service.spg.adjust_downlink) and its images weighed
-    with the corrected poses. The current model is the latest version; a catalog without one
-    first imports `start` (or
-    DIRECTORY/start_model.obj when present) as a version of kind start, and with neither makes
-    one from the catalogued images after the ingest (service.spg.start_from_images), which then
-    weighs them against it; when it cannot yet, nothing is refined (Plan.base_version None).
-    config: how maplets are tiled where the images look and none is catalogued
-    (service.ingest.ingest_directory), and refined.
-    """
-    directory = Path(directory)
-    given = start if start is not None else (
-        directory / START_MODEL_NAME if (directory / START_MODEL_NAME).is_file() else None)
-    with session_scope(sessions) as session:
-        # Locked, so that two first runs do not both import a start model.
-        publication_lock(session)
-        base = latest_version(session)
-        if base is None and given is not None:
-            base = import_model(session, data_dir=data_dir, kind=ModelKind.START, path=given)
-            log.info("imported %s as version %d (start)", base.statistics["source"], base.version)
-        elif base is not None and start is not None:
-            log.info("the catalog's latest version %d is the current model; %s is not used",
-                     base.version, start)
-        shape = None if base is None else version_mesh(data_dir, base)
-        base_version = None if base is None else base.version
-    report = ingest_directory(sessions, directory, shape=shape, config=config)
-    with sessions() as session:
-        downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
-    if shape is not None and adjust_downlink(sessions, shape=shape, downlink_id=downlink_id,
-                                             configured=config.knowledge):
-        with session_scope(sessions) as session:  # weighed again with their corrected poses
-            report.coverage = update_coverage(session, shape, image_ids=unweighed_images(session), config=config)
-    if shape is None:
-        base_version = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id,
-                                         configured=config.knowledge)
-        if base_version is None:
-            return Plan(downlink_id=downlink_id, ingest=report, work=[], base_version=None)
-        with session_scope(sessions) as session:
-            shape = version_mesh(data_dir, get_version(session, base_version))
-            report.coverage = update_coverage(session, shape, image_ids=unweighed_images(session),
-                                              config=config)
-    with sessions() as session:
-        work = stale_maplets(session, config=config)
-    log.info("%s: %d maplets to refine", report.downlink, len(work))
-    return Plan(downlink_id=downlink_id, ingest=report, work=work, base_version=base_version)
-
-
 def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir: Path,
                   start: Path | None = None, config: RefinementConfig = DEFAULTS,
-                  workers: int = 1) -> RunReport:
-    """Ingest, refine (in `workers` processes, pwm.parallel.map_processes) and fuse one downlink;
-    see `ingest_and_plan`. A version is published when some maplet's current revision changed;
-    then the maplets due for a later pass (service.refinement.stale_maplets) are refined against
-    it and fused again, until none is due (at most config.passes rounds)."""
+                  workers: int = 1, refine_on_config_change: bool = False) -> RunReport:
+    """Ingest, refine (in `workers` processes) and fuse one downlink, pass after pass
+    (`refine_and_fuse`); see service.conductor.ingest_and_plan (refine_on_config_change as
+    there)."""
     clock = time.perf_counter()
-    plan = ingest_and_plan(sessions, directory, data_dir=data_dir, start=start, config=config)
+    plan = ingest_and_plan(sessions, directory, data_dir=data_dir, start=start, config=config,
+                           refine_on_config_change=refine_on_config_change)
     report = RunReport(plan=plan)
-    if plan.base_version is None:  # no model, and none could be made yet: nothing to refine
-        report.seconds = time.perf_counter() - clock
-        log.info("run %s: %s", directory, report.summary())
-        return report
+    if plan.base_version is not None:  # else no model, and none could be made yet: nothing to refine
+        done = refine_and_fuse(sessions, plan.work, data_dir=data_dir, config=config, workers=workers,
+                               downlink_id=plan.downlink_id,
+                               refine_on_config_change=refine_on_config_change)
+        report.revisions, report.versions = done.revisions, done.versions
+    report.seconds = time.perf_counter() - clock
+    log.info("run %s: %s", directory, report.summary())
+    return report
+
+
+def refine_other_configurations(sessions: sessionmaker[Session], *, data_dir: Path,
+                                config: RefinementConfig = DEFAULTS, workers: int = 1) -> Refinements:
+    """Refine under `config` the maplets whose current revision was made with another
+    configuration (service.downlinks.other_configurations) and fuse them, pass after pass
+    (`refine_and_fuse`, with no downlink: no feedback)."""
+    with sessions() as session:
+        work = stale_maplets(session, config=config, refine_on_config_change=True,
+                             maplet_ids=list(other_configurations(session, config)))
+    return refine_and_fuse(sessions, work, data_dir=data_dir, config=config, workers=workers) if work else Refinements()
+
+
+def refine_and_fuse(sessions: sessionmaker[Session], work: list[MapletWork], *, data_dir: Path,
+                    config: RefinementConfig, workers: int = 1, downlink_id: int | None = None,
+                    refine_on_config_change: bool = False) -> Refinements:
+    """Refine `work` (in `workers` processes, pwm.parallel.map_processes) and fuse it into a
+    version, with the downlink in its lineage and, after its first fusion, the downlink's
+    feedback (service.conductor.feed_back; none without a downlink). A version is published when
+    some maplet's current revision changed; then the maplets due after it
+    (service.conductor.due_after_fusion, refine_on_config_change as there) are refined against it
+    and fused again, until none is due (at most config.passes rounds, one more where the feedback
+    corrected the poses). The console's 3D document is made for the last version."""
+    clock = time.perf_counter()
+    done = Refinements()
     url = sessions.kw["bind"].url.render_as_string(hide_password=False)
     refine = partial(_refine_in_process, data_dir=data_dir, config=config)
-    work = plan.work
     rounds = config.passes
     round_number = 0
     while round_number < rounds:
@@ -152,50 +121,32 @@ def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir:
                                   initargs=(url,))
         try:
             for k, (item, revision) in enumerate(zip(work, revisions, strict=True), 1):
-                report.revisions.append(revision)
+                done.revisions.append(revision)
                 _log_progress(k, len(work), item, clock)
         finally:
             _close_catalog()
-        # the console's 3D document of the run's last version only, made below: a pass's
-        # version that the next pass supersedes within minutes need not cost a minute more
-        version = fuse_and_publish(sessions, data_dir=data_dir, downlink_ids=[plan.downlink_id], config=config,
-                                   document=False)
-        fed = version is not None and feed_back(sessions, data_dir=data_dir, downlink_id=plan.downlink_id,
-                                                version=version, config=config)
+        # the console's 3D document of the last version only, made below: a pass's version that
+        # the next pass supersedes within minutes need not cost a minute more
+        version = fuse_and_publish(sessions, data_dir=data_dir,
+                                   downlink_ids=[] if downlink_id is None else [downlink_id], config=config)
+        fed = version is not None and downlink_id is not None and feed_back(
+            sessions, data_dir=data_dir, downlink_id=downlink_id, version=version, config=config)
         if version is not None:
-            report.versions.append(version)
+            done.versions.append(version)
         with sessions() as session:
-            # Only later passes: a new input now is another run's (its downlink's) to refine;
-            # but poses corrected by the feedback are this run's, and its maplets start again.
-            work = [w for w in stale_maplets(session, config=config) if w.pass_number > 1 or fed]
+            work = due_after_fusion(session, config=config, fed=fed,
+                                    refine_on_config_change=refine_on_config_change)
         if fed:
             rounds += 1
         if not work:
             break
         log.info("round %d: %d maplets due for %s", round_number + 1, len(work),
                  "refinement with the poses corrected" if fed else "another pass")
-    if report.versions:
-        make_document(sessions, data_dir=data_dir, version=report.versions[-1])
-    report.seconds = time.perf_counter() - clock
-    log.info("run %s: %d maplet refinements, versions %s (%.1f s)", directory,
-             len(report.revisions), report.versions, report.seconds)
-    return report
-
-
-def feed_back(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int, version: int,
-              config: RefinementConfig) -> bool:
-    """After a downlink's refinements were first fused into `version`: its maplets' registrations
-    fed back into the adjustment of its poses on that version (service.spg.feed_back_registrations),
-    and the images it corrected weighed again. Whether it corrected any."""
-    corrected = feed_back_registrations(sessions, data_dir=data_dir, version=version, downlink_id=downlink_id,
-                                        configured=config.knowledge)
-    with session_scope(sessions) as session:
-        # also those a stopped attempt corrected and left unweighed
-        unweighed = unweighed_images(session)
-        if unweighed:
-            update_coverage(session, version_mesh(data_dir, get_version(session, version)), image_ids=unweighed,
-                            config=config)
-    return bool(corrected)
+    if done.versions:
+        make_mesh_document(sessions, data_dir=data_dir, version=done.versions[-1])
+    log.info("%d maplet refinements, versions %s (%.1f s)", len(done.revisions), done.versions,
+             time.perf_counter() - clock)
+    return done
 
 
 _CATALOG: dict[str, sessionmaker[Session]] = {}

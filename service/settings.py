@@ -80,6 +80,11 @@ class Settings(BaseSettings):
     refine_mode, refine_passes, maplet_nodes, tile_radius_km: PWM_REFINE_MODE,
         PWM_REFINE_PASSES, PWM_MAPLET_NODES and PWM_TILE_RADIUS_KM, the catalog's refinement
         settings (`refinement`); their defaults and every other setting are pwm.config.DEFAULTS.
+    refine_on_config_change: PWM_REFINE_ON_CONFIG_CHANGE, whether a downlink's plan and the
+        passes after it also refine the maplets whose current revision was made with another
+        refinement configuration (another pwm.config.RefinementConfig.digest; the whole catalog,
+        after a change of a setting it names); false: only those whose images changed, the rest
+        left to `pwm refine-catalog --because-config-changed` (service.refinement.stale_maplets).
     pose_knowledge: PWM_POSE_KNOWLEDGE, the 1-sigma pose knowledge of kernels that state none
         (`POS_M,POINT_RAD` or `nav:ALONG_M,CROSS_M,MISALIGN_URAD,DRIFT_URAD`, as
         pwm.knowledge.parse_knowledge_errors reads it); unset: none to adjust.
@@ -106,6 +111,7 @@ class Settings(BaseSettings):
     refine_passes: int = DEFAULTS.passes
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
+    refine_on_config_change: bool = False
     pose_knowledge: str | None = None
 
     @field_validator("database_url")

@@ -37,7 +37,7 @@ from pwm.spg.uncertainty import prior_sigmas
 from pwm.views import View
 from service.db import session_scope
 from service.kernels import accepted_kernels
-from service.models import (
+from service.rows import (
     Acceptance,
     Coverage,
     Downlink,

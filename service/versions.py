@@ -1,9 +1,7 @@
-"""Model versions: immutable shape models in the catalog, their files content-addressed on disk.
+"""Model versions: immutable shape models in the catalog, their files in the artifact store.
 
-A version's files (artifacts) live under `<data_dir>/artifacts/<sha256[:2]>/<sha256><suffix>`:
-a file's name is its checksum, so writing it again (a retried job) is harmless and a file once
-published never changes. `ModelVersion.artifacts` maps a role to
-`{"path": <relative to data_dir>, "sha256": ..., "bytes": ...}`; every version has "ply" (mesh
+A version's files (artifacts) are stored content-addressed (service.artifacts.store_artifact).
+`ModelVersion.artifacts` maps a role to a stored file's record; every version has "ply" (mesh
 with per-vertex albedo when known) and "obj"; refined versions add "grid" (the fusion sums that
 let the next version be fused incrementally) and "composition" (how its surface was composed
 from them, pwm.levels.Composition, which lets the next one carry over what did not change).
@@ -16,11 +14,7 @@ builds on a parent that another fusion is replacing.
 
 from __future__ import annotations
 
-import hashlib
-import os
-import tempfile
-from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -28,47 +22,14 @@ import numpy as np
 from sqlalchemy import func, select, text
 from sqlalchemy.orm import Session
 
-from pwm.io.meshio import read_mesh, read_shape_model, write_obj, write_ply
+from pwm.io.meshio import read_shape_model, write_obj, write_ply
+from pwm.io.pds4 import file_sha256
 from pwm.mesh import Mesh
-from service.models import Downlink, MapletRevision, ModelKind, ModelVersion
+from service.artifacts import artifact_mesh, scratch_file, store_artifact
+from service.rows import Downlink, MapletRevision, ModelKind, ModelVersion
 
-ARTIFACTS_DIRNAME = "artifacts"
 # Arbitrary constant naming the PostgreSQL advisory lock that serialises publications.
 _PUBLICATION_LOCK_ID = 0x70776D5F76657273
-_CHUNK = 1 << 20
-
-
-class ArtifactError(Exception):
-    """A version's file is missing, outside the data directory, or not what was published."""
-
-
-def store_artifact(data_dir: Path, path: Path) -> dict[str, Any]:
-    """Move the file `path` into the data directory's content-addressed store; its record."""
-    digest = _sha256(path)
-    relative = Path(ARTIFACTS_DIRNAME) / digest[:2] / f"{digest}{path.suffix}"
-    target = data_dir / relative
-    target.parent.mkdir(parents=True, exist_ok=True)
-    size = path.stat().st_size
-    if target.is_file() and target.stat().st_size == size:
-        path.unlink()
-    else:
-        # Same filesystem (a temp file inside data_dir), so the rename is atomic.
-        os.replace(path, target)
-    return {"path": relative.as_posix(), "sha256": digest, "bytes": size}
-
-
-def artifact_path(data_dir: Path, artifact: dict[str, Any], *, verify: bool = False) -> Path:
-    """The file of an artifact record, checked to lie inside `data_dir` (and, with `verify`,
-    to have its published checksum)."""
-    root = data_dir.resolve()
-    path = (root / artifact["path"]).resolve()
-    if not path.is_relative_to(root):
-        raise ArtifactError(f"artifact path {artifact['path']!r} leaves the data directory")
-    if not path.is_file():
-        raise ArtifactError(f"artifact {artifact['path']} is missing")
-    if verify and _sha256(path) != artifact["sha256"]:
-        raise ArtifactError(f"artifact {artifact['path']} does not match its checksum")
-    return path
 
 
 def store_mesh(data_dir: Path, mesh: Mesh) -> dict[str, dict[str, Any]]:
@@ -122,7 +83,7 @@ def import_model(session: Session, *, data_dir: Path, path: Path,
     mesh = read_shape_model(path)
     return publish_version(session, data_dir=data_dir, mesh=mesh, kind=kind,
                            statistics={"source": str(path.resolve()),
-                                       "source_sha256": _sha256(path)})
+                                       "source_sha256": file_sha256(path)})
 
 
 def latest_version(session: Session, *, released_only: bool = False) -> ModelVersion | None:
@@ -152,11 +113,6 @@ def version_mesh(data_dir: Path, version: ModelVersion) -> Mesh:
     return artifact_mesh(data_dir, version.artifacts["ply"])
 
 
-def artifact_mesh(data_dir: Path, artifact: dict[str, Any]) -> Mesh:
-    """The mesh of a mesh artifact record (PLY or OBJ), checksum verified."""
-    return read_mesh(artifact_path(data_dir, artifact, verify=True))
-
-
 def publication_lock(session: Session) -> None:
     """Take the catalog's publication lock until the session's transaction ends (taking it again
     in the same transaction is harmless). Take it before reading what the publication builds on.
@@ -169,33 +125,3 @@ def publication_lock(session: Session) -> None:
         # A write takes SQLite's database lock now rather than at the insert, so that two
         # publishers cannot both read the same maximum.
         session.execute(text("UPDATE model_versions SET id = id WHERE 0"))
-
-
-def scratch_path(data_dir: Path, suffix: str) -> Path:
-    """A new empty file in the data directory's scratch folder, on the store's filesystem (so
-    that `store_artifact` can move it in atomically)."""
-    directory = data_dir / ARTIFACTS_DIRNAME / "tmp"
-    directory.mkdir(parents=True, exist_ok=True)
-    handle, name = tempfile.mkstemp(suffix=suffix, dir=directory)
-    os.close(handle)
-    return Path(name)
-
-
-@contextmanager
-def scratch_file(data_dir: Path, suffix: str) -> Iterator[Path]:
-    """A scratch file (`scratch_path`) for the block to write and move into the store; whatever
-    is left of it afterwards (a write that failed, a disk that filled) is removed."""
-    path = scratch_path(data_dir, suffix)
-    try:
-        yield path
-    finally:
-        path.unlink(missing_ok=True)
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as stream:
-        while chunk := stream.read(_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
-

@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session, selectinload
 from pwm.camera import Camera, Pose
 from pwm.io.pds4 import read_array, read_image_label
 from pwm.views import Cones, View
-from service.models import GeometryStatus, Image, ImageGeometry, ImageStatus
+from service.rows import GeometryStatus, Image, ImageGeometry, ImageStatus
 from service.settings import get_settings
 
 

@@ -6,9 +6,9 @@ worker process dies (task_reject_on_worker_lost); a worker that vanishes altoget
 task unacknowledged, and Redis hands it out again once visibility_timeout_s has passed.
 visibility_timeout_s must exceed job_time_limit_s, the hard limit on one attempt, so that Redis
 does not hand a running task to a second worker. A running attempt beats every heartbeat_s;
-one silent for heartbeat_grace_s is lost (service.jobs), and the reconciler (Reconciler, in
-every worker's main process) hands its job over again, so a dead worker's job is taken over
-after about the grace rather than the visibility timeout.
+one silent for heartbeat_grace_s is lost (service.jobs), and the reconciler
+(workers.tasks.Reconciler, in every worker's main process) hands its job over again, so a dead
+worker's job is taken over after about the grace rather than the visibility timeout.
 Tasks make deliveries idempotent through the jobs table (workers.tasks).
 
 spiceypy keeps one kernel pool per process and is not thread-safe: workers run the prefork pool
@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import spiceypy as sp
-from celery import Celery, bootsteps, signals
+from celery import Celery, signals
 from celery.concurrency import get_implementation
 from celery.concurrency.prefork import TaskPool as PreforkPool
 from celery.concurrency.solo import TaskPool as SoloPool
@@ -38,7 +38,7 @@ from pwm.io.spice_kernels import KernelError
 from pwm.parallel import share_cores
 from service.db import make_engine, make_sessionmaker
 from service.kernels import accepted_kernels
-from service.models import JobKind
+from service.rows import JobKind
 from service.settings import Settings, from_environment
 
 QUEUES = tuple(kind.value for kind in JobKind)
@@ -192,37 +192,6 @@ def _prepare_process(**_: Any) -> None:
     process_state()
 
 
-class Reconciler(bootsteps.StartStopStep):
-    """Runs workers.tasks.reconcile every reconcile_interval_s on the consumer's timer, in the
-    worker's main process (not a thread: the pool forks from it).
-
-    A step of the consumer, not of the worker: when the broker connection drops, the consumer
-    clears its timer (celery's Consumer.on_close) and restarts its steps once it is connected
-    again, so that a step of the worker would never run again after a broker outage, the moment
-    it is needed most."""
-
-    requires = {"celery.worker.consumer.tasks:Tasks"}
-
-    def __init__(self, consumer: Any, **kwargs: Any) -> None:
-        super().__init__(consumer, **kwargs)
-        self.timer_ref: Any = None
-
-    def start(self, consumer: Any) -> None:
-        self.timer_ref = consumer.timer.call_repeatedly(
-            get_worker_settings().reconcile_interval_s, self.run)
-
-    def stop(self, consumer: Any) -> None:
-        if self.timer_ref is not None:
-            self.timer_ref.cancel()
-            self.timer_ref = None
-
-    shutdown = stop
-
-    def run(self) -> None:
-        from workers.tasks import reconcile_pass  # the tasks import this module
-
-        reconcile_pass()
-
-
 app = make_app(get_worker_settings())
-app.steps["consumer"].add(Reconciler)
+# By name, so that this module imports no task: workers.tasks imports it.
+app.steps["consumer"].add("workers.tasks:Reconciler")

@@ -8,23 +8,26 @@ runs, an attempt records its heartbeat every heartbeat_s from a thread of its ow
 or raised to Celery; a failed attempt is tried again after a backoff, up to task_retries times
 (workers.app.WorkerSettings).
 
-The flow of a downlink: ingest_downlink catalogues it against the current model
-(service.run.ingest_and_plan) and submits one refine job per maplet whose input changed;
-refine_revision makes the maplet's revision of that input (service.refinement); fusion fans in
-through the jobs table rather than a chord: after every delivery of a refine task, once no
-refine job of its downlink is left unfinished, the downlink's fuse job is submitted and
-fuse_downlink publishes the new version (service.publish). The check runs after the refine
+The flow of a downlink, in the conductor's order (service.conductor), each task followed by the
+conductor's rule for what comes next: ingest_downlink runs the stages up to the plan (catalogue,
+adjust the poses, weigh, plan: service.conductor.ingest_and_plan) and submits one refine job per
+maplet whose input changed; refine_revision makes the maplet's revision of that input
+(service.refinement); fusion fans in through the jobs table rather than a chord: after every
+delivery of a refine task, once the conductor's fan-in (service.conductor.fusion_due) says the
+downlink's fusion is due, its fuse job is submitted and fuse_downlink publishes the new version
+(service.publish) and feeds back (service.conductor.feed_back). The check runs after the refine
 job's outcome is committed, so of refinements finishing together the last to commit sees all
 done; fan-ins that both see it submit the same fuse key, and the claim makes the second delivery a no-op.
-A fusion then submits, as refine jobs of the same downlink, the next pass of the maplets whose
-revisions it fused (RefinementConfig.passes), and their fan-in the downlink's next fusion
-(service.jobs.fusions_due): one version per pass, as `pwm run` publishes them.
+A fusion then submits, as refine jobs of the same downlink, the maplets whose revisions it fused
+that the conductor's pass rule says are due (service.conductor.due_after_fusion), and their
+fan-in the downlink's next fusion: one version per pass, as `pwm run` publishes them.
 
 The broker may lose what it was given (an outage, a restart without persistence) or refuse it:
 every hand-over goes through `_enqueue`, which records it in the job row (service.jobs
-.mark_enqueued), and `reconcile`, run periodically by every worker (workers.app.Reconciler) and
-by `pwm watch`, hands over again what the jobs table says is due (service.jobs.due_jobs) and
-submits the fusion of any downlink whose refinements are all done without one.
+.mark_enqueued), and `reconcile`, run periodically by every worker (the Reconciler step, which
+workers.app adds to each by name) and by `pwm watch`, hands over again what the jobs table says
+is due (service.jobs.due_jobs) and submits the fusion of any downlink whose refinements are all
+done without one.
 
 Task names decide the queue (workers.app.TASK_ROUTES): ingest_* tasks go to `ingest`, refine_*
 to `refine`, fuse_* to `fuse`.
@@ -43,11 +46,13 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from celery import Task
+from celery import Task, bootsteps
 from sqlalchemy import event
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import RefinementConfig
+from service.conductor import due_after_fusion, feed_back, fusion_due, ingest_and_plan
+from service.console.documents import make_mesh_document
 from service.db import session_scope
 from service.jobs import (
     JobBusy,
@@ -70,10 +75,9 @@ from service.jobs import (
     retry_job,
     submit_job,
 )
-from service.models import Job, JobKind, JobStatus, Maplet
 from service.publish import first_version_with, fuse_and_publish
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
-from service.run import feed_back, ingest_and_plan
+from service.rows import Job, JobKind, JobStatus, Maplet
 from service.spg import fed_back
 from service.watch import last_change
 from workers.app import QUEUES, ProcessState, app, get_worker_settings, process_state
@@ -128,11 +132,13 @@ def submit_refinement(session: Session, *, maplet_id: int) -> str:
     transaction commits; its job key.
 
     Raises LookupError for an unknown maplet, ValueError when its current revision is already
-    of its current input or it has fewer than the configured minimum of usable images."""
+    of its current input or it has fewer than the configured minimum of usable images. A
+    revision made with another configuration is not of its current input: the request is the
+    operator asking for this maplet (service.refinement.stale_maplets, refine_on_config_change)."""
     if session.get(Maplet, maplet_id) is None:
         raise LookupError(f"no maplet {maplet_id}")
     config = get_worker_settings().refinement()
-    stale = stale_maplets(session, config=config, maplet_ids=[maplet_id])
+    stale = stale_maplets(session, config=config, maplet_ids=[maplet_id], refine_on_config_change=True)
     if not stale:
         raise ValueError(f"maplet {maplet_id} has nothing new to refine: its current revision is "
                          f"of its current input, or it has fewer than {config.min_images} images")
@@ -155,7 +161,8 @@ def ingest_downlink(self: Task, directory: str, key: str | None = None) -> dict[
         with session_scope(state.sessions) as session:
             report_progress(session, job, 0.0, f"ingesting {path}")
         plan = ingest_and_plan(state.sessions, path, data_dir=settings.data_dir,
-                               config=settings.refinement())
+                               config=settings.refinement(),
+                               refine_on_config_change=settings.refine_on_config_change)
         with session_scope(state.sessions) as session:
             pending = [w for w in plan.work if _submit_refine(session, plan.downlink_id, w)]
         # Enqueued once their jobs are committed, so that the fan-in sees every sibling.
@@ -214,14 +221,16 @@ def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
         version = fuse_and_publish(state.sessions, data_dir=settings.data_dir,
                                    downlink_ids=[] if downlink_id is None else [downlink_id],
                                    config=config)
+        if version is not None:
+            make_mesh_document(state.sessions, data_dir=settings.data_dir, version=version)
         if version is not None and downlink_id is not None:
             feed_back(state.sessions, data_dir=settings.data_dir, downlink_id=downlink_id,
                       version=version, config=config)
         with session_scope(state.sessions) as session:
             # from the catalog, not from this attempt: one that died after the feedback left it there
             fed = downlink_id is not None and fed_back(session, downlink_id)
-            later = [w for w in _next_passes(session, downlink_id=downlink_id, key=key,
-                                             config=config, fed=fed)
+            later = [w for w in _next_passes(session, downlink_id=downlink_id, key=key, config=config, fed=fed,
+                                             refine_on_config_change=settings.refine_on_config_change)
                      if _submit_refine(session, downlink_id, w)]
         for work_item in later:
             _enqueue_refine(state.sessions, downlink_id, work_item)
@@ -241,12 +250,12 @@ def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
     return _run_job(self, kind=JobKind.FUSE, key=key, work=work)
 
 
-def _next_passes(session: Session, *, downlink_id: int | None, key: str,
-                 config: RefinementConfig, fed: bool = False) -> list[MapletWork]:
-    """The maplets due for a later pass (service.refinement.stale_maplets) whose current
-    revision the downlink's refine jobs made, or (downlink None) the requested refinement
-    that the fuse job `key` follows made; fed: due at any pass (the feedback corrected the
-    downlink's poses, so its maplets start again)."""
+def _next_passes(session: Session, *, downlink_id: int | None, key: str, config: RefinementConfig,
+                 fed: bool = False, refine_on_config_change: bool = False) -> list[MapletWork]:
+    """The maplets due after the fusion (service.conductor.due_after_fusion, fed and
+    refine_on_config_change as there)
+    whose current revision the downlink's refine jobs made, or (downlink None) the requested
+    refinement that the fuse job `key` follows made."""
     if downlink_id is None:
         try:
             _, maplet_id, _ = refine_key_parts(key.removeprefix("fuse:"))
@@ -255,7 +264,8 @@ def _next_passes(session: Session, *, downlink_id: int | None, key: str,
         made = made_current(session, downlink_id=None, maplet_ids=[maplet_id])
     else:
         made = made_current(session, downlink_id=downlink_id)
-    return [w for w in stale_maplets(session, config=config, maplet_ids=made) if w.pass_number > 1 or fed]
+    return due_after_fusion(session, config=config, fed=fed, maplet_ids=made,
+                            refine_on_config_change=refine_on_config_change)
 
 
 def _submit_refine(session: Session, downlink_id: int | None, work: MapletWork) -> str | None:
@@ -348,6 +358,36 @@ def reconcile_pass() -> None:
         log.warning("reconciler: pass skipped: %s: %s", type(exc).__name__, exc)
 
 
+class Reconciler(bootsteps.StartStopStep):
+    """Runs `reconcile_pass` every reconcile_interval_s on the consumer's timer, in the worker's
+    main process (not a thread: the pool forks from it).
+
+    A step of the consumer, not of the worker: when the broker connection drops, the consumer
+    clears its timer (celery's Consumer.on_close) and restarts its steps once it is connected
+    again, so that a step of the worker would never run again after a broker outage, the moment
+    it is needed most."""
+
+    requires = {"celery.worker.consumer.tasks:Tasks"}
+
+    def __init__(self, consumer: Any, **kwargs: Any) -> None:
+        super().__init__(consumer, **kwargs)
+        self.timer_ref: Any = None
+
+    def start(self, consumer: Any) -> None:
+        self.timer_ref = consumer.timer.call_repeatedly(
+            get_worker_settings().reconcile_interval_s, self.run)
+
+    def stop(self, consumer: Any) -> None:
+        if self.timer_ref is not None:
+            self.timer_ref.cancel()
+            self.timer_ref = None
+
+    shutdown = stop
+
+    def run(self) -> None:
+        reconcile_pass()
+
+
 def retry(job_id: int, *, sessions: sessionmaker[Session] | None = None) -> str:
     """Queue the failed or lost job `job_id` again (service.jobs.retry_job) and hand it to the
     broker (or run it here without one); its key. Raises LookupError or ValueError as
@@ -372,18 +412,12 @@ def _waiting_kinds() -> set[JobKind]:
 
 def _fan_in(sessions: sessionmaker[Session], *, downlink_id: int | None, after: str
             ) -> str | None:
-    """Submit and enqueue the fusion that follows the refine job `after` when it is due: a
-    downlink's once none of its refine jobs is unfinished (failed ones count as unfinished) and
-    none was made since them (service.jobs.fusions_due), a requested refinement's at once. Its
-    key, or None when not due."""
+    """Submit and enqueue the fusion that follows the refine job `after` when the conductor's
+    fan-in says it is due (service.conductor.fusion_due). Its key, or None when not due."""
     with session_scope(sessions) as session:
-        if downlink_id is None:
-            key = f"fuse:{after}"
-        else:
-            due = fusions_due(session, downlink_id=downlink_id).get(downlink_id)
-            if due is None:
-                return None
-            key = due
+        key = fusion_due(session, downlink_id=downlink_id, after=after)
+        if key is None:
+            return None
         done = submit_job(session, kind=JobKind.FUSE, key=key,
                           downlink_id=downlink_id).status is JobStatus.DONE
     if not done:

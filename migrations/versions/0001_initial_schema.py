@@ -5,7 +5,7 @@ Revises:
 Create Date: 2026-11-22
 
 Written out in full (not generated at run time); `tests/service` checks that it matches
-service.models on SQLite and PostgreSQL.
+service.rows on SQLite and PostgreSQL.
 """
 
 from collections.abc import Sequence
@@ -22,7 +22,7 @@ UTC_TIME = sa.DateTime(timezone=True)
 
 
 def _enum(name: str, *values: str) -> sa.Enum:
-    """VARCHAR(16) with a CHECK constraint, as service.models declares its enumerations."""
+    """VARCHAR(16) with a CHECK constraint, as service.rows declares its enumerations."""
     return sa.Enum(*values, name=name, native_enum=False, create_constraint=True, length=16)
 
 

@@ -39,6 +39,7 @@ from pwm.io.meshio import read_mesh
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.render import render
+from pwm.sampling import drop_rays
 from pwm.simulate.terrain import Boulder
 from pwm.simulate.truth import Truth, load as load_truth, sampled
 from pwm.site import slope_deg
@@ -189,16 +190,25 @@ def near_site(truth: Truth, *, margin_km: float) -> Mesh:
 def register_to_truth(model: Mesh, truth: Truth, *, region: np.ndarray, gsd_km: float,
                       whole_body: bool) -> tuple[RigidTransform, ClosestPoint]:
     """ICP of ICP_POINTS of the model's vertices in `region` onto the truth (the whole body, or
-    the faces near the site), pairs within ICP_REACH_GSD; the transform and the truth surface."""
+    the faces near the site), pairs within ICP_REACH_GSD; the transform and the truth surface.
+
+    The whole body is registered on the truth's base, without the site patch: a point tens of
+    metres off a patch of decimetre facets has hundreds of thousands of vertices within its
+    reach, and a patch a tenth of the body across places nothing the base does not."""
     reach_km = ICP_REACH_GSD * gsd_km
     surface = ClosestPoint(truth.mesh if whole_body else near_site(truth, margin_km=2 * reach_km))
     points = model.vertices[region]
+    if whole_body:  # nor the model's points over the patch, which would pair with the hole's rim
+        local = truth.site_frame.to_local(points)
+        half = max(float(np.abs(truth.x_km).max()), float(np.abs(truth.y_km).max())) + reach_km
+        points = points[~((np.abs(local[:, :2]) <= half).all(axis=1) & (np.abs(local[:, 2]) <= half))]
     sample = points[np.random.default_rng(0).permutation(len(points))[:ICP_POINTS]]
-    return register(sample, surface, max_distance_km=reach_km,
+    registration = ClosestPoint(truth.base_mesh()) if whole_body else surface
+    return register(sample, registration, max_distance_km=reach_km,
                     tolerance_km=ICP_TOLERANCE_GSD * gsd_km), surface
 
 
-def sample_heights(tracer: RayTracer, truth: Truth, x_km: np.ndarray, y_km: np.ndarray) -> np.ndarray:
+def site_heights(tracer: RayTracer, truth: Truth, x_km: np.ndarray, y_km: np.ndarray) -> np.ndarray:
     """Heights (km) of the tracer's surface along the site frame's z at grid nodes, nan where missed.
 
     Rays come down from above the highest truth relief (heights_in_frame), passing a thousandth
@@ -215,10 +225,7 @@ def heights_in_frame(tracer: RayTracer, frame: LocalFrame, x_km: np.ndarray, y_k
     pass nudge_km beside the nodes, because a mesh with vertices exactly on the nodes (a truth
     grid) would otherwise put rays on edges, where single precision lets some slip through."""
     gx, gy = np.meshgrid(np.asarray(x_km) + 1.3 * nudge_km, np.asarray(y_km) + 0.7 * nudge_km)
-    origins = frame.to_body(np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, top_km)]))
-    directions = np.broadcast_to(-frame.normal, origins.shape)
-    hits = tracer.intersect(origins, directions)
-    return np.where(hits.hit, top_km - hits.t, np.nan).reshape(gx.shape)
+    return drop_rays(tracer, frame, gx.ravel(), gy.ravel(), top_km=top_km)[1].reshape(gx.shape)
 
 
 def _heights(truth: Truth, tracer: RayTracer, *, gsd_km: float, plots_dir: Path | None, suns_body: np.ndarray,
@@ -229,7 +236,7 @@ def _heights(truth: Truth, tracer: RayTracer, *, gsd_km: float, plots_dir: Path 
     spacing_km = stride * truth.resolution_km
     x, y = truth.x_km[::stride], truth.y_km[::stride]
     truth_h = truth.height_km[::stride, ::stride]
-    model_h = sample_heights(tracer, truth, x, y)
+    model_h = site_heights(tracer, truth, x, y)
     inside = np.hypot(*np.meshgrid(x, y)) <= truth.eval_radius_km
     error = np.where(inside, model_h - truth_h, np.nan)
     boulders = [b for b in truth.boulders if np.hypot(b.x_km, b.y_km) + b.diameter_km < truth.eval_radius_km]

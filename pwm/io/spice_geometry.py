@@ -14,7 +14,7 @@ import numpy as np
 import spiceypy as sp
 
 from pwm.camera import Camera, Pose
-from pwm.geometry import Ellipsoid, Surface, ViewGeometry, view_geometry
+from pwm.geometry import Ellipsoid
 from pwm.io.spice_kernels import KernelError
 
 FOV_ROOM = 64  # boundary vectors getfov may return; camera FOVs have 4
@@ -136,15 +136,6 @@ def sun_direction(*, et: float, target: str, body_frame: str, abcorr: str = "LT+
 def ellipsoid_of(target: str) -> Ellipsoid:
     """The target's triaxial ellipsoid from the PCK radii (km)."""
     return Ellipsoid(radii=np.asarray(sp.bodvrd(target, "RADII", 3)[1], dtype=float))
-
-
-def observe(*, et: float, instrument_id: int, target: str, body_frame: str, camera: Camera,
-            surface: Surface) -> ViewGeometry:
-    """The view of `instrument_id` at `et` (ET s) of `target` in `body_frame`, from the pool:
-    pose, Sun (corrected by ABCORR) and where the boresight and corners meet `surface`."""
-    pose = camera_pose(et=et, instrument_id=instrument_id, target=target, body_frame=body_frame)
-    sun = sun_direction(et=et, target=target, body_frame=body_frame, abcorr=ABCORR)
-    return view_geometry(pose=pose, sun=sun, camera=camera, surface=surface)
 
 
 def coverage_spk(path: str | Path, body: int) -> list[tuple[float, float]]:

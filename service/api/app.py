@@ -25,8 +25,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 import pwm
 from service.api.routers import console, diffs, downlinks, images, jobs, maplets, versions
+from service.artifacts import RETRY_AFTER_S, CacheBusy
 from service.catalog import open_catalog
-from service.exports import RETRY_AFTER_S, ExportBusy
 from service.jobs import JobQueue
 from service.settings import Settings, get_settings
 
@@ -77,7 +77,7 @@ def create_app(settings: Settings | None = None, *, job_queue: JobQueue | None =
     for module in (versions, diffs, maplets, images, downlinks, jobs, console):
         app.include_router(module.router)
     app.mount("/console", console.static_files(), name="console")
-    app.add_exception_handler(ExportBusy, _busy_exports)
+    app.add_exception_handler(CacheBusy, _busy_making)
     app.add_exception_handler(PoolTimeout, _busy_catalog)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_exception_handler(HTTPException, _http_error)
@@ -93,8 +93,8 @@ def create_app(settings: Settings | None = None, *, job_queue: JobQueue | None =
     return app
 
 
-async def _busy_exports(_request: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, ExportBusy)
+async def _busy_making(_request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, CacheBusy)
     return JSONResponse({"detail": str(exc)}, status_code=status.HTTP_503_SERVICE_UNAVAILABLE,
                         headers={"Retry-After": str(exc.retry_after_s)})
 

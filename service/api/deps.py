@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from service.api.schemas import VERSION_REF_PATTERN
 from service.jobs import JobQueue
-from service.models import ModelVersion
+from service.rows import ModelVersion
 from service.settings import Settings
 from service.versions import get_version
 

@@ -11,8 +11,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from service.downlinks import Outcome
 from service.jobs import JobState, error_reason, job_state
-from service.models import DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, ModelKind
 from service.queries import CoverageSummary, MapletCoverage, MapletImage, MapletInfo, RevisionInfo
+from service.rows import DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, ModelKind
 
 Item = TypeVar("Item")
 

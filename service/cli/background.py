@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import session_scope
 from service.jobs import JobQueue, submit_job
-from service.models import JobKind, JobStatus
+from service.rows import JobKind, JobStatus
 
 log = logging.getLogger(__name__)
 

@@ -40,18 +40,22 @@ def ingest(
     """
     from pwm.io.meshio import read_mesh
     from service.catalog import open_catalog
+    from service.conductor import weigh
     from service.ingest import IngestTakenOver, ingest_directory
     from service.settings import get_settings
 
     setup_logging(verbose)
     settings = get_settings()
     config = refinement_config(settings.refinement(), nodes=maplet_nodes)
+    sessions = open_catalog(settings)
+    model = read_mesh(shape) if shape else None
     try:
-        report = ingest_directory(open_catalog(settings), directory, downlink_name=name,
-                                  shape=read_mesh(shape) if shape else None, config=config)
+        report = ingest_directory(sessions, directory, downlink_name=name, shape=model)
     except IngestTakenOver as exc:  # the other ingest finishes the downlink
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(1) from None
+    if model is not None:  # no pose adjustment here: the poses the kernels give are final
+        weigh(sessions, model, config=config)
     echo_rejected(report.failures)
     typer.echo(report.summary())
     raise typer.Exit(exit_status(report.failed))
@@ -70,7 +74,7 @@ def images(
 
     from pwm.spg.uncertainty import determined
     from service.catalog import open_catalog
-    from service.models import Image
+    from service.rows import Image
 
     with open_catalog()() as session:
         query = select(Image).order_by(Image.start_utc, Image.id).limit(limit)

@@ -27,8 +27,9 @@ def described(config: RefinementConfig) -> dict[str, Any]:
 @config_app.command("show")
 def show() -> None:
     """Print the refinement configuration that `pwm run`, ingest and the workers use, as the PWM_* environment makes
-    it from pwm.config's defaults, with its digest (part of each refinement's input hash: a change of a setting it
-    names re-refines), as JSON."""
+    it from pwm.config's defaults, with its digest (part of each refinement's input hash, recorded on each revision: a
+    change of a setting it names re-refines when asked, PWM_REFINE_ON_CONFIG_CHANGE or `pwm refine-catalog
+    --because-config-changed`), as JSON."""
     from service.settings import get_settings
 
     echo_json(described(refinement_config(get_settings().refinement())))

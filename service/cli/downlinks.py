@@ -15,20 +15,25 @@ def downlinks(
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
     """List downlinks with their outcome: products accepted, rejected and in conflict (outcome rejected when every
-    product failed), kernels, unused files and repeated deliveries."""
+    product failed), kernels, unused files and repeated deliveries; below the table, how many maplets' current
+    revisions were made with another refinement configuration than the present one, which no downlink re-refines
+    unless PWM_REFINE_ON_CONFIG_CHANGE is set (`pwm refine-catalog --because-config-changed` does)."""
     from sqlalchemy import select
 
     from service.catalog import open_catalog
-    from service.downlinks import downlink_ids, downlink_summaries
-    from service.models import DownlinkFile, DownlinkStatus
+    from service.downlinks import configuration_note, downlink_ids, downlink_summaries
+    from service.rows import DownlinkFile, DownlinkStatus
+    from service.settings import get_settings
 
     try:
         wanted = None if status is None else DownlinkStatus(status)
     except ValueError:
         raise typer.BadParameter(f"expected one of {', '.join(DownlinkStatus)}", param_hint="--status") from None
-    with open_catalog()() as session:
+    settings = get_settings()
+    with open_catalog(settings)() as session:
         ids, _ = downlink_ids(session, status=wanted, limit=limit)
         rows = downlink_summaries(session, ids)
+        note = configuration_note(session, settings.refinement())
         unused = {d.id: [(f.path, f.code, f.reason) for f in session.scalars(
             select(DownlinkFile).filter_by(downlink_id=d.id).order_by(DownlinkFile.path))]
             for d in rows} if files or json_out else {}
@@ -55,3 +60,5 @@ def downlinks(
                        f"{a['los_prior_px']:.2f}{after} px (1 sigma)")
         for path, code, reason in unused.get(d.id, []) if files else []:
             typer.echo(f"      unused {path}: {code}: {reason}")
+    if note is not None:
+        typer.echo(note.line())

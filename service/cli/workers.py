@@ -100,7 +100,7 @@ def jobs_list(
     from service.api.schemas import JobOut, Page
     from service.catalog import open_catalog
     from service.jobs import JobState, find_jobs
-    from service.models import JobKind
+    from service.rows import JobKind
     from service.settings import get_settings
 
     state = None if status is None else _choice(JobState, status, "--status")
@@ -128,7 +128,7 @@ def jobs_show(job_id: int = typer.Argument(..., min=1, max=MAX_ROW_ID)) -> None:
     """One job as the API's GET /jobs/ID gives it (with the token: the traceback too)."""
     from service.api.schemas import JobOut
     from service.catalog import open_catalog
-    from service.models import Job
+    from service.rows import Job
     from service.settings import get_settings
 
     with open_catalog()() as session:
@@ -164,6 +164,6 @@ def _choice(enum: type[E], value: str, option: str) -> E:
 
 
 def _age_s(moment: datetime) -> float:
-    from service.models import utcnow
+    from service.rows import utcnow
 
     return (utcnow() - moment).total_seconds()

@@ -6,13 +6,16 @@ Big arrays travel as one binary document (`pack`): the 4 bytes b"PWMC", a little
 header length, a UTF-8 JSON header padded with spaces to a multiple of 4 bytes, then the arrays,
 little-endian and C-ordered, at the offsets (from the end of the header) the header lists as
 {"name", "dtype", "shape", "offset"}. JavaScript reads them as typed arrays without a copy.
-The mesh and site documents are made once and kept with the exports (service.exports.
-cached_artifact: same bound on bytes kept, same making lock), keyed by the version's mesh.
+The mesh and site documents are made once and kept in the artifact store's cache
+(service.artifacts.cached_artifact, with the exports and diff maps: same bound on bytes kept,
+same making lock), keyed by the version's mesh; a version's mesh document is made after its
+publication (`make_mesh_document`), so that the console's first 3D view of it is read at once.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,16 +26,19 @@ from matplotlib import colormaps
 from pydantic import BaseModel, ConfigDict
 from scipy.spatial import cKDTree
 from sqlalchemy import case, distinct, func, select, true
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.compare import height_change
 from pwm.decimate import decimate
 from pwm.mesh import Mesh
 from pwm.site import BASELINE_M, HazardThresholds, hazard, relief_m, roughness_m, slope_deg
-from service.exports import ExportError, Site, cached_artifact, digest, resample_site
-from service.models import Coverage, CoverageRole, Maplet, MapletRevision, ModelVersion
+from service.artifacts import artifact_mesh, artifact_path, cached_artifact, digest
+from service.exports import ExportError, Site, site_grid
 from service.queries import list_maplets
-from service.versions import artifact_mesh, artifact_path
+from service.rows import Coverage, CoverageRole, Maplet, MapletRevision, ModelVersion
+from service.versions import get_version
+
+log = logging.getLogger(__name__)
 
 MAGIC = b"PWMC"
 # What a browser draws smoothly: meshes above this many faces are decimated for the 3D view
@@ -106,7 +112,7 @@ def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | No
     mean radius), slope (deg between the vertex normal and the radial direction) and change (m
     along the normal since the parent version, pwm.compare; unknown without a parent), with
     the range each colour map spans in the header. The browser does no per-vertex work.
-    cache_bytes: as for service.exports.cached_artifact."""
+    cache_bytes: as for service.artifacts.cached_artifact."""
     key = digest({"console": "mesh", "revision": REVISION, "mesh": request.mesh["sha256"],
                   "parent": request.parent_mesh["sha256"] if request.parent_mesh else None,
                   "faces": faces})
@@ -118,6 +124,18 @@ def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | No
 
     record = cached_artifact(data_dir, key, suffix=".pwmc", make=make, cache_bytes=cache_bytes)
     return artifact_path(data_dir, record)
+
+
+def make_mesh_document(sessions: sessionmaker[Session], *, data_dir: Path, version: int) -> None:
+    """Make the 3D view's document of a version now, once it is published: so that the console's
+    first view of it is read, not decimated while the user waits (a minute for two million
+    faces). A failure here loses nothing (the first request makes it)."""
+    with sessions() as session:
+        request = MeshRequest.of(get_version(session, version))
+    try:
+        mesh_document(data_dir, request, cache_bytes=None)
+    except Exception:
+        log.exception("the console's mesh of version %d was not made now", version)
 
 
 def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> bytes:
@@ -186,7 +204,7 @@ class SiteRequest:
 
 def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> Path:
     """The file of a site's maps, made once: the version's surface resampled on the site
-    frame's grid (service.exports.resample_site, as the site product is), with height (m),
+    frame's grid (service.exports.site_grid, as the site product is), with height (m),
     albedo, slope (deg), roughness (m), relief (m above the plane over the baseline) and the
     hazard mask (uint8, pwm.site) as [line = y, sample = x] arrays; the header holds the grid
     (x0_m, y0_m, spacing_m, the site frame) and each map's minimum, mean and maximum.
@@ -197,7 +215,7 @@ def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> 
                                  request.thresholds.max_relief_m]})
 
     def make(path: Path) -> None:
-        grid = resample_site(artifact_mesh(data_dir, request.mesh), request.site)
+        grid = site_grid(artifact_mesh(data_dir, request.mesh), request.site)
         height = grid.height_km * 1e3
         if np.isnan(height).all():
             raise ExportError("the site grid meets no surface")

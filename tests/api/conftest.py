@@ -20,10 +20,11 @@ from sqlalchemy import select
 from pwm.io.meshio import read_mesh
 from pwm.mesh import Mesh
 from service.api import create_app
+from service.conductor import weigh
 from service.db import session_scope
 from service.ingest import ingest_directory
 from service.jobs import submit_job
-from service.models import Downlink, JobKind, Maplet, MapletRevision, ModelKind
+from service.rows import Downlink, JobKind, Maplet, MapletRevision, ModelKind
 from service.settings import Settings
 from service.versions import import_model, publish_version
 from workers.app import app as celery_app
@@ -71,7 +72,9 @@ def populated(module_postgres_url, tiny_sim, tmp_path_factory) -> Catalog:
                               api_token=TOKEN), job_queue=CeleryQueue())
     sessions = app.state.sessions
     downlink = tiny_sim / "downlink"
-    ingest_directory(sessions, downlink, shape=read_mesh(downlink / "start_model.obj"))
+    start = read_mesh(downlink / "start_model.obj")
+    ingest_directory(sessions, downlink, shape=start)
+    weigh(sessions, start)
     refined = refined_bennu()
     with session_scope(sessions) as session:
         maplet = session.scalars(select(Maplet).order_by(Maplet.id)).first()

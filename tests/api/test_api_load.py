@@ -24,9 +24,9 @@ from pwm.io.meshio import read_obj
 from pwm.io.pds4 import file_sha256
 from pwm.mesh import Mesh
 from service.api import create_app
+from service.artifacts import CACHE_DIRNAME
 from service.db import session_scope
-from service.exports import EXPORTS_DIRNAME
-from service.models import ModelKind
+from service.rows import ModelKind
 from service.settings import Settings
 from service.versions import publish_version
 
@@ -93,7 +93,7 @@ def server(large_catalog) -> Iterator[Server]:
 
 
 def _kept_bytes(data_dir: Path) -> list[int]:
-    return [p.stat().st_size for p in (data_dir / EXPORTS_DIRNAME).glob("*.obj")]
+    return [p.stat().st_size for p in (data_dir / CACHE_DIRNAME).glob("*.obj")]
 
 
 def test_parallel_distinct_exports_are_served_or_deferred(server):
@@ -135,7 +135,7 @@ def test_parallel_distinct_exports_are_served_or_deferred(server):
 
     kept = _kept_bytes(server.data_dir)
     assert sum(kept) <= max(CACHE_BYTES, max(kept))
-    assert not list((server.data_dir / EXPORTS_DIRNAME / "tmp").iterdir())
+    assert not list((server.data_dir / CACHE_DIRNAME / "tmp").iterdir())
 
     # a deferred export is made when asked again
     if deferred:
@@ -161,10 +161,10 @@ def test_the_least_recently_served_export_is_removed_first(large_catalog):
             assert etag(2000) == recent  # served again: the most recently served but one
             etag(2020 + 10 * made)
             made += 1
-        kept = {file_sha256(p) for p in (large_catalog.data_dir / EXPORTS_DIRNAME).glob("*.obj")}
+        kept = {file_sha256(p) for p in (large_catalog.data_dir / CACHE_DIRNAME).glob("*.obj")}
         assert recent in kept and old not in kept
         assert sum(_kept_bytes(large_catalog.data_dir)) <= CACHE_BYTES
-        records = list((large_catalog.data_dir / EXPORTS_DIRNAME).glob("*.json"))
+        records = list((large_catalog.data_dir / CACHE_DIRNAME).glob("*.json"))
         assert len(records) == len(kept)
         assert etag(2010) == old  # made again when asked for
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from sqlalchemy import func, select
 
-from service.models import Coverage, Image, ImageStatus, Maplet
+from service.rows import Coverage, Image, ImageStatus, Maplet
 
 
 def test_versions_list_detail_and_lineage(client, populated):

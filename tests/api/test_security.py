@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from service.api import create_app
 from service.db import session_scope
 from service.jobs import claim_job, fail_job
-from service.models import JobKind, utcnow
+from service.rows import JobKind, utcnow
 from service.settings import Settings
 from workers.tasks import ingest_key
 

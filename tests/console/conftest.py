@@ -19,10 +19,11 @@ from sqlalchemy import select
 from pwm.io.meshio import read_mesh
 from pwm.mesh import Mesh
 from service.api import create_app
+from service.conductor import weigh
 from service.db import session_scope
 from service.ingest import ingest_directory
 from service.jobs import claim_job, fail_job, report_progress, submit_job
-from service.models import Downlink, JobKind, Maplet, MapletRevision, ModelKind
+from service.rows import Downlink, JobKind, Maplet, MapletRevision, ModelKind
 from service.settings import Settings
 from service.versions import import_model, publish_version
 from tests.console.browser import chromium, serve
@@ -55,7 +56,9 @@ def console(tiny_sim, tmp_path_factory) -> Iterator[Console]:
     sessions = app.state.sessions
     downlink = tiny_sim / "downlink"
     start_path = downlink / "start_model.obj"
-    ingest_directory(sessions, downlink, shape=read_mesh(start_path))
+    start = read_mesh(start_path)
+    ingest_directory(sessions, downlink, shape=start)
+    weigh(sessions, start)
     with session_scope(sessions) as session:
         maplet = session.scalars(select(Maplet).order_by(Maplet.id)).first()
         assert maplet is not None

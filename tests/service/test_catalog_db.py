@@ -19,7 +19,7 @@ from sqlalchemy.exc import IntegrityError, StatementError
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import MIGRATIONS_DIR, make_engine, make_sessionmaker, session_scope, upgrade
-from service.models import (
+from service.rows import (
     Base,
     Downlink,
     Image,

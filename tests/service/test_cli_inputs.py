@@ -237,7 +237,7 @@ def test_a_failed_import_write_leaves_no_scratch_file(pwm, tmp_path, monkeypatch
 
 
 def test_a_failed_export_write_leaves_nothing_behind(pwm, tmp_path, monkeypatch):
-    import service.cli.api
+    import service.cli.exports
 
     model = tmp_path / "model.obj"
     write_obj(model, _sphere())
@@ -247,7 +247,7 @@ def test_a_failed_export_write_leaves_nothing_behind(pwm, tmp_path, monkeypatch)
         Path(target).write_bytes(Path(source).read_bytes()[:100])
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(service.cli.api.shutil, "copyfile", disk_fills)
+    monkeypatch.setattr(service.cli.exports.shutil, "copyfile", disk_fills)
     out = tmp_path / "exports" / "model.ply"
     result = pwm.invoke(app, ["export", "1", "--format", "ply", "--out", str(out)])
     assert result.exit_code == 1 and "No space left on device" in result.stderr, result.output
@@ -263,7 +263,7 @@ def test_an_ingest_taken_over_ends_in_one_line_not_a_traceback(pwm, tmp_path, mo
         raise service.ingest.IngestTakenOver("downlink 1 was taken over by the ingest of h:2")
 
     monkeypatch.setattr(service.ingest, "ingest_directory", taken_over)
-    monkeypatch.setattr("service.run.ingest_directory", taken_over)
+    monkeypatch.setattr("service.conductor.ingest_directory", taken_over)
     (tmp_path / "dl").mkdir()
     result = pwm.invoke(app, [command, str(tmp_path / "dl")])
     assert result.exit_code == 1

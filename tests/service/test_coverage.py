@@ -1,5 +1,6 @@
-"""Ingesting a simulated downlink with a shape model tiles the site and fills the image-maplet
-coverage rows with the geometry the simulator planned."""
+"""Weighing a simulated downlink's catalogued images against a shape model (service.conductor
+.weigh) tiles the site and fills the image-maplet coverage rows with the geometry the simulator
+planned."""
 
 from __future__ import annotations
 
@@ -16,10 +17,11 @@ from pwm.io.meshio import read_mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
 from pwm.tiling import level_of, tile
+from service.conductor import weigh
 from service.coverage import update_coverage
 from service.ingest import ingest_directory
-from service.models import Coverage, CoverageRole, Image, ImageGeometry, Maplet
 from service.queries import count_maplets, list_maplets, maplet_coverage
+from service.rows import Coverage, CoverageRole, Image, ImageGeometry, Maplet
 from service.views import catalog_views
 
 
@@ -42,13 +44,14 @@ def _maplets(session) -> list[tuple]:
                                 .order_by(Maplet.id)))
 
 
-def test_ingest_with_a_shape_fills_the_coverage_of_the_site(tiny_sim, catalog):
+def test_weighing_a_downlink_fills_the_coverage_of_the_site(tiny_sim, catalog):
     shape = read_mesh(tiny_sim / "downlink" / "start_model.obj")
-    report = ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
+    ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
+    report = weigh(catalog, shape)
     manifest = json.loads((tiny_sim / "truth" / "manifest.json").read_text())
     site = manifest["scenario"]
     plans = {im["label"].split("/")[-1]: im for im in manifest["images"]}
-    assert report.coverage.maplets_added > 1
+    assert report.maplets_added > 1
     with catalog() as session:
         near = list_maplets(session, lat_deg=site["site_lat_deg"], lon_deg=site["site_lon_deg"],
                             radius_km=site["site_size_km"] / 2)
@@ -87,9 +90,10 @@ def test_ingest_with_a_shape_fills_the_coverage_of_the_site(tiny_sim, catalog):
                            atol=tilt + 0.1)
         before, maplets = _rows(session), _maplets(session)
 
-    again = ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
-    assert again.coverage.maplets_added == again.coverage.rows_added == 0
-    assert again.coverage.rows_updated == again.coverage.rows_deleted == 0
+    ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
+    again = weigh(catalog, shape)
+    assert again.maplets_added == again.rows_added == 0
+    assert again.rows_updated == again.rows_deleted == 0
     with catalog() as session:
         assert _rows(session) == before and _maplets(session) == maplets
         # An image taken up later gets the same rows as if it had come with the others.
@@ -106,12 +110,13 @@ def test_a_survey_is_tiled_wherever_its_images_see_enough_and_nowhere_else(globa
     see usably, over the whole body, at the images' pixel scale."""
     truth = load_truth(global_tiny_sim / "truth").mesh
     config = RefinementConfig(nodes=16)
-    report = ingest_directory(catalog, global_tiny_sim / "downlink", shape=truth, config=config)
+    ingest_directory(catalog, global_tiny_sim / "downlink", shape=truth)
+    report = weigh(catalog, truth, config=config)
     with catalog() as session:
         views = list(catalog_views(session).values())
         maplets = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
                                          Maplet.size_km, Maplet.gsd_m)).all()
-    assert report.coverage.maplets_added == len(maplets) > 0
+    assert report.maplets_added == len(maplets) > 0
     seen = seen_samples(RayTracer(truth), views, rules=config.rules, min_images=config.min_images)
     origins = np.array([m[:3] for m in maplets])
     # the survey's places lie round the body, far apart (Bennu's radius is 0.25 km): not one disc
@@ -134,6 +139,7 @@ def test_coverage_makes_views_only_of_the_images_that_may_see_the_new_ones_place
     with the catalog: images looking elsewhere are never made views, and no view needs its label."""
     shape = read_mesh(tiny_sim / "downlink" / "start_model.obj")
     ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
+    weigh(catalog, shape)
     with catalog() as session:
         images = session.scalars(select(Image).order_by(Image.id)).all()
         assert all(image.window() == (image.window()[0], image.window()[1], 320, 320) for image in images)
@@ -175,7 +181,8 @@ def test_a_later_downlink_is_weighed_into_the_stored_rows_as_weighing_all_again_
     """Issue 16.4: a maplet's catalogued images bring their stored rows; only the new images are
     traced, and the weights, roles and w_PWM come out as those of weighing every image again."""
     shape = read_mesh(tiny_sim / "downlink" / "start_model.obj")
-    full = ingest_directory(catalog, tiny_sim / "downlink", shape=shape).coverage
+    ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
+    full = weigh(catalog, shape)
     with catalog() as session:
         before, maplets = _rows(session), _maplets(session)
         ids = sorted(session.scalars(select(Image.id)))
@@ -217,7 +224,8 @@ def test_finer_images_nest_maplets_of_their_level_under_coarser_ones(tiny_sim, c
                   centre_lon_deg=site["site_lon_deg"], radius_km=site["site_size_km"])
     with catalog.begin() as session:
         session.add_all(Maplet.of(m) for m in survey)
-    report = ingest_directory(catalog, tiny_sim / "downlink", shape=shape).coverage
+    ingest_directory(catalog, tiny_sim / "downlink", shape=shape)
+    report = weigh(catalog, shape)
     fine, coarse = int(level_of(gsd_km)), int(level_of(coarser * gsd_km))
     with catalog() as session:
         levels = dict(session.execute(select(Maplet.level, func.count()).group_by(Maplet.level)).all())

@@ -27,7 +27,7 @@ from pwm.io.pds4 import write_image_product
 from pwm.io.spice_kernels import CkSegment, SpkSegment, bundled_kernels, kernel_pool, write_ck, write_spk
 from service.db import make_engine, make_sessionmaker, upgrade
 from service.ingest import ingest_directory
-from service.models import (
+from service.rows import (
     Acceptance,
     Downlink,
     DownlinkFile,

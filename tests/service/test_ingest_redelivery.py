@@ -22,7 +22,7 @@ from pwm.io.spice_kernels import bundled_kernels, kernel_pool
 from service import ingest
 from service.db import make_engine, make_sessionmaker
 from service.ingest import ingest_directory
-from service.models import Downlink, DownlinkStatus, GeometryStatus, Image, ImageStatus
+from service.rows import Downlink, DownlinkStatus, GeometryStatus, Image, ImageStatus
 from service.settings import IngestLimits
 from tests.service import test_ingest as base
 

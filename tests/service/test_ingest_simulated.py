@@ -12,7 +12,7 @@ from sqlalchemy import select
 from pwm.simulate.campaign import simulate
 from pwm.simulate.scenarios import get_scenario
 from service.ingest import ingest_directory
-from service.models import Image, ImageStatus
+from service.rows import Image, ImageStatus
 
 
 def test_simulated_downlink_matches_the_truth_manifest(tiny_sim, catalog):

@@ -24,7 +24,7 @@ from pwm.io.spice_kernels import bundled_kernels, kernel_pool
 from service.cli import app
 from service.db import make_engine, make_sessionmaker, upgrade
 from service.ingest import ingest_directory
-from service.models import (
+from service.rows import (
     Acceptance,
     GeometryStatus,
     Image,
@@ -200,7 +200,7 @@ import json, sys, time
 from pathlib import Path
 from service.db import make_engine, make_sessionmaker, session_scope
 from service.kernels import KernelScope, register_kernels
-from service.models import Downlink
+from service.rows import Downlink
 url, directory, name, sync = sys.argv[1:]
 sessions = make_sessionmaker(make_engine(url))
 with session_scope(sessions) as session:

@@ -14,11 +14,13 @@ import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 
+import service.conductor
 from pwm.camera import Camera, Pose, project
 from pwm.config import RefinementConfig
 from pwm.knowledge import IndependentErrors
-from service.models import Downlink, Image, Maplet
-from service.run import feed_back, ingest_and_plan, run_directory
+from service.conductor import feed_back, ingest_and_plan
+from service.rows import Downlink, Image, Maplet
+from service.run import run_directory
 from service.spg import fed_back
 from service.views import catalog_views, image_pose, kernel_pose
 from tests.service.test_spg_catalog import SITE
@@ -102,14 +104,23 @@ def test_knowledge_within_a_pixel_needs_no_adjustment(tiny_sim, catalog, tmp_pat
         assert all(0 < 3 * i.los_sigma_px() <= 1.0 for i in images)
 
 
-def test_the_maplets_registrations_feed_back_into_the_adjustment(tiny_nav_sim, catalog, tmp_path):
+def test_the_maplets_registrations_feed_back_into_the_adjustment(tiny_nav_sim, catalog, tmp_path, monkeypatch):
     """tiny's 3 m navigation errors are 60 px at its range: the first adjustment leaves them far
     beyond a pixel, so after the first fusion the maplets' registrations join the features in
     adjusting the poses again (service.spg.feed_back_registrations), once, and the maplets are
     refined again with the new poses."""
+    weighings = []
+    update_coverage = service.conductor.update_coverage
+
+    def counted(*args, **kwargs):
+        weighings.append(kwargs["image_ids"])
+        return update_coverage(*args, **kwargs)
+
+    monkeypatch.setattr(service.conductor, "update_coverage", counted)
     config = RefinementConfig(nodes=40, tile_radius_km=0.002, passes=1)
     report = run_directory(catalog, tiny_nav_sim / "downlink", data_dir=tmp_path, config=config)
     assert len(report.versions) == 2  # the first fusion, and the one after the feedback
+    assert len(weighings) == 2  # once after the first adjustment, once after the feedback
     with catalog() as session:
         adjustment = session.get_one(Downlink, report.plan.downlink_id).pose_adjustment
         feedback = adjustment["feedback"]

@@ -11,13 +11,13 @@ from sqlalchemy import func, select
 
 from pwm.config import RefinementConfig
 from pwm.io.meshio import write_ply
-from service.console.documents import unpack
+from service.conductor import ingest_and_plan
+from service.console.documents import make_mesh_document, unpack
 from service.db import session_scope
 from service.jobs import claim_job, finish_job, refine_key
-from service.models import Downlink, JobKind, ModelKind, ModelVersion
 from service.publish import first_version_with, fuse_and_publish
 from service.refinement import refine_catalog_maplet
-from service.run import ingest_and_plan
+from service.rows import Downlink, JobKind, ModelKind, ModelVersion
 from service.versions import get_version, import_model, version_mesh
 
 
@@ -42,7 +42,10 @@ def test_fusions_publish_changes_once(tiny_sim, catalog, tmp_path):
         assert not v2.statistics["incremental"] and "grid" in v2.artifacts
         start, fused = version_mesh(data, get_version(session, 1)), version_mesh(data, v2)
     assert fused.albedo is not None and len(fused.faces) > len(start.faces)
-    # the console's 3D document was made at publication, so its first view reads it
+    # publication only publishes; the console's 3D document is made after it, so that its
+    # first view reads it
+    assert not list((data / "exports").glob("*.pwmc"))
+    make_mesh_document(catalog, data_dir=data, version=2)
     [document] = (data / "exports").glob("*.pwmc")
     header, _ = unpack(document.read_bytes())
     assert (header["version"], header["parent"], header["faces"]) == (2, 1, len(fused.faces))

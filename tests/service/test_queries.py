@@ -19,8 +19,8 @@ from typer.testing import CliRunner
 from pwm.frames import LocalFrame, latlon_to_unit, local_frame, unit_to_latlon
 from service.cli import app
 from service.db import make_engine, make_sessionmaker, session_scope, upgrade
-from service.models import Coverage, CoverageRole, Image, ImageGeometry, ImageStatus, Maplet, MapletRevision
 from service.queries import distance_to_square_km, images_covering, list_maplets, maplet_coverage, maplets_seen_by
+from service.rows import Coverage, CoverageRole, Image, ImageGeometry, ImageStatus, Maplet, MapletRevision
 from service.settings import get_settings
 
 RADIUS_KM = 0.25

@@ -15,10 +15,10 @@ from pwm.frames import LocalFrame
 from pwm.maplets import MapletGrid
 from pwm.photoclinometry import Solver
 from pwm.tiling import sample_heights
+from service.conductor import ingest_and_plan
 from service.db import session_scope
-from service.models import Coverage, Image, Maplet, MapletRevision
 from service.refinement import load_revision_maplet, refine_catalog_maplet, stale_maplets
-from service.run import ingest_and_plan
+from service.rows import Coverage, Image, Maplet, MapletRevision
 from service.versions import get_version, version_mesh
 from service.views import image_view
 

@@ -17,8 +17,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from pwm.mesh import Mesh
 from service.api import create_app
 from service.db import session_scope
-from service.models import ModelKind
 from service.releases import ReleaseConflict, release_version
+from service.rows import ModelKind
 from service.settings import Settings
 from service.versions import get_version, publish_version
 

@@ -26,14 +26,15 @@ from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh, grid_faces
 from pwm.raytrace import RayTracer
 from pwm.tiling import level_of, tile
+from service.artifacts import artifact_path
 from service.console.documents import unpack
 from service.db import session_scope
 from service.exports import ExportFormat, ExportSurface, make_export, plan_export
-from service.models import Coverage, Maplet, MapletRevision, ModelKind
 from service.publish import fuse_and_publish
 from service.refinement import load_revision_maplet
+from service.rows import Coverage, Maplet, MapletRevision, ModelKind
 from service.run import run_directory
-from service.versions import artifact_path, get_version, version_mesh
+from service.versions import get_version, version_mesh
 
 CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008)  # a few maplets about the site's centre: seconds
 

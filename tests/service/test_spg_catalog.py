@@ -11,9 +11,9 @@ from typer.testing import CliRunner
 from pwm.camera import PoseCorrection
 from pwm.config import RefinementConfig
 from service.cli import app
-from service.models import Image, ImageGeometry, ModelKind
+from service.conductor import ingest_and_plan
 from service.refinement import refine_catalog_maplet, stale_maplets
-from service.run import ingest_and_plan
+from service.rows import Image, ImageGeometry, ModelKind
 from service.settings import get_settings
 from service.spg import _store_correction, photogrammetry_version
 from service.versions import get_version, latest_version, version_mesh

@@ -26,9 +26,10 @@ from pwm.simulate.truth import load as load_truth
 from pwm.spg.uncertainty import DETERMINED
 from service.api.routers.images import image_out
 from service.cli import app
+from service.conductor import START_MODEL_NAME, ingest_and_plan
 from service.db import session_scope
-from service.models import Downlink, Image, ModelKind, ModelVersion
-from service.run import START_MODEL_NAME, ingest_and_plan, run_directory
+from service.rows import Downlink, Image, ModelKind, ModelVersion
+from service.run import run_directory
 from service.settings import get_settings
 from service.spg import start_from_images
 from service.versions import get_version, import_model, version_mesh

@@ -13,11 +13,10 @@ from sqlalchemy.orm import Session, sessionmaker
 from pwm.io.dsk import write_dsk
 from pwm.io.meshio import write_obj
 from pwm.mesh import Mesh
+from service.artifacts import ArtifactError, artifact_path
 from service.db import session_scope
-from service.models import ModelKind
+from service.rows import ModelKind
 from service.versions import (
-    ArtifactError,
-    artifact_path,
     get_version,
     import_model,
     latest_version,

@@ -22,6 +22,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.io.spice_kernels import kernel_pool
 from pwm.simulate.windows import window_downlink
+from service.conductor import START_MODEL_NAME
 from service.db import make_engine, make_sessionmaker, session_scope, upgrade
 from service.ingest import COMMIT_EVERY, ingest_directory
 from service.jobs import (
@@ -44,7 +45,7 @@ from service.jobs import (
     submit_job,
 )
 from service.kernels import accepted_kernels
-from service.models import (
+from service.rows import (
     Base,
     Downlink,
     DownlinkStatus,
@@ -57,7 +58,6 @@ from service.models import (
     Kernel,
     ModelKind,
 )
-from service.run import START_MODEL_NAME
 from service.versions import import_model
 from workers.app import QUEUES, ProcessState, WorkerSettings, make_app
 from workers.tasks import ingest_downlink, ingest_key

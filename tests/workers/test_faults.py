@@ -31,7 +31,7 @@ from sqlalchemy import create_engine, func, select, text
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from service.db import normalize_url
-from service.models import Job, JobKind, JobStatus, MapletRevision, ModelVersion, utcnow
+from service.rows import Job, JobKind, JobStatus, MapletRevision, ModelVersion, utcnow
 from workers.app import WorkerSettings
 from workers.tasks import fuse_key, ingest_downlink, ingest_key
 

@@ -42,8 +42,9 @@ from pwm.evaluate.closure import closure
 from pwm.frames import latlon_to_unit
 from pwm.mesh import face_keys
 from pwm.simulate.windows import window_downlink
+from service.artifacts import artifact_path
 from service.db import session_scope
-from service.models import (
+from service.rows import (
     Coverage,
     Downlink,
     Image,
@@ -55,7 +56,8 @@ from service.models import (
     ModelKind,
     ModelVersion,
 )
-from service.versions import artifact_path, version_mesh
+from service.run import run_directory
+from service.versions import version_mesh
 from workers.app import WorkerSettings
 from workers.tasks import fuse_key, ingest_downlink, ingest_key
 
@@ -272,7 +274,8 @@ def test_downlinks_dropped_into_the_watched_folder_become_versions(
 @pytest.mark.parametrize("settings", [{"refine_passes": 2}], indirect=True)
 def test_each_pass_of_a_downlink_is_fused_into_a_version_of_its_own(
         tiny_sim: Path, catalog: sessionmaker[Session], settings: WorkerSettings, client: Celery,
-        start_worker: Callable[..., Worker]) -> None:
+        start_worker: Callable[..., Worker], open_catalog_at: Callable[[str], sessionmaker[Session]],
+        tmp_path: Path) -> None:
     worker = start_worker(lambda name: pwm_worker_command(name, 2))
     downlink = tiny_sim / "downlink"
     key = ingest_key(downlink)
@@ -310,6 +313,12 @@ def test_each_pass_of_a_downlink_is_fused_into_a_version_of_its_own(
     time.sleep(3 * RECONCILE_INTERVAL_S)
     assert len(_versions(catalog)) == 3 and len(_jobs(catalog, JobKind.FUSE)) == 2
     assert len(_jobs(catalog, JobKind.REFINE)) == len(refines)
+    # the conductor's one order, driven in one process: the same versions, to the byte
+    in_process = open_catalog_at(f"sqlite:///{tmp_path / 'in_process.sqlite'}")
+    run = run_directory(in_process, downlink, data_dir=tmp_path / "data", config=settings.refinement())
+    assert run.versions == [first.version, second.version]
+    assert [_files(tmp_path / "data", v)["ply"] for v in _versions(in_process)] == [
+        _files(settings.data_dir, v)["ply"] for v in (start, first, second)]
 
 
 def test_a_downlink_that_states_its_pose_knowledge_is_adjusted_by_the_workers(

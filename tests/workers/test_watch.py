@@ -14,7 +14,7 @@ from sqlalchemy import select
 
 from pwm.config import DEFAULTS
 from service.db import make_engine, make_sessionmaker
-from service.models import Image, Job, JobKind, JobStatus, ModelVersion
+from service.rows import Image, Job, JobKind, JobStatus, ModelVersion
 from service.watch import MANIFEST_NAME, Watcher, completeness
 from workers.tasks import ingest_key
 

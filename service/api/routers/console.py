@@ -15,6 +15,7 @@ from fastapi.staticfiles import StaticFiles
 from pwm.site import BASELINE_M, HazardThresholds
 from service.api.deps import SessionDep, SettingsDep, VersionRef, resolve_version
 from service.api.schemas import Problem
+from service.artifacts import ArtifactError
 from service.console.documents import (
     MapletCoverageRow,
     MeshRequest,
@@ -24,7 +25,6 @@ from service.console.documents import (
     site_document,
 )
 from service.exports import ExportError, Site
-from service.versions import ArtifactError
 
 STATIC_DIR = Path(__file__).resolve().parents[2] / "console" / "static"
 MEDIA_TYPE = "application/vnd.pwm.console"

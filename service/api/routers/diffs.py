@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Query, status
@@ -10,9 +9,8 @@ from fastapi.responses import FileResponse
 
 from service.api.deps import SessionDep, SettingsDep, VersionRef, resolve_version
 from service.api.schemas import Problem
-from service.diff import THRESHOLD_M, VersionDiff, diff_versions
-from service.exports import cached_artifact, digest
-from service.versions import ArtifactError, artifact_path
+from service.artifacts import ArtifactError, artifact_path
+from service.diff import THRESHOLD_M, VersionDiff, change_map, diff_versions
 
 router = APIRouter(prefix="/diffs", tags=["versions"])
 
@@ -44,20 +42,10 @@ def diff_map(session: SessionDep, settings: SettingsDep, old: VersionRef, new: V
              ) -> FileResponse:
     """The height change of `new` against `old` over latitude and longitude (PNG), made once."""
     versions = [resolve_version(session, ref) for ref in (old, new)]
-    key = digest({"diff": [v.artifacts["ply"]["sha256"] for v in versions],
-                  "threshold_m": threshold_m, "max_distance_km": max_distance_km})
-
-    def make(path: Path) -> None:
-        diff_versions(session, data_dir=settings.data_dir, old=versions[0].version,
-                      new=versions[1].version, png=path, threshold_m=threshold_m,
-                      max_distance_km=max_distance_km)
-
-    # No connection held while the map waits for the making lock (making it reads the catalog
-    # again).
-    session.rollback()
     try:
-        record = cached_artifact(settings.data_dir, key, suffix=".png", make=make,
-                                 cache_bytes=settings.export_cache_bytes)
+        record = change_map(session, data_dir=settings.data_dir, old=versions[0], new=versions[1],
+                            cache_bytes=settings.export_cache_bytes, threshold_m=threshold_m,
+                            max_distance_km=max_distance_km)
         path = artifact_path(settings.data_dir, record)
     except ArtifactError as exc:
         raise HTTPException(status.HTTP_410_GONE, str(exc)) from None

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 from service.api.deps import Authorized, Id, JobsDep, PagingDep, SessionDep, SettingsDep
 from service.api.schemas import DownlinkOut, IngestRequest, JobSubmitted, Page, Problem
 from service.downlinks import downlink_ids, downlink_summaries
-from service.models import DownlinkStatus
+from service.rows import DownlinkStatus
 
 router = APIRouter(tags=["downlinks"])
 

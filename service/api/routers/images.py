@@ -21,8 +21,8 @@ from service.api.schemas import (
     PoseSigmaOut,
     Problem,
 )
-from service.models import GeometryStatus, Image, ImageStatus
 from service.queries import maplets_seen_by
+from service.rows import GeometryStatus, Image, ImageStatus
 
 router = APIRouter(prefix="/images", tags=["images"])
 

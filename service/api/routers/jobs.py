@@ -9,7 +9,7 @@ from fastapi import APIRouter, HTTPException, Query, status
 from service.api.deps import Id, PagingDep, SessionDep, SettingsDep, TokenGiven
 from service.api.schemas import JobOut, Page, Problem
 from service.jobs import JobState, find_jobs
-from service.models import Job, JobKind
+from service.rows import Job, JobKind
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 

@@ -9,8 +9,8 @@ from fastapi import APIRouter, HTTPException, Query, status
 
 from service.api.deps import Authorized, Id, JobsDep, PagingDep, SessionDep
 from service.api.schemas import JobSubmitted, MapletDetail, Page, Problem
-from service.models import Maplet
 from service.queries import MapletInfo, count_maplets, list_maplets, maplet_coverage, maplet_images, maplet_revisions
+from service.rows import Maplet
 
 router = APIRouter(prefix="/maplets", tags=["maplets"])
 
@@ -65,8 +65,9 @@ def get_maplet(session: SessionDep, maplet_id: Id) -> MapletDetail:
                         404: {"model": Problem}, 409: {"model": Problem},
                         503: {"model": Problem}})
 def requeue(session: SessionDep, jobs: JobsDep, maplet_id: Id) -> JobSubmitted:
-    """Queue the refinement of a maplet's current input (its job key comes back); 409 when its
-    current revision is of that input already, or too few images see it."""
+    """Queue the refinement of a maplet's current input (its job key comes back), also of one
+    whose current revision was made with another configuration; 409 when its current revision
+    is of that input already, or too few images see it."""
     try:
         with session.begin():
             key = jobs.submit_refinement(session, maplet_id=maplet_id)

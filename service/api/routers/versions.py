@@ -19,10 +19,10 @@ from service.api.schemas import (
     VersionDetail,
     VersionSummary,
 )
+from service.artifacts import ArtifactError, artifact_path
 from service.exports import ExportError, ExportFormat, ExportSurface, Site, make_export, plan_export
-from service.models import ModelKind, ModelVersion
 from service.releases import ReleaseConflict, release_version
-from service.versions import ArtifactError, artifact_path
+from service.rows import ModelKind, ModelVersion
 
 router = APIRouter(prefix="/versions", tags=["versions"])
 

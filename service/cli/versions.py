@@ -1,4 +1,4 @@
-"""Model commands: run a downlink through to a new version, import a model, list, show and
+"""Model version commands: run a downlink through to a new version, import a model, list, show and
 compare versions."""
 
 from __future__ import annotations
@@ -60,7 +60,8 @@ def run(
                                tile_radius_km=tile_radius)
     try:
         report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,
-                               config=config, workers=workers)
+                               config=config, workers=workers,
+                               refine_on_config_change=settings.refine_on_config_change)
     except (FileNotFoundError, IngestTakenOver) as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(1) from None
@@ -79,7 +80,7 @@ def import_(
     """Publish a shape model file as a new model version."""
     from service.catalog import open_catalog
     from service.db import session_scope
-    from service.models import ModelKind
+    from service.rows import ModelKind
     from service.settings import get_settings
     from service.versions import import_model
 
@@ -105,7 +106,7 @@ def versions(
     from sqlalchemy import select
 
     from service.catalog import open_catalog
-    from service.models import ModelVersion
+    from service.rows import ModelVersion
 
     with open_catalog()() as session:
         latest = select(ModelVersion).order_by(ModelVersion.version.desc()).limit(limit)

@@ -37,8 +37,8 @@ from sqlalchemy import (
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
 from pwm.camera import PoseCorrection
-from pwm.frames import unit_to_latlon
-from pwm.maplets import MapletGrid
+from pwm.frames import LocalFrame, stored_frame, unit_to_latlon
+from pwm.maplets import MapletGrid, flat_grid
 from pwm.spg.uncertainty import PoseSigma
 from pwm.tiling import level_of
 
@@ -523,6 +523,17 @@ class Maplet(Base):
                    origin_y_km=y, origin_z_km=z, rotation=grid.frame.rotation.tolist(),
                    size_km=(grid.n - 1) * grid.spacing_km, gsd_m=grid.spacing_km * 1e3, nodes_per_side=grid.n)
 
+    @staticmethod
+    def frame_of(row: Any) -> LocalFrame:
+        """The local frame of a maplet, or of a query's row holding its origin and rotation."""
+        return stored_frame((row.origin_x_km, row.origin_y_km, row.origin_z_km), row.rotation)
+
+    def grid(self, *, nodes: int | None = None) -> MapletGrid:
+        """Its grid, flat (heights still to sample), on `nodes` a side over its square (its own
+        count if None)."""
+        return flat_grid(self.name, Maplet.frame_of(self), size_km=self.size_km,
+                         nodes=self.nodes_per_side if nodes is None else nodes)
+
 
 class Coverage(Base):
     """How one image sees one maplet, and its weight in that maplet's refinement."""
@@ -560,7 +571,10 @@ class Coverage(Base):
 
 class MapletRevision(Base):
     """One solved state of a maplet. input_hash identifies the image set and parameters, so the
-    same inputs are never solved twice."""
+    same inputs are never solved twice; config_digest is the digest of the refinement
+    configuration it was made with (pwm.config.RefinementConfig.digest; None: made before it was
+    recorded), so that a changed configuration re-refines only when asked
+    (service.refinement.stale_maplets)."""
 
     __tablename__ = "maplet_revisions"
 
@@ -569,6 +583,7 @@ class MapletRevision(Base):
     revision: Mapped[int]
     input_hash: Mapped[str] = mapped_column(String(64))
     mode: Mapped[str] = mapped_column(String(32))
+    config_digest: Mapped[str | None] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     statistics: Mapped[dict[str, Any]] = mapped_column(default=dict)
     artifact_path: Mapped[str] = mapped_column(Text)

@@ -1,0 +1,103 @@
+"""Export and release commands: a model version written to a file, a version released under a tag."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import typer
+
+from service.cli.app import LATITUDE, LONGITUDE, app, finite, version_ref
+
+
+@app.command()
+def export(
+    version: str = typer.Argument(..., parser=version_ref, help="version number, release tag, latest or released"),
+    format: str = typer.Option(..., "--format", help="obj | ply | icq | dsk | site"),
+    out: Path = typer.Option(..., "--out", dir_okay=False, help="file to write"),
+    surface: str = typer.Option("model", "--surface",
+                                help="model (every level) | global (the whole body's levels, beneath the sites)"),
+    faces: int | None = typer.Option(None, min=4, help="decimate to about this many faces first"),
+    lat: float | None = typer.Option(None, parser=LATITUDE, help="site latitude, deg (site)"),
+    lon: float | None = typer.Option(None, parser=LONGITUDE, help="site east longitude, deg (site)"),
+    radius: float | None = typer.Option(None, parser=finite(gt=0.0, le=100.0), help="site half-width, km (site)"),
+    body: str | None = typer.Option(None, help="NAIF body name or ID (dsk, site; default: the catalog's)"),
+    frame: str | None = typer.Option(None, help="body-fixed frame (dsk, site; default: the catalog's)"),
+) -> None:
+    """Export a model version; a site product is a zip of its PDS4 label, data file and PNG preview."""
+    from service.catalog import open_catalog
+    from service.exports import ExportError, ExportFormat, ExportSurface, Site, make_export, plan_export
+    from service.settings import get_settings
+    from service.versions import get_version
+
+    try:
+        fmt = ExportFormat(format)
+    except ValueError:
+        raise typer.BadParameter(f"expected one of {', '.join(ExportFormat)}", param_hint="--format") from None
+    try:
+        which = ExportSurface(surface)
+    except ValueError:
+        raise typer.BadParameter(f"expected one of {', '.join(ExportSurface)}", param_hint="--surface") from None
+    site_args = (lat, lon, radius)
+    if (fmt is ExportFormat.SITE) != all(a is not None for a in site_args) or (
+            fmt is not ExportFormat.SITE and any(a is not None for a in site_args)):
+        raise typer.BadParameter("--lat, --lon and --radius go together, with --format site only")
+    settings = get_settings()
+    with open_catalog(settings)() as session:
+        try:
+            plan = plan_export(session, data_dir=settings.data_dir, version=get_version(session, version),
+                               fmt=fmt, surface=which, faces=faces, body=body, frame=frame,
+                               site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius)
+                               if lat is not None and lon is not None and radius is not None else None)
+            session.close()
+            made = make_export(plan, cache_bytes=settings.export_cache_bytes)
+        except (LookupError, ExportError) as exc:
+            typer.echo(str(exc), err=True)
+            raise typer.Exit(1) from None
+    try:
+        _copy_whole(made.path, out)
+    except OSError as exc:
+        typer.echo(f"error: cannot write {out}: {exc.strerror or exc}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"{out} ({made.path.stat().st_size} bytes, sha256 {made.sha256})")
+
+
+def _copy_whole(source: Path, out: Path) -> None:
+    """Copy `source` to `out` whole or not at all: through a scratch file beside `out`, renamed
+    over it once complete, and removed if the copy fails (a full disk leaves nothing behind)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    handle, name = tempfile.mkstemp(prefix=f".{out.name}.", dir=out.parent)
+    os.close(handle)
+    try:
+        shutil.copyfile(source, name)
+        os.replace(name, out)
+    finally:
+        Path(name).unlink(missing_ok=True)
+
+
+@app.command()
+def release(
+    version: str = typer.Argument(..., parser=version_ref, help="version number, or latest"),
+    tag: str = typer.Option(..., "--tag", help="release tag, set once (a letter first)"),
+) -> None:
+    """Mark a model version released under a tag; a release is never changed or undone."""
+    from pydantic import ValidationError
+
+    from service.api.schemas import ReleaseRequest
+    from service.catalog import open_catalog
+    from service.db import session_scope
+    from service.releases import ReleaseConflict, release_version
+
+    try:
+        ReleaseRequest(tag=tag)
+    except ValidationError as exc:
+        raise typer.BadParameter(exc.errors()[0]["msg"], param_hint="--tag") from None
+    try:
+        with session_scope(open_catalog()) as session:
+            number = release_version(session, version, tag=tag).version
+    except (LookupError, ReleaseConflict) as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"version {number} released as {tag}")
