@@ -144,7 +144,7 @@ def main() -> None:
         for mode in args.modes if "refine" in args.paths and start.exists() else []:
             out = run.work / f"refined-{mode}"
             seconds, peak = pwm("refine", str(run.downlink), "--start", str(start), "--out", str(out), "--mode", mode,
-                                "--workers", str(args.workers), *(["--radius", *region] if region else []),
+                                "--workers", str(args.workers), *(["--radius-km", *region] if region else []),
                                 "--search-px", str(search))
             steps.append((mode, out / "refined.ply", (seconds, peak), out / "maplets.json"))
         if "run" in args.paths:
@@ -153,7 +153,7 @@ def main() -> None:
                 subprocess.run(["rm", "-rf", str(run.catalog)], check=True)
             fresh.add(run.catalog)
             seconds, peak = pwm("run", str(run.downlink), "--workers", str(args.workers), "--mode", "pwm",
-                                *(["--tile-radius", *region] if region else []), env=env)
+                                *(["--tile-radius-km", *region] if region else []), env=env)
             pwm("export", "latest", "--format", "ply", "--out", str(run.work / "run" / "refined.ply"), env=env)
             steps.append(("pwm run", run.work / "run" / "refined.ply", (seconds, peak), None))
         for label, model, cost, maplets in steps:

@@ -3,17 +3,19 @@
 level to the finest, so that each place takes the finest level that covers it.
 
 The coarsest level is fused over the base: one closed surface of the body where its lattice is
-affordable, else a region stitched into the base (pwm.volume.grid_for chooses). A finer level is
-kept as points (pwm.fusion.VoxelGrid) and laid onto the surface made so far (`displace`): that
-surface's faces about the level's region are split until they are as fine as its voxels
+affordable, else kept as points and laid onto the base (pwm.volume.grid_for chooses). A finer
+level is kept as points (pwm.fusion.VoxelGrid) and laid onto the surface made so far
+(`displace`): that surface's faces about the level's region are split until they are as fine as its voxels
 (pwm.mesh.refine_faces, conforming) and each vertex there is moved along the level's vertical
 (the direction its surface is a height field along) to the level's own surface, fully inside
 the region and fading to nothing over BLEND_VOXELS inside its border. So a site's centimetre
 maplets sit in the survey's closed surface without a step, and the result stays closed,
-manifold and consistently wound. (A level made while it was the coarsest, and later under a
-coarser one, may be a DistanceGrid: its closed surface is then made over the surface below,
-which fills where its maplets do not reach.) A maplet's revision is
-subtracted from its own level's sums exactly as it was added.
+manifold and consistently wound: a closed base stays closed, with no site patched beside it (a
+base of a body with holes and patches over them is sealed into one closed surface first,
+`sealed`). (A level made while it was the coarsest, and later under a coarser one, may be a
+DistanceGrid: its closed surface is then made over the surface below, which fills where its
+maplets do not reach.) A maplet's revision is subtracted from its own level's sums exactly as
+it was added.
 
 The laid levels are laid place by place: the places ("regions") are the connected parts of the
 ground within a margin of their sums, far enough apart that laying one cannot touch another's
@@ -31,13 +33,14 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
+import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from pwm.fusion import VoxelGrid, border_vertices
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh, border_edges, compact, refine_faces
+from pwm.mesh import Mesh, border_edges, compact, edge_keys, largest_piece, pieces, refine_faces
 from pwm.raytrace import Hits, RayTracer
 from pwm.tiling import level_of
 from pwm.volume import DistanceGrid, grid_for
@@ -60,6 +63,10 @@ MARGIN_EDGES = 3.0
 """Rings of the surface below's faces, beyond a laid level's reach, that a region's margin
 holds: the conforming splits about the laid faces stay inside it."""
 
+SEAL_OVER_EDGES = 4.0
+"""How far (in its mean edges) along its normal a patch's vertex may lie from the body under it
+and be taken as over it (`sealed`)."""
+
 _NEIGHBOURS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64)
 _REACH = np.array([[i, j, k] for i in range(-2, 3) for j in range(-2, 3) for k in range(-2, 3)], dtype=np.int64)
 
@@ -68,8 +75,8 @@ _REACH = np.array([[i, j, k] for i in range(-2, 3) for j in range(-2, 3) for k i
 class Composition:
     """What a composed surface keeps for the next composition (`LevelGrids.compose`).
 
-    below: the surface that the closed and stitched levels make over the base, onto which the
-    rest are laid; digest: of what made `below` (the base and those levels' sums);
+    below: the surface that the closed levels (and those laid between them) make over the base,
+    onto which the rest are laid; digest: of what made `below` (the base and those levels' sums);
     vertex_origin: per vertex of the composed surface, the vertex of `below` it is (moved or
     not), -1 for a vertex the laying made; face_origin: per face, the face of `below` it is or
     was split from; below_region: per face of `below`, the laid levels' region it lies in, -1
@@ -109,7 +116,7 @@ class LevelGrids:
     def add_all(self, maplets: Iterable[MapletGrid], *, base: Mesh) -> None:
         """Add the maplets to their levels' sums, a batch of each level at a time, so that they
         need not be held together. A level's first maplet sets its voxel size, and `base` (the
-        body) whether the level is one closed surface or a stitched region."""
+        body) whether the level is one closed surface or laid onto it."""
         pending: dict[int, list[MapletGrid]] = {}
         for maplet in maplets:
             level = self._note(maplet)
@@ -148,7 +155,9 @@ class LevelGrids:
         """The fused surface over `base` (as `mesh`), what the next composition needs of it, and
         how it was made. previous: the surface composed from these sums before the changes
         since (`changed`) and its composition; the regions the changes do not touch are carried
-        over from it while the surface below the laid levels is the same."""
+        over from it while the surface below the laid levels is the same. A base of a body and
+        patches beside it is made one closed surface first (`sealed`)."""
+        base = sealed(base)
         order = [k for k in sorted(self.grids, reverse=True) if len(self.grids[k].keys)]
         closed = [i for i, k in enumerate(order) if isinstance(self.grids[k], DistanceGrid)]
         made = order[: max(closed, default=0) + 1]
@@ -180,15 +189,24 @@ class LevelGrids:
             int(dirty.sum()), int((~dirty).sum()), carried is None)
 
     def _below(self, base: Mesh, made: list[int]) -> Mesh:
-        """The surface of the levels `made` (coarsest first) over `base`: the first, and any
-        DistanceGrid, closes its own; a VoxelGrid between them is laid."""
+        """The surface of the levels `made` (coarsest first) over `base`: a DistanceGrid closes
+        its own; a VoxelGrid is laid onto the surface below it, the base for the first."""
         surface = base
         for i, k in enumerate(made):
             grid = self.grids[k]
-            if i == 0 or isinstance(grid, DistanceGrid):
+            if isinstance(grid, DistanceGrid):
                 surface = grid.mesh(surface)
             else:
-                surface = displace(surface, grid, reach_km=REACH_VOXELS * self.grids[made[i - 1]].voxel_km)[0]
+                # the first level laid onto the base, as a finer level onto a coarser one, keeps the
+                # base's surface one piece; how far off the base may be, its faces' size tells
+                coarser = self.grids[made[i - 1]].voxel_km if i else base.mean_edge_length()
+                albedo = grid.points().albedo
+                if surface.albedo is None and not np.isnan(albedo).all():
+                    # a base without albedo takes the level's mean, which the laid level's own
+                    # albedo fades into
+                    surface = Mesh(surface.vertices, surface.faces, np.full(len(surface.vertices),
+                                                                            float(np.nanmean(albedo))))
+                surface = displace(surface, grid, reach_km=REACH_VOXELS * coarser)[0]
         return surface
 
     def _lay(self, below: Mesh, faces: np.ndarray, *, regions: _Regions, r: int, laid: list[int],
@@ -223,13 +241,11 @@ class LevelGrids:
         return sum(len(grid.keys) for grid in self.grids.values())
 
     def describe(self) -> dict[str, dict]:
-        """Per level (as text), coarsest first: how it makes the surface ("closed"; "stitched" into
-        the base; "laid" onto the levels below), its voxel size (m) and lattice points."""
+        """Per level (as text), coarsest first: how it makes the surface ("closed"; "laid" onto
+        the levels below, or the base), its voxel size (m) and lattice points."""
         out: dict[str, dict] = {}
         for level, grid in sorted(self.grids.items(), reverse=True):
-            # as `mesh` does: an empty level makes nothing, the first level with sums is stitched
-            below = any(d["voxels"] for d in out.values())
-            surface = "closed" if isinstance(grid, DistanceGrid) else "laid" if below else "stitched"
+            surface = "closed" if isinstance(grid, DistanceGrid) else "laid"
             out[str(level)] = {"surface": surface, "voxel_m": grid.voxel_km * 1e3, "voxels": len(grid.keys)}
         return out
 
@@ -263,6 +279,106 @@ def displace(surface: Mesh, grid: VoxelGrid, *, reach_km: float) -> tuple[Mesh, 
         albedo = albedo.copy()
         albedo[index] += share * (tracer.interpolate(level.albedo, hits)[found] - albedo[index])
     return Mesh(vertices, refined.faces, albedo), parent
+
+
+def sealed(base: Mesh) -> Mesh:
+    """`base` made one closed surface where it is a body with holes and patches over them, each
+    overlapping its hole's rim (as a start model made of a site's patch on the body it was cut
+    from comes): each patch less its faces over the body (SEAL_OVER_EDGES of its edges within)
+    and a band beyond them as wide as the rim's edges are long, its border zipped to its hole's
+    by a ring of faces in the patch's plane. Any other mesh, or one whose pieces are not so,
+    comes back as it is."""
+    n = len(base.vertices)
+    piece = pieces(n, base.faces)
+    if piece.max(initial=0) == 0:
+        return base
+    body = np.bincount(piece).argmax()
+    faces = [base.faces[piece == body]]
+    holes = _loops(faces[0], n)
+    if holes is None:
+        return base
+    tracer = RayTracer(Mesh(base.vertices, faces[0]))
+    for k in np.setdiff1d(np.unique(piece), [body]):
+        patch = base.faces[piece == k]
+        if not holes:
+            return base
+        centre = base.vertices[np.unique(patch)].mean(axis=0)
+        hole = holes.pop(int(np.argmin([np.linalg.norm(base.vertices[h].mean(axis=0) - centre) for h in holes])))
+        tri = base.vertices[patch]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]).sum(axis=0)
+        normal /= max(float(np.linalg.norm(normal)), 1e-300)
+        edge = float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).mean())
+        used = np.unique(patch)
+        hits = tracer.intersect(base.vertices[used] + SEAL_OVER_EDGES * edge * normal,
+                                np.broadcast_to(-normal, (len(used), 3)))
+        over = np.zeros(n, dtype=bool)
+        over[used] = hits.hit & (hits.t <= 2.0 * SEAL_OVER_EDGES * edge)
+        # and as many rings of the patch's faces beyond as the rim's edges are long, so that no
+        # kept face reaches over a notch of the rim, which the ring's faces would cross
+        rim = float(np.linalg.norm(base.vertices[np.roll(hole, -1)] - base.vertices[hole], axis=1).mean())
+        for _ in range(int(np.ceil(rim / edge))):
+            over[patch[over[patch].any(axis=1)]] = True
+        kept = patch[~over[patch].any(axis=1)]
+        if not len(kept):
+            return base
+        kept = kept[largest_piece(n, kept)]
+        inner = _loops(kept, n)
+        if inner is None or len(inner) != 1:
+            return base
+        faces += [kept, _zip(base.vertices, outer=hole[::-1], inner=inner[0], centre=centre, normal=normal)]
+    used_mask, joined = compact(n, np.vstack(faces))
+    out = Mesh(base.vertices[used_mask], joined, None if base.albedo is None else base.albedo[used_mask])
+    check = trimesh.Trimesh(out.vertices, out.faces, process=False)
+    return out if check.is_watertight and check.is_winding_consistent and check.volume > 0 else base
+
+
+def _loops(faces: np.ndarray, n_vertices: int) -> list[np.ndarray] | None:
+    """The border loops of `faces`, each its vertices in the order its faces run along it; None
+    where a border is not simple (a vertex on it twice)."""
+    directed = np.stack([faces, np.roll(faces, -1, axis=1)], axis=-1).reshape(-1, 2)
+    directed = directed[np.isin(edge_keys(faces, n_vertices).ravel(), border_edges(faces, n_vertices))]
+    if len(np.unique(directed[:, 0])) != len(directed):
+        return None
+    following = dict(zip(directed[:, 0].tolist(), directed[:, 1].tolist(), strict=True))
+    loops = []
+    while following:
+        start = next(iter(following))
+        loop = [start]
+        while (step := following.pop(loop[-1], None)) is not None and step != start:
+            loop.append(step)
+        if step != start:
+            return None
+        loops.append(np.array(loop, dtype=np.int64))
+    return loops
+
+
+def _zip(vertices: np.ndarray, *, outer: np.ndarray, inner: np.ndarray, centre: np.ndarray,
+         normal: np.ndarray) -> np.ndarray:
+    """Faces joining two loops about `centre`, both running counter-clockwise seen along -normal,
+    `outer` round `inner`: each step takes the next vertex of the loop whose next vertex comes
+    first in angle, so the ring's faces are wound outwards (along normal)."""
+    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+
+    def angles(loop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d = vertices[loop] - centre
+        a = np.mod(np.arctan2(d @ e2, d @ e1), 2 * np.pi)
+        first = int(np.argmin(a))
+        loop = np.roll(loop, -first)
+        a = np.unwrap(np.roll(a, -first))
+        return np.append(loop, loop[0]), np.append(a, a[0] + 2 * np.pi)
+
+    (o, ao), (i, ai) = angles(outer), angles(inner)
+    faces, p, q = [], 0, 0
+    while p < len(o) - 1 or q < len(i) - 1:
+        if q == len(i) - 1 or (p < len(o) - 1 and ao[p + 1] <= ai[q + 1]):
+            faces.append((o[p], o[p + 1], i[q]))
+            p += 1
+        else:
+            faces.append((o[p], i[q + 1], i[q]))
+            q += 1
+    return np.array(faces, dtype=np.int64)
 
 
 def _crossing(tracer: RayTracer, points: np.ndarray, directions: np.ndarray,

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 
 @dataclass
@@ -82,13 +83,38 @@ def compact(n_vertices: int, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return used, (np.cumsum(used) - 1)[faces]
 
 
-def largest_piece(n_vertices: int, faces: np.ndarray) -> np.ndarray:
-    """Mask of the faces of the largest edge-connected piece (by faces)."""
+def pieces(n_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """(M,) the edge-connected piece of each face, numbered 0, 1, ... (as many as there are)."""
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n_vertices, n_vertices))
     _, labels = connected_components(graph, directed=False)
-    face_label = labels[faces[:, 0]]
-    return face_label == np.bincount(face_label).argmax()
+    return np.unique(labels[faces[:, 0]], return_inverse=True)[1].reshape(-1)
+
+
+def welded(mesh: Mesh, *, tolerance: float = 1e-9) -> Mesh:
+    """`mesh` with the vertices that coincide, within `tolerance` of its extent, made one (the
+    first of each), faces renumbered, and the faces so left with two corners one vertex (no
+    area) dropped: a plate model's pole is often one vertex per plate. The vertices no face uses
+    then are kept, so that albedo and numbering stay as they were."""
+    if not len(mesh.vertices):
+        return mesh
+    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    pairs = cKDTree(mesh.vertices).query_pairs(tolerance * extent, output_type="ndarray")
+    if not len(pairs):
+        return mesh
+    n = len(mesh.vertices)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    _, first = np.unique(labels, return_index=True)
+    faces = first[labels][mesh.faces]
+    collapsed = (faces == np.roll(faces, 1, axis=1)).any(axis=1)
+    return Mesh(mesh.vertices, faces[~collapsed], mesh.albedo)
+
+
+def largest_piece(n_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """Mask of the faces of the largest edge-connected piece (by faces)."""
+    face_piece = pieces(n_vertices, faces)
+    return face_piece == np.bincount(face_piece).argmax()
 
 
 def surface_points(mesh: Mesh, count: int, rng: np.random.Generator) -> np.ndarray:

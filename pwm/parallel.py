@@ -1,5 +1,6 @@
 """Running work in processes side by side: the one way maplets are refined in parallel outside
-Celery (`pwm refine` and `pwm run`), and how such processes share the machine's cores."""
+Celery (`pwm refine` and `pwm run`), how such processes share the machine's cores, and how a
+long loop tells its caller how far it has come (`Progress`)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,10 @@ from threadpoolctl import threadpool_limits
 
 T = TypeVar("T")
 R = TypeVar("R")
+
+Progress = Callable[[str, int, int], None]
+"""Told (stage, done, total) as a long loop starts (done 0) and after each of its items: the
+science only counts; whoever runs it (the command line's progress bar) shows it."""
 
 
 def share_cores(processes: int) -> int:

@@ -23,7 +23,7 @@ from pwm.config import DEFAULTS, RefinementConfig
 from pwm.levels import LevelGrids
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
-from pwm.parallel import map_processes
+from pwm.parallel import Progress, map_processes
 from pwm.photoclinometry import MapletImages, Refinement, coarsened, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
@@ -297,17 +297,22 @@ def _refine_in_worker(maplet: MapletGrid) -> MapletResult:
 
 
 def refine_maplets(maplets: list[MapletGrid], views: list[View], start: Mesh, *, config: RefinementConfig = DEFAULTS,
-                   workers: int = 1) -> list[MapletResult]:
+                   workers: int = 1, progress: Progress | None = None, stage: str = "refine") -> list[MapletResult]:
     """Refine every maplet against `start` (in `workers` processes, pwm.parallel.map_processes),
-    logging progress; results in input order."""
+    telling `progress` (as `stage`) after each and logging each at DEBUG; results in input
+    order."""
     results: list[MapletResult] = []
     clock = time.perf_counter()
+    if progress is not None:
+        progress(stage, 0, len(maplets))
     for k, result in enumerate(map_processes(_refine_in_worker, maplets, workers=workers, initializer=_init_worker,
                                              initargs=(start, views, config)), 1):
         results.append(result)
-        log.info("maplet %d/%d %s: %d images, w_PWM %.2f, %d iterations (%.1f s; %.0f s elapsed)", k, len(maplets),
-                 result.maplet.name, len(result.images), result.region_weight, result.iterations, result.seconds,
-                 time.perf_counter() - clock)
+        log.debug("maplet %d/%d %s: %d images, w_PWM %.2f, %d iterations (%.1f s; %.0f s elapsed)", k, len(maplets),
+                  result.maplet.name, len(result.images), result.region_weight, result.iterations, result.seconds,
+                  time.perf_counter() - clock)
+        if progress is not None:
+            progress(stage, k, len(maplets))
     return results
 
 
@@ -342,12 +347,13 @@ def imaged_region(views: list[View], start: Mesh, *, radius_fraction: float = 0.
 
 
 def refine_region(start: Mesh, views: list[View], region: Region, *, config: RefinementConfig = DEFAULTS,
-                  workers: int = 1) -> tuple[Mesh, list[MapletResult]]:
+                  workers: int = 1, progress: Progress | None = None) -> tuple[Mesh, list[MapletResult]]:
     """Tile `region` of `start`, refine every maplet and fuse them, config.passes times: each later
     pass tiles the previous one's fused model afresh, so that a maplet starts from what its
     neighbours made of its edges, and its visibility and shadows come from a shape that has the
     relief (the start's lacks most of what casts shadows). Each pass takes the shape only: the
-    albedo comes from the images. Returns the last fused model and the last pass's results."""
+    albedo comes from the images. Returns the last fused model and the last pass's results.
+    progress: told how far each pass's refinement has come (stage "refine pass P/N")."""
     model, results = start, []
     for done in range(config.passes):
         shape = Mesh(model.vertices, model.faces)
@@ -355,7 +361,8 @@ def refine_region(start: Mesh, views: list[View], region: Region, *, config: Ref
                        centre_lat_deg=region.lat_deg, centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
         log.info("pass %d/%d: %d maplets of %d nodes at %.3f m", done + 1, config.passes, len(maplets), config.nodes,
                  region.spacing_km * 1e3)
-        results = refine_maplets(maplets, views, shape, config=config, workers=workers)
+        results = refine_maplets(maplets, views, shape, config=config, workers=workers, progress=progress,
+                                 stage=f"refine pass {done + 1}/{config.passes}")
         model, _ = fuse([r.maplet for r in results], shape, overlap=config.overlap)
     return model, results
 

@@ -50,7 +50,7 @@ BLOCK = 32
 """Side, in lattice steps, of the blocks marching cubes works on."""
 MAX_SURFACE_CELLS = 4_000_000
 """The most lattice cells of a base's surface (its area over voxel_km squared) fused as one
-closed surface; beyond, maplets are fused as a region stitched into the base (pwm.fusion)."""
+closed surface; beyond, maplets are fused as points laid onto the base (pwm.fusion, pwm.levels.displace)."""
 
 _BEND_NEIGHBOURS = 8
 _INSIDE_RAY = np.array([0.4472, 0.7746, 0.4472]) / np.linalg.norm([0.4472, 0.7746, 0.4472])
@@ -213,8 +213,8 @@ class DistanceGrid(SparseSums):
 
 def grid_for(base: Mesh, *, voxel_km: float, taper_fraction: float) -> VoxelGrid | DistanceGrid:
     """The fusion for maplets of spacing voxel_km over `base`: one closed surface of the whole
-    body (DistanceGrid) where its lattice is affordable (MAX_SURFACE_CELLS), else a region
-    stitched into the base (pwm.fusion.VoxelGrid), as a site's centimetre maplets on a whole
+    body (DistanceGrid) where its lattice is affordable (MAX_SURFACE_CELLS), else points laid onto
+    the base (pwm.fusion.VoxelGrid, pwm.levels.displace), as a site's centimetre maplets on a whole
     asteroid are."""
     if base.face_areas().sum() / voxel_km ** 2 <= MAX_SURFACE_CELLS:
         return DistanceGrid(voxel_km=voxel_km, taper_fraction=taper_fraction)

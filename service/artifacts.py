@@ -119,10 +119,11 @@ def digest(value: Any) -> str:
     return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def cached_artifact(data_dir: Path, key: str, *, suffix: str, make: Callable[[Path], None],
+def cached_artifact(data_dir: Path, key: str, *, suffix: str, make: Callable[[Path], dict[str, Any] | None],
                     cache_bytes: int | None) -> dict[str, Any]:
     """The record ({"path", "sha256", "bytes"}) of the file kept for `key` (a hex digest), made
-    by `make(path)` (which writes the file `path`) the first time, or again when it went missing.
+    by `make(path)` (which writes the file `path`) the first time, or again when it went missing;
+    what `make` returns, if anything, is kept in the record too (what was learnt making the file).
 
     Making holds the process's making lock (so `make` may use SPICE and fast-simplification);
     of requests that must make their file, MAX_QUEUED wait for it at most MAKE_WAIT_S, and the
@@ -166,13 +167,13 @@ def _kept(data_dir: Path, key: str) -> dict[str, Any] | None:
 
 
 def _make_and_keep(data_dir: Path, key: str, *, suffix: str,
-                   make: Callable[[Path], None]) -> dict[str, Any]:
+                   make: Callable[[Path], dict[str, Any] | None]) -> dict[str, Any]:
     directory = data_dir / CACHE_DIRNAME
     with _workspace(data_dir) as scratch:
         path = scratch / f"made{suffix}"
-        make(path)
+        learnt = make(path) or {}
         relative = Path(CACHE_DIRNAME) / f"{key}{suffix}"
-        record = {"path": relative.as_posix(), "sha256": file_sha256(path),
+        record = {**learnt, "path": relative.as_posix(), "sha256": file_sha256(path),
                   "bytes": path.stat().st_size}
         os.replace(path, data_dir / relative)  # same filesystem: atomic
         staged = scratch / "index.json"

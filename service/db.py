@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import fcntl
+import logging
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -10,9 +11,12 @@ from typing import Any
 
 from alembic import command
 from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
 from sqlalchemy import URL, Connection, Engine, create_engine, event, make_url, text
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session, sessionmaker
+
+log = logging.getLogger(__name__)
 
 # The repository's top-level migrations/ folder; the package is installed editable next to it.
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
@@ -101,13 +105,33 @@ def upgrade(url: str | URL, revision: str = "head") -> None:
     others, once it has committed, find nothing left to do."""
     engine = make_engine(url)
     try:
-        with migration_transaction(engine) as connection:
+        with migration_transaction(engine) as connection, _quiet_alembic():
+            before = MigrationContext.configure(connection).get_current_revision()
             config = _alembic_config()
             # env.py migrates this connection, so the SQLite pragmas above apply there too.
             config.attributes["connection"] = connection
             command.upgrade(config, revision)
+            after = MigrationContext.configure(connection).get_current_revision()
     finally:
         engine.dispose()
+    if after != before:
+        log.info("catalog %s revision %s", "created at" if before is None else f"migrated from revision {before} to",
+                 after)
+
+
+@contextmanager
+def _quiet_alembic() -> Iterator[None]:
+    """Alembic's logger at WARNING while the block runs, unless DEBUG is asked for: its INFO
+    lines (a line per migration, 14 and more on a first run) say nothing an operator acts on;
+    `upgrade` says in one line what changed."""
+    alembic_log = logging.getLogger("alembic")
+    level = alembic_log.level
+    if alembic_log.getEffectiveLevel() > logging.DEBUG:
+        alembic_log.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        alembic_log.setLevel(level)
 
 
 @contextmanager

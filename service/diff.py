@@ -7,8 +7,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
@@ -86,6 +88,24 @@ def change_map(session: Session, *, data_dir: Path, old: ModelVersion, new: Mode
     return cached_artifact(data_dir, key, suffix=".png", make=make, cache_bytes=cache_bytes)
 
 
+def _north_and_scale(ax: Axes, *, radius_km: float, cos_lat: float) -> None:
+    """A north arrow (latitude grows upwards: north is up) and a scale bar of a round length
+    about a fifth of the map's width, at the map's middle latitude (cos_lat)."""
+    ax.annotate("N", xy=(0.95, 0.97), xytext=(0.95, 0.84), xycoords="axes fraction",
+                ha="center", va="center", fontweight="bold",
+                arrowprops={"arrowstyle": "-|>", "color": "black"})
+    left, right = ax.get_xlim()
+    km_per_deg = np.radians(1.0) * radius_km * cos_lat
+    wanted_km = abs(right - left) * km_per_deg / 5.0
+    if not wanted_km > 0:
+        return
+    length_km = 10.0 ** np.floor(np.log10(wanted_km))
+    length_km *= max(step for step in (1.0, 2.0, 5.0) if step * length_km <= wanted_km)
+    label = f"{length_km:g} km" if length_km >= 1.0 else f"{length_km * 1e3:g} m"
+    ax.add_artist(AnchoredSizeBar(ax.transData, length_km / km_per_deg, label, "lower left",
+                                  pad=0.4, frameon=True, size_vertical=0))
+
+
 def _plot(path: Path, mesh: Mesh, change: HeightChange, changed: np.ndarray, *,
           title: str) -> None:
     """Change (m) at the vertices over east longitude and latitude, framed on the changed
@@ -106,7 +126,8 @@ def _plot(path: Path, mesh: Mesh, change: HeightChange, changed: np.ndarray, *,
                         vmin=-limit, vmax=limit, linewidths=0)
     fig.colorbar(points, ax=ax, label="height change (m)")
     ax.set(xlabel="east longitude (deg)", ylabel="latitude (deg)", title=title)
-    ax.set_aspect(1.0 / max(np.cos(np.radians(np.median(lat[frame]) if frame.any() else 0.0)),
-                            0.1))
+    cos_lat = max(float(np.cos(np.radians(np.median(lat[frame]) if frame.any() else 0.0))), 0.1)
+    ax.set_aspect(1.0 / cos_lat)
+    _north_and_scale(ax, radius_km=float(np.linalg.norm(mesh.vertices, axis=1).mean()), cos_lat=cos_lat)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120, bbox_inches="tight")

@@ -1,5 +1,9 @@
-"""Exports of a model version: OBJ, PLY (per-vertex albedo), Gaskell ICQ, SPICE DSK type 2, and
-a local terrain product of a site (PDS4 heights and albedo in the site frame, with a PNG preview).
+"""Exports of a model version: OBJ, PLY (per-vertex albedo; both with the version, frame and
+units in their headers), Gaskell ICQ, SPICE DSK type 2, a LAS point cloud of its vertices (m,
+body-fixed, albedo per point), and a site's terrain: a local product (PDS4 heights, albedo,
+slope and roughness in the site frame with a Cartography area, and a PNG preview) or the same
+layers as a GeoTIFF or an ISIS3 cube in an orthographic projection about the site
+(pwm.io.terrain), for GIS and ISIS.
 
 Of a version with levels (pwm.levels), the mesh formats give the whole model (surface `model`,
 each place at the finest level that covers it), or the global model alone at the levels of the
@@ -7,12 +11,15 @@ whole body (surface `global`: the surface the sites are laid onto, the survey's)
 model's DSK has one segment for the body and one per site region, which part it without
 overlapping (pwm.io.dsk.write_dsk), so navigation loading it gets the model's own intercepts,
 and each segment's index sized to its plates; the global DSK is one segment. A site product is
-sampled from the whole model at the spacing of its faces there, the finest level's.
+sampled from the whole model at the spacing of its faces there, the finest level's; its
+projection is on the sphere of the body's mean radius, from the constants kernels' radii.
 
-Every export may be decimated to a requested face count first. An export is made once and kept
+Every export may be decimated to a requested face count first (pwm.decimate: a closed surface
+stays closed). A DSK is made only of one closed surface (pwm.evaluate.closure), else refused
+saying why; OBJ, PLY and ICQ are made either way, and tell whether their file is closed
+(ExportFile.closure, a warning logged when not). An export is made once and kept
 in the artifact store's cache (service.artifacts.cached_artifact), keyed by the version's mesh
-checksum with the format and the parameters as asked; the mesh formats at full resolution are
-the version's own artifacts.
+checksum with the format and the parameters as asked.
 
 An export is planned from the catalog first (plan_export) and made without it (make_export), so
 that no database connection is held while a request waits for its turn (the cache's making
@@ -23,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import logging
 import math
 import zipfile
 from collections.abc import Iterable
@@ -38,12 +46,15 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from pwm.decimate import decimate
+from pwm.evaluate.closure import closure
 from pwm.io.dsk import write_dsk
 from pwm.io.fusion_state import read_composition
 from pwm.io.icq import mesh_to_icq, write_icq
-from pwm.io.meshio import write_obj, write_ply
-from pwm.io.site_product import write_site_product
+from pwm.io.las import body_fixed_wkt, write_las
+from pwm.io.meshio import read_shape_model, write_obj, write_ply
+from pwm.io.site_product import site_layers, write_site_product
 from pwm.io.spice_kernels import kernel_pool
+from pwm.io.terrain import TerrainDriver, site_projection, write_terrain
 from pwm.mesh import Mesh
 from pwm.site import SiteGrid, resample_site
 from service.artifacts import artifact_mesh, artifact_path, cached_artifact, digest
@@ -60,9 +71,11 @@ from service.rows import (
 
 # Bump when an export's content changes for the same inputs, so that old cache entries are
 # not served for new requests.
-EXPORT_REVISION = 4
+EXPORT_REVISION = 5
 # The site grid has at most (2 * MAX_SITE_HALF_NODES + 1)^2 nodes.
 MAX_SITE_HALF_NODES = 500
+
+log = logging.getLogger(__name__)
 
 
 class ExportFormat(enum.StrEnum):
@@ -71,6 +84,15 @@ class ExportFormat(enum.StrEnum):
     ICQ = "icq"
     DSK = "dsk"
     SITE = "site"
+    GEOTIFF = "geotiff"
+    ISIS = "isis"
+    LAS = "las"
+
+
+# The formats of a site's terrain, sampled about a site (Site).
+SITE_FORMATS = frozenset({ExportFormat.SITE, ExportFormat.GEOTIFF, ExportFormat.ISIS})
+# The formats that name the body and its body-fixed frame, which the plan reads from the catalog.
+TARGET_FORMATS = SITE_FORMATS | {ExportFormat.DSK, ExportFormat.LAS}
 
 
 class ExportSurface(enum.StrEnum):
@@ -81,14 +103,22 @@ class ExportSurface(enum.StrEnum):
 
 
 SUFFIXES = {ExportFormat.OBJ: ".obj", ExportFormat.PLY: ".ply", ExportFormat.ICQ: ".icq",
-            ExportFormat.DSK: ".bds", ExportFormat.SITE: ".zip"}
+            ExportFormat.DSK: ".bds", ExportFormat.SITE: ".zip", ExportFormat.GEOTIFF: ".tif",
+            ExportFormat.ISIS: ".cub", ExportFormat.LAS: ".las"}
 MEDIA_TYPES = {ExportFormat.OBJ: "model/obj", ExportFormat.PLY: "application/octet-stream",
                ExportFormat.ICQ: "text/plain", ExportFormat.DSK: "application/octet-stream",
-               ExportFormat.SITE: "application/zip"}
+               ExportFormat.SITE: "application/zip",
+               ExportFormat.GEOTIFF: "image/tiff; application=geotiff",
+               ExportFormat.ISIS: "application/octet-stream", ExportFormat.LAS: "application/vnd.las"}
 
 
 class ExportError(Exception):
     """The export cannot be made from this version with these parameters."""
+
+
+# The formats that are one surface: a DSK is refused unless it is closed, these are made and
+# their closure told (ExportFile.closure).
+CLOSURE_FORMATS = frozenset({ExportFormat.OBJ, ExportFormat.PLY, ExportFormat.ICQ})
 
 
 class Site(BaseModel):
@@ -104,12 +134,15 @@ class Site(BaseModel):
 
 @dataclass(frozen=True)
 class ExportFile:
-    """A made export: its file in the data directory, a name to download it as, its type."""
+    """A made export: its file in the data directory, a name to download it as, its type, and
+    for the surface formats (CLOSURE_FORMATS) whether it is one closed surface ("closed", or
+    "open: " and why, pwm.evaluate.closure.Closure.describe; None for the other formats)."""
 
     path: Path
     filename: str
     media_type: str
     sha256: str
+    closure: str | None = None
 
 
 @dataclass(frozen=True)
@@ -129,11 +162,10 @@ def icq_size(faces: int) -> int:
 @dataclass(frozen=True)
 class ExportPlan:
     """What making an export needs from the catalog, read beforehand: the version (number, kind,
-    creation time, PLY artifact record and its composition's, if any; its own record of the file
-    asked for, for the mesh formats at full resolution), the request (format, surface, faces,
-    site, body and frame; frame from the catalog's images unless given), the catalog's accepted
-    PCK and FK files with their checksums, and for a site product the time span and spacecraft
-    of its images."""
+    creation time, PLY artifact record and its composition's, if any), the request (format,
+    surface, faces, site, body and frame; frame from the catalog's images unless given), the
+    catalog's accepted PCK and FK files with their checksums, and for a site product the time
+    span and spacecraft of its images."""
 
     data_dir: Path
     version: int
@@ -151,7 +183,6 @@ class ExportPlan:
     kernels: tuple[tuple[Path, str], ...] = ()
     time_span: tuple[datetime, datetime] | None = None
     spacecraft_id: int | None = None
-    own: dict[str, Any] | None = None
 
     def key(self) -> str:
         """The cache key: a hex digest of everything the file depends on."""
@@ -172,15 +203,16 @@ def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt:
 
     surface: the whole model, or the global model beneath the sites (the whole model for a
     version without sites). faces: decimate to about this many faces first (none, or at least
-    the surface's count: full resolution); ICQ takes q from it (icq_size). site: needed by, and only by, the site
-    product. body (NAIF name or ID) and frame (body-fixed frame name) override what the
-    catalog's images give, for DSK and site products. Raises ExportError when the export cannot
-    be made.
+    the surface's count: full resolution); ICQ takes q from it (icq_size). site: needed by, and only by, a site's
+    terrain (SITE_FORMATS). body (NAIF name or ID) and frame (body-fixed frame name) override
+    what the catalog's images give, for the formats that name them (TARGET_FORMATS; OBJ and
+    PLY name the frame when it is known). Raises ExportError when the export cannot be made.
     """
-    if (fmt is ExportFormat.SITE) != (site is not None):
-        raise ExportError("a site product needs a site, and only a site product takes one")
-    if fmt is ExportFormat.SITE and surface is ExportSurface.GLOBAL:
-        raise ExportError("a site product is sampled from the whole model (the finest level there), "
+    if (fmt in SITE_FORMATS) != (site is not None):
+        raise ExportError(f"a site's terrain ({', '.join(sorted(SITE_FORMATS))}) needs a site, "
+                          "and only it takes one")
+    if fmt in SITE_FORMATS and surface is ExportSurface.GLOBAL:
+        raise ExportError("a site's terrain is sampled from the whole model (the finest level there), "
                           "not from the global one")
     composition = version.artifacts.get("composition")
     below = surface is ExportSurface.GLOBAL and composition is not None
@@ -196,12 +228,12 @@ def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt:
                       fmt=fmt, faces=faces, filename=name, site=site,
                       surface=ExportSurface.GLOBAL if below else ExportSurface.MODEL,
                       composition=dict(composition) if composition is not None else None)
-    if fmt in (ExportFormat.PLY, ExportFormat.OBJ) and faces is None and not below:
-        return dataclasses.replace(plan, own=dict(version.artifacts[fmt.value]))
-    if fmt not in (ExportFormat.DSK, ExportFormat.SITE):
+    if fmt not in TARGET_FORMATS | {ExportFormat.OBJ, ExportFormat.PLY}:
         return plan
     if frame is None:
         frame = _most_common(session, select(ImageGeometry.body_frame))
+    if fmt in (ExportFormat.OBJ, ExportFormat.PLY):  # the frame named in the header, if known
+        return dataclasses.replace(plan, frame=frame)
     if frame is None:
         raise ExportError("the catalog has no image geometry to take the body-fixed frame "
                           "from: give the frame")
@@ -224,11 +256,8 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
     version's files are damaged, service.artifacts.CacheBusy when too many files are being made.
     """
     fmt, faces = plan.fmt, plan.faces
-    if plan.own is not None:
-        return ExportFile(artifact_path(plan.data_dir, plan.own), plan.filename,
-                          MEDIA_TYPES[fmt], plan.own["sha256"])
 
-    def make(path: Path) -> None:
+    def make(path: Path) -> dict[str, Any] | None:
         composition = (read_composition(artifact_path(plan.data_dir, plan.composition, verify=True))
                        if plan.composition is not None else None)
         if plan.surface is ExportSurface.GLOBAL and composition is not None:
@@ -238,20 +267,45 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
         # a DSK of the whole model at full resolution: a segment per site region, one for the rest
         parts = composition.face_region() if plan.surface is ExportSurface.MODEL and composition else None
         if faces is not None and faces < len(mesh.faces):
-            mesh, parts = decimate(mesh, faces), None
+            mesh, parts = _decimated(mesh, faces), None
+        if fmt is ExportFormat.DSK and not (checks := closure(mesh)).closed:
+            raise ExportError(f"no DSK of version {plan.version}: a DSK must be one closed surface, and this "
+                              f"one is {checks.describe()}")
         if fmt is ExportFormat.ICQ:
             _write_icq(path, mesh, icq_size(faces or len(mesh.faces)))
         elif fmt is ExportFormat.DSK:
             _write_dsk(path, mesh, plan=plan, parts=parts)
         elif fmt is ExportFormat.SITE:
             _write_site(path, mesh, plan=plan)
+        elif fmt in (ExportFormat.GEOTIFF, ExportFormat.ISIS):
+            _write_terrain(path, mesh, plan=plan)
+        elif fmt is ExportFormat.LAS:
+            _write_las(path, mesh, plan=plan)
         else:
-            (write_ply if fmt is ExportFormat.PLY else write_obj)(path, mesh)
+            frame = plan.frame or "body-fixed (frame not named by the catalog)"
+            (write_ply if fmt is ExportFormat.PLY else write_obj)(path, mesh, comments=[
+                f"pwm shape model version {plan.version} ({plan.kind}), made "
+                f"{plan.created_at:%Y-%m-%dT%H:%M:%SZ}", f"frame {frame}", "units km"])
+        # read back from the file as written, and kept in its record
+        # (self-intersections are counted for a DSK only: they cost tens of seconds a million faces)
+        return ({"closure": closure(read_shape_model(path), count_intersections=False).describe()}
+                if fmt in CLOSURE_FORMATS else None)
 
     record = cached_artifact(plan.data_dir, plan.key(), suffix=SUFFIXES[fmt], make=make,
                              cache_bytes=cache_bytes)
-    return ExportFile(artifact_path(plan.data_dir, record), plan.filename, MEDIA_TYPES[fmt],
-                      record["sha256"])
+    path = artifact_path(plan.data_dir, record)
+    verdict = "closed" if fmt is ExportFormat.DSK else record.get("closure")
+    if verdict not in (None, "closed"):
+        log.warning("%s of version %d is not one closed surface (%s): mass properties and polyhedral "
+                    "gravity need one", plan.filename, plan.version, verdict)
+    return ExportFile(path, plan.filename, MEDIA_TYPES[fmt], record["sha256"], verdict)
+
+
+def _decimated(mesh: Mesh, faces: int) -> Mesh:
+    try:
+        return decimate(mesh, faces)
+    except ValueError as exc:  # a closed surface that the collapse would leave open
+        raise ExportError(f"no export at {faces} faces: {exc}") from exc
 
 
 def resolve_target(kernels: Iterable[Path], *, body: str | None, frame: str) -> Target:
@@ -306,22 +360,79 @@ def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan, parts: np.ndarray | 
         write_dsk(path, mesh, body=target.body_id, frame=target.frame, comment=comment, parts=parts)
 
 
-def _write_site(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
-    assert plan.site is not None and plan.time_span is not None  # plan_export sets them
-    target = _target(plan)
+def _site_sample(mesh: Mesh, plan: ExportPlan) -> SiteGrid:
+    assert plan.site is not None  # plan_export sets it for the site formats
     grid = site_grid(mesh, plan.site)
     if np.isnan(grid.height_km).all():
         raise ExportError("the site grid meets no surface")
+    return grid
+
+
+def _write_terrain(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
+    target = _target(plan)
+    grid = _site_sample(mesh, plan)
+    radii = _radii(plan, target)
+    projection = site_projection(grid.frame, body=target.name, radii_km=radii)
+    spacing_m = float(grid.x_km[1] - grid.x_km[0]) * 1e3
+    driver = TerrainDriver.ISIS3 if plan.fmt is ExportFormat.ISIS else TerrainDriver.GEOTIFF
+
+    def numbers(values: Iterable[float]) -> str:
+        return " ".join(f"{v:.12g}" for v in values)
+
+    write_terrain(path, driver=driver, x_km=grid.x_km, y_km=grid.y_km, projection=projection,
+                  layers=site_layers(grid.height_km, grid.albedo, spacing_m=spacing_m), metadata={
+                      "PWM_VERSION": str(plan.version), "PWM_MODEL_KIND": plan.kind,
+                      "BODY": target.name, "BODY_NAIF_ID": str(target.body_id),
+                      "BODY_FRAME": target.frame, "BODY_RADII_KM": numbers(radii),
+                      "SITE_FRAME_ORIGIN_KM": numbers(grid.frame.origin),
+                      "SITE_FRAME_AXES": numbers(grid.frame.rotation.ravel()),
+                      "HEIGHT": "m along the site frame z axis (the projection's centre "
+                                "direction) from the site frame origin, not above the sphere",
+                      "SITE_FRAME": "rows of SITE_FRAME_AXES: x (east), y (north), z (regional "
+                                    f"normal) in {target.frame}; origin and radii in km"})
+
+
+def _write_las(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
+    target = _target(plan)
+    radius = sum(_radii(plan, target)) / 3.0
+    write_las(path, vertices_km=mesh.vertices, albedo=mesh.albedo,
+              crs_wkt=body_fixed_wkt(body=target.name, frame=target.frame, radius_km=radius),
+              system_identifier=f"pwm v{plan.version} {target.frame}"[:32],
+              description=f"pwm shape model version {plan.version} ({plan.kind}) of {target.name}: "
+                          f"its {len(mesh.vertices)} vertices in m in {target.frame}"
+                          + ("; albedo per point" if mesh.albedo is not None else ""))
+
+
+def _radii(plan: ExportPlan, target: Target) -> tuple[float, float, float]:
+    """The body's radii (km) from the plan's constants kernels. The caller holds the making
+    lock."""
+    with kernel_pool(_kernel_paths(plan)):
+        if not sp.bodfnd(target.body_id, "RADII"):
+            raise ExportError(f"the catalog's constants kernels give no radii of {target.name}: "
+                              f"accept a PCK with BODY{target.body_id}_RADII")
+        _, radii = sp.bodvcd(target.body_id, "RADII", 3)
+    if not (np.isfinite(radii).all() and np.min(radii) > 0):
+        raise ExportError(f"the constants kernels' radii of {target.name} are not positive: {list(radii)}")
+    return (float(radii[0]), float(radii[1]), float(radii[2]))
+
+
+def _write_site(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
+    assert plan.site is not None and plan.time_span is not None  # plan_export sets them
+    target = _target(plan)
+    grid = _site_sample(mesh, plan)
     start, stop = plan.time_span
     host = _spacecraft(plan.spacecraft_id)
     name = f"pwm_site_v{plan.version:04d}_{digest(plan.site.model_dump())[:10]}"
     scratch = path.parent / "site"
     scratch.mkdir()
+    projection = site_projection(grid.frame, body=target.name, radii_km=_radii(plan, target))
     files = write_site_product(
         scratch, name=name, frame=grid.frame, x_km=grid.x_km, y_km=grid.y_km,
-        height_km=grid.height_km, albedo=grid.albedo,
+        height_km=grid.height_km, albedo=grid.albedo, projection=projection,
         lid=f"urn:nasa:pds:pwm:data_site:{name}", version="1.0",
-        model_version=str(plan.version), body_frame=target.frame,
+        model_version=str(plan.version),
+        source_lidvid=f"urn:nasa:pds:pwm:shape_model:v{plan.version:04d}::1.0",
+        body_frame=target.frame,
         target_name=target.name, mission=host, host_name=host,
         start_utc=start.isoformat(), stop_utc=stop.isoformat())
     # Stored, not deflated: binary doubles compress little.

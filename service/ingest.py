@@ -1,9 +1,9 @@
-"""`pwm ingest DIR`: catalogue a downlink's SPICE kernels and PDS4 image products, with the
-viewing geometry of each image.
+"""`pwm ingest DIR`: catalogue a downlink's SPICE kernels, PDS4 image products and ISIS cubes,
+with the viewing geometry of each image.
 
-Kernels come first (service.kernels). Then every *.xml label is read with
-pwm.io.pds4.read_image_product, inside a kernel pool holding the catalog's accepted kernels, and
-becomes one Image row:
+Kernels come first (service.kernels). Then every *.xml label (and *.cub cube, below) is read
+with pwm.io.pds4.read_image_label, inside a kernel pool holding the catalog's accepted kernels,
+and becomes one Image row:
 - accepted with its geometry (its label resolved against the kernel pool by pwm.io.resolve,
   the same resolver as the catalog-free commands', its view by pwm.geometry.view_geometry);
 - accepted with geometry unavailable, and why ("no kernels: ..."), when the resolver refuses it
@@ -14,6 +14,15 @@ becomes one Image row:
   bad_dimensions);
 - conflict: the LIDVID is catalogued already with other content (label + data sha256); the
   first good copy stays authoritative.
+A laser altimetry product (a PDS4 table of shots that pwm.io.lidar reads) is set aside: its
+label and files recorded as unused (`lidar_product`, with the reader's verdict), not a failure,
+until the catalog takes lidar.
+
+An ISIS cube (*.cub, pwm.io.isis) is a product of one file whose geometry is its own: its
+attached SPICE tables give its pose and Sun, its label the camera and the target's ellipsoid,
+no kernels needed (a cube without them is rejected no_attached_spice). Its LIDVID is
+isis:<ProductId>::1.0, or isis:<sha256 of its label>::1.0 for a label without a ProductId; its
+content digest the whole file's; it is judged, kept and replaced as any product.
 
 A product's identity is its good content. A copy rejected for how it arrived (TRANSFER_CODES: a
 data file not there yet, cut short, off its label's checksum or its downlink's manifest.json,
@@ -56,6 +65,9 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import Camera
 from pwm.geometry import Ellipsoid, MeshSurface, Surface, ViewGeometry, view_geometry
+from pwm.io.isis import Cube, cube_key, is_cube, read_cube, read_cube_pixels
+from pwm.io.labels import LABEL_SUFFIXES
+from pwm.io.lidar import is_lidar_label, read_lidar_table
 from pwm.io.pds4 import ImageLabel, ProductError, read_array, read_image_label
 from pwm.io.resolve import (
     NO_KERNELS,
@@ -70,6 +82,7 @@ from pwm.io.resolve import (
 from pwm.io.spice_geometry import ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, spacecraft_of
 from pwm.io.spice_kernels import kernel_pool
 from pwm.mesh import Mesh
+from pwm.parallel import Progress
 from service.db import insert_ignoring_conflict, make_sessionmaker, session_scope
 from service.kernels import (
     KernelOutcome,
@@ -107,6 +120,8 @@ TRANSFER_CODES = frozenset({"missing_file", "size_mismatch", "md5_mismatch", "tr
                             "unreadable", INCOMPLETE})
 _PROVISIONAL_CODES = TRANSFER_CODES | {UNEXPECTED}
 _UNIDENTIFIED = "unidentified:"
+LIDAR_PRODUCT = "lidar_product"  # a laser altimetry product, set aside until the catalog takes lidar
+_CUBE_LID, _CUBE_VID = "isis:", "1.0"
 _HASH_CHUNK = 1 << 20
 # Column sizes of service.rows.Image: a LIDVID must leave room for a conflict's suffix.
 _LIDVID_CHARS, _VID_CHARS, _CONFLICT_SUFFIX = 255, 32, 17
@@ -221,6 +236,7 @@ class _Outcome:
     instrument_id: int | None = None
     times: Exposure | None = None
     geometry: ImageGeometry | None = None
+    cube: Cube | None = None  # what a cube's label gave, in place of `product`
 
     @property
     def verdict(self) -> tuple:
@@ -243,7 +259,7 @@ class IngestTakenOver(RuntimeError):
 
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
                      downlink_name: str | None = None, shape: Mesh | None = None,
-                     limits: IngestLimits | None = None) -> IngestReport:
+                     limits: IngestLimits | None = None, progress: Progress | None = None) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
@@ -260,6 +276,7 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
     stale (limits.stale_s without a commit). Every file under `directory` ends up a kernel, a
     product's label or data file, or a DownlinkFile with why it is not used. SPICE's
     process-wide kernel pool is cleared on the way in and out (pwm.io.spice_kernels.kernel_pool).
+    progress: told how many of the products have been judged (stage "ingest").
     """
     sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
     limits = limits or get_settings().ingest_limits()
@@ -278,7 +295,7 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
         manifest = _read_manifest(directory, limits, report)
         named = _ingest_images(sessions, directory, labels, downlink_id=downlink_id,
                                report=report, shape=None if shape is None else MeshSurface(shape),
-                               limits=limits, manifest=manifest)
+                               limits=limits, manifest=manifest, progress=progress)
         used = {o.path for o in outcomes} | named | set(labels)
         with _owned(sessions, downlink_id) as session:
             for path in others:
@@ -421,7 +438,7 @@ def _walk(sessions: sessionmaker[Session], directory: Path, downlink_id: int,
                 _unused(session, report, downlink_id, path, "outside_downlink",
                         f"{path} resolves to {path.resolve()}, outside {directory}")
             elif path.is_file():
-                (labels if path.suffix.lower() == ".xml" else others).append(path)
+                (labels if path.suffix.lower() in LABEL_SUFFIXES else others).append(path)
             elif not path.is_dir():
                 _unused(session, report, downlink_id, path, "unknown_type",
                         "not a regular file (a device, pipe or socket)")
@@ -503,7 +520,10 @@ def _identify(label: Path, directory: Path, limits: IngestLimits,
     to name its product, or naming it by an identifier the catalog cannot hold, is keyed by its
     own sha256 (lid 'unidentified:<sha256>', vid '0'); `rejection` says why for the latter.
     Each file the label names is read once however often it is named; a label naming files
-    more often than limits.max_label_files is rejected for it, none of its files read."""
+    more often than limits.max_label_files is rejected for it, none of its files read. A cube
+    is keyed as the module's docstring says (`_identify_cube`)."""
+    if is_cube(label):
+        return _identify_cube(label, directory, limits, manifest)
     size = label.stat().st_size
     raw = label.read_bytes() if size <= limits.max_label_bytes else None
     root = None
@@ -535,6 +555,24 @@ def _identify(label: Path, directory: Path, limits: IngestLimits,
     return _Identity(lid=lid, vid=vid, data_path=files[0] if files else None, sha256=digest,
                      size_bytes=size_bytes, files=frozenset(files), rejection=rejection,
                      digests=digests)
+
+
+def _identify_cube(label: Path, directory: Path, limits: IngestLimits,
+                   manifest: Mapping[Path, _Listed]) -> _Identity:
+    """A cube's LIDVID (isis:<ProductId or label sha256>::1.0, from its label alone: a copy cut
+    short in its core or tables keys as the whole one) and the sha256 of the file; a cube whose
+    label cannot be read is keyed by the file's sha256 (and rejected for its label when judged)."""
+    digest, digests, _ = _hash_files([label], manifest)
+    size = label.stat().st_size
+    try:
+        lid = _CUBE_LID + cube_key(label, max_label_bytes=limits.max_label_bytes)
+    except ProductError:
+        return _Identity(lid=_UNIDENTIFIED + digest, vid="0", data_path=label, sha256=digest, size_bytes=size,
+                         digests=digests)
+    problem = _identifier_problem(lid, _CUBE_VID)
+    return _Identity(lid=_UNIDENTIFIED + digest if problem else lid, vid="0" if problem else _CUBE_VID,
+                     data_path=label, sha256=digest, size_bytes=size, digests=digests,
+                     rejection=None if problem is None else ("bad_identifier", problem))
 
 
 def _identifier_problem(lid: str, vid: str) -> str | None:
@@ -596,10 +634,26 @@ class _Catalog:
         source, note = _focal_source(naif_id, camera.fx)
         with sp.no_found_check():
             name, found = sp.bodc2n(naif_id)
+        return self._insert_instrument(naif_id, name=name if found else str(naif_id),
+                                       frame_name=instrument_frame(naif_id), camera=camera, source=source, note=note)
+
+    def cube_instrument(self, cube: Cube) -> Instrument:
+        """The catalogued camera of a cube's instrument; a new one's row from the cube's label
+        (its whole detector, from its NaifKeywords) where the catalog has none."""
+        def from_cube(naif_id: int) -> Instrument:
+            with sp.no_found_check():
+                frame = sp.frmnam(naif_id) or str(naif_id)
+            return self._insert_instrument(
+                naif_id, name=cube.instrument_name[:64], frame_name=frame[:64], camera=cube.detector,
+                source="ISIS NaifKeywords", note=f"INS{naif_id}_FOCAL_LENGTH (mm) over INS{naif_id}_PIXEL_SIZE "
+                f"(microns) in {cube.path.name}'s label = {cube.detector.fx:.6g} px")
+        return read_once(self.instruments, cube.instrument_id, from_cube)
+
+    def _insert_instrument(self, naif_id: int, *, name: str, frame_name: str, camera: Camera, source: str,
+                           note: str) -> Instrument:
         self.session.execute(insert_ignoring_conflict(
-            self.session, Instrument, unique=[Instrument.naif_id], naif_id=naif_id,
-            name=name if found else str(naif_id), spacecraft_id=spacecraft_of(naif_id),
-            frame_name=instrument_frame(naif_id), width_px=camera.width,
+            self.session, Instrument, unique=[Instrument.naif_id], naif_id=naif_id, name=name,
+            spacecraft_id=spacecraft_of(naif_id), frame_name=frame_name, width_px=camera.width,
             height_px=camera.height, fx_px=camera.fx, fy_px=camera.fy, cx_px=camera.cx,
             cy_px=camera.cy, focal_length_source=source, units_note=note))
         return self.session.scalars(select(Instrument).filter_by(naif_id=naif_id)
@@ -627,7 +681,8 @@ def _focal_source(naif_id: int, fx: float) -> tuple[str, str]:
 
 def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: list[Path], *,
                    downlink_id: int, report: IngestReport, shape: Surface | None,
-                   limits: IngestLimits, manifest: Mapping[Path, _Listed]) -> set[Path]:
+                   limits: IngestLimits, manifest: Mapping[Path, _Listed],
+                   progress: Progress | None) -> set[Path]:
     """Catalogue each label; the files the labels name."""
     named: set[Path] = set()
     with sessions() as session:
@@ -637,13 +692,51 @@ def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: lis
         with kernel_pool(Path(k.path) for k in kernels if k.path not in missing):
             catalog = _Catalog(session, downlink_id, shape, directory, limits, manifest)
             for n, label in enumerate(labels, 1):
-                named |= _ingest_product(catalog, label, report)
+                lidar = _lidar_product(label, directory, limits)
+                if lidar is not None:
+                    named |= _set_aside(catalog, label, *lidar)
+                else:
+                    named |= _ingest_product(catalog, label, report)
+                if progress is not None:
+                    progress("ingest", n, len(labels))
                 if n % COMMIT_EVERY == 0:
                     _heartbeat(session, downlink_id)
                     session.commit()
             _heartbeat(session, downlink_id)
             session.commit()
     return named
+
+
+def _lidar_product(label: Path, directory: Path, limits: IngestLimits) -> tuple[str, list[Path]] | None:
+    """Why a laser altimetry product (a PDS4 table of shots in a layout pwm.io.lidar knows) is
+    not catalogued, and the files its label names; None for any other label (another table is
+    judged as any product: not an image). The reader's verdict is in the reason, so a broken
+    lidar product says how it is broken."""
+    if is_cube(label) or label.stat().st_size > limits.max_label_bytes:
+        return None
+    try:
+        root = ET.fromstring(label.read_bytes())
+    except ET.ParseError:
+        return None
+    if not is_lidar_label(root):
+        return None
+    names = [e.text.strip() for e in root.iterfind("{*}File_Area_Observational/{*}File/{*}file_name") if e.text]
+    try:
+        table = read_lidar_table(label, root=directory, max_label_bytes=limits.max_label_bytes)
+        verdict = f"{len(table.et)} shots in the {table.layout} layout, readable"
+    except (ProductError, OSError, ValueError) as exc:
+        verdict = f"not readable: {exc}"
+    reason = f"a laser altimetry table ({verdict}); the catalog does not take lidar products yet"
+    return reason, [label.parent / n for n in names if Path(n).name == n]
+
+
+def _set_aside(catalog: _Catalog, label: Path, reason: str, files: list[Path]) -> frozenset[Path]:
+    """Record a lidar product's label and files as unused, with why: kept, not a failure."""
+    for path in [label, *files]:
+        if path.is_file():
+            record_file(catalog.session, downlink_id=catalog.downlink_id, path=path, code=LIDAR_PRODUCT,
+                        reason=reason)
+    return frozenset(files)
 
 
 def _ingest_product(catalog: _Catalog, label: Path, report: IngestReport) -> frozenset[Path]:
@@ -851,13 +944,17 @@ def _apply(image: Image, identity: _Identity, label: Path, outcome: _Outcome) ->
     image.data_path = str(product.data_path if product is not None else identity.data_path or "")
     image.sha256, image.size_bytes = identity.sha256, identity.size_bytes
     image.md5 = product.md5 if product is not None else None
-    image.target = product.target_name[:64] if product and product.target_name else None
+    target = product.target_name if product else outcome.cube.target_name if outcome.cube else None
+    image.target = target[:64] if target else None
     image.start_utc, image.stop_utc, image.start_et, image.stop_et = (
         outcome.times or (None, None, None, None))
     image.instrument_id = outcome.instrument_id
     if product is not None:
         image.window_first_line, image.window_first_sample = product.first_line, product.first_sample
         image.window_lines, image.window_samples = product.lines, product.samples
+    elif outcome.cube is not None:
+        (image.window_first_line, image.window_first_sample, image.window_lines,
+         image.window_samples) = outcome.cube.window
     image.status, image.rejection_code = outcome.status, outcome.code
     image.rejection_reason = outcome.reason
     image.geometry_status = outcome.geometry_status
@@ -868,7 +965,9 @@ def _apply(image: Image, identity: _Identity, label: Path, outcome: _Outcome) ->
 def _judge(catalog: _Catalog, label: Path) -> _Outcome:
     """Read the product's label, work out its geometry from the loaded kernels, then read its
     array: the label's declared size is checked against the detector (and the pixel limit)
-    before any array is read."""
+    before any array is read. A cube: `_judge_cube`."""
+    if is_cube(label):
+        return _judge_cube(catalog, label)
     try:
         product = read_image_label(label, root=catalog.directory,
                                    max_label_bytes=catalog.limits.max_label_bytes,
@@ -896,6 +995,29 @@ def _judge(catalog: _Catalog, label: Path) -> _Outcome:
         return _Outcome(ImageStatus.REJECTED, exc.code, str(exc), product=product, times=times,
                         instrument_id=outcome.instrument_id)
     return outcome
+
+
+def _judge_cube(catalog: _Catalog, label: Path) -> _Outcome:
+    """Read a cube's label and attached geometry (pwm.io.isis), its geometry on the current
+    shape (else the ellipsoid its label gives), then its pixels, as the refinement reads them."""
+    try:
+        cube = read_cube(label, max_label_bytes=catalog.limits.max_label_bytes,
+                         max_pixels=catalog.limits.max_pixels)
+    except ProductError as exc:
+        return _Outcome(ImageStatus.REJECTED, exc.code, str(exc))
+    except OSError as exc:
+        return _Outcome(ImageStatus.REJECTED, "unreadable", str(exc))
+    half = 0.5 * cube.exposure_s
+    times = Exposure(cube.start_utc, cube.stop_utc, cube.et - half, cube.et + half)
+    try:
+        instrument_id = catalog.instrument_row_id(catalog.cube_instrument(cube).naif_id)
+        view = view_geometry(pose=cube.pose, sun=cube.sun, camera=cube.camera,
+                             surface=catalog.shape or Ellipsoid(cube.radii_km))
+        read_cube_pixels(cube)
+    except (ProductError, OSError) as exc:
+        return _Outcome(ImageStatus.REJECTED, getattr(exc, "code", "unreadable"), str(exc), times=times, cube=cube)
+    return _Outcome(ImageStatus.ACCEPTED, geometry_status=GeometryStatus.COMPUTED, instrument_id=instrument_id,
+                    times=times, geometry=_geometry_row(view, cube.body_frame), cube=cube)
 
 
 def _geometry(catalog: _Catalog, product: ImageLabel, times: Exposure) -> _Outcome:

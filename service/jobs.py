@@ -25,6 +25,9 @@ message may be gone, lost attempts, and downlinks whose refinements are all done
 job after them (`fusions_due`; a downlink fuses once per pass).
 Handing a job over twice is harmless: the claim makes every delivery after the first a no-op.
 
+`pwm run` does the same stages in one process and records each, once over, as an attempt at
+the same job (`record_attempt`): `pwm jobs` and the API show what it did.
+
 Work is handed to whoever runs it through a JobQueue: the workers implement it
 (workers.tasks.CeleryQueue) and the command line, which wires the parts together, gives it to
 the API and the watcher; nothing else in `service` knows who runs the jobs.
@@ -145,11 +148,36 @@ def claim_job(session: Session, *, kind: JobKind, key: str, grace_s: float,
         remaining = (alive + timedelta(seconds=grace_s) - now).total_seconds()
         if remaining > 0:
             raise JobBusy(key, remaining, job.worker)
+    _start_attempt(session, job, worker=worker, now=now)
+    return job
+
+
+def record_attempt(session: Session, *, kind: JobKind, key: str, worker: str, started_at: datetime,
+                   message: str | None = None, error: str | None = None, downlink_id: int | None = None,
+                   maplet_id: int | None = None) -> Job | None:
+    """Record work that ran in this process (`pwm run`, service.run) as an attempt at the job of
+    `key`, as a worker's attempt is recorded: started at started_at by `worker`, then done with
+    `message`, or failed with `error` (a traceback) when one is given. Recorded once the work is
+    over, in one transaction: an attempt that never beats is never seen running, so no
+    reconciler takes it for lost. A done job gets a new attempt (the work ran again); a job that
+    another attempt is running is left to it (None)."""
+    _insert_if_missing(session, kind=kind, key=key, downlink_id=downlink_id, maplet_id=maplet_id)
+    job = _locked(session, kind, key)
+    if job.status is JobStatus.RUNNING:
+        return None
+    _start_attempt(session, job, worker=worker, now=started_at)
+    if error is None:
+        finish_job(session, job, message=message, downlink_id=downlink_id, maplet_id=maplet_id)
+    else:
+        fail_job(session, job, error=error)
+    return job
+
+
+def _start_attempt(session: Session, job: Job, *, worker: str | None, now: datetime) -> None:
     job.status, job.attempts = JobStatus.RUNNING, job.attempts + 1
     job.started_at, job.heartbeat_at, job.finished_at = now, now, None
     job.worker, job.progress, job.error = worker, 0.0, None
     session.flush()
-    return job
 
 
 def heartbeat(session: Session, job: Job, *, now: datetime | None = None) -> None:

@@ -7,8 +7,9 @@ and the rest of the sums are left as they are. A parent without a grid (a start,
 photogrammetric model) starts an empty one. The base is the nearest version up the lineage
 without a grid, the model that the refinements started from: the coarsest level is one closed
 surface that the base closes where its lattice is affordable over the whole body (pwm.volume),
-else a region stitched into the base (pwm.fusion; pwm.volume.grid_for chooses); each finer level
-is laid onto the surface below it (pwm.levels). The parent's "composition" artifact says how its
+else laid onto the base (pwm.volume.grid_for chooses); each finer level is laid onto the surface
+below it (pwm.levels), so a closed base gives a closed model (a base of a body and patches beside
+it is sealed first, pwm.levels.sealed). The parent's "composition" artifact says how its
 surface was made: while the closed levels' sums and the base are the same, that surface is not
 made again, and the laid levels' regions that no changed maplet touches keep the parent's faces.
 
@@ -53,9 +54,10 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
     .refined_downlinks).
     Statistics: maplets changed, added, replaced and fused in all, images used, whether the
     parent's sums were reused, the base version, the coarsest level's surface ("closed" or
-    "stitched"), voxels, each level's surface, voxel size and voxels, how the surface was
+    "laid"), voxels, each level's surface, voxel size and voxels, how the surface was
     composed (regions laid and carried over, whether the closed levels' surface was made again),
-    and seconds (with the mesh's own).
+    and seconds; with the mesh's own (service.versions.mesh_statistics: size, closure checks and
+    mass properties).
     """
     clock = time.perf_counter()
     with session_scope(sessions) as session:

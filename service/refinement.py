@@ -247,9 +247,9 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
     revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=input_hash,
                                   config=config, artifact=artifact, statistics=statistics)
     say(1.0, "done")
-    log.info("maplet %s: revision %d (pass %d) from %d images, %d iterations (%.1f s)",
-             grid.name, revision_id, pass_number, len(result.images), result.iterations,
-             result.seconds)
+    log.debug("maplet %s: revision %d (pass %d) from %d images, %d iterations (%.1f s)",
+              grid.name, revision_id, pass_number, len(result.images), result.iterations,
+              result.seconds)
     return revision_id
 
 

@@ -14,6 +14,7 @@ builds on a parent that another fusion is replacing.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -22,8 +23,10 @@ import numpy as np
 from sqlalchemy import func, select, text
 from sqlalchemy.orm import Session
 
+from pwm.evaluate.closure import closure, mass_properties
 from pwm.io.meshio import read_shape_model, write_obj, write_ply
 from pwm.io.pds4 import file_sha256
+from pwm.levels import sealed
 from pwm.mesh import Mesh
 from service.artifacts import artifact_mesh, scratch_file, store_artifact
 from service.rows import Downlink, MapletRevision, ModelKind, ModelVersion
@@ -42,16 +45,24 @@ def store_mesh(data_dir: Path, mesh: Mesh) -> dict[str, dict[str, Any]]:
     return records
 
 
-def mesh_statistics(mesh: Mesh) -> dict[str, float | int]:
-    """Size of a closed mesh: vertex and face counts, area (km^2), volume (km^3), mean and
-    extreme radius (km), mean edge (m)."""
-    v = mesh.vertices[mesh.faces]
-    volume = float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
+def mesh_statistics(mesh: Mesh) -> dict[str, Any]:
+    """Size of a mesh: vertex and face counts, area (km^2), signed volume (km^3), mean and
+    extreme radius (km), mean edge (m); whether it is one closed surface ("closure": the checks
+    of pwm.evaluate.closure, all but the self-intersections, which cost tens of seconds a million
+    faces at every publication: a DSK export counts them), and for one that is, what it encloses
+    ("mass": volume km^3, centre of figure km, inertia tensor about it per unit density km^5, area
+    km^2; null otherwise)."""
+    checks = closure(mesh, count_intersections=False)
+    mass = mass_properties(mesh) if checks.closed else None
     radius = np.linalg.norm(mesh.vertices, axis=1)
     return {"vertices": len(mesh.vertices), "faces": len(mesh.faces),
-            "area_km2": float(mesh.face_areas().sum()), "volume_km3": volume,
+            "area_km2": float(mesh.face_areas().sum()), "volume_km3": checks.volume_km3,
             "mean_radius_km": float(radius.mean()), "min_radius_km": float(radius.min()),
-            "max_radius_km": float(radius.max()), "mean_edge_m": mesh.mean_edge_length() * 1e3}
+            "max_radius_km": float(radius.max()), "mean_edge_m": mesh.mean_edge_length() * 1e3,
+            "closure": {"closed": checks.closed, **dataclasses.asdict(checks)},
+            "mass": None if mass is None else {
+                "volume_km3": mass.volume_km3, "centre_km": mass.centre_km.tolist(),
+                "inertia_km5": mass.inertia_km5.tolist(), "area_km2": mass.area_km2}}
 
 
 def publish_version(session: Session, *, data_dir: Path, mesh: Mesh, kind: ModelKind,
@@ -62,7 +73,8 @@ def publish_version(session: Session, *, data_dir: Path, mesh: Mesh, kind: Model
     """Store `mesh` and publish it as the next model version, in the caller's transaction.
 
     extra_artifacts: role -> a file to move into the store with the mesh (e.g. "grid").
-    statistics: figures to keep beside the mesh's own (mesh_statistics)."""
+    statistics: figures to keep beside the mesh's own (mesh_statistics: its size, closure checks
+    and mass properties, made here for every version, whatever its kind)."""
     artifacts = store_mesh(data_dir, mesh)
     for role, path in (extra_artifacts or {}).items():
         artifacts[role] = store_artifact(data_dir, path)
@@ -78,12 +90,16 @@ def publish_version(session: Session, *, data_dir: Path, mesh: Mesh, kind: Model
 
 def import_model(session: Session, *, data_dir: Path, path: Path,
                  kind: ModelKind = ModelKind.IMPORTED) -> ModelVersion:
-    """Publish a shape model file as a new version: any format pwm exports, told by its content
-    (pwm.io.meshio.read_shape_model; km, body-fixed). ValueError if it is none of them."""
-    mesh = read_shape_model(path)
+    """Publish a shape model file as a new version: any mesh format pwm exports, told by its
+    content (pwm.io.meshio.read_shape_model; km, body-fixed). ValueError if it is none of them,
+    saying why for the exports without faces (LAS, a site's terrain). A model of a body with
+    holes and patches over them (as a site's start model comes) is published as one closed
+    surface, its patches zipped into the holes (pwm.levels.sealed; statistics "sealed")."""
+    given = read_shape_model(path)
+    mesh = sealed(given)
     return publish_version(session, data_dir=data_dir, mesh=mesh, kind=kind,
                            statistics={"source": str(path.resolve()),
-                                       "source_sha256": file_sha256(path)})
+                                       "source_sha256": file_sha256(path), "sealed": mesh is not given})
 
 
 def latest_version(session: Session, *, released_only: bool = False) -> ModelVersion | None:

@@ -2,7 +2,11 @@
 from the stored geometry, with the image's pose correction applied, and optionally the pixels.
 
 The one place that turns catalog rows into what the refinement chain takes, for the coverage
-rows at ingest (no pixels) and for the refinement of a maplet (pixels read from the PDS4 product).
+rows at ingest (no pixels) and for the refinement of a maplet (pixels read from the PDS4 product,
+or from the ISIS cube: resampled onto the cube's ideal pinhole camera, pwm.io.isis).
+
+The stored geometry is a PDS4 product's from the kernels and a cube's from the cube itself (its
+attached SPICE, read at ingest): `kernel_pose` is the pose as the image's source gave it.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
 
 from pwm.camera import Camera, Pose
+from pwm.io.isis import is_cube, read_cube, read_cube_pixels
 from pwm.io.pds4 import read_array, read_image_label
 from pwm.views import Cones, View
 from service.rows import GeometryStatus, Image, ImageGeometry, ImageStatus
@@ -22,7 +27,8 @@ from service.settings import get_settings
 
 
 def kernel_pose(image: Image) -> Pose:
-    """The image's camera pose as its kernels give it (body-fixed, km; body -> image frame)."""
+    """The image's camera pose as its kernels (a cube: its attached SPICE) give it (body-fixed,
+    km; body -> image frame)."""
     g = image.geometry
     if g is None:
         raise ValueError(f"image {image.lidvid} has no geometry")
@@ -74,20 +80,27 @@ def image_view(image: Image, *, pixels: bool = False, kernel_poses: bool = False
     if g is None or inst is None or image.start_et is None or image.stop_et is None:
         raise ValueError(f"image {image.lidvid} lacks its geometry, instrument or times")
     # The label is read for the array, or for the window of an image catalogued before the
-    # window was kept; within the limits ingest accepted it under.
+    # window was kept; within the limits ingest accepted it under. A cube's camera is its own
+    # (the grid its pixels are resampled onto), its label read for it.
     window = image.window()
     data = None
-    if pixels or window is None:
+    if is_cube(Path(image.label_path)):
         limits = get_settings().ingest_limits()
-        label = read_image_label(Path(image.label_path), max_label_bytes=limits.max_label_bytes,
-                                 max_pixels=limits.max_pixels,
-                                 max_fits_header_bytes=limits.max_fits_header_bytes)
-        window = (label.first_line, label.first_sample, label.lines, label.samples)
-        data = read_array(label).data if pixels else None
-    first_line, first_sample, lines, samples = window
-    camera = Camera(width=inst.width_px, height=inst.height_px, fx=inst.fx_px, fy=inst.fy_px,
-                    cx=inst.cx_px, cy=inst.cy_px).subframe(
-        first_sample=first_sample, first_line=first_line, samples=samples, lines=lines)
+        cube = read_cube(Path(image.label_path), max_label_bytes=limits.max_label_bytes, max_pixels=limits.max_pixels)
+        camera = cube.camera
+        data = read_cube_pixels(cube) if pixels else None
+    else:
+        if pixels or window is None:
+            limits = get_settings().ingest_limits()
+            label = read_image_label(Path(image.label_path), max_label_bytes=limits.max_label_bytes,
+                                     max_pixels=limits.max_pixels,
+                                     max_fits_header_bytes=limits.max_fits_header_bytes)
+            window = (label.first_line, label.first_sample, label.lines, label.samples)
+            data = read_array(label).data if pixels else None
+        first_line, first_sample, lines, samples = window
+        camera = Camera(width=inst.width_px, height=inst.height_px, fx=inst.fx_px, fy=inst.fy_px,
+                        cx=inst.cx_px, cy=inst.cy_px).subframe(
+            first_sample=first_sample, first_line=first_line, samples=samples, lines=lines)
     sun = np.array([g.sun_x, g.sun_y, g.sun_z])
     return View(name=image.lidvid, image=np.empty((0, 0)) if data is None else data,
                 camera=camera, pose=kernel_pose(image) if kernel_poses else image_pose(image),

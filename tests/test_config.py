@@ -113,6 +113,8 @@ NOT_REFINEMENT = {
     "pwm.levels.MAX_EDGE_VOXELS": "fusion (the faces laid onto a level): no maplet's result",
     "pwm.levels.REACH_VOXELS": "fusion (where a finer level's surface is looked for): no maplet's result",
     "pwm.levels.MARGIN_EDGES": "fusion (a laid region's margin): no maplet's result",
+    "pwm.levels.SEAL_OVER_EDGES": "import and fusion (how a patch over a hole is sealed into the body): no maplet's "
+                                  "result",
     "pwm.photoclinometry._RISE": "numerical: the height step a node's parallax is differenced over; the "
                                  "projection is all but linear over it",
     "pwm.photometry.MCEWEN_L_COEFFS": "physical: McEwen's published lunar-Lambert phase law",

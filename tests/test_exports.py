@@ -1,4 +1,5 @@
-"""Export formats: SPICE DSK, Gaskell ICQ, decimated meshes, PDS4 site products."""
+"""Export formats: SPICE DSK, Gaskell ICQ, decimated meshes, PDS4 site products (their labels
+validated against the shipped PDS4 schemas)."""
 
 import re
 from pathlib import Path
@@ -17,8 +18,9 @@ from pwm.io.dsk import read_dsk, write_dsk
 from pwm.io.icq import cube_points, icq_to_mesh, mesh_to_icq, read_icq, write_icq
 from pwm.io.meshio import read_obj
 from pwm.io.pds4 import checksum_md5
-from pwm.io.site_product import write_site_product
+from pwm.io.site_product import CART_NS, SCHEMA_DIR, label_schema, write_site_product
 from pwm.io.spice_kernels import SpkSegment, bundled_kernels, kernel_pool, write_spk
+from pwm.io.terrain import site_projection
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.site import BASELINE_M, roughness_m, slope_deg
@@ -344,7 +346,9 @@ def _site(tmp_path: Path, **overrides):
     albedo = 0.044 + 0.01 * np.sin(xx / 0.003)
     height[3, 4] = np.nan
     albedo[5, 6] = np.nan
+    projection = site_projection(frame, body="BENNU", radii_km=(0.2825, 0.2675, 0.254))
     args = dict(name="site_a", frame=frame, x_km=x, y_km=y, height_km=height, albedo=albedo,
+                projection=projection, source_lidvid="urn:nasa:pds:pwm:shape_model:v0042::1.0",
                 lid="urn:nasa:pds:orex.pwm:data_site:site_a", version="1.0", model_version="v0042",
                 body_frame="IAU_BENNU", target_name="(101955) Bennu", mission="OSIRIS-REx",
                 host_name="OSIRIS-REx", start_utc="2019-03-03T10:59:40",
@@ -353,17 +357,20 @@ def _site(tmp_path: Path, **overrides):
     return write_site_product(tmp_path, **args), args
 
 
+def _north_up(structures, name: str) -> np.ndarray:
+    """A layer with its rows back in the grid's order (y increasing): the product has north up."""
+    return np.flipud(np.ma.filled(structures[name].as_masked().data.astype(float), np.nan))
+
+
 def test_site_product_reads_back_with_pds4_tools(tmp_path):
     files, args = _site(tmp_path)
     structures = pds4_tools.read(str(files.label), quiet=True)
-    height = np.ma.filled(structures["height"].as_masked().data.astype(float), np.nan)
-    albedo = np.ma.filled(structures["albedo"].as_masked().data.astype(float), np.nan)
+    height, albedo = _north_up(structures, "height"), _north_up(structures, "albedo")
     np.testing.assert_array_equal(height, args["height_km"] * 1e3)
     np.testing.assert_array_equal(albedo, args["albedo"].astype(np.float32))
     assert structures["height"].data.dtype == ">f8" and structures["albedo"].data.dtype == ">f4"
     # slope and roughness are pwm.site's of the heights carried over the baseline, in deg and m
-    slope = np.ma.filled(structures["slope"].as_masked().data.astype(float), np.nan)
-    roughness = np.ma.filled(structures["roughness"].as_masked().data.astype(float), np.nan)
+    slope, roughness = _north_up(structures, "slope"), _north_up(structures, "roughness")
     expected_slope = slope_deg(args["height_km"] * 1e3, spacing_m=1.0, baseline_m=BASELINE_M)
     np.testing.assert_allclose(slope, expected_slope, rtol=1e-6)
     assert np.isnan(slope[3, 4]) and np.nanmax(slope) > 10
@@ -400,3 +407,37 @@ def test_site_product_rejects_irregular_grids(tmp_path):
         _site(tmp_path, y_km=np.arange(31) * 1e-3)
     with pytest.raises(ValueError, match="same step"):
         _site(tmp_path, y_km=np.arange(30) * 2e-3)
+
+
+def test_site_label_has_cartography_and_validates_offline(tmp_path):
+    files, args = _site(tmp_path)
+    schema = label_schema()
+    # every schema document was read from the shipped files, none from the network
+    pds4 = {document.url for document in schema.maps.iter_schemas()
+            if document.target_namespace.startswith("http://pds.nasa.gov/")}
+    assert {Path(url.removeprefix("file://")).parent for url in pds4} == {SCHEMA_DIR}
+    assert len(pds4) == 3
+    schema.validate(files.label.read_text())
+    label = pds4_tools.read(str(files.label), quiet=True).label
+    cart = f"{{{CART_NS}}}"
+    model = label.find(f".//{cart}Geodetic_Model")
+    radii = [float(model.find(f"{cart}{axis}_axis_radius").text) for axis in "abc"]
+    assert radii == [0.2825, 0.2675, 0.254]
+    assert label.find(f".//{cart}map_projection_name").text == "Orthographic"
+    projection = args["projection"]
+    centre = float(label.find(f".//{cart}latitude_of_projection_origin").text)
+    assert abs(centre - projection.centre_lat_deg) < 1e-9
+    # the bounds hold the nodes: the origin's latitude lies inside them
+    lat0, lon0 = unit_to_latlon(args["frame"].origin)
+    south, north = (float(label.find(f".//{cart}{side}_bounding_coordinate").text)
+                    for side in ("south", "north"))
+    assert south < lat0 < north and north - south < 20.0
+    corner_x = float(label.find(f".//{cart}upperleft_corner_x").text)
+    assert abs(corner_x - projection.upper_left_m(args["x_km"], args["y_km"])[0]) < 1e-6
+    source = label.find(".//Source_Product_Internal/lidvid_reference").text
+    assert source == "urn:nasa:pds:pwm:shape_model:v0042::1.0"
+    # the schema is strict: a label without its projection does not validate
+    text = files.label.read_text()
+    broken = re.sub(r"<cart:Spatial_Reference_Information>.*</cart:Spatial_Reference_Information>",
+                    "", text, flags=re.S)
+    assert broken != text and not schema.is_valid(broken)

@@ -1,5 +1,6 @@
 """Fusion across levels (pwm.levels): a survey's closed surface with a site's finer maplets laid
-onto it, each place from the finest level that covers it, without a step at the site's border."""
+onto it, each place from the finest level that covers it, without a step at the site's border; a
+base of a body and a patch over its hole sealed into one closed surface."""
 
 from __future__ import annotations
 
@@ -7,12 +8,13 @@ import numpy as np
 import pytest
 import trimesh
 
+from pwm.evaluate.closure import closure
 from pwm.frames import latlon_to_unit
 from pwm.fusion import VoxelGrid
 from pwm.io.fusion_state import read_composition, read_levels, write_composition, write_levels
-from pwm.levels import Laid, LevelGrids
+from pwm.levels import Laid, LevelGrids, sealed
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh, refine_faces
+from pwm.mesh import Mesh, grid_faces, refine_faces
 from pwm.raytrace import RayTracer
 from pwm.tiling import level_of, tile
 from pwm.volume import DistanceGrid
@@ -116,8 +118,9 @@ def test_a_site_level_is_laid_into_the_survey_without_a_step(sphere, levels, tmp
     site_alone = read_levels(tmp_path / "levels.npz")
     for m in survey:
         site_alone.subtract(m)
-    # with the survey's sums empty, the site is stitched into the base, not laid on a level below
-    assert {k: d["surface"] for k, d in site_alone.describe().items()} == {"3": "closed", "-1": "stitched"}
+    # with the survey's sums empty, the site is laid onto the base itself, which stays closed
+    assert {k: d["surface"] for k, d in site_alone.describe().items()} == {"3": "closed", "-1": "laid"}
+    assert closure(site_alone.mesh(sphere)).closed
     for m in site:
         again.subtract(m)
     alone = LevelGrids(taper_fraction=0.25)
@@ -170,3 +173,25 @@ def test_a_changed_site_is_laid_again_and_the_rest_carried_over(sphere, levels, 
     alone.add_all(survey + site, base=sphere)
     assert _faces(third) == _faces(alone.mesh(sphere))
     assert _radius(third, centre_b[None])[0] == pytest.approx(R, abs=5e-4)
+
+
+def test_a_body_with_a_patch_over_its_hole_is_sealed_into_one_closed_surface(sphere):
+    # as a site's start model comes: the body less the faces under the site, and the site's
+    # grid over the hole, overlapping its rim
+    cap = sphere.vertices[sphere.faces].mean(axis=1)[:, 2] > 0.9 * R
+    axis = np.linspace(-0.5 * R, 0.5 * R, 41)
+    x, y = np.meshgrid(axis, axis)
+    grid = np.column_stack([x.ravel(), y.ravel(), np.sqrt(R**2 - x.ravel() ** 2 - y.ravel() ** 2)])
+    body = Mesh(np.vstack([sphere.vertices, grid]),
+                np.vstack([sphere.faces[~cap], grid_faces(41, 41) + len(sphere.vertices)]))
+    checks = closure(body)
+    assert (checks.components, checks.boundary_edges) == (2, closure(Mesh(sphere.vertices,
+                                                                          sphere.faces[~cap])).boundary_edges + 160)
+    sealed_body = sealed(body)
+    assert closure(sealed_body).closed
+    assert closure(sealed_body).volume_km3 == pytest.approx(closure(sphere).volume_km3, rel=1e-3)
+    # the site's surface is kept where it covers the hole: the top is the grid's
+    assert _radius(sealed_body, np.array([[0.0, 0.0, 1.0]]))[0] == pytest.approx(R, abs=1e-9)
+    # a hole with nothing over it is left as it is, for the checks to tell
+    holed = Mesh(sphere.vertices, sphere.faces[~cap])
+    assert sealed(holed) is holed and sealed(sphere) is sphere

@@ -27,7 +27,7 @@ from service.settings import get_settings
 
 # one pass over a small region keeps the refinement to seconds
 NODES, RADIUS_KM = 64, 0.002
-SMALL = ["--nodes", str(NODES), "--passes", "1", "--radius", str(RADIUS_KM)]
+SMALL = ["--nodes", str(NODES), "--passes", "1", "--radius-km", str(RADIUS_KM)]
 
 
 @pytest.fixture
@@ -115,7 +115,7 @@ def test_spg(downlink, tmp_path):
 
 def test_run(downlink, catalog_env):
     directory, bad = downlink
-    result = invoke("run", directory, "--maplet-nodes", "40", "--tile-radius", "0.002")
+    result = invoke("run", directory, "--maplet-nodes", "40", "--tile-radius-km", "0.002")
     assert result.exit_code == len(bad), result.output  # as for pwm ingest: the files that failed
     assert reported(result.stderr, "rejected") == bad
     # version 1 is the start model; each of the two passes publishes one

@@ -393,5 +393,6 @@ def test_spg_commands_default_to_spg_config():
         given = {p.name: p.default for p in commands[name].params}
         config = spg_config(sigma_position_m=given["sigma_position"], sigma_pointing_rad=given["sigma_pointing"],
                             max_features=given["max_features"], first_octave=given["first_octave"],
-                            per_image=given["per_image"], threads=given["threads"])
+                            per_image=given["per_image"], threads=given["threads"],
+                            max_sun_deg=given["max_sun_deg"])
         assert config == SPG_DEFAULTS, name

@@ -1,7 +1,8 @@
-"""Whether a mesh is one closed surface: watertight, consistently wound outwards, and free of
-self-intersections (what a DSK needs, and what navigation's intercepts assume).
+"""Whether a mesh is one closed surface: watertight, consistently wound outwards, one piece, and
+free of self-intersections (what a DSK needs, and what navigation's intercepts and a polyhedral
+gravity model assume); and the mass properties such a surface encloses.
 
-Watertightness and winding are trimesh's tests. Self-intersections are counted here: two faces
+Watertightness, winding and mass properties are trimesh's. Self-intersections are counted here: two faces
 that share no vertex intersect when an edge of one crosses the other (Moller-Trumbore on the
 pairs of faces near enough to touch); faces that share a vertex are not tested. Lengths in km.
 """
@@ -14,7 +15,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from pwm.mesh import Mesh
+from pwm.mesh import Mesh, edge_keys, pieces, welded
 
 _CHUNK = 200_000
 
@@ -23,25 +24,83 @@ _CHUNK = 200_000
 class Closure:
     """watertight: every edge in exactly two faces; winding_consistent: each such edge used once
     each way; outward: positive signed volume; self_intersections: pairs of faces sharing no
-    vertex that cross; volume_km3: the signed volume."""
+    vertex that cross, counted only on a watertight mesh (None otherwise: open whatever they
+    are, and a torn surface's layers make the count the costliest check); volume_km3: the signed
+    volume; boundary_edges: edges in one face only; nonmanifold_edges: edges in more than two
+    faces; components: edge-connected pieces; intersections_counted: whether self_intersections
+    was counted (it is the costliest check: tens of seconds for a million faces; a closed surface
+    whose self-intersections were not counted is closed in every other respect)."""
 
     watertight: bool
     winding_consistent: bool
     outward: bool
-    self_intersections: int
+    self_intersections: int | None
     volume_km3: float
+    boundary_edges: int
+    nonmanifold_edges: int
+    components: int
+    intersections_counted: bool = True
 
     @property
     def closed(self) -> bool:
-        return self.watertight and self.winding_consistent and self.outward and not self.self_intersections
+        crossing = self.self_intersections != 0 if self.intersections_counted else not self.watertight
+        return self.watertight and self.winding_consistent and self.outward and not crossing and self.components == 1
+
+    def describe(self) -> str:
+        """"closed", or "open: " and what makes it not closed (one line, for messages and headers)."""
+        if self.closed:
+            return "closed"
+        flaws = [f"{n} {what}" for n, what in (
+            (self.boundary_edges, "boundary edges"), (self.nonmanifold_edges, "non-manifold edges"),
+            (self.self_intersections, "self-intersections")) if n]
+        if self.components != 1:
+            flaws.append(f"{self.components} components")
+        if not self.winding_consistent:
+            flaws.append("inconsistent winding")
+        if not self.outward:
+            flaws.append("wound inwards")
+        return "open: " + ", ".join(flaws)
 
 
-def closure(mesh: Mesh) -> Closure:
-    """The closed-surface checks of `mesh`."""
+@dataclass(frozen=True)
+class MassProperties:
+    """What a closed surface encloses, for a uniform density: volume_km3; centre_km: the centre of
+    figure (3,) in the mesh's body-fixed frame; inertia_km5: the inertia tensor (3, 3) about the
+    centre of figure, axes those of the frame, per unit density (times a density in kg/km^3:
+    kg km^2); area_km2: the surface's area."""
+
+    volume_km3: float
+    centre_km: np.ndarray
+    inertia_km5: np.ndarray
+    area_km2: float
+
+
+def closure(mesh: Mesh, *, count_intersections: bool = True) -> Closure:
+    """The closed-surface checks of `mesh`, its coincident vertices taken as one (pwm.mesh.welded);
+    without count_intersections, all but the self-intersections (Closure.intersections_counted)."""
+    mesh = welded(mesh)
     tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     volume = float(tm.volume)
-    return Closure(watertight=bool(tm.is_watertight), winding_consistent=bool(tm.is_winding_consistent),
-                   outward=volume > 0, self_intersections=self_intersections(mesh), volume_km3=volume)
+    _, uses = np.unique(edge_keys(mesh.faces, len(mesh.vertices)), return_counts=True)
+    watertight = bool(tm.is_watertight)
+    return Closure(watertight=watertight, winding_consistent=bool(tm.is_winding_consistent),
+                   outward=volume > 0,
+                   self_intersections=self_intersections(mesh) if watertight and count_intersections else None,
+                   intersections_counted=watertight and count_intersections, volume_km3=volume,
+                   boundary_edges=int((uses == 1).sum()), nonmanifold_edges=int((uses > 2).sum()),
+                   components=int(pieces(len(mesh.vertices), mesh.faces).max(initial=-1)) + 1)
+
+
+def mass_properties(mesh: Mesh) -> MassProperties:
+    """The mass properties of the closed surface `mesh` (km, body-fixed; see MassProperties).
+    ValueError for a mesh that is not watertight or wound inwards: what it encloses is undefined."""
+    mesh = welded(mesh)
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    if not (tm.is_watertight and tm.is_winding_consistent) or tm.volume <= 0:
+        raise ValueError("the mesh encloses no volume: it is not watertight and wound outwards")
+    properties = tm.mass_properties
+    return MassProperties(volume_km3=float(properties.volume), centre_km=np.asarray(properties.center_mass),
+                          inertia_km5=np.asarray(properties.inertia), area_km2=float(tm.area))
 
 
 def self_intersections(mesh: Mesh) -> int:

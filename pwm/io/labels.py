@@ -26,9 +26,13 @@ COVERAGE_ERRORS = frozenset({"SPICE(SPKINSUFFDATA)", "SPICE(NOFRAMECONNECT)"})
 _FOV_ROOM = 10_000  # pool names one lookup of the instruments' FOV keywords may return
 
 
+LABEL_SUFFIXES = frozenset({".xml", ".cub"})
+"""PDS4 labels, and ISIS cubes (which carry their label, pwm.io.isis)."""
+
+
 def find_labels(directory: Path) -> list[Path]:
-    """The label files (*.xml, any case) under `directory`, in path order."""
-    return [p for p in sorted(Path(directory).rglob("*")) if p.suffix.lower() == ".xml" and p.is_file()]
+    """The labelled products under `directory` (LABEL_SUFFIXES, any case), in path order."""
+    return [p for p in sorted(Path(directory).rglob("*")) if p.suffix.lower() in LABEL_SUFFIXES and p.is_file()]
 
 
 def name_variants(name: str) -> list[str]:

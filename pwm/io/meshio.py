@@ -1,7 +1,17 @@
-"""Read and write meshes: Wavefront OBJ and binary PLY (with per-vertex albedo), in km."""
+"""Read and write meshes: Wavefront OBJ and binary PLY (with per-vertex albedo), in km.
+
+PLY carries the albedo as a named vertex property (`albedo`, float, after x y z). OBJ has no
+albedo field: it goes as a grey vertex colour stretched over the mesh's albedo range
+(ALBEDO_COLOUR_FLOOR at the darkest, 1 at the brightest) so that viewers show the body's
+pattern instead of a near-black body (albedos are a few per cent), and a comment header
+(`# albedo_colour_scale lo hi floor`) gives the range to read the albedo back. Both headers
+carry free comments (frame, units, version).
+"""
 
 from __future__ import annotations
 
+import re
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -10,20 +20,36 @@ from pwm.mesh import Mesh
 
 # The first bytes of a DSK file: a DAS file's ID word, its file type DSK.
 DSK_ID_WORD = b"DAS/DSK"
+# OBJ vertex colour of the darkest albedo: dark enough to show the pattern, light enough to see.
+ALBEDO_COLOUR_FLOOR = 0.25
+# First bytes of the files pwm exports that hold no mesh, and what they are.
+_NOT_MESHES = ((b"LASF", "a LAS point cloud (points only)"),
+               (b"II*\0", "a TIFF raster (a site's terrain)"), (b"MM\0*", "a TIFF raster (a site's terrain)"),
+               (b"Object = IsisCube", "an ISIS cube (a site's terrain)"),
+               (b"PK\x03\x04", "a zip archive (a site product)"))
+_ALBEDO_SCALE = re.compile(r"#\s*albedo_colour_scale\s+(\S+)\s+(\S+)\s+(\S+)")
 
 
 def read_obj(path: str | Path) -> Mesh:
     """Read a triangle OBJ (v and f records; polygons are fanned). An albedo is read from
-    'v x y z a' or 'v x y z r g b' records (first colour channel)."""
+    'v x y z a' or 'v x y z r g b' records (first colour channel), mapped back through the
+    `albedo_colour_scale` comment when the file has one (write_obj)."""
     verts: list[list[float]] = []
     faces: list[list[int]] = []
     albedo: list[float] = []
+    scale: tuple[float, float, float] | None = None
     with open(path, encoding="ascii", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             parts = line.split()
             if not parts:
                 continue
-            if parts[0] == "v":
+            if parts[0].startswith("#"):
+                if match := _ALBEDO_SCALE.match(line):
+                    lo, hi, floor = (float(v) for v in match.groups())
+                    if not (np.isfinite([lo, hi, floor]).all() and hi >= lo and 0 <= floor < 1):
+                        raise ValueError(f"{path}:{lineno}: bad albedo_colour_scale {line.strip()!r}")
+                    scale = (lo, hi, floor)
+            elif parts[0] == "v":
                 vals = [float(x) for x in parts[1:]]
                 if len(vals) < 3:
                     raise ValueError(f"{path}:{lineno}: vertex needs 3 coordinates")
@@ -38,23 +64,44 @@ def read_obj(path: str | Path) -> Mesh:
     if not verts or not faces:
         raise ValueError(f"{path}: no vertices or faces")
     a = np.array(albedo) if len(albedo) == len(verts) else None
+    if a is not None and scale is not None:
+        lo, hi, floor = scale
+        a = lo + (a - floor) / (1.0 - floor) * (hi - lo)
     return Mesh(np.array(verts), np.array(faces), a)
 
 
-def write_obj(path: str | Path, mesh: Mesh) -> None:
-    """Write OBJ, km; the albedo, if any, goes as a vertex colour (a a a)."""
+def write_obj(path: str | Path, mesh: Mesh, *, comments: Sequence[str] = ()) -> None:
+    """Write OBJ, km, with `comments` (one line each) in its header; the albedo, if any, goes as
+    a grey vertex colour stretched over its range (the module's docstring says how)."""
+    header = ["pwm mesh, body-fixed frame, km", *_comment_lines(comments)]
     with open(path, "w", encoding="ascii") as fh:
-        fh.write("# pwm mesh, body-fixed frame, km\n")
+        fh.writelines(f"# {line}\n" for line in header)
         if mesh.albedo is not None:
-            data = np.column_stack([mesh.vertices, mesh.albedo, mesh.albedo, mesh.albedo])
-            np.savetxt(fh, data, fmt="v %.9f %.9f %.9f %.6f %.6f %.6f")
+            lo, hi = float(mesh.albedo.min()), float(mesh.albedo.max())
+            if not np.isfinite([lo, hi]).all():
+                raise ValueError("the albedo has values that are not finite")
+            floor = ALBEDO_COLOUR_FLOOR
+            fh.write(f"# albedo_colour_scale {lo!r} {hi!r} {floor!r} (lo hi floor; grey vertex "
+                     f"colour = floor + (1 - floor) (albedo - lo) / (hi - lo))\n")
+            grey = (floor + (1.0 - floor) * (mesh.albedo - lo) / (hi - lo) if hi > lo
+                    else np.full(len(mesh.albedo), floor))
+            data = np.column_stack([mesh.vertices, grey, grey, grey])
+            np.savetxt(fh, data, fmt="v %.9f %.9f %.9f %.7f %.7f %.7f")
         else:
             np.savetxt(fh, mesh.vertices, fmt="v %.9f %.9f %.9f")
         np.savetxt(fh, mesh.faces + 1, fmt="f %d %d %d")
 
 
-def write_ply(path: str | Path, mesh: Mesh) -> None:
-    """Write binary little-endian PLY: float64 x y z (km), float32 albedo if present."""
+def _comment_lines(comments: Sequence[str]) -> list[str]:
+    lines = [str(c) for c in comments]
+    if any("\n" in line or "\r" in line or not line.isascii() for line in lines):
+        raise ValueError("header comments must be single ASCII lines")
+    return lines
+
+
+def write_ply(path: str | Path, mesh: Mesh, *, comments: Sequence[str] = ()) -> None:
+    """Write binary little-endian PLY: float64 x y z (km), float32 albedo if present, and
+    `comments` (one line each) in its header."""
     n, m = len(mesh.vertices), len(mesh.faces)
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if mesh.albedo is not None:
@@ -67,7 +114,8 @@ def write_ply(path: str | Path, mesh: Mesh) -> None:
     face["n"] = 3
     face["i"] = mesh.faces
     header = ["ply", "format binary_little_endian 1.0", "comment pwm mesh, body-fixed frame, km",
-              f"element vertex {n}", "property double x", "property double y", "property double z"]
+              *(f"comment {line}" for line in _comment_lines(comments)), f"element vertex {n}",
+              "property double x", "property double y", "property double z"]
     if mesh.albedo is not None:
         header.append("property float albedo")
     header += [f"element face {m}", "property list uchar int vertex_indices", "end_header"]
@@ -133,9 +181,14 @@ def read_shape_model(path: str | Path) -> Mesh:
     """A shape model in any format pwm exports (service.exports), told by its content whatever
     the file is called: a SPICE DSK type 2 (a DAS file, `DAS/DSK` first), binary PLY (`ply`),
     Gaskell's ICQ (q alone on the first line), else OBJ. Raises ValueError for a file that is
-    none of them, or a damaged one."""
+    none of them, or a damaged one, and says why for the exports that hold no mesh (a LAS
+    point cloud, a site's terrain)."""
     with open(path, "rb") as fh:
         first = fh.readline(64).strip()
+    for signature, what in _NOT_MESHES:
+        if first.startswith(signature):
+            raise ValueError(f"{path} is {what}, not a shape model: it has no faces. Give a mesh: "
+                             f"OBJ, PLY, SPICE DSK or ICQ")
     if first.startswith(DSK_ID_WORD):
         return _read_dsk(path)
     if first == b"ply":

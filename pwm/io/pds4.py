@@ -135,12 +135,12 @@ def utc_iso(stamp: str) -> str:
     return stamp.removesuffix("Z").removesuffix("+00:00") + "Z"
 
 
-def _build(parent: ET.Element, items: list[tuple]) -> None:
+def build_elements(parent: ET.Element, items: list[tuple]) -> None:
     """Add (tag, text or [children], optional unit) items under parent; ElementTree escapes."""
     for tag, content, *unit in items:
         element = ET.SubElement(parent, tag, {"unit": unit[0]} if unit else {})
         if isinstance(content, list):
-            _build(element, content)
+            build_elements(element, content)
         else:
             element.text = str(content)
 
@@ -151,7 +151,7 @@ def label_text(body: list[tuple]) -> str:
     root = ET.Element("Product_Observational", {
         "xmlns": PDS_NS, "xmlns:img": IMG_NS, "xmlns:xsi": XSI_NS,
         "xsi:schemaLocation": " ".join(f"{ns} {base}.xsd" for ns, base in _SCHEMAS.items())})
-    _build(root, body)
+    build_elements(root, body)
     ET.indent(root, space="    ")
     models: list[ET.Element[Any]] = [
         ET.ProcessingInstruction("xml-model", f'href="{base}.sch" schematypens="http://purl.oclc.org/dsdl/schematron"')

@@ -1,31 +1,51 @@
 """Local terrain product of a site: heights, albedo, slope and roughness on the site frame's
 grid as a PDS4 Product_Observational (four Array_2D_Image objects in one binary file) with a PNG
-preview.
+preview, and the same layers for the GIS and ISIS rasters (site_layers; pwm.io.terrain).
 
-Arrays are [line, sample] = [i (y), j (x)] with x and y increasing; heights in metres along
-the site frame's z, big-endian IEEE doubles; albedo, slope (deg from the site frame's z, the
-regional normal: the tilt of the plane fitted over the baseline) and roughness (m, RMS about
-that plane; pwm.site) big-endian IEEE singles. Nodes without data (NaN) are stored as MISSING and declared as the
+Arrays are [line, sample] with line 0 the northernmost (+y) row and samples running east (+x),
+as the Cartography area's upper-left corner has them; heights in metres along the site frame's
+z, big-endian IEEE doubles; albedo, slope (deg from the site frame's z, the regional normal: the
+tilt of the plane fitted over the baseline) and roughness (m, RMS about that plane; pwm.site)
+big-endian IEEE singles. Nodes without data (NaN) are stored as MISSING and declared as the
 missing_constant.
+
+The label is of PDS4 information model 1.16.0.0 (INFORMATION_MODEL) with the Cartography
+dictionary (CART_NS): the bounding latitudes and longitudes of the nodes, the orthographic
+projection of the site frame (pwm.io.terrain.SiteProjection) with its upper-left corner and
+pixel size, and the body's radii as the geodetic model; a Source_Product_Internal names the
+shape model version it was sampled from. Every label written is validated against the schema
+files shipped in pwm/data/pds4_schema (label_schema), never fetched from the network.
 """
 
 from __future__ import annotations
 
+import functools
+import re
+import xml.etree.ElementTree as ET
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
+import xmlschema
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LightSource
 from matplotlib.figure import Figure
 from scipy.ndimage import distance_transform_edt
 
-from pwm.frames import LocalFrame
-from pwm.io.pds4 import INFORMATION_MODEL, checksum_md5, label_text, utc_iso
+from pwm.frames import LocalFrame, unit_to_latlon
+from pwm.io.pds4 import PDS_NS, XSI_NS, build_elements, checksum_md5, utc_iso
+from pwm.io.terrain import SiteProjection, TerrainLayer
 from pwm.site import BASELINE_M, roughness_m, slope_deg
 
 MISSING = -1.0e32  # the PDS convention for missing real values
+INFORMATION_MODEL = "1.16.0.0"  # schema files 1G00, Cartography 1G00_1950
+CART_NS = "http://pds.nasa.gov/pds4/cart/v1"
+GEOM_NS = "http://pds.nasa.gov/pds4/geom/v1"
+SCHEMA_DIR = Path(__file__).resolve().parents[1] / "data" / "pds4_schema"
+# namespace -> schema file (without suffix) in SCHEMA_DIR, as https://pds.nasa.gov/pds4/ has it
+_SCHEMAS = {PDS_NS: "pds/v1/PDS4_PDS_1G00", CART_NS: "cart/v1/PDS4_CART_1G00_1950",
+            GEOM_NS: "geom/v1/PDS4_GEOM_1G00_1920"}
 _HEIGHT = ("IEEE754MSBDouble", ">f8")  # (PDS4 data_type, numpy dtype)
 _SINGLE = ("IEEE754MSBSingle", ">f4")
 
@@ -38,9 +58,33 @@ class SiteProductFiles(NamedTuple):
     preview: Path
 
 
+def site_layers(height_km: np.ndarray, albedo: np.ndarray, *, spacing_m: float,
+                baseline_m: float = BASELINE_M) -> list[TerrainLayer]:
+    """A site's terrain layers on its grid (rows y increasing, NaN where no data): height (m
+    along the site frame's z), albedo, slope (deg) and roughness (m) over the baseline."""
+    height_m = np.asarray(height_km, dtype=np.float64) * 1e3
+    return [
+        TerrainLayer("height", height_m, "m",
+                     "Height (m) along the site frame z axis (the regional normal) from the site "
+                     "frame origin."),
+        TerrainLayer("albedo", np.asarray(albedo, dtype=np.float64), "",
+                     "Normal albedo (unitless) at the same nodes as the heights."),
+        TerrainLayer("slope", slope_deg(height_m, spacing_m=spacing_m, baseline_m=baseline_m),
+                     "deg",
+                     f"Slope (deg): angle from the site frame z axis (the regional normal) of the "
+                     f"normal of the plane fitted over the square of side {baseline_m:g} m "
+                     f"centred on each node."),
+        TerrainLayer("roughness", roughness_m(height_m, spacing_m=spacing_m, baseline_m=baseline_m),
+                     "m",
+                     f"Roughness (m): RMS deviation of the heights from the plane fitted over the "
+                     f"square of side {baseline_m:g} m centred on each node."),
+    ]
+
+
 def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x_km: np.ndarray,
-                       y_km: np.ndarray, height_km: np.ndarray, albedo: np.ndarray, lid: str,
-                       version: str, model_version: str, body_frame: str, target_name: str,
+                       y_km: np.ndarray, height_km: np.ndarray, albedo: np.ndarray,
+                       projection: SiteProjection, lid: str, version: str, model_version: str,
+                       source_lidvid: str, body_frame: str, target_name: str,
                        target_type: str = "Asteroid", mission: str, host_name: str,
                        start_utc: str, stop_utc: str,
                        baseline_m: float = BASELINE_M) -> SiteProductFiles:
@@ -51,16 +95,17 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
 
     frame: the site frame (origin and axes in body_frame, km); x_km (nx,), y_km (ny,): regular,
     increasing node coordinates in it; height_km, albedo: (ny, nx), NaN where there is no data.
+    projection: the site frame's map projection (pwm.io.terrain.site_projection).
+    source_lidvid: the LIDVID the shape model version is referred to by.
     start_utc, stop_utc: time span of the images behind the model (UTC ISO-8601).
     """
     x, y = _axis(x_km, "x_km"), _axis(y_km, "y_km")
     start, stop = utc_iso(start_utc), utc_iso(stop_utc)
-    height_m = np.asarray(height_km, dtype=np.float64) * 1e3
-    albedo = np.asarray(albedo, dtype=np.float64)
-    if height_m.shape != (len(y), len(x)) or albedo.shape != height_m.shape:
-        raise ValueError(f"height {height_m.shape} and albedo {albedo.shape} must be "
-                         f"(len(y_km), len(x_km)) = {(len(y), len(x))}")
-    if np.isnan(height_m).all():
+    shape = (len(y), len(x))
+    if np.shape(height_km) != shape or np.shape(albedo) != shape:
+        raise ValueError(f"height {np.shape(height_km)} and albedo {np.shape(albedo)} must be "
+                         f"(len(y_km), len(x_km)) = {shape}")
+    if np.isnan(height_km).all():
         raise ValueError("height_km has no data")
     spacing_m = (x[1] - x[0]) * 1e3
     if abs((y[1] - y[0]) * 1e3 - spacing_m) > 1e-9 * spacing_m:
@@ -73,31 +118,19 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
         if path.exists():
             raise FileExistsError(f"{path} exists; a product is written once")
 
-    slope = slope_deg(height_m, spacing_m=spacing_m, baseline_m=baseline_m)
-    roughness = roughness_m(height_m, spacing_m=spacing_m, baseline_m=baseline_m)
-    contents = [
-        ("height", height_m, _HEIGHT, "m",
-         "Height (m) along the site frame z axis; the site frame and grid are described in the "
-         "Observation_Area comment."),
-        ("albedo", albedo, _SINGLE, None, "Normal albedo (unitless) at the same nodes as the "
-                                          "heights."),
-        ("slope", slope, _SINGLE, "deg",
-         f"Slope (deg): angle from the site frame z axis (the regional normal) of the normal of "
-         f"the plane fitted over the square of side {baseline_m:g} m centred on each node."),
-        ("roughness", roughness, _SINGLE, "m",
-         f"Roughness (m): RMS deviation of the heights from the plane fitted over the square "
-         f"of side {baseline_m:g} m centred on each node."),
-    ]
-    arrays = [np.where(np.isnan(a), MISSING, a).astype(dtype) for _, a, (_, dtype), *_ in contents]
+    layers = site_layers(height_km, albedo, spacing_m=spacing_m, baseline_m=baseline_m)
+    types = [_HEIGHT if layer.name == "height" else _SINGLE for layer in layers]
+    # line 0 north: the grid's last row first
+    arrays = [np.flipud(np.where(np.isnan(layer.values), MISSING, layer.values)).astype(dtype)
+              for layer, (_, dtype) in zip(layers, types, strict=True)]
     with open(files.data, "xb") as fh:
         for array in arrays:
             fh.write(array.tobytes())
-    frame_text = _frame_text(frame, body_frame, x, y)
     offsets = np.cumsum([0] + [a.nbytes for a in arrays[:-1]])
-    images = [_image(local_id, int(offset), data_type, unit, height_m.shape, description)
-              for (local_id, _, (data_type, _), unit, description), offset
-              in zip(contents, offsets, strict=True)]
-    text = label_text([
+    images = [_image(layer, int(offset), data_type, shape)
+              for layer, (data_type, _), offset in zip(layers, types, offsets, strict=True)]
+    height_m = layers[0].values
+    text = _label_text([
         ("Identification_Area", [
             ("logical_identifier", lid), ("version_id", version),
             ("title", f"{target_name} site {name}: local heights and albedo from shape model "
@@ -105,12 +138,27 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
             ("information_model_version", INFORMATION_MODEL),
             ("product_class", "Product_Observational")]),
         ("Observation_Area", [
-            ("comment", f"Shape model version {model_version}. {frame_text}"),
+            ("comment", f"Shape model version {model_version}. {_frame_text(frame, body_frame)}"),
             ("Time_Coordinates", [("start_date_time", start), ("stop_date_time", stop)]),
-            ("Investigation_Area", [("name", mission), ("type", "Mission")]),
+            ("Investigation_Area", [
+                ("name", mission), ("type", "Mission"),
+                ("Internal_Reference", [
+                    ("lid_reference", "urn:nasa:pds:context:investigation:mission."
+                                      + _lid_part(mission)),
+                    ("reference_type", "data_to_investigation"),
+                    ("comment", "Made from the mission's name: check it against the PDS "
+                                "context product.")])]),
             ("Observing_System", [("Observing_System_Component", [("name", host_name),
                                                                    ("type", "Host")])]),
-            ("Target_Identification", [("name", target_name), ("type", target_type)])]),
+            ("Target_Identification", [("name", target_name), ("type", target_type)]),
+            ("Discipline_Area", [_cartography(projection, frame, x, y, height_m,
+                                              [layer.name for layer in layers])])]),
+        ("Reference_List", [
+            ("Source_Product_Internal", [
+                ("lidvid_reference", source_lidvid),
+                ("reference_type", "data_to_derived_source_product"),
+                ("comment", f"The shape model version {model_version} the site was sampled "
+                            f"from.")])]),
         ("File_Area_Observational", [
             ("File", [
                 ("file_name", files.data.name),
@@ -118,11 +166,100 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
                 ("file_size", files.data.stat().st_size, "byte"),
                 ("md5_checksum", checksum_md5(files.data))]),
             *images])])
+    errors = [f"{e.path}: {e.reason}" for e in label_schema().iter_errors(text)]
+    if errors:
+        raise ValueError(f"the site label does not validate against PDS4 {INFORMATION_MODEL}: "
+                         + "; ".join(errors[:10]))
     with open(files.label, "x", encoding="utf-8") as fh:
         fh.write(text)
-    _preview(files.preview, x, y, height_m, albedo, title=f"{target_name} site {name} "
-             f"(model {model_version})")
+    _preview(files.preview, x, y, height_m, layers[1].values,
+             title=f"{target_name} site {name} (model {model_version})")
     return files
+
+
+@functools.cache
+def label_schema() -> xmlschema.XMLSchema:
+    """The PDS4 core and Cartography schemas (with the Geometry one Cartography imports) from
+    SCHEMA_DIR: the label's remote schema locations map onto these files, and nothing outside
+    SCHEMA_DIR is ever read (no download)."""
+    locations = [(ns, str(SCHEMA_DIR / f"{Path(base).name}.xsd")) for ns, base in _SCHEMAS.items()]
+    return xmlschema.XMLSchema(str(SCHEMA_DIR / f"{Path(_SCHEMAS[CART_NS]).name}.xsd"),
+                               locations=locations, base_url=str(SCHEMA_DIR), allow="sandbox")
+
+
+def _label_text(body: list[tuple]) -> str:
+    # Namespaces as plain attributes, as pwm.io.pds4's labels have them; the site label adds
+    # the Cartography namespace and is of a newer information model.
+    used = (PDS_NS, CART_NS)
+    root = ET.Element("Product_Observational", {
+        "xmlns": PDS_NS, "xmlns:cart": CART_NS, "xmlns:xsi": XSI_NS,
+        "xsi:schemaLocation": " ".join(f"{ns} https://pds.nasa.gov/pds4/{_SCHEMAS[ns]}.xsd"
+                                       for ns in used)})
+    build_elements(root, body)
+    ET.indent(root, space="    ")
+    models: list[ET.Element[Any]] = [
+        ET.ProcessingInstruction("xml-model", f'href="https://pds.nasa.gov/pds4/{_SCHEMAS[ns]}.sch" '
+                                              'schematypens="http://purl.oclc.org/dsdl/schematron"')
+        for ns in used]
+    return "\n".join(['<?xml version="1.0" encoding="UTF-8"?>',
+                      *(ET.tostring(e, encoding="unicode") for e in [*models, root]), ""])
+
+
+def _cartography(projection: SiteProjection, frame: LocalFrame, x: np.ndarray, y: np.ndarray,
+                 height_m: np.ndarray, arrays: list[str]) -> tuple:
+    """The cart:Cartography area: bounds of the nodes with data, the projection, the body."""
+    xx, yy = np.meshgrid(x, y)
+    found = ~np.isnan(height_m)
+    nodes = frame.to_body(np.column_stack([xx[found], yy[found], height_m[found] * 1e-3]))
+    lat, lon = unit_to_latlon(nodes)
+    # longitudes about the projection's centre, so that a site across 0 deg is not split
+    east_of = (np.asarray(lon) - projection.centre_lon_deg + 180.0) % 360.0 - 180.0
+    step_m = float(x[1] - x[0]) * 1e3
+    left, top = projection.upper_left_m(x, y)
+    per_degree = float(np.radians(1.0)) * projection.sphere_radius_km * 1e3 / step_m
+    a, b, c = projection.radii_km
+
+    def deg(tag: str, value: float) -> tuple:
+        return (f"cart:{tag}", f"{value:.10f}", "deg")
+
+    return ("cart:Cartography", [
+        *(("Local_Internal_Reference", [("local_identifier_reference", name),
+                                        ("local_reference_type", "cartography_parameters_to_image_object")])
+          for name in arrays),
+        ("cart:Spatial_Domain", [("cart:Bounding_Coordinates", [
+            deg("west_bounding_coordinate", projection.centre_lon_deg + float(east_of.min())),
+            deg("east_bounding_coordinate", projection.centre_lon_deg + float(east_of.max())),
+            deg("north_bounding_coordinate", float(np.max(lat))),
+            deg("south_bounding_coordinate", float(np.min(lat)))])]),
+        ("cart:Spatial_Reference_Information", [("cart:Horizontal_Coordinate_System_Definition", [
+            ("cart:Planar", [
+                ("cart:Map_Projection", [
+                    ("cart:map_projection_name", "Orthographic"),
+                    ("cart:Orthographic", [
+                        deg("longitude_of_central_meridian", projection.centre_lon_deg),
+                        deg("latitude_of_projection_origin", projection.centre_lat_deg)])]),
+                ("cart:Planar_Coordinate_Information", [
+                    ("cart:planar_coordinate_encoding_method", "Coordinate Pair"),
+                    ("cart:Coordinate_Representation", [
+                        ("cart:pixel_resolution_x", repr(step_m), "m/pixel"),
+                        ("cart:pixel_resolution_y", repr(step_m), "m/pixel"),
+                        ("cart:pixel_scale_x", repr(per_degree), "pixel/deg"),
+                        ("cart:pixel_scale_y", repr(per_degree), "pixel/deg")])]),
+                ("cart:Geo_Transformation", [("cart:upperleft_corner_x", repr(left), "m"),
+                                             ("cart:upperleft_corner_y", repr(top), "m")])]),
+            ("cart:Geodetic_Model", [
+                ("cart:latitude_type", "Planetocentric"),
+                ("cart:spheroid_name", f"{projection.body} (the projection's sphere: the mean of "
+                                       f"the radii, {projection.sphere_radius_km:.6g} km)"),
+                ("cart:a_axis_radius", repr(a), "km"), ("cart:b_axis_radius", repr(b), "km"),
+                ("cart:c_axis_radius", repr(c), "km"),
+                ("cart:longitude_direction", "Positive East")])])])])
+
+
+def _lid_part(name: str) -> str:
+    """`name` as a LID component: lower case, characters a LID cannot hold as '_'."""
+    part = re.sub(r"[^a-z0-9._-]", "_", name.lower())
+    return part or "unknown"
 
 
 def _axis(values: np.ndarray, what: str) -> np.ndarray:
@@ -133,23 +270,22 @@ def _axis(values: np.ndarray, what: str) -> np.ndarray:
     return axis
 
 
-def _frame_text(frame: LocalFrame, body_frame: str, x: np.ndarray, y: np.ndarray) -> str:
+def _frame_text(frame: LocalFrame, body_frame: str) -> str:
     def vector(v: np.ndarray) -> str:
         return "(" + ", ".join(f"{c:.12g}" for c in v) + ")"
 
     rows = ", ".join(f"{axis} axis {vector(v)}" for axis, v in zip("xyz", frame.rotation, strict=True))
     return (f"Site frame in {body_frame} (km): origin {vector(frame.origin)}, {rows}. "
-            f"Node (line i, sample j), both from 0, lies at origin + x_j x + y_i y + h z with "
-            f"x_j = {x[0]:.12g} + j * {x[1] - x[0]:.12g} km and "
-            f"y_i = {y[0]:.12g} + i * {y[1] - y[0]:.12g} km.")
+            f"A node at site coordinates (x, y) with height h (m) lies at origin + x x + y y + "
+            f"h/1000 z; x and y are the Cartography area's eastings and northings less the "
+            f"origin's own (its projection's plane is the site frame's xy plane).")
 
 
-def _image(local_id: str, offset: int, data_type: str, unit: str | None, shape: tuple,
-           description: str) -> tuple:
-    element = [("data_type", data_type), *([("unit", unit)] if unit else [])]
+def _image(layer: TerrainLayer, offset: int, data_type: str, shape: tuple) -> tuple:
+    element = [("data_type", data_type), *([("unit", layer.unit)] if layer.unit else [])]
     return ("Array_2D_Image", [
-        ("local_identifier", local_id), ("offset", offset, "byte"), ("axes", 2),
-        ("axis_index_order", "Last Index Fastest"), ("description", description),
+        ("local_identifier", layer.name), ("offset", offset, "byte"), ("axes", 2),
+        ("axis_index_order", "Last Index Fastest"), ("description", layer.description),
         ("Element_Array", element),
         ("Axis_Array", [("axis_name", "Line"), ("elements", shape[0]), ("sequence_number", 1)]),
         ("Axis_Array", [("axis_name", "Sample"), ("elements", shape[1]), ("sequence_number", 2)]),

@@ -19,6 +19,7 @@ import spiceypy as sp
 
 from pwm.camera import Camera, Pose
 from pwm.frames import local_sun, unit_to_latlon
+from pwm.io.lidar import write_lidar_product
 from pwm.io.meshio import write_obj
 from pwm.io.pds4 import file_sha256, write_image_product
 from pwm.io.spice_geometry import camera_from_kernel, camera_pose, instrument_frame, spacecraft_of, sun_direction
@@ -40,6 +41,7 @@ from pwm.render import render_supersampled
 from pwm.simulate.detector import choose_exposure, to_dn
 from pwm.simulate.knowledge import manifest_entries, perturb
 from pwm.simulate.landforms import Clearing, Landform, apply_landforms, sample_landforms
+from pwm.simulate.lidar import LIDAR_NAME, NO_RETURN, LidarSpec, save_true_spots, take_shots, write_lidar_kernels
 from pwm.simulate.missions import MISSIONS, Mission
 from pwm.simulate.optics import blur, flat_field
 from pwm.simulate.plan import Observation, frame_room_px, plan_approach, plan_global, plan_site, sun_states
@@ -66,6 +68,7 @@ OPTICS_STREAM = 21  # the random stream of the camera's flat field
 KNOWLEDGE_STREAM = 22  # the random stream of navigation-like knowledge errors
 CAMPAIGN_STREAM = 23  # a campaign's downlinks each draw from their own stream
 LANDFORM_STREAM = 24  # the craters and boulders over a campaign's body
+LIDAR_STREAM = 25  # the lidar's range noise and dropouts
 SKY_MARGIN = 0.05  # an approach survey's body stays this fraction of the half frame clear of its edges
 
 
@@ -178,6 +181,9 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
     with kernel_pool(fixed):
         detector = camera_from_kernel(scenario.instrument_id)
         camera, window = _readout(detector, scenario)
+        lidar_kernels = ([] if scenario.lidar is None else write_lidar_kernels(
+            downlink / "kernels", spec=scenario.lidar, spacecraft=spacecraft_of(scenario.instrument_id),
+            camera_frame=instrument_frame(scenario.instrument_id)))
         start_et = sp.str2et(scenario.start_utc)
         campaign_s = scenario.campaign_days * 86400.0
         sun_spk = downlink / "kernels" / "spk" / f"pwm_{scenario.name}_sun.bsp"
@@ -197,7 +203,7 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
                                                observations=noisy,
                                                comments=[] if knowledge == EXACT else [knowledge_comment(knowledge)])
 
-    all_fixed = fixed + [sun_spk]
+    all_fixed = fixed + [sun_spk] + lidar_kernels
     (downlink / "kernels" / "mk").mkdir(parents=True, exist_ok=True)
     write_metakernel(downlink / "kernels" / "mk" / f"pwm_{scenario.name}.tm", kernels=all_fixed + downlink_kernels)
     truth_mk = truth_dir / "kernels" / "truth.tm"
@@ -234,6 +240,9 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
                                 sun=sun)
             held_out.append({"name": obs.name, "file": f"validation/{obs.name}.npz",
                              **_true_geometry(obs, pose=pose, sun=sun, truth=truth, camera=camera)})
+        lidar = (None if scenario.lidar is None else
+                 _lidar(downlink, truth_dir, spec=scenario.lidar, scenario=scenario, truth=truth, tracer=tracer,
+                        observations=observations, seed=seed, mission=mission))
 
     wavelength_km = 30.0 * scenario.gsd_km
     if start is not None:
@@ -258,12 +267,40 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
         "images": images,
         "validation": held_out,
         "truth_kernels": "kernels/truth.tm",
+        **({} if lidar is None else {"lidar": lidar}),
         "elapsed_s": round(time.perf_counter() - clock, 2),
     }
     (truth_dir / "manifest.json").write_text(json.dumps(manifest, indent=1))
     _write_downlink_manifest(downlink, scenario=scenario)
     log.info("simulated %d images in %.1f s", len(images), time.perf_counter() - clock)
     return manifest
+
+
+def _lidar(downlink: Path, truth_dir: Path, *, spec: LidarSpec, scenario: Scenario, truth: Truth, tracer: RayTracer,
+           observations: list[Observation], seed: int, mission: Mission) -> dict:
+    """The lidar's shots through the views' windows of the loaded true kernels, written as one
+    product into downlink/lidar (read through the downlink's kernels, they carry its knowledge
+    errors, as the images do), with the true spots in truth_dir/lidar_spots.npz; what the
+    manifest records of them."""
+    extent_km = (float(np.linalg.norm(truth.mesh.vertices, axis=1).max()) if scenario.global_views
+                 else scenario.site_size_km / 2)
+    shots = take_shots(tracer, spec=spec, view_times=[obs.et for obs in observations], window_s=WINDOW_S,
+                       spacecraft=spacecraft_of(scenario.instrument_id), target=scenario.target,
+                       body_frame=scenario.body_frame, extent_km=extent_km,
+                       rng=np.random.default_rng([seed, LIDAR_STREAM]))
+    basename = f"pwm_{scenario.name}_lidar"
+    label, data = write_lidar_product(
+        directory=downlink / "lidar", basename=basename,
+        lid=f"urn:nasa:pds:pwm_sim_{scenario.name.replace('-', '_')}_s{seed}:{basename}",
+        et=shots.et, range_km=shots.range_km, flag=np.where(shots.returned, 0, NO_RETURN),
+        start_utc=sp.et2utc(float(shots.et.min()), "ISOC", 6), stop_utc=sp.et2utc(float(shots.et.max()), "ISOC", 6),
+        mission=mission.name, host_name=mission.host, instrument_name=LIDAR_NAME, target_name=mission.target_label,
+        title=f"Simulated {scenario.name} lidar shots ({spec.pattern})", intensity=shots.intensity,
+        direction=shots.direction_instrument if spec.pattern == "raster" else None)
+    save_true_spots(truth_dir / "lidar_spots.npz", shots)
+    return {"label": f"lidar/{label.name}", "data": f"lidar/{data.name}", "spots": "lidar_spots.npz",
+            "shots": len(shots.et), "returns": int(shots.returned.sum()), "pattern": spec.pattern,
+            "range_noise_m": spec.range_noise_m}
 
 
 def start_model(truth: Truth, *, scenario: Scenario, base: Mesh, seed: int) -> Mesh:

@@ -8,6 +8,7 @@ from datetime import datetime, timedelta
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from pwm.photometry import PHOTOMETRY
+from pwm.simulate.lidar import LidarSpec
 from pwm.simulate.missions import MISSIONS
 from pwm.simulate.optics import Optics
 
@@ -68,6 +69,7 @@ class Scenario(BaseModel):
                                        description="RMS of smooth undulations added to the start model, in GSD")
     start_error_band_m: tuple[float, float] = Field((10.0, 40.0),
                                                     description="shortest and longest wavelength of those, m")
+    lidar: LidarSpec | None = Field(None, description="a laser altimeter ranging through the views' windows")
 
     @field_validator("photometry")
     @classmethod
@@ -135,10 +137,13 @@ SCENARIOS: dict[str, Scenario] = {
         ),
         Scenario(
             name="site",
-            description="a 50 m candidate sampling site at mid latitude, 10 cm GSD, 30+ images",
+            description="a 50 m candidate sampling site at mid latitude, 10 cm GSD, 30+ images, and lidar "
+                        "profiles through each view's window",
             site_lat_deg=12.0, site_lon_deg=60.0, site_size_km=0.05,
             gsd_km=1.0e-4, truth_resolution_km=2.5e-5, n_boulders=100, steep_boulders=25,
             pointing_scatter_km=0.008,
+            # profiles as NEAR's or Hayabusa's lidar took them, the body turning beneath
+            lidar=LidarSpec(pattern="profile", shots_per_view=200),
         ),
         Scenario(
             name="site-hard",
@@ -151,6 +156,7 @@ SCENARIOS: dict[str, Scenario] = {
             photometry="hapke", supersample=2,
             optics=Optics(psf_sigma_px=0.6, smear_px=0.8, flat_field_rms=0.01),
             start_error_rms_gsd=1.0, start_error_band_m=(10.0, 40.0),
+            lidar=LidarSpec(pattern="profile", shots_per_view=200),
         ),
         Scenario(
             name="site-polar",
@@ -171,11 +177,13 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario(
             name="global-tiny",
             description="global-coarse's design for tests, seconds: 12 images of the whole body at 4 m GSD "
-                        "through a 320 px detector window, over a coarse truth",
+                        "through a 320 px detector window, over a coarse truth; and an OLA-like lidar's rasters "
+                        "over the body, one per view",
             site_lat_deg=12.0, site_lon_deg=60.0, site_size_km=0.05,
             gsd_km=4.0e-3, truth_resolution_km=1.0e-4, base_edge_km=2.0e-3, global_roughness_km=1.0e-3,
             global_views=True, n_nadir=0, emissions_deg=(0.0,), n_azimuths=12, subframe_px=320,
             incidences_deg=(30.0, 50.0), n_validation=1, campaign_days=5.0,
+            lidar=LidarSpec(pattern="raster", shots_per_view=400),
         ),
         # Bodies far from their ellipsoid (issue 45), surveyed as an approach would: the PCK's
         # ellipsoid (the shape's half extents) misses their surface by many survey GSDs.
@@ -282,10 +290,12 @@ CAMPAIGNS: dict[str, Campaign] = {
             name="campaign",
             description="global-coarse's survey, at twice its images (72), of a Bennu with craters and boulders "
                         "everywhere (2 m GSD, a 0.5 m truth), then site's and site-polar's reconnaissance (10 cm GSD) "
-                        "at two places of it",
+                        "at two places of it; an OLA-like lidar's rasters through the survey's views, and "
+                        "profiles through the first site's",
             # 36 images left 63% of the surface seen by fewer than five within SPC's 40 deg emission
             # rule: too few for the five-view set (bench/RESULTS.md); surveys take many more
-            survey=_campaign_part("global-coarse", name="campaign-survey", n_azimuths=72),
+            survey=_campaign_part("global-coarse", name="campaign-survey", n_azimuths=72,
+                                  lidar=LidarSpec(pattern="raster", shots_per_view=2000)),
             sites=(_campaign_part("site", name="campaign-site-a", start_utc="2019-03-14T00:00:00"),
                    _campaign_part("site-polar", name="campaign-site-b", start_utc="2019-03-28T00:00:00")),
             craters=30, crater_diameter_m=(10.0, 80.0), boulders=60, steep_boulders=15,
@@ -295,7 +305,8 @@ CAMPAIGNS: dict[str, Campaign] = {
             name="campaign-tiny",
             description="campaign's design for tests, seconds: global-tiny's survey (4 m GSD, 12 images) of a body "
                         "with 20-60 m craters and 12-30 m boulders, then two tiny sites (5 cm GSD, 6 images each)",
-            survey=_campaign_part("global-tiny", name="campaign-tiny-survey"),
+            # no lidar yet: the catalog reads no lidar products (issue 46's next step)
+            survey=_campaign_part("global-tiny", name="campaign-tiny-survey", lidar=None),
             sites=(_campaign_part("tiny", name="campaign-tiny-site-a", start_utc="2019-03-14T00:00:00"),
                    _campaign_part("tiny", name="campaign-tiny-site-b", start_utc="2019-03-20T00:00:00",
                                   site_lat_deg=-30.0, site_lon_deg=200.0)),

@@ -2,7 +2,7 @@
 limit, security headers on every response, CORS only for configured origins, 503 with
 Retry-After when exports or the catalog's connections are all busy, error answers that render
 whatever a client sent, a logged 500 without a traceback for what nothing else handled, requests
-framed two ways refused, and the OpenAPI schema at /openapi.json."""
+framed two ways refused, /healthz for probes, and the OpenAPI schema at /openapi.json."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 import pwm
-from service.api.routers import console, diffs, downlinks, images, jobs, maplets, versions
+from service.api.routers import console, diffs, downlinks, health, images, jobs, maplets, versions
 from service.artifacts import RETRY_AFTER_S, CacheBusy
 from service.catalog import open_catalog
 from service.jobs import JobQueue
@@ -65,6 +65,7 @@ def create_app(settings: Settings | None = None, *, job_queue: JobQueue | None =
 
     @asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+        health.quiet_access_log()  # here: the server configures its loggers before it starts the app
         yield
         sessions.kw["bind"].dispose()
 
@@ -74,7 +75,7 @@ def create_app(settings: Settings | None = None, *, job_queue: JobQueue | None =
     app.state.settings = settings
     app.state.sessions = sessions
     app.state.job_queue = job_queue
-    for module in (versions, diffs, maplets, images, downlinks, jobs, console):
+    for module in (health, versions, diffs, maplets, images, downlinks, jobs, console):
         app.include_router(module.router)
     app.mount("/console", console.static_files(), name="console")
     app.add_exception_handler(CacheBusy, _busy_making)

@@ -9,7 +9,7 @@ import math
 import re
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import typer
 from typer.core import TyperGroup
@@ -46,8 +46,13 @@ class _Commands(TyperGroup):
             raise typer.Exit(2) from None
 
 
+# Help is Markdown: a docstring's paragraphs are rewrapped to the terminal, where typer's "rich"
+# mode keeps each docstring line break (sentences cut mid-line in `pwm --help`); every sub-app
+# takes the same (HELP_MARKUP).
+HELP_MARKUP: Literal["markdown"] = "markdown"
 app = typer.Typer(help="Shape modeling of an asteroid with pixel-weighted maplets.", no_args_is_help=True,
-                  add_completion=False, pretty_exceptions_enable=False, cls=_Commands)
+                  add_completion=False, pretty_exceptions_enable=False, cls=_Commands,
+                  rich_markup_mode=HELP_MARKUP)
 
 # Overrides of the commands that read a downlink directory through its SPICE kernels: by
 # default the labels and the kernels say what each image is (pwm.io.downlink).

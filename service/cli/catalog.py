@@ -40,6 +40,7 @@ def ingest(
     """
     from pwm.io.meshio import read_mesh
     from service.catalog import open_catalog
+    from service.cli.progress import progress_bar
     from service.conductor import weigh
     from service.ingest import IngestTakenOver, ingest_directory
     from service.settings import get_settings
@@ -50,7 +51,8 @@ def ingest(
     sessions = open_catalog(settings)
     model = read_mesh(shape) if shape else None
     try:
-        report = ingest_directory(sessions, directory, downlink_name=name, shape=model)
+        with progress_bar(unit="products") as progress:
+            report = ingest_directory(sessions, directory, downlink_name=name, shape=model, progress=progress)
     except IngestTakenOver as exc:  # the other ingest finishes the downlink
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(1) from None
@@ -80,14 +82,16 @@ def images(
         query = select(Image).order_by(Image.start_utc, Image.id).limit(limit)
         if status:
             query = query.where(Image.status == status)
+        typer.echo(f"{'LIDVID':<60} {'status':<8} {'start (UTC)':<23} {'range km':>9} {'inc':>5} {'emi':>5} "
+                   f"{'pha':>5}  pose correction, or why no geometry")
         for image in session.scalars(query):
             g = image.geometry
-            where = (f"range {g.range_km:.3f} km  inc {g.incidence_deg:.1f}  emi {g.emission_deg:.1f}  "
-                     f"pha {g.phase_deg:.1f}"
-                     if g is not None and g.incidence_deg is not None
-                     else (image.rejection_reason or image.geometry_unavailable_reason or ""))
+            angles = g is not None and g.incidence_deg is not None
+            where = (f"{g.range_km:>9.3f} {g.incidence_deg:>5.1f} {g.emission_deg:>5.1f} {g.phase_deg:>5.1f}"
+                     if g is not None and angles else f"{'-':>9} {'-':>5} {'-':>5} {'-':>5}")
+            note = "" if angles else (image.rejection_reason or image.geometry_unavailable_reason or "")
             stored = image.pose_correction()
-            corrected = ("" if stored is None else f"  corrected {math.hypot(*stored.position_km) * 1e3:.2f} m, "
+            corrected = ("" if stored is None else f"corrected {math.hypot(*stored.position_km) * 1e3:.2f} m, "
                                                    f"{math.hypot(*stored.rotation_rad) * 1e6:.0f} urad")
             sigmas = image.pose_sigmas()
             if sigmas is not None:
@@ -96,15 +100,17 @@ def images(
                               f"{prior.lateral_m:.2f}>{posterior.lateral_m:.2f} m, pointing "
                               f"{prior.pointing_urad:.0f}>{posterior.pointing_urad:.0f} urad "
                               f"(determined: {', '.join(determined(prior, posterior)) or 'none'})")
-            typer.echo(f"{image.lidvid}  {image.status}  {image.start_utc}  {where}{corrected}")
+            start = image.start_utc.strftime("%Y-%m-%dT%H:%M:%S.%f")[:23] if image.start_utc is not None else "-"
+            typer.echo(f"{image.lidvid:<60} {image.status:<8} {start:<23} {where}  "
+                       f"{'  '.join(filter(None, (note, corrected))) or '-'}")
 
 
 @app.command()
 def images_near(
     lat: float = typer.Option(..., parser=LATITUDE, help="planetocentric latitude of the surface point, deg"),
     lon: float = typer.Option(..., parser=LONGITUDE, help="east longitude of the surface point, deg"),
-    radius: float = typer.Option(0.0, parser=finite(ge=0.0),
-                                 help="also through maplets within this distance of the point, km"),
+    radius_km: float = typer.Option(0.0, parser=finite(ge=0.0),
+                                    help="also through maplets within this distance of the point, km"),
     order: str = typer.Option("weight", help="weight (highest first) | time (earliest first)"),
     limit: int = typer.Option(50, min=1, max=MAX_ROW_ID, help="at most this many rows"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
@@ -116,7 +122,7 @@ def images_near(
     if order not in ("weight", "time"):
         raise typer.BadParameter("expected weight or time", param_hint="--order")
     with open_catalog()() as session:
-        hits = images_covering(session, lat_deg=lat, lon_deg=lon, radius_km=radius,
+        hits = images_covering(session, lat_deg=lat, lon_deg=lon, radius_km=radius_km,
                                order=cast(Literal["weight", "time"], order), limit=limit)
     if json_out:
         echo_json([h.model_dump(mode="json") for h in hits])
@@ -135,7 +141,7 @@ def images_near(
 def maplets(
     lat: float | None = typer.Option(None, parser=LATITUDE, help="only maplets holding this latitude (deg) ..."),
     lon: float | None = typer.Option(None, parser=LONGITUDE, help="... and east longitude (deg), nearest first"),
-    radius: float = typer.Option(0.0, parser=finite(ge=0.0), help="or within this distance of that point, km"),
+    radius_km: float = typer.Option(0.0, parser=finite(ge=0.0), help="or within this distance of that point, km"),
     level: int | None = typer.Option(
         None, min=-64, max=64, help="only maplets of this level: node spacings within a factor sqrt(2) of 2^level m"),
     limit: int = typer.Option(50, min=1, max=MAX_ROW_ID, help="at most this many rows"),
@@ -150,7 +156,7 @@ def maplets(
     if (lat is None) != (lon is None):
         raise typer.BadParameter("give --lat and --lon together")
     with open_catalog()() as session:
-        rows = list_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius, level=level, limit=limit,
+        rows = list_maplets(session, lat_deg=lat, lon_deg=lon, radius_km=radius_km, level=level, limit=limit,
                             offset=offset)
     if json_out:
         echo_json([m.model_dump(mode="json") for m in rows])

@@ -8,9 +8,9 @@ from typing import Any
 import typer
 
 from pwm.config import RefinementConfig
-from service.cli.app import app, echo_json, refinement_config
+from service.cli.app import HELP_MARKUP, app, echo_json, refinement_config
 
-config_app = typer.Typer(help="The effective configuration.", no_args_is_help=True)
+config_app = typer.Typer(help="The effective configuration.", no_args_is_help=True, rich_markup_mode=HELP_MARKUP)
 app.add_typer(config_app, name="config")
 
 

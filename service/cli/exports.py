@@ -15,20 +15,34 @@ from service.cli.app import LATITUDE, LONGITUDE, app, finite, version_ref
 @app.command()
 def export(
     version: str = typer.Argument(..., parser=version_ref, help="version number, release tag, latest or released"),
-    format: str = typer.Option(..., "--format", help="obj | ply | icq | dsk | site"),
+    format: str = typer.Option(..., "--format",
+                               help="obj | ply | icq | dsk | las | site | geotiff | isis (the last three "
+                                    "about a site)"),
     out: Path = typer.Option(..., "--out", dir_okay=False, help="file to write"),
     surface: str = typer.Option("model", "--surface",
                                 help="model (every level) | global (the whole body's levels, beneath the sites)"),
     faces: int | None = typer.Option(None, min=4, help="decimate to about this many faces first"),
-    lat: float | None = typer.Option(None, parser=LATITUDE, help="site latitude, deg (site)"),
-    lon: float | None = typer.Option(None, parser=LONGITUDE, help="site east longitude, deg (site)"),
-    radius: float | None = typer.Option(None, parser=finite(gt=0.0, le=100.0), help="site half-width, km (site)"),
-    body: str | None = typer.Option(None, help="NAIF body name or ID (dsk, site; default: the catalog's)"),
-    frame: str | None = typer.Option(None, help="body-fixed frame (dsk, site; default: the catalog's)"),
+    lat: float | None = typer.Option(None, parser=LATITUDE, help="site latitude, deg (site formats)"),
+    lon: float | None = typer.Option(None, parser=LONGITUDE, help="site east longitude, deg (site formats)"),
+    radius_km: float | None = typer.Option(None, "--radius-km", parser=finite(gt=0.0, le=100.0),
+                                           help="site half-width, km (site formats)"),
+    body: str | None = typer.Option(None, help="NAIF body name or ID (dsk, las, site formats; default: the "
+                                                "catalog's)"),
+    frame: str | None = typer.Option(None, help="body-fixed frame (default: the catalog's)"),
 ) -> None:
-    """Export a model version; a site product is a zip of its PDS4 label, data file and PNG preview."""
+    """Export a model version. A site product is a zip of its PDS4 label, data file and PNG preview; geotiff and isis
+    hold the same layers as a GeoTIFF or an ISIS3 cube in an orthographic projection about the site; las is the
+    vertices as a point cloud (m, body-fixed, albedo per point; uncompressed LAS, no LAZ)."""
     from service.catalog import open_catalog
-    from service.exports import ExportError, ExportFormat, ExportSurface, Site, make_export, plan_export
+    from service.exports import (
+        SITE_FORMATS,
+        ExportError,
+        ExportFormat,
+        ExportSurface,
+        Site,
+        make_export,
+        plan_export,
+    )
     from service.settings import get_settings
     from service.versions import get_version
 
@@ -40,17 +54,18 @@ def export(
         which = ExportSurface(surface)
     except ValueError:
         raise typer.BadParameter(f"expected one of {', '.join(ExportSurface)}", param_hint="--surface") from None
-    site_args = (lat, lon, radius)
-    if (fmt is ExportFormat.SITE) != all(a is not None for a in site_args) or (
-            fmt is not ExportFormat.SITE and any(a is not None for a in site_args)):
-        raise typer.BadParameter("--lat, --lon and --radius go together, with --format site only")
+    site_args = (lat, lon, radius_km)
+    if (fmt in SITE_FORMATS) != all(a is not None for a in site_args) or (
+            fmt not in SITE_FORMATS and any(a is not None for a in site_args)):
+        raise typer.BadParameter(f"--lat, --lon and --radius-km go together, with --format "
+                                 f"{' | '.join(sorted(SITE_FORMATS))} only")
     settings = get_settings()
     with open_catalog(settings)() as session:
         try:
             plan = plan_export(session, data_dir=settings.data_dir, version=get_version(session, version),
                                fmt=fmt, surface=which, faces=faces, body=body, frame=frame,
-                               site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius)
-                               if lat is not None and lon is not None and radius is not None else None)
+                               site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
+                               if lat is not None and lon is not None and radius_km is not None else None)
             session.close()
             made = make_export(plan, cache_bytes=settings.export_cache_bytes)
         except (LookupError, ExportError) as exc:

@@ -6,13 +6,13 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from service.cli.app import app, echo_json
+from service.cli.app import HELP_MARKUP, app, echo_json
 
 if TYPE_CHECKING:
     from service.kernels import KernelListing
 
 kernels_app = typer.Typer(help="The catalogued SPICE kernels: what each is and whether it is "
-                               "used; retire one.")
+                               "used; retire one.", rich_markup_mode=HELP_MARKUP)
 app.add_typer(kernels_app, name="kernels")
 
 

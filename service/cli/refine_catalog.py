@@ -24,6 +24,7 @@ def refine_catalog(
     counted: the next downlink refines them where their configuration changed.
     """
     from service.catalog import open_catalog
+    from service.cli.progress import progress_bar
     from service.downlinks import configuration_note
     from service.run import refine_other_configurations
     from service.settings import get_settings
@@ -39,7 +40,9 @@ def refine_catalog(
                    f"every maplet's current revision was made with the present configuration ({config.digest()[:12]}) "
                    "or before configurations were recorded: nothing to refine")
         return
-    done = refine_other_configurations(sessions, data_dir=settings.data_dir, config=config, workers=workers)
+    with progress_bar() as progress:
+        done = refine_other_configurations(sessions, data_dir=settings.data_dir, config=config, workers=workers,
+                                           progress=progress)
     outcome = (f"published version{'s' * (len(done.versions) > 1)} {', '.join(map(str, done.versions))}"
                if done.versions else "no new version (nothing changed)")
     typer.echo(f"{len(done.revisions)} maplet refinements under configuration {config.digest()[:12]}...; {outcome}")

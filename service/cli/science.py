@@ -92,6 +92,7 @@ def simulate(
 
     from pwm.simulate.campaign import simulate as run_simulation, simulate_campaign
     from pwm.simulate.scenarios import CAMPAIGNS, Scenario, get_scenario
+    from service.cli.progress import working
 
     setup_logging(verbose)
     errors = _knowledge_error(knowledge_error)
@@ -115,13 +116,15 @@ def simulate(
         raise typer.BadParameter("; ".join(": ".join(filter(None, (".".join(map(str, e["loc"])), e["msg"])))
                                            for e in exc.errors())) from None
     if campaign is None:
-        manifest = run_simulation(out, scenario=parts[0], seed=seed, knowledge=errors,
-                                  with_start_model=with_start_model)
+        with working(f"simulating {scenario}"):
+            manifest = run_simulation(out, scenario=parts[0], seed=seed, knowledge=errors,
+                                      with_start_model=with_start_model)
         typer.echo(f"{manifest['image_count']} images, GSD {manifest['gsd_m']:.3f} m -> {out}")
         return
     campaign = campaign.model_copy(update={"survey": parts[0], "sites": tuple(parts[1:])})
-    summary = simulate_campaign(out, campaign=campaign, seed=seed, knowledge=errors,
-                                with_start_model=with_start_model)
+    with working(f"simulating the {len(parts)} downlinks of {scenario}"):
+        summary = simulate_campaign(out, campaign=campaign, seed=seed, knowledge=errors,
+                                    with_start_model=with_start_model)
     for entry in summary["downlinks"]:
         typer.echo(f"{entry['downlink']}: {entry['images']} images, GSD {entry['gsd_m']:.3f} m "
                    f"({entry['scope']}; truth in {entry['truth']})")
@@ -174,7 +177,8 @@ def refine(
     lat: float | None = typer.Option(None, parser=LATITUDE,
                                      help="region centre latitude, deg (default: where the images look)"),
     lon: float | None = typer.Option(None, parser=LONGITUDE, help="region centre east longitude, deg"),
-    radius: float | None = typer.Option(None, parser=finite(gt=0.0), help="region radius, km"),
+    radius_km: float | None = typer.Option(None, "--radius-km", parser=finite(gt=0.0),
+                                           help="region radius, km"),
     nodes: int = typer.Option(DEFAULTS.nodes, help="maplet nodes per side"),
     spacing_gsd: float = typer.Option(DEFAULTS.spacing_gsd, parser=finite(),
                                       help="node spacing in image GSDs (median pixel scale)"),
@@ -198,6 +202,7 @@ def refine(
 
     from pwm.io.meshio import read_mesh, write_obj, write_ply
     from pwm.pipeline import imaged_region, refine_region
+    from service.cli.progress import progress_bar
     from service.cli.spg import read_corrections
 
     setup_logging(verbose)
@@ -211,12 +216,13 @@ def refine(
     region = imaged_region(views, start_model)
     if lat is not None and lon is not None:
         region = dataclasses.replace(region, lat_deg=lat, lon_deg=lon)
-    if radius is not None:
-        region = dataclasses.replace(region, radius_km=radius)
+    if radius_km is not None:
+        region = dataclasses.replace(region, radius_km=radius_km)
     region = dataclasses.replace(region, spacing_km=config.spacing_gsd * region.spacing_km)
     logging.getLogger("pwm").info("%d images, maplets at %.3f m around (%.3f, %.3f) within %.1f m", len(views),
                                   region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
-    model, results = refine_region(start_model, views, region, config=config, workers=workers)
+    with progress_bar() as progress:
+        model, results = refine_region(start_model, views, region, config=config, workers=workers, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "refined.ply", model)
     write_obj(out / "refined.obj", model)

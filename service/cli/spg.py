@@ -24,13 +24,17 @@ FIRST_OCTAVE = typer.Option(SPG_DEFAULTS.first_octave, min=-1, max=1,
                                  "frame, else 0")
 PER_IMAGE = typer.Option(SPG_DEFAULTS.per_image, min=1, help="stereo partners matched per image")
 THREADS = typer.Option(SPG_DEFAULTS.threads, min=1, help="threads for extraction and matching")
+MAX_SUN_DEG = typer.Option(SPG_DEFAULTS.max_sun_deg, parser=finite(gt=0.0, le=180.0),
+                           help="largest angle between the body-fixed Sun directions of a stereo pair, deg (the body "
+                                "turns between images taken apart in time)")
 
 
 def spg_config(*, sigma_position_m: float, sigma_pointing_rad: float, max_features: int, first_octave: int | None,
-               per_image: int, threads: int) -> SpgConfig:
+               per_image: int, threads: int, max_sun_deg: float) -> SpgConfig:
     """The photogrammetry's settings from the options (the rest at their defaults)."""
     return SpgConfig(sigma_position_km=sigma_position_m * 1e-3, sigma_pointing_rad=sigma_pointing_rad,
-                     max_features=max_features, first_octave=first_octave, per_image=per_image, threads=threads)
+                     max_features=max_features, first_octave=first_octave, per_image=per_image, threads=threads,
+                     max_sun_deg=max_sun_deg)
 
 
 def write_corrections(path: Path, corrections: dict[str, PoseCorrection], *, body_frame: str) -> None:
@@ -60,6 +64,7 @@ def spg(
     first_octave: int | None = FIRST_OCTAVE,
     per_image: int = PER_IMAGE,
     threads: int = THREADS,
+    max_sun_deg: float = MAX_SUN_DEG,
     instrument: str | None = INSTRUMENT,
     target: str | None = TARGET,
     body_frame: str | None = BODY_FRAME,
@@ -68,13 +73,19 @@ def spg(
     """Photogrammetric model and per-image pose corrections from a downlink's images."""
     from pwm.io.meshio import read_mesh, write_obj, write_ply
     from pwm.spg import stereo_photogrammetry
+    from service.cli.progress import working
 
     setup_logging(verbose)
     read = downlink_views(downlink, instrument=instrument, target=target, body_frame=body_frame)
     views = read.views
     config = spg_config(sigma_position_m=sigma_position, sigma_pointing_rad=sigma_pointing, max_features=max_features,
-                        first_octave=first_octave, per_image=per_image, threads=threads)
-    result = stereo_photogrammetry(views, read_mesh(start), config=config)
+                        first_octave=first_octave, per_image=per_image, threads=threads, max_sun_deg=max_sun_deg)
+    try:
+        with working(f"photogrammetry on {len(views)} images"):
+            result = stereo_photogrammetry(views, read_mesh(start), config=config)
+    except ValueError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from None
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "spg.ply", result.mesh)
     write_obj(out / "spg.obj", result.mesh)
@@ -95,21 +106,25 @@ def spg_catalog(
     first_octave: int | None = FIRST_OCTAVE,
     per_image: int = PER_IMAGE,
     threads: int = THREADS,
+    max_sun_deg: float = MAX_SUN_DEG,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Stereo photogrammetry on the catalogued images from the latest version: publish a photogrammetric version
     and store each image's pose correction (its maplets then become stale; the next ingest re-weighs its
     coverage)."""
     from service.catalog import open_catalog
+    from service.cli.progress import working
     from service.settings import get_settings
     from service.spg import photogrammetry_version
 
     setup_logging(verbose)
     settings = get_settings()
     config = spg_config(sigma_position_m=sigma_position, sigma_pointing_rad=sigma_pointing, max_features=max_features,
-                        first_octave=first_octave, per_image=per_image, threads=threads)
+                        first_octave=first_octave, per_image=per_image, threads=threads, max_sun_deg=max_sun_deg)
     try:
-        number = photogrammetry_version(open_catalog(settings), data_dir=settings.data_dir, config=config)
+        sessions = open_catalog(settings)
+        with working("photogrammetry on the catalogued images"):
+            number = photogrammetry_version(sessions, data_dir=settings.data_dir, config=config)
     except (LookupError, ValueError) as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(1) from None

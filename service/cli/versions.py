@@ -8,6 +8,7 @@ from pathlib import Path
 import typer
 
 from service.cli.app import (
+    HELP_MARKUP,
     MAX_ROW_ID,
     app,
     echo_json,
@@ -19,7 +20,7 @@ from service.cli.app import (
     version_ref,
 )
 
-version_app = typer.Typer(help="One model version.", no_args_is_help=True)
+version_app = typer.Typer(help="One model version.", no_args_is_help=True, rich_markup_mode=HELP_MARKUP)
 app.add_typer(version_app, name="version")
 
 
@@ -39,9 +40,9 @@ def run(
     maplet_nodes: int | None = typer.Option(None,
                                             help="nodes per side of maplets tiled where the images look and none is "
                                                  "catalogued; default PWM_MAPLET_NODES"),
-    tile_radius: float | None = typer.Option(None, parser=finite(gt=0.0),
-                                             help="radius (km) of the region tiled about where the images look; "
-                                                  "default PWM_TILE_RADIUS_KM, else from their footprints"),
+    tile_radius_km: float | None = typer.Option(None, "--tile-radius-km", parser=finite(gt=0.0),
+                                                help="radius (km) of the region tiled about where the images look; "
+                                                     "default PWM_TILE_RADIUS_KM, else from their footprints"),
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
     """Ingest a downlink, refine the maplets whose images changed, and publish a new model version per pass, in this
@@ -50,6 +51,7 @@ def run(
     The exit status is the number of files that failed (capped at 100), as `pwm ingest` gives it.
     """
     from service.catalog import open_catalog
+    from service.cli.progress import progress_bar
     from service.ingest import IngestTakenOver
     from service.run import run_directory
     from service.settings import get_settings
@@ -57,11 +59,12 @@ def run(
     setup_logging(verbose)
     settings = get_settings()
     config = refinement_config(settings.refinement(), mode=mode, passes=passes, nodes=maplet_nodes,
-                               tile_radius_km=tile_radius)
+                               tile_radius_km=tile_radius_km)
     try:
-        report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,
-                               config=config, workers=workers,
-                               refine_on_config_change=settings.refine_on_config_change)
+        with progress_bar() as progress:
+            report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,
+                                   config=config, workers=workers,
+                                   refine_on_config_change=settings.refine_on_config_change, progress=progress)
     except (FileNotFoundError, IngestTakenOver) as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(1) from None
@@ -73,8 +76,9 @@ def run(
 @app.command(name="import")
 def import_(
     model: Path = typer.Argument(..., exists=True, dir_okay=False,
-                                 help="shape model (km, body-fixed) in any format pwm exports, told by its content: "
-                                      "OBJ, PLY, SPICE DSK type 2 or ICQ"),
+                                 help="shape model (km, body-fixed) in any mesh format pwm exports, told by its "
+                                      "content: OBJ, PLY, SPICE DSK type 2 or ICQ (a LAS point cloud or a site's "
+                                      "terrain is refused: no faces)"),
     kind: str = typer.Option("imported", help="imported | start | photogrammetric"),
 ) -> None:
     """Publish a shape model file as a new model version."""
@@ -109,32 +113,35 @@ def versions(
     from service.rows import ModelVersion
 
     with open_catalog()() as session:
-        latest = select(ModelVersion).order_by(ModelVersion.version.desc()).limit(limit)
-        rows = [_summary(v) for v in session.scalars(latest)]
-    if json_out:
-        echo_json(rows)
-        return
-    typer.echo(f"{'version':>7} {'kind':<15} {'parent':>6} {'created (UTC)':<19} {'faces':>8} {'maplets':>7} "
-               f"{'changed':>7}  downlinks  release")
-    for r in rows:
-        s = r["statistics"]
-        typer.echo(f"{r['version']:>7} {r['kind']:<15} {r['parent'] or '-':>6} {r['created_at'][:19]:<19} "
-                   f"{s.get('faces', 0):>8} "
-                   f"{len(r['maplet_revisions']):>7} {s.get('maplets_changed', '-'):>7}  "
-                   f"{','.join(r['downlinks']) or '-'}  {r['release_tag'] or '-'}")
+        rows = list(session.scalars(select(ModelVersion).order_by(ModelVersion.version.desc()).limit(limit)))
+        if json_out:  # each as the API's GET /versions/V gives it (the API's modules take seconds to load)
+            from service.api.routers.versions import detail
+
+            echo_json([detail(v).model_dump(mode="json") for v in rows])
+            return
+        typer.echo(f"{'version':>7} {'kind':<15} {'parent':>6} {'created (UTC)':<19} {'faces':>8} {'maplets':>7} "
+                   f"{'changed':>7}  downlinks  release")
+        for v in rows:
+            s = v.statistics
+            typer.echo(f"{v.version:>7} {v.kind:<15} {v.parent.version if v.parent else '-':>6} "
+                       f"{v.created_at.isoformat()[:19]:<19} {s.get('faces', 0):>8} {len(v.maplet_revisions):>7} "
+                       f"{s.get('maplets_changed', '-'):>7}  {','.join(sorted(d.name for d in v.downlinks)) or '-'}  "
+                       f"{v.release_tag or '-'}")
 
 
 @version_app.command("show")
 def version_show(
     version: str = typer.Argument(..., parser=version_ref, help="version number, release tag, latest or released"),
 ) -> None:
-    """A version in full (JSON): kind, parent, lineage, statistics and artifacts with checksums."""
+    """A version in full (JSON, as the API's GET /versions/V gives it): kind, parent, lineage, statistics and
+    artifacts with checksums."""
+    from service.api.routers.versions import detail
     from service.catalog import open_catalog
     from service.versions import get_version
 
     with open_catalog()() as session:
         try:
-            echo_json(_summary(get_version(session, version)))
+            echo_json(detail(get_version(session, version)).model_dump(mode="json"))
         except LookupError as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
@@ -145,8 +152,8 @@ def diff(
     old: str = typer.Argument(..., parser=version_ref, help="the earlier version (number, tag, latest or released)"),
     new: str = typer.Argument(..., parser=version_ref, help="the later version"),
     png: Path | None = typer.Option(None, dir_okay=False, help="write a latitude/longitude map of the change here"),
-    threshold: float = typer.Option(0.01, parser=finite(ge=0.0),
-                                    help="height change (m) above which the surface counts as changed"),
+    threshold_m: float = typer.Option(0.01, parser=finite(ge=0.0),
+                                      help="height change (m) above which the surface counts as changed"),
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
     """Height change from one version to another along the new model's outward normal (m): mean, RMS, max, area
@@ -159,7 +166,7 @@ def diff(
     with open_catalog(settings)() as session:
         try:
             result = diff_versions(session, data_dir=settings.data_dir, old=old, new=new, png=png,
-                                   threshold_m=threshold)
+                                   threshold_m=threshold_m)
         except LookupError as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
@@ -176,14 +183,3 @@ def diff(
             *((("map", result.png),) if result.png else ())]
     for name, value in rows:
         typer.echo(f"{name:<20}{value}")
-
-
-def _summary(version) -> dict:
-    """A version as plain data: number, kind, parent, times, lineage, statistics, artifacts."""
-    return {"version": version.version, "kind": str(version.kind),
-            "parent": version.parent.version if version.parent is not None else None,
-            "created_at": version.created_at.isoformat(), "released": version.released,
-            "release_tag": version.release_tag,
-            "maplet_revisions": sorted(r.id for r in version.maplet_revisions),
-            "downlinks": sorted(d.name for d in version.downlinks),
-            "statistics": version.statistics, "artifacts": version.artifacts}

@@ -12,11 +12,12 @@ from typing import TypeVar
 
 import typer
 
-from service.cli.app import MAX_ROW_ID, app, echo_json, finite, setup_logging
+from service.cli.app import HELP_MARKUP, MAX_ROW_ID, app, echo_json, finite, setup_logging
 
 E = TypeVar("E", bound=enum.StrEnum)
 
-jobs_app = typer.Typer(help="Background jobs, as the API's /jobs shows them.", no_args_is_help=True)
+jobs_app = typer.Typer(help="Background jobs, as the API's /jobs shows them.", no_args_is_help=True,
+                       rich_markup_mode=HELP_MARKUP)
 app.add_typer(jobs_app, name="jobs")
 
 
@@ -113,6 +114,7 @@ def jobs_list(
     if as_json:
         echo_json(Page(items=jobs, total=total, limit=limit, offset=offset).model_dump(mode="json"))
         return
+    typer.echo("id\tkind\tstatus\tattempts\tprogress\tworker\theartbeat\tkey\tmessage or error")
     for job in jobs:
         beat = "-" if job.heartbeat_at is None else f"{_age_s(job.heartbeat_at):.0f}s ago"
         note = job.error if job.status is JobState.FAILED else job.message

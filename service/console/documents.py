@@ -1,6 +1,8 @@
 """What the browser console (service/console/static, served by service/api/routers/console.py)
 reads beyond the API's JSON: a version's mesh for WebGL, a site's maps, and the coverage of
-every maplet at once.
+every maplet at once. Each map carries what a reader needs to read it: the colour map and
+its range (the 3D view), the direction of north in the site frame and where the version holds
+refined (maplet) data over a site, and each maplet's true outline on the coverage map.
 
 Big arrays travel as one binary document (`pack`): the 4 bytes b"PWMC", a little-endian uint32
 header length, a UTF-8 JSON header padded with spaces to a multiple of 4 bytes, then the arrays,
@@ -16,8 +18,9 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import struct
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,12 +33,20 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.compare import height_change
 from pwm.decimate import decimate
+from pwm.frames import LocalFrame, stored_frame, unit_to_latlon
 from pwm.mesh import Mesh
 from pwm.site import BASELINE_M, HazardThresholds, hazard, relief_m, roughness_m, slope_deg
 from service.artifacts import artifact_mesh, artifact_path, cached_artifact, digest
 from service.exports import ExportError, Site, site_grid
 from service.queries import list_maplets
-from service.rows import Coverage, CoverageRole, Maplet, MapletRevision, ModelVersion
+from service.rows import (
+    Coverage,
+    CoverageRole,
+    Maplet,
+    MapletRevision,
+    ModelVersion,
+    model_version_maplet_revisions,
+)
 from service.versions import get_version
 
 log = logging.getLogger(__name__)
@@ -45,11 +56,16 @@ MAGIC = b"PWMC"
 # (at 300k the document is about 8 MB; bench/console.py times its first draw).
 MESH_FACES = 300_000
 # Bump when a document's content changes for the same inputs.
-REVISION = 3
+REVISION = 4
 FIELD_UNITS = {"albedo": "", "height": "m", "slope": "deg", "change": "m"}
 UNKNOWN_GREY = 115
 # Farthest (km) a version's surface may have moved from its parent's and still be compared.
 CHANGE_REACH_KM = 0.01
+# Colour-map samples the browser draws its colour bars from, so that a bar shows the very map
+# the server coloured with.
+COLOUR_BAR_STOPS = 9
+# Below this length the body's spin axis projects to no direction in a site's map (a pole).
+NORTH_MIN = 1e-6
 
 
 def pack(header: dict[str, Any], arrays: list[tuple[str, np.ndarray]]) -> bytes:
@@ -153,7 +169,8 @@ def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh)
               "faces_full": len(full.faces), "faces": len(mesh.faces),
               "vertices": len(mesh.vertices),
               "colours": {name: {"unit": FIELD_UNITS[name], **scale}
-                          for name, (_, scale) in colours.items()}}
+                          for name, (_, scale) in colours.items()},
+              "extent_km": _extent_km(mesh)}
     return pack(header, [("vertices", mesh.vertices.astype(np.float32)),
                          ("faces", mesh.faces.astype(np.uint32)),
                          ("normals", np.round(normals * 127).astype(np.int8)),
@@ -174,45 +191,98 @@ def _change(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> 
     return change[nearest]
 
 
+def _extent_km(mesh: Mesh) -> dict[str, Any]:
+    """The body's size for the 3D view's scale: its bounding box's sides (km, body-fixed x, y,
+    z) and its largest distance from the centre."""
+    sides = np.ptp(mesh.vertices, axis=0)
+    return {"sides": [float(v) for v in sides],
+            "max_radius": float(np.linalg.norm(mesh.vertices, axis=1).max())}
+
+
 def _colour(values: np.ndarray, *, signed: bool) -> tuple[np.ndarray, dict[str, Any]]:
     """RGB (uint8, per vertex) of `values` on viridis from their 2nd to 98th percentile, or for
-    a signed field on RdBu_r symmetric about 0 (grey where unknown), and that range."""
+    a signed field on RdBu_r symmetric about 0 (grey where unknown), and that range with the
+    colour map's name and COLOUR_BAR_STOPS samples of it (RGB 0-255, low to high)."""
     known = np.isfinite(values)
     rgb = np.full((len(values), 3), UNKNOWN_GREY, dtype=np.uint8)
+    name = "RdBu_r" if signed else "viridis"
+    cmap = colormaps[name]
+    stops = [[int(c) for c in np.round(np.asarray(cmap(t))[:3] * 255)]
+             for t in np.linspace(0.0, 1.0, COLOUR_BAR_STOPS)]
     if not known.any():
-        return rgb, {"min": None, "max": None}
+        return rgb, {"min": None, "max": None, "colormap": name, "stops": stops}
     low, high = (float(v) for v in np.percentile(values[known], [2.0, 98.0]))
     if signed:
         high = max(abs(low), abs(high), 1e-9)
         low = -high
     span = high - low if high > low else 1.0
-    cmap = colormaps["RdBu_r" if signed else "viridis"]
     rgb[known] = np.round(cmap(np.clip((values[known] - low) / span, 0.0, 1.0))[:, :3] * 255)
-    return rgb, {"min": low, "max": high}
+    return rgb, {"min": low, "max": high, "colormap": name, "stops": stops}
+
+
+@dataclass(frozen=True)
+class MapletSquare:
+    """A refined maplet's square (side size_km about its frame's origin, in the frame's x-y
+    plane; origin km, body-fixed; rotation body-fixed -> local, row-major) and its level
+    (pwm.tiling.level_of: lower is finer) and node spacing (m)."""
+
+    name: str
+    origin_km: tuple[float, float, float]
+    rotation: tuple[float, ...]
+    size_km: float
+    level: int
+    gsd_m: float
+
+    def frame(self) -> LocalFrame:
+        return stored_frame(self.origin_km, self.rotation)
+
+
+def site_maplets(session: Session, *, version: ModelVersion, site: Site) -> tuple[MapletSquare, ...]:
+    """The maplets whose revisions `version` was fused from (its refined data) that reach the
+    site's square (within its half-diagonal of the site's centre), by name."""
+    near = {m.id for m in list_maplets(session, lat_deg=site.lat_deg, lon_deg=site.lon_deg,
+                                       radius_km=site.radius_km * math.sqrt(2.0),
+                                       limit=2**31 - 1)}
+    if not near:
+        return ()
+    rows = session.scalars(
+        select(Maplet).join(MapletRevision, MapletRevision.maplet_id == Maplet.id)
+        .join(model_version_maplet_revisions,
+              model_version_maplet_revisions.c.maplet_revision_id == MapletRevision.id)
+        .where(model_version_maplet_revisions.c.model_version_id == version.id,
+               Maplet.id.in_(near))
+        .order_by(Maplet.name))
+    return tuple(MapletSquare(name=m.name, origin_km=(m.origin_x_km, m.origin_y_km, m.origin_z_km),
+                              rotation=tuple(float(v) for v in np.ravel(m.rotation)),
+                              size_km=m.size_km, level=m.level, gsd_m=m.gsd_m) for m in rows)
 
 
 @dataclass(frozen=True)
 class SiteRequest:
-    """A site of a version's mesh, the roughness baseline (m) and the hazard thresholds."""
+    """A site of a version's mesh, the roughness baseline (m), the hazard thresholds and the
+    version's refined maplets about the site (`site_maplets`)."""
 
     version: int
     mesh: dict[str, Any]
     site: Site
     baseline_m: float = BASELINE_M
     thresholds: HazardThresholds = HazardThresholds()
+    maplets: tuple[MapletSquare, ...] = ()
 
 
 def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> Path:
     """The file of a site's maps, made once: the version's surface resampled on the site
     frame's grid (service.exports.site_grid, as the site product is), with height (m),
     albedo, slope (deg), roughness (m), relief (m above the plane over the baseline) and the
-    hazard mask (uint8, pwm.site) as [line = y, sample = x] arrays; the header holds the grid
-    (x0_m, y0_m, spacing_m, the site frame) and each map's minimum, mean and maximum.
-    Raises ExportError when the site meets no surface."""
+    hazard mask (uint8, pwm.site) and the fine-data mask (uint8, `_fine`) as [line = y,
+    sample = x] arrays; the header holds the grid (x0_m, y0_m, spacing_m, the site frame), the
+    direction of north in it (`_north`), where the fine data lies (`_fine`) and each map's
+    minimum, mean and maximum. Raises ExportError when the site meets no surface."""
     key = digest({"console": "site", "revision": REVISION, "mesh": request.mesh["sha256"],
                   "site": request.site.model_dump(), "baseline_m": request.baseline_m,
                   "thresholds": [request.thresholds.max_slope_deg,
-                                 request.thresholds.max_relief_m]})
+                                 request.thresholds.max_relief_m],
+                  "maplets": [asdict(m) for m in request.maplets]})
 
     def make(path: Path) -> None:
         grid = site_grid(artifact_mesh(data_dir, request.mesh), request.site)
@@ -226,6 +296,7 @@ def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> 
                                          baseline_m=request.baseline_m),
                 "relief": relief_m(height, spacing_m=spacing_m, baseline_m=request.baseline_m)}
         hazardous = hazard(maps["slope"], maps["relief"], request.thresholds)
+        fine, fine_header = _fine(grid.frame, grid.x_km, grid.y_km, request.maplets)
         header = {"kind": "site", "version": request.version, "site": request.site.model_dump(),
                   "nx": len(grid.x_km), "ny": len(grid.y_km), "x0_m": float(grid.x_km[0]) * 1e3,
                   "y0_m": float(grid.y_km[0]) * 1e3, "spacing_m": spacing_m,
@@ -234,14 +305,49 @@ def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> 
                                  "max_relief_m": request.thresholds.max_relief_m},
                   "frame": {"origin_km": grid.frame.origin.tolist(),
                             "rotation": grid.frame.rotation.tolist()},
+                  "north": _north(grid.frame), "fine": fine_header,
                   "statistics": {name: _extent(values) for name, values in maps.items()},
                   "hazard_fraction": float(hazardous.mean())}
         path.write_bytes(pack(header, [*((name, values.astype(np.float32))
                                          for name, values in maps.items()),
-                                       ("hazard", hazardous.astype(np.uint8))]))
+                                       ("hazard", hazardous.astype(np.uint8)),
+                                       ("fine", fine)]))
 
     record = cached_artifact(data_dir, key, suffix=".pwmc", make=make, cache_bytes=cache_bytes)
     return artifact_path(data_dir, record)
+
+
+def _north(frame: LocalFrame) -> list[float] | None:
+    """North in a site's map: the body's +Z (spin) axis projected on the frame's x-y plane, as
+    a unit [x, y]; None at a pole, where it projects to nothing."""
+    x, y = frame.rotation[0, 2], frame.rotation[1, 2]
+    length = float(np.hypot(x, y))
+    return None if length < NORTH_MIN else [float(x) / length, float(y) / length]
+
+
+def _fine(frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray,
+          maplets: tuple[MapletSquare, ...]) -> tuple[np.ndarray, dict[str, Any]]:
+    """Where the site's grid lies within a refined maplet of the finest level that reaches it:
+    a uint8 mask (ny, nx), and that level, its maplets, node spacing (m) and share of the grid
+    (level None and share 0 where no refined maplet reaches the site). A node's place is taken
+    on the frame's plane: a maplet's square holds its footprint, whatever the height."""
+    xx, yy = np.meshgrid(x_km, y_km)
+    nodes = frame.to_body(np.stack([xx, yy, np.zeros_like(xx)], axis=-1))
+    inside = {}
+    for maplet in maplets:
+        local = maplet.frame().to_local(nodes)
+        held = (np.abs(local[..., 0]) <= maplet.size_km / 2) & (np.abs(local[..., 1]) <= maplet.size_km / 2)
+        if held.any():
+            inside[maplet] = held
+    mask = np.zeros(xx.shape, dtype=np.uint8)
+    if not inside:
+        return mask, {"level": None, "maplets": [], "gsd_m": None, "fraction": 0.0}
+    level = min(m.level for m in inside)
+    finest = [m for m in inside if m.level == level]
+    for maplet in finest:
+        mask |= inside[maplet]
+    return mask, {"level": level, "maplets": [m.name for m in finest],
+                  "gsd_m": min(m.gsd_m for m in finest), "fraction": float(mask.mean())}
 
 
 def _extent(values: np.ndarray) -> dict[str, float | None]:
@@ -255,7 +361,9 @@ class MapletCoverageRow(BaseModel):
     """One maplet on the coverage map: where it is, its region weight w_PWM, the images that see
     it (visible fraction above 0) and those of them with a weight above 0 ("used"), the range of
     the used images' incidence angles (deg; None without any), and whether the five views
-    (nadir, east, west, north, south) are all filled."""
+    (nadir, east, west, north, south) are all filled. outline: its square's corners as
+    [latitude, east longitude] (deg), for the map to draw its true extent; radius_km: its
+    origin's distance from the body's centre, for the map's scale."""
 
     model_config = ConfigDict(frozen=True)
 
@@ -264,6 +372,8 @@ class MapletCoverageRow(BaseModel):
     center_lat_deg: float
     center_lon_deg: float
     size_km: float
+    radius_km: float
+    outline: list[tuple[float, float]]
     region_weight: float
     current_revision: int | None
     image_count: int
@@ -296,7 +406,8 @@ def coverage_map(session: Session, *, near: tuple[float, float, float] | None = 
         .group_by(Coverage.maplet_id))}
     rows = session.execute(
         select(Maplet.id, Maplet.name, Maplet.center_lat_deg, Maplet.center_lon_deg,
-               Maplet.size_km, Maplet.region_weight, MapletRevision.revision)
+               Maplet.size_km, Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
+               Maplet.rotation, Maplet.region_weight, MapletRevision.revision)
         .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
         .where(Maplet.id.in_(ids) if ids is not None else true())
         .order_by(Maplet.name))
@@ -304,9 +415,15 @@ def coverage_map(session: Session, *, near: tuple[float, float, float] | None = 
     for row in rows:
         seen = figures.get(row.id)
         roles = int(seen.roles) if seen else 0
+        frame = Maplet.frame_of(row)
+        half = row.size_km / 2
+        lat, lon = unit_to_latlon(frame.to_body(np.array(
+            [[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]])))
         out.append(MapletCoverageRow(
             id=row.id, name=row.name, center_lat_deg=row.center_lat_deg,
             center_lon_deg=row.center_lon_deg, size_km=row.size_km,
+            radius_km=float(np.linalg.norm(frame.origin)),
+            outline=[(float(a), float(o)) for a, o in zip(lat, lon, strict=True)],
             region_weight=row.region_weight, current_revision=row.revision,
             image_count=int(seen.images) if seen else 0, used_count=int(seen.used or 0) if seen else 0,
             incidence_min_deg=seen.inc_min if seen else None,

@@ -1,5 +1,7 @@
 """Exports through the API and the CLI: a DSK that SPICE intercepts like the mesh, the real
-Deimos DSK imported and exported unchanged, ICQ and decimated meshes, the PDS4 site product."""
+Deimos DSK imported and exported unchanged, ICQ and decimated meshes, the PDS4 site product and
+the same site as a GeoTIFF and an ISIS cube, the vertices as LAS, and every mesh export imported
+back."""
 
 from __future__ import annotations
 
@@ -8,20 +10,25 @@ import io
 import zipfile
 from pathlib import Path
 
+import laspy
 import numpy as np
 import pds4_tools
+import pytest
+import rasterio
 import spiceypy as sp
 from typer.testing import CliRunner
 
+from pwm.frames import unit_to_latlon
 from pwm.io.dsk import read_dsk
-from pwm.io.icq import read_icq
+from pwm.io.icq import icq_to_mesh, read_icq
 from pwm.io.meshio import read_obj
+from pwm.io.site_product import label_schema
 from pwm.io.spice_kernels import kernel_pool
 from pwm.raytrace import RayTracer
 from service.cli import app as cli
 from service.db import session_scope
 from service.exports import icq_size
-from service.versions import import_model
+from service.versions import import_model, version_mesh
 
 MM_KM = 1e-6
 
@@ -101,8 +108,9 @@ def test_icq_and_decimated_exports(client, populated, tmp_path):
     decimated = read_obj(obj)
     assert abs(len(decimated.faces) - 2000) <= 100 and decimated.albedo is not None
     full = _download(client, 2, tmp_path, "v2.ply", format="ply", faces=10 * faces)
-    assert hashlib.sha256(full.read_bytes()).hexdigest() == \
-        client.get("/versions/2").json()["artifacts"]["ply"]["sha256"]
+    # at full resolution: the version's mesh, with its number and frame in the header
+    assert b"comment pwm shape model version 2 (refined)" in full.read_bytes()[:1000]
+    assert b"comment frame IAU_BENNU" in full.read_bytes()[:1000]
     # a version without sites is its own global model
     whole = _download(client, 2, tmp_path, "v2-global.ply", format="ply", surface="global")
     assert whole.read_bytes() == full.read_bytes()
@@ -120,6 +128,7 @@ def test_site_product_reads_with_pds4_tools(client, populated, tmp_path):
         archive.extractall(tmp_path)
     label = tmp_path / next(n for n in names if n.endswith(".xml"))
     assert {Path(n).suffix for n in names} == {".xml", ".dat", ".png"}
+    label_schema().validate(label.read_text())
     structures = pds4_tools.read(str(label), quiet=True)
     height = np.ma.filled(structures["height"].as_masked().data.astype(float), np.nan)
     albedo = np.ma.filled(structures["albedo"].as_masked().data.astype(float), np.nan)
@@ -151,9 +160,98 @@ def test_cli_export_and_release(populated, tmp_path, monkeypatch):
         assert read_icq(out).shape == (6, 11, 11, 3)
         result = runner.invoke(cli, ["export", "2", "--format", "site", "--out", str(out)])
         assert result.exit_code != 0
+        tif = tmp_path / "v2.tif"
+        result = runner.invoke(cli, ["export", "2", "--format", "geotiff", "--lat", "10", "--lon", "40",
+                                     "--radius-km", "0.02", "--out", str(tif)])
+        assert result.exit_code == 0, result.output
+        with rasterio.open(tif) as raster:
+            assert raster.crs.to_dict()["proj"] == "ortho" and raster.count == 4
+        result = runner.invoke(cli, ["export", "2", "--format", "obj", "--radius-km", "0.02",
+                                     "--out", str(tmp_path / "v2.obj")])
+        assert result.exit_code != 0 and "--radius-km" in result.output
+        las = tmp_path / "v2.las"
+        assert runner.invoke(cli, ["export", "2", "--format", "las", "--out", str(las)]).exit_code == 0
+        result = runner.invoke(cli, ["import", str(las)])
+        assert result.exit_code == 1 and "LAS point cloud" in result.output
         result = runner.invoke(cli, ["release", "2", "--tag", "cli-1"])
         assert result.exit_code == 0, result.output
         result = runner.invoke(cli, ["release", "2", "--tag", "cli-2"])
         assert result.exit_code == 1 and "cannot be changed" in result.output
     finally:
         get_settings.cache_clear()
+
+
+SITE = {"lat": 10.0, "lon": 40.0, "radius_km": 0.02}
+
+
+def test_site_as_geotiff_and_isis_cube(client, populated, tmp_path):
+    response = client.get("/versions/2/export", params={"format": "site", **SITE})
+    with zipfile.ZipFile(io.BytesIO(response.content)) as archive:
+        archive.extractall(tmp_path / "site")
+    label = next((tmp_path / "site").glob("*.xml"))
+    product = pds4_tools.read(str(label), quiet=True)
+    height = np.ma.filled(product["height"].as_masked().data.astype(float), np.nan)
+    assert np.isfinite(height).sum() > 9
+
+    tif = _download(client, 2, tmp_path, "v2.tif", format="geotiff", **SITE)
+    cub = _download(client, 2, tmp_path, "v2.cub", format="isis", **SITE)
+    with rasterio.open(tif) as raster:
+        tags = raster.tags()
+        assert raster.units[0] == "m" and raster.units[2] == "deg"
+    assert tags["PWM_VERSION"] == "2" and tags["BODY_FRAME"] == "IAU_BENNU" and tags["BODY"] == "BENNU"
+    # the kernels' triaxial radii; the projection's sphere has their mean
+    radii_km = np.array(tags["BODY_RADII_KM"].split(), dtype=float)
+    assert len(radii_km) == 3 and 0.24 < radii_km.mean() < 0.29 and np.ptp(radii_km) > 0.01
+    # centred on the site frame's z (the regional normal, some degrees off the site's radial
+    # line on Bennu), east along its x
+    lat, lon = unit_to_latlon(np.array(tags["SITE_FRAME_AXES"].split(), dtype=float)[6:])
+    assert abs(lat - SITE["lat"]) < 30.0
+    for path, driver, tolerance_m in ((tif, "GTiff", 1e-9), (cub, "ISIS3", 1e-3)):
+        with rasterio.open(path) as raster:
+            assert raster.driver == driver and raster.count == 4
+            assert raster.descriptions == ("height", "albedo", "slope", "roughness")
+            crs = raster.crs.to_dict()
+            assert crs["proj"] == "ortho" and abs(crs["lat_0"] - lat) < 1e-9
+            assert abs((crs["lon_0"] - lon + 180.0) % 360.0 - 180.0) < 1e-9
+            assert abs(crs["R"] - radii_km.mean() * 1e3) < 1e-6
+            assert raster.transform.a == -raster.transform.e > 0
+            layers = raster.read(masked=True)
+            # the same heights as the PDS4 product, north up in both, no data at the same nodes
+            heights = np.ma.filled(layers[0].astype(float), np.nan)
+            np.testing.assert_array_equal(np.isnan(heights), np.isnan(height))
+            assert np.nanmax(np.abs(heights - height)) < tolerance_m
+            albedo = np.ma.filled(layers[1].astype(float), np.nan)
+            assert 0.034 - 1e-3 < np.nanmin(albedo) and np.nanmax(albedo) < 0.054 + 1e-3
+    text = cub.read_bytes()[:65536].decode("ascii", errors="replace")
+    assert "Group = BandBin" in text and "BODY_FRAME" in text and "TargetName         = BENNU" in text
+    assert client.get("/versions/2/export", params={"format": "geotiff"}).status_code == 422
+    assert client.get("/versions/2/export", params={"format": "las", **SITE}).status_code == 422
+
+
+def test_las_of_the_vertices(client, populated, tmp_path):
+    path = _download(client, 2, tmp_path, "v2.las", format="las")
+    cloud = laspy.read(path)
+    mesh = populated.refined
+    points_m = np.column_stack([cloud.x, cloud.y, cloud.z])
+    assert np.abs(points_m - mesh.vertices * 1e3).max() < 1e-3
+    np.testing.assert_allclose(cloud.albedo, mesh.albedo, rtol=1e-6)
+    assert cloud.header.system_identifier.startswith("pwm v2 IAU_BENNU")
+    wkt = next(v for v in cloud.header.vlrs if v.record_id == 2112).record_data_bytes().decode()
+    assert wkt.startswith('GEOCCS["BENNU body-fixed (IAU_BENNU)"')
+    with session_scope(populated.app.state.sessions) as session, \
+            pytest.raises(ValueError, match="LAS point cloud"):
+        import_model(session, data_dir=populated.data_dir, path=path)
+
+
+@pytest.mark.parametrize("fmt", ["obj", "ply", "dsk", "icq"])
+def test_every_mesh_export_imports_back(client, populated, tmp_path, fmt):
+    exported = _download(client, 2, tmp_path, f"v2.{fmt}", format=fmt)
+    with session_scope(populated.app.state.sessions) as session:
+        version = import_model(session, data_dir=populated.data_dir, path=exported)
+        back = version_mesh(populated.data_dir, version)
+    mesh = icq_to_mesh(read_icq(exported)) if fmt == "icq" else populated.refined
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    # OBJ prints 9 decimals (1e-9 km); the others keep the doubles
+    assert np.abs(back.vertices - mesh.vertices).max() <= (5e-10 if fmt == "obj" else 0.0)
+    if fmt in ("obj", "ply"):  # the albedo round trip: PLY's float32, OBJ's stretched colour
+        np.testing.assert_allclose(back.albedo, mesh.albedo, rtol=2e-7, atol=1e-8)

@@ -17,7 +17,10 @@ def test_no_server_error(populated, broker, auth):
     operations = [result.ok() for result in schema.get_all_operations()]
     assert len(operations) >= 15
     for operation in operations:
-        for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
+        # an operation with no parameter and no body (GET /healthz) has no invalid request to make
+        modes = (GenerationMode.POSITIVE, GenerationMode.NEGATIVE) if any(operation.iter_parameters()) or (
+            operation.get_request_payload_content_types()) else (GenerationMode.POSITIVE,)
+        for mode in modes:
 
             @given(case=operation.as_strategy(generation_mode=mode))
             @settings(max_examples=EXAMPLES_PER_OPERATION, deadline=None, database=None,

@@ -1,12 +1,16 @@
 """The console over a SQLite catalog built from the simulated `tiny` downlink (images, geometry,
 maplets and coverage by ingest), with two versions (the downlink's start model, and a refinement
 of it: subdivided, raised by RAISE_M, with albedo), a maplet revision, and jobs queued, running
-and failed; served by uvicorn on a free port and read by headless Chromium."""
+and failed; served by uvicorn on a free port and read by headless Chromium; and where the tests
+put their pages' screenshots (PWM_SCREENSHOT_DIR, else pytest's tmp_path) for a person to look at."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import base64
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -92,3 +96,20 @@ def browser() -> Iterator[webdriver.Chrome]:
     """Headless Chromium (tests/console/browser.py); tests using it are marked `browser`."""
     with chromium() as driver:
         yield driver
+
+
+@pytest.fixture
+def screenshot(tmp_path) -> Callable[[webdriver.Chrome, str], Path]:
+    """A function that saves the whole page the browser shows (beyond the window too) as
+    NAME.png in the folder PWM_SCREENSHOT_DIR names, else the test's tmp_path; its path."""
+    folder = Path(os.environ.get("PWM_SCREENSHOT_DIR") or tmp_path)
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def save(browser: webdriver.Chrome, name: str) -> Path:
+        shot = browser.execute_cdp_cmd("Page.captureScreenshot",
+                                       {"format": "png", "captureBeyondViewport": True})
+        path = folder / f"{name}.png"
+        path.write_bytes(base64.b64decode(shot["data"]))
+        return path
+
+    return save

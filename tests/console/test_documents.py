@@ -50,6 +50,12 @@ def test_mesh_document_of_a_refined_version(console):
     assert 0.034 <= colours["albedo"]["min"] < colours["albedo"]["max"] <= 0.054
     assert colours["slope"]["unit"] == "deg" and 0 <= colours["slope"]["min"]
     assert arrays["colour_albedo"].std(axis=0).max() > 10  # coloured, not one grey
+    # what the colour bars draw: the colour maps' own samples, ends first and last
+    assert colours["albedo"]["colormap"] == "viridis" and colours["change"]["colormap"] == "RdBu_r"
+    assert colours["albedo"]["stops"][0] == [68, 1, 84] and colours["albedo"]["stops"][-1] == [253, 231, 37]
+    # the body's size for the view's scale: the mesh's bounding box (km)
+    vertices = arrays["vertices"].astype(float)
+    np.testing.assert_allclose(header["extent_km"]["sides"], np.ptp(vertices, axis=0), rtol=1e-5)
     # the start has no parent (no change) and no albedo in its OBJ: grey
     header1, arrays1 = unpack(console.api.get("/console/api/versions/1/mesh").content)
     assert header1["parent"] is None and header1["colours"]["change"]["min"] is None
@@ -93,3 +99,37 @@ def test_coverage_of_a_site_is_the_maplets_near_it(console):
     assert sorted(m["id"] for m in site) == sorted(m["id"] for m in listed)
     assert 0 < len(site) < len(everything) and first in site
     assert console.api.get("/console/api/coverage", params={"lat": 1}).status_code == 422
+
+
+def test_site_document_says_where_refined_data_lies_and_where_north_is(console):
+    # the refined version was fused from one maplet's revision: a site twice its side about its
+    # centre holds it over a quarter of its square; the start version holds no refined data
+    maplet = next(m for m in console.api.get("/console/api/coverage").json()
+                  if m["current_revision"] is not None)
+    site = {"lat": maplet["center_lat_deg"], "lon": maplet["center_lon_deg"],
+            "radius_km": maplet["size_km"]}
+    header, arrays = unpack(console.api.get("/console/api/versions/2/site", params=site).content)
+    fine = arrays["fine"]
+    assert fine.shape == (header["ny"], header["nx"]) and fine.dtype == np.uint8
+    assert header["fine"]["maplets"] == [maplet["name"]]
+    assert header["fine"]["fraction"] == pytest.approx(fine.mean()) == pytest.approx(0.25, abs=0.04)
+    assert fine[header["ny"] // 2, header["nx"] // 2] == 1 and fine[0, 0] == 0
+    start, start_arrays = unpack(console.api.get("/console/api/versions/1/site", params=site).content)
+    assert start["fine"] == {"level": None, "maplets": [], "gsd_m": None, "fraction": 0.0}
+    assert not start_arrays["fine"].any()
+    # north: the body's +Z axis in the site frame's x-y plane; near 8 deg latitude with x east,
+    # nearly the frame's +y
+    rotation = np.array(header["frame"]["rotation"])
+    z_local = rotation @ np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(header["north"], z_local[:2] / np.linalg.norm(z_local[:2]), atol=1e-9)
+    assert header["north"][1] > 0.9
+
+
+def test_coverage_outlines_are_the_maplets_squares(console):
+    # the outline's sides, on the sphere of the maplet's radius, are the maplet's side
+    for maplet in console.api.get("/console/api/coverage").json()[:5]:
+        lat, lon = np.radians(np.array(maplet["outline"])).T
+        points = maplet["radius_km"] * np.stack(
+            [np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=1)
+        sides = np.linalg.norm(points - np.roll(points, 1, axis=0), axis=1)
+        np.testing.assert_allclose(sides, maplet["size_km"], rtol=0.02)

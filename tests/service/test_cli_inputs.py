@@ -40,15 +40,15 @@ SITE = ["export", "latest", "--format", "site", "--out", "x.zip"]
 
 
 @pytest.mark.parametrize("args, option, accepted", [
-    ([*SITE, "--lat", "0", "--lon", "inf", "--radius", "0.1"], "--lon", "finite number"),
-    ([*SITE, "--lat", "0", "--lon", "nan", "--radius", "0.1"], "--lon", "finite number"),
-    ([*SITE, "--lat", "0", "--lon", "0", "--radius", "inf"], "--radius", "> 0 and <= 100"),
-    ([*SITE, "--lat", "nan", "--lon", "0", "--radius", "0.1"], "--lat", ">= -90 and <= 90"),
+    ([*SITE, "--lat", "0", "--lon", "inf", "--radius-km", "0.1"], "--lon", "finite number"),
+    ([*SITE, "--lat", "0", "--lon", "nan", "--radius-km", "0.1"], "--lon", "finite number"),
+    ([*SITE, "--lat", "0", "--lon", "0", "--radius-km", "inf"], "--radius-km", "> 0 and <= 100"),
+    ([*SITE, "--lat", "nan", "--lon", "0", "--radius-km", "0.1"], "--lat", ">= -90 and <= 90"),
     (["images-near", "--lat", "91", "--lon", "0"], "--lat", ">= -90 and <= 90"),
     (["images-near", "--lat", "0", "--lon", "inf"], "--lon", "finite number"),
     (["images-near", "--lat", "0", "--lon", "nan"], "--lon", "finite number"),
-    (["images-near", "--lat", "0", "--lon", "0", "--radius", "inf"], "--radius", "finite number >= 0"),
-    (["maplets", "--lat", "0", "--lon", "0", "--radius", "nan"], "--radius", "finite number >= 0"),
+    (["images-near", "--lat", "0", "--lon", "0", "--radius-km", "inf"], "--radius-km", "finite number >= 0"),
+    (["maplets", "--lat", "0", "--lon", "0", "--radius-km", "nan"], "--radius-km", "finite number >= 0"),
     (["maplets", "--lat", "0", "--lon", "0", "--offset", "99999999999999999999"], "--offset", "2147483647"),
     (["versions", "--limit", "99999999999999999999"], "--limit", "2147483647"),
     (["jobs", "show", "99999999999999999999"], "job_id", "2147483647"),
@@ -58,7 +58,7 @@ SITE = ["export", "latest", "--format", "site", "--out", "x.zip"]
     (["diff", "1", "²"], "new", "version number"),
     (["export", "10^23", "--format", "obj", "--out", "x.obj"], "version", "version number"),
     (["release", "²", "--tag", "v1"], "version", "version number"),
-    (["diff", "1", "2", "--threshold", "inf"], "--threshold", "finite number >= 0"),
+    (["diff", "1", "2", "--threshold-m", "inf"], "--threshold-m", "finite number >= 0"),
     (["simulate", "out", "--psf-px", "nan"], "--psf-px", "finite number"),
     (["simulate", "out", "--start-error", "nan"], "--start-error", "finite and >= 0"),
     (["spg-catalog", "--sigma-position", "inf"], "--sigma-position", "finite number >= 0"),
@@ -74,7 +74,7 @@ def test_bad_numbers_and_versions_are_usage_errors(pwm, tmp_path, monkeypatch, a
 
 
 def test_directory_commands_check_their_numbers(pwm, tmp_path):
-    for args, option in ((["run", str(tmp_path), "--tile-radius", "inf"], "--tile-radius"),
+    for args, option in ((["run", str(tmp_path), "--tile-radius-km", "inf"], "--tile-radius-km"),
                          (["watch", str(tmp_path), "--quiet-seconds", "nan"], "--quiet-seconds"),
                          (["refine", str(tmp_path), "--start", str(PWM), "--out", "o",
                            "--search-px", "nan"], "--search-px")):
@@ -85,11 +85,11 @@ def test_directory_commands_check_their_numbers(pwm, tmp_path):
 def test_good_numbers_and_versions_are_taken(pwm, tmp_path):
     # past the parsing: the empty catalog has no version 1
     for args in (["version", "show", "1"], ["version", "show", "nav-2026a"], ["version", "show", "latest"],
-                 ["diff", "released", "latest", "--threshold", "0"],
-                 [*SITE, "--lat", "-90", "--lon", "-360", "--radius", "100"]):
+                 ["diff", "released", "latest", "--threshold-m", "0"],
+                 [*SITE, "--lat", "-90", "--lon", "-360", "--radius-km", "100"]):
         result = pwm.invoke(app, args)
         assert result.exit_code == 1 and "no model version" in result.output, (args, result.output)
-    near = pwm.invoke(app, ["images-near", "--lat", "90", "--lon", "359.5", "--radius", "1e-3"])
+    near = pwm.invoke(app, ["images-near", "--lat", "90", "--lon", "359.5", "--radius-km", "1e-3"])
     assert near.exit_code == 0 and near.stdout.endswith("0 images\n"), near.output
 
 

@@ -17,6 +17,7 @@ import spiceypy as sp
 from scipy.spatial import cKDTree
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
+from typer.testing import CliRunner
 
 from pwm.config import RefinementConfig
 from pwm.io.fusion_state import read_composition, read_levels
@@ -27,13 +28,16 @@ from pwm.mesh import Mesh, grid_faces
 from pwm.raytrace import RayTracer
 from pwm.tiling import level_of, tile
 from service.artifacts import artifact_path
+from service.cli import app
 from service.console.documents import unpack
 from service.db import session_scope
 from service.exports import ExportFormat, ExportSurface, make_export, plan_export
+from service.jobs import fuse_key, ingest_key
 from service.publish import fuse_and_publish
 from service.refinement import load_revision_maplet
-from service.rows import Coverage, Maplet, MapletRevision, ModelKind
+from service.rows import Coverage, Job, JobKind, JobStatus, Maplet, MapletRevision, ModelKind
 from service.run import run_directory
+from service.settings import get_settings
 from service.versions import get_version, version_mesh
 
 CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008)  # a few maplets about the site's centre: seconds
@@ -70,17 +74,36 @@ def _inputs(session) -> dict[int, set[int]]:
     return inputs
 
 
-def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
+def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, db_url, tmp_path, monkeypatch):
     data = tmp_path / "data"
     first = shutil.copytree(tiny_sim / "downlink", tmp_path / "first")
-    run = run_directory(catalog, first, data_dir=data, config=CONFIG)
+    told: list[tuple[str, int, int]] = []
+    run = run_directory(catalog, first, data_dir=data, config=CONFIG,
+                        progress=lambda stage, done, total: told.append((stage, done, total)))
     assert (run.plan.base_version, run.versions) == (1, [2, 3]) and CONFIG.passes == 2
     assert len(run.plan.work) >= 2 and len(run.revisions) == 2 * len(run.plan.work)
     assert {w.pass_number for w in run.plan.work} == {1}
+    # the progress of each pass's refinement, from 0 to every maplet, one call per maplet
+    n = len(run.plan.work)
+    assert told == [(f"refine round {r}", k, n) for r in (1, 2) for k in range(n + 1)]
+    # each stage recorded as the job a worker would have run: the ingest, a refinement per
+    # maplet and pass, a fusion per pass, all done, and listed by `pwm jobs list`
+    _assert_jobs_of_the_run(catalog, downlink_id=run.plan.downlink_id, maplets=n, directory=first)
+    monkeypatch.setenv("PWM_DATABASE_URL", db_url)
+    monkeypatch.setenv("PWM_DATA_DIR", str(data))
+    get_settings.cache_clear()
+    try:
+        listed = CliRunner().invoke(app, ["jobs", "list"])
+    finally:
+        get_settings.cache_clear()
+    assert listed.exit_code == 0, listed.output
+    header, *rows = listed.stdout.splitlines()
+    assert header.split("\t")[:3] == ["id", "kind", "status"]
+    assert sorted(row.split("\t")[1] for row in rows) == sorted(["ingest", "fuse", "fuse"] + ["refine"] * 2 * n)
+    assert all(row.split("\t")[2] == "done" for row in rows)
     # the console's 3D document made for the run's last version, not for the pass it superseded
     documents = [unpack(path.read_bytes())[0] for path in (data / "exports").glob("*.pwmc")]
     assert [(d["version"], d["parent"]) for d in documents] == [(3, 2)]
-    n = len(run.plan.work)
     with catalog() as session:
         start, v2, v3 = (get_version(session, v) for v in (1, 2, 3))
         start_artifacts = dict(start.artifacts)
@@ -118,6 +141,10 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
         assert session.scalar(select(func.count()).select_from(MapletRevision)) == len(
             run.revisions)
         assert _inputs(session) == inputs
+        # the ingest ran again: a second attempt at its job, and no other job
+        jobs = session.scalars(select(Job)).all()
+        assert len(jobs) == 3 + 2 * n
+        assert [j.attempts for j in jobs if j.kind is JobKind.INGEST] == [2]
 
     second = _second_downlink(tiny_sim, tmp_path / "second")
     later = run_directory(catalog, second, data_dir=data, config=CONFIG)
@@ -152,6 +179,23 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, tmp_path):
     np.testing.assert_array_equal(incremental.count, scratch.count)
     np.testing.assert_allclose(incremental.sums, scratch.sums, rtol=1e-9, atol=1e-12)
     np.testing.assert_array_equal(version_mesh(data, start).vertices, start_mesh.vertices)
+
+
+def _assert_jobs_of_the_run(catalog: sessionmaker[Session], *, downlink_id: int, maplets: int,
+                            directory: Path) -> None:
+    with catalog() as session:
+        jobs = session.scalars(select(Job).order_by(Job.id)).all()
+    # in the order the conductor ran them: ingest, then per pass the refinements and their fusion
+    assert [j.kind for j in jobs] == [JobKind.INGEST] + ([JobKind.REFINE] * maplets + [JobKind.FUSE]) * 2
+    assert all(j.status is JobStatus.DONE and j.attempts == 1 and j.downlink_id == downlink_id for j in jobs)
+    assert jobs[0].key == ingest_key(directory)
+    assert jobs[0].message is not None and f"{maplets} maplets to refine from version 1" in jobs[0].message
+    assert [j.key for j in jobs if j.kind is JobKind.FUSE] == [fuse_key(downlink_id), fuse_key(downlink_id, 2)]
+    assert [j.message for j in jobs if j.kind is JobKind.FUSE] == [
+        f"published version 2; {maplets} maplets due for another pass", "published version 3"]
+    refines = [j for j in jobs if j.kind is JobKind.REFINE]
+    assert len({j.maplet_id for j in refines}) == maplets and len({j.key for j in refines}) == 2 * maplets
+    assert all(j.started_at <= j.finished_at for j in jobs)
 
 
 def test_a_site_level_under_a_survey_level_is_refined_and_laid_into_one_model(tiny_sim, sqlite_url, open_catalog_at,

@@ -23,6 +23,7 @@ from service.console.documents import (
     coverage_map,
     mesh_document,
     site_document,
+    site_maplets,
 )
 from service.exports import ExportError, Site
 
@@ -78,13 +79,15 @@ def version_site(
                                          "over the local plane, m")] = HazardThresholds().max_relief_m,
 ) -> FileResponse:
     """A site's maps (service.console.documents.site_document): height, albedo, slope,
-    roughness, relief and hazard on the site frame's grid, in the console's binary layout."""
+    roughness, relief and hazard on the site frame's grid, north in it, and where the version's
+    refined maplets cover it, in the console's binary layout."""
     version = resolve_version(session, ref)
+    site = Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
     request = SiteRequest(version=version.version, mesh=dict(version.artifacts["ply"]),
-                          site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km),
-                          baseline_m=baseline_m,
+                          site=site, baseline_m=baseline_m,
                           thresholds=HazardThresholds(max_slope_deg=max_slope_deg,
-                                                      max_relief_m=max_relief_m))
+                                                      max_relief_m=max_relief_m),
+                          maplets=site_maplets(session, version=version, site=site))
     session.close()
     try:
         path = site_document(settings.data_dir, request, cache_bytes=settings.export_cache_bytes)

@@ -20,7 +20,15 @@ from service.api.schemas import (
     VersionSummary,
 )
 from service.artifacts import ArtifactError, artifact_path
-from service.exports import ExportError, ExportFormat, ExportSurface, Site, make_export, plan_export
+from service.exports import (
+    SITE_FORMATS,
+    ExportError,
+    ExportFormat,
+    ExportSurface,
+    Site,
+    make_export,
+    plan_export,
+)
 from service.releases import ReleaseConflict, release_version
 from service.rows import ModelKind, ModelVersion
 
@@ -121,19 +129,20 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
                                               description="body-fixed frame name")] = None,
            ) -> FileResponse:
     """The version as OBJ, PLY (albedo per vertex), ICQ, SPICE DSK type 2 (km, body-fixed; of
-    the whole model, a segment for the body and one per site), or the terrain product of a site
-    (format `site` with lat, lon and radius_km: a zip of the PDS4 label, its data file and a PNG
-    preview). surface `global`: the global model alone, beneath the sites. Body and frame
-    default to the catalog's. While too many exports are being made, one not made yet is
-    refused with 503 and Retry-After."""
+    the whole model, a segment for the body and one per site), LAS (its vertices, m, body-fixed,
+    albedo per point), or the terrain of a site (lat, lon and radius_km): format `site`, a zip
+    of the PDS4 label, its data file and a PNG preview; `geotiff` or `isis`, the same layers as
+    a GeoTIFF or an ISIS3 cube in an orthographic projection about the site. surface `global`:
+    the global model alone, beneath the sites. Body and frame default to the catalog's. While
+    too many exports are being made, one not made yet is refused with 503 and Retry-After."""
     version = resolve_version(session, ref)
     site_args = (lat, lon, radius_km)
-    if format is ExportFormat.SITE and None in site_args:
+    if format in SITE_FORMATS and None in site_args:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            "a site product needs lat, lon and radius_km")
-    if format is not ExportFormat.SITE and any(a is not None for a in site_args):
+                            f"format={format} needs lat, lon and radius_km")
+    if format not in SITE_FORMATS and any(a is not None for a in site_args):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            "lat, lon and radius_km go with format=site only")
+                            f"lat, lon and radius_km go with format={' | '.join(sorted(SITE_FORMATS))} only")
     site = (Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
             if lat is not None and lon is not None and radius_km is not None else None)  # site format only
     try:
@@ -147,7 +156,8 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
     except ArtifactError as exc:
         raise HTTPException(status.HTTP_410_GONE, str(exc)) from None
     return FileResponse(made.path, media_type=made.media_type, filename=made.filename,
-                        headers={"Cache-Control": IMMUTABLE, "ETag": f'"{made.sha256}"'})
+                        headers={"Cache-Control": IMMUTABLE, "ETag": f'"{made.sha256}"',
+                                 **({"X-PWM-Closure": made.closure} if made.closure else {})})
 
 
 @router.post("/{ref}/release", response_model=VersionDetail, dependencies=[Authorized],

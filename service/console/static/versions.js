@@ -1,6 +1,8 @@
-// Versions: the list, the lineage as a graph (parent -> child), one version's statistics and
-// downlinks, and the release control (a changing call: refused without the token).
-import { element, fmt, getJSON, header, params, post, showError, tableRow } from "/console/common.js";
+// Versions: the list, the lineage as a graph (parent -> child, labels under the nodes, clear of
+// the edges), one version's statistics with names and units (labels.js) and downlinks, and the
+// release control (a changing call: refused without the token).
+import { element, getJSON, header, params, post, showError, tableRow } from "/console/common.js";
+import { number, statistic } from "/console/labels.js";
 
 header();
 let versions = [];
@@ -12,7 +14,7 @@ async function load() {
   body.replaceChildren();
   for (const v of versions) {
     const row = tableRow([v.version, v.kind, v.parent ?? "—", v.created_at.replace("T", " ").slice(0, 19),
-      fmt(v.faces), v.released ? `released ${v.release_tag}` : "—"], [0, 4]);
+      number(v.faces), v.released ? `released ${v.release_tag}` : "—"], [0, 4]);
     row.dataset.version = v.version;
     row.addEventListener("click", () => select(v.version));
     body.append(row);
@@ -22,6 +24,9 @@ async function load() {
   if (wanted) await select(wanted);
   document.body.dataset.ready = "1";
 }
+
+// the lineage's layout: a column per generation, a row per version in it (px)
+const COLUMN = 110, ROW = 48, RADIUS = 9;
 
 function drawLineage(selected) {
   const svg = document.getElementById("lineage");
@@ -37,10 +42,10 @@ function drawLineage(selected) {
     const d = depth.get(v.version);
     const r = rows.get(d) ?? 0;
     rows.set(d, r + 1);
-    place.set(v.version, [30 + d * 70, 25 + r * 35]);
+    place.set(v.version, [COLUMN / 2 + d * COLUMN, 20 + r * ROW]);
   }
-  const width = Math.max(480, 60 + 70 * Math.max(0, ...depth.values()));
-  const height = Math.max(60, 40 + 35 * Math.max(1, ...rows.values()));
+  const width = Math.max(480, COLUMN * (1 + Math.max(0, ...depth.values())));
+  const height = Math.max(70, 10 + ROW * Math.max(1, ...rows.values()));
   svg.setAttribute("width", width);
   svg.setAttribute("height", height);
   const ns = "http://www.w3.org/2000/svg";
@@ -48,8 +53,12 @@ function drawLineage(selected) {
     if (!v.parent || !place.has(v.parent)) continue;
     const [x1, y1] = place.get(v.parent);
     const [x2, y2] = place.get(v.version);
+    // from circle edge to circle edge, so that the edge meets no label (labels sit under nodes)
+    const length = Math.hypot(x2 - x1, y2 - y1) || 1;
+    const [ux, uy] = [(x2 - x1) / length, (y2 - y1) / length];
     const line = document.createElementNS(ns, "line");
-    for (const [k, value] of Object.entries({ x1, y1, x2, y2 })) line.setAttribute(k, value);
+    for (const [k, value] of Object.entries({ x1: x1 + RADIUS * ux, y1: y1 + RADIUS * uy,
+      x2: x2 - RADIUS * ux, y2: y2 - RADIUS * uy })) line.setAttribute(k, value);
     svg.append(line);
   }
   for (const v of ordered) {
@@ -57,13 +66,14 @@ function drawLineage(selected) {
     const dot = document.createElementNS(ns, "circle");
     dot.setAttribute("cx", x);
     dot.setAttribute("cy", y);
-    dot.setAttribute("r", 9);
+    dot.setAttribute("r", RADIUS);
     dot.setAttribute("class", [v.released ? "released" : "", v.version === selected ? "selected" : ""].join(" ").trim());
     dot.dataset.version = v.version;
     dot.addEventListener("click", () => select(v.version));
     const label = document.createElementNS(ns, "text");
-    label.setAttribute("x", x + 12);
-    label.setAttribute("y", y + 4);
+    label.setAttribute("x", x);
+    label.setAttribute("y", y + RADIUS + 13);
+    label.setAttribute("text-anchor", "middle");
     label.textContent = `v${v.version} ${byNumber.get(v.version).kind}`;
     svg.append(dot, label);
   }
@@ -91,7 +101,8 @@ async function select(number) {
   const shown = { ...v.statistics, ancestors: v.lineage.ancestors.join(", ") || "—",
     children: v.lineage.children.join(", ") || "—", "maplet revisions": v.lineage.maplet_revisions };
   for (const [name, value] of Object.entries(shown)) {
-    const row = tableRow([name, typeof value === "object" ? JSON.stringify(value) : fmt(value, 6)], [1]);
+    const [label, text] = statistic(name, value);
+    const row = tableRow([label, text], [1]);
     row.dataset.name = name;
     stats.append(row);
   }

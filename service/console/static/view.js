@@ -1,9 +1,13 @@
 // The 3D view: a version's mesh (decimated on the server, one binary document) drawn with
-// three.js, coloured per vertex by albedo, height, slope or change since the parent version.
-// When the first frame is drawn, body[data-drawn-ms] holds the time since navigation start
-// (bench/console.py reads it).
+// three.js, coloured per vertex by albedo, height, slope or change since the parent version,
+// with the colour bar of what is coloured, a scale bar at the body's centre and the body's size.
+// It opens on the whole body (north up, the refined region towards the viewer) and "reset view"
+// goes back there. When the first frame is drawn, body[data-drawn-ms] holds the time since
+// navigation start (bench/console.py reads it), body[data-framing] how far out the mesh's
+// vertices reach in the view (1: its edge).
 import * as THREE from "/console/vendor/three.module.min.js";
 import { documentOf, fmt, getDocument, getJSON, header, params, showError } from "/console/common.js";
+import { colourBar, lengthText, scaleBar, svg } from "/console/maps.js";
 
 const timings = { module: performance.now() };
 header();
@@ -20,47 +24,89 @@ holder.append(renderer.domElement);
 timings.context = performance.now();
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x0b0e13);
-const camera = new THREE.PerspectiveCamera(35, width / height, 1e-4, 100);
+const FOV_DEG = 35;
+// the whole body's bounding sphere fills this share of the narrower side of the view
+const FILL = 0.9;
+const PITCH0 = 0.35; // rad above the equator, so that the north is seen a little
+const camera = new THREE.PerspectiveCamera(FOV_DEG, width / height, 1e-4, 100);
 scene.add(new THREE.AmbientLight(0xffffff, 0.45));
 const sun = new THREE.DirectionalLight(0xffffff, 1.6);
 scene.add(sun);
 const material = new THREE.MeshLambertMaterial({ vertexColors: true });
 let mesh = null;
 let document_ = null;
-const orbit = { yaw: 0, pitch: 0, distance: 1, target: new THREE.Vector3(), up: new THREE.Vector3(0, 0, 1) };
+const up = new THREE.Vector3(0, 0, 1);
+const orbit = { yaw: 0, pitch: PITCH0, distance: 1, target: new THREE.Vector3() };
+let home = { ...orbit };
+const scaleHolder = svg("svg", { width: 180, height: 34, class: "corner" });
+holder.append(scaleHolder);
 
-// The colours come made from the server (uint8 RGB per vertex): no per-vertex work here.
+const LABELS = { albedo: "albedo", height: "height above the mean radius", slope: "slope from the radial direction",
+  change: "height change since the parent" };
+const NOTES = { albedo: "2nd to 98th percentile; grey: unknown", height: "2nd to 98th percentile; grey: unknown",
+  slope: "2nd to 98th percentile; grey: unknown", change: "blue lower, red higher than the parent; grey: unknown" };
+
+// The colours come made from the server (uint8 RGB per vertex): no per-vertex work here; the
+// colour bar shows the colour map's samples the server sent.
 function colours(field) {
   const { header: h, arrays } = document_;
   const scale = h.colours[field];
-  document.getElementById("legend").textContent = scale.min === null
-    ? `${field}: unknown everywhere (grey)` + (field === "change" && h.parent === null ? ": no parent version" : "")
-    : `${field}: ${fmt(scale.min)} to ${fmt(scale.max)} ${scale.unit} (` +
-      (field === "change" ? "blue lower, red higher than the parent" : "2nd to 98th percentile") + "; grey: unknown)";
+  const unknown = scale.min === null;
+  const note = unknown ? "unknown everywhere (grey)" + (field === "change" && h.parent === null ? ": no parent version" : "") : NOTES[field];
+  document.getElementById("colour-bar").replaceChildren(colourBar({ label: LABELS[field], unit: scale.unit,
+    lo: scale.min, hi: scale.max, stops: scale.stops, width: Math.min(width, 420), note }));
+  document.getElementById("legend").textContent = unknown ? `${field}: ${note}`
+    : `${field}: ${fmt(scale.min)} to ${fmt(scale.max)} ${scale.unit} (${note})`;
   return new THREE.BufferAttribute(arrays[`colour_${field}`], 3, true);
 }
 
 function place() {
-  const { yaw, pitch, distance, target, up } = orbit;
-  // orbit about the target: yaw about the up axis, pitch towards it
-  const base = new THREE.Vector3().copy(target).normalize();
-  if (base.lengthSq() === 0) base.set(1, 0, 0);
-  const side = new THREE.Vector3().crossVectors(up, base).normalize();
-  const eye = base.clone().applyAxisAngle(up, yaw);
-  eye.applyAxisAngle(side.clone().applyAxisAngle(up, yaw), -pitch);
+  const { yaw, pitch, distance, target } = orbit;
+  // the eye on a sphere about the target: yaw about the spin axis (+Z), pitch above the equator
+  const eye = new THREE.Vector3(Math.cos(pitch) * Math.cos(yaw), Math.cos(pitch) * Math.sin(yaw), Math.sin(pitch));
   camera.position.copy(target).addScaledVector(eye, distance);
   camera.up.copy(up);
   camera.lookAt(target);
+  camera.near = distance / 1000;
+  camera.far = distance + 4 * (mesh ? mesh.geometry.boundingSphere.radius : 1);
+  camera.updateProjectionMatrix();
   sun.position.copy(camera.position).add(new THREE.Vector3().crossVectors(eye, up).multiplyScalar(distance * 0.5));
+}
+
+// A scale bar of lengths at the target's depth (km in the document; the bar in m or km).
+function drawScale() {
+  const pxPerKm = height / (2 * orbit.distance * Math.tan(THREE.MathUtils.degToRad(FOV_DEG) / 2));
+  scaleHolder.replaceChildren(scaleBar(8, 28, 1000 / pxPerKm, 150));
+  scaleHolder.lastChild.append(svg("title", {}, "at the distance of the body's centre"));
 }
 
 function draw() {
   place();
   renderer.render(scene, camera);
+  drawScale();
+}
+
+// How far out the vertices reach in the view: the largest |x| or |y| of a sample of them in
+// normalised device coordinates (at most 1: the whole body is in view).
+function framing() {
+  const v = document_.arrays.vertices;
+  const step = 3 * Math.max(1, Math.floor(v.length / 3 / 20000));
+  const p = new THREE.Vector3();
+  let reach = 0;
+  for (let i = 0; i < v.length; i += step) {
+    p.set(v[i], v[i + 1], v[i + 2]).project(camera);
+    reach = Math.max(reach, Math.abs(p.x), Math.abs(p.y));
+  }
+  return reach;
+}
+
+function reset() {
+  Object.assign(orbit, home, { target: home.target.clone() });
+  draw();
+  document.body.dataset.framing = framing().toFixed(3);
 }
 
 async function show(version, responding) {
-  const started = performance.now();
   status.textContent = "loading…";
   document_ = await (responding ? documentOf(responding) : getDocument(`/console/api/versions/${version}/mesh`));
   timings.fetched = performance.now();
@@ -75,51 +121,32 @@ async function show(version, responding) {
   mesh = new THREE.Mesh(geometry, material);
   scene.add(mesh);
   const sphere = geometry.boundingSphere;
-  // look at the finest part: the vertex-weighted centre is where the dense (refined) region is
+  // The whole body in view: its bounding sphere within the narrower field of view, turned so
+  // that the dense (refined) region, where the vertex-weighted centre leans, faces the viewer.
   const centre = new THREE.Vector3();
   const v = arrays.vertices;
   for (let i = 0; i < v.length; i += 3) centre.x += v[i], centre.y += v[i + 1], centre.z += v[i + 2];
-  centre.divideScalar(v.length / 3);
-  const dense = centre.length() > 0.3 * sphere.radius;
-  orbit.target.copy(dense ? nearestSurface(centre) : sphere.center);
-  // close enough that the dense region (most of the vertices) fills the view
-  orbit.distance = dense ? Math.min(sphere.radius * 0.9, 4 * nearDistance(orbit.target)) : sphere.radius * 3.2;
-  camera.near = orbit.distance / 1000;
-  camera.far = orbit.distance + 4 * sphere.radius;
-  camera.updateProjectionMatrix();
+  centre.divideScalar(v.length / 3).sub(sphere.center);
+  const half = Math.min(THREE.MathUtils.degToRad(FOV_DEG) / 2, Math.atan(Math.tan(THREE.MathUtils.degToRad(FOV_DEG) / 2) * camera.aspect));
+  home = { yaw: Math.hypot(centre.x, centre.y) > 1e-3 * sphere.radius ? Math.atan2(centre.y, centre.x) : 0,
+    pitch: PITCH0, distance: sphere.radius / Math.sin(half * FILL), target: sphere.center.clone() };
+  Object.assign(orbit, home, { target: home.target.clone() });
   timings.built = performance.now();
   draw();
   renderer.getContext().finish();
   const elapsed = performance.now();
   timings.drawn = elapsed;
   document.body.dataset.timings = JSON.stringify(timings);
+  document.body.dataset.framing = framing().toFixed(3);
   document.getElementById("title").textContent =
     `3D view: version ${h.version} (${fmt(h.faces)} of ${fmt(h.faces_full)} faces)`;
-  status.textContent = `drawn in ${fmt((elapsed - started) / 1000)} s`;
+  const [sx, sy, sz] = h.extent_km.sides;
+  document.getElementById("extent").textContent =
+    `Body: ${lengthText(sx * 1000)} x ${lengthText(sy * 1000)} x ${lengthText(sz * 1000)} along the body-fixed x, y, z; ` +
+    `${lengthText(h.extent_km.max_radius * 1000)} from the centre at most.`;
+  status.textContent = "";
   if (!document.body.dataset.drawnMs) document.body.dataset.drawnMs = String(Math.round(elapsed));
   document.body.dataset.version = h.version;
-}
-
-function nearDistance(point) {
-  // the 30th percentile of a sample of the vertices' distances from the point
-  const v = document_.arrays.vertices;
-  const step = 3 * Math.max(1, Math.floor(v.length / 3 / 5000));
-  const d = [];
-  for (let i = 0; i < v.length; i += step) d.push(Math.hypot(v[i] - point.x, v[i + 1] - point.y, v[i + 2] - point.z));
-  d.sort((a, b) => a - b);
-  return d[Math.floor(0.3 * d.length)];
-}
-
-function nearestSurface(direction) {
-  // the vertex nearest the direction in angle: where the line from the centre meets the surface
-  const v = document_.arrays.vertices;
-  const d = direction.clone().normalize();
-  let best = -Infinity, at = 0;
-  for (let i = 0; i < v.length; i += 3) {
-    const s = (v[i] * d.x + v[i + 1] * d.y + v[i + 2] * d.z) / Math.hypot(v[i], v[i + 1], v[i + 2]);
-    if (s > best) best = s, at = i;
-  }
-  return new THREE.Vector3(v[at], v[at + 1], v[at + 2]);
 }
 
 let dragging = null;
@@ -137,6 +164,7 @@ renderer.domElement.addEventListener("wheel", (e) => {
   orbit.distance *= Math.exp(e.deltaY * 0.001);
   draw();
 }, { passive: false });
+document.getElementById("reset").addEventListener("click", () => { if (mesh) reset(); });
 document.getElementById("colour").addEventListener("change", (e) => {
   if (!mesh) return;
   mesh.geometry.setAttribute("color", colours(e.target.value));
