@@ -30,7 +30,7 @@ from pwm.io.pds4 import (
     INFORMATION_MODEL,
     MAX_LABEL_BYTES,
     ProductError,
-    _check_file,
+    check_data_file,
     checksum_md5,
     label_text,
     utc_iso,
@@ -167,7 +167,7 @@ def read_lidar_table(label: Path, *, root: Path | None = None, max_label_bytes: 
     if file_name is None or Path(file_name).name != file_name:
         raise ProductError("missing_element", f"{label.name}: no bare data file_name")
     data_path = label.parent / file_name
-    _check_file(data_path, within, _optional_int(area, "pds:File/pds:file_size"),
+    check_data_file(data_path, within, _optional_int(area, "pds:File/pds:file_size"),
                 _text(area, "pds:File/pds:md5_checksum"))
     binary = table.tag.endswith("Table_Binary")
     record = table.find("pds:Record_Binary" if binary else "pds:Record_Character", _NS)

@@ -305,7 +305,9 @@ def _component(obs: ET.Element, kinds: tuple[str, ...]) -> str | None:
     return None
 
 
-def _check_file(data_path: Path, root: Path, size: int | None, md5: str | None) -> None:
+def check_data_file(data_path: Path, root: Path, size: int | None, md5: str | None) -> None:
+    """A product's data file as its label states it: there, inside `root` (no link out of the
+    downlink), of the label's size and MD5 where the label gives them; ProductError otherwise."""
     if not data_path.is_file():
         raise ProductError("missing_file", f"data file {data_path} not found")
     if not data_path.resolve().is_relative_to(root):
@@ -658,7 +660,7 @@ def _image_label(label: Path, root: ET.Element, within: Path, *, max_pixels: int
     data_path = label.parent / file_name
     size = _int(area, "pds:File/pds:file_size", False)
     md5 = _text(area, "pds:File/pds:md5_checksum", False)
-    _check_file(data_path, within, size, md5)
+    check_data_file(data_path, within, size, md5)
     layout, fits_header = _check_array(area, data_path, lines, samples, max_pixels=max_pixels,
                                        max_fits_header_bytes=max_fits_header_bytes)
 
