@@ -714,8 +714,12 @@ def _lidar_product(label: Path, directory: Path, limits: IngestLimits) -> tuple[
     lidar product says how it is broken."""
     if is_cube(label) or label.stat().st_size > limits.max_label_bytes:
         return None
+    raw = label.read_bytes()
+    # an image's label holds no table: it is parsed once, by _identify, not here too
+    if b"Table_Binary" not in raw and b"Table_Character" not in raw:
+        return None
     try:
-        root = ET.fromstring(label.read_bytes())
+        root = ET.fromstring(raw)
     except ET.ParseError:
         return None
     if not is_lidar_label(root):
