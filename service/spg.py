@@ -24,6 +24,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.camera import PoseCorrection
 from pwm.config import DEFAULTS as REFINEMENT_DEFAULTS
+from pwm.io.labels import target_frame
 from pwm.io.spice_geometry import ellipsoid_of
 from pwm.io.spice_kernels import KernelError, kernel_pool, spice_message, stated_knowledge
 from pwm.knowledge import KnowledgeErrors, NavigationErrors, format_knowledge_errors
@@ -143,7 +144,9 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
         (target,) = targets
         try:
             with kernel_pool(kernels):
-                ellipsoid = ellipsoid_of(str(target))
+                # the label's name ("(4769) Castalia"), as ingest resolves it to the body's id
+                code, _ = target_frame(str(target))
+                ellipsoid = ellipsoid_of(str(target) if code is None else str(code))
         except sp.utils.exceptions.SpiceyError as exc:
             note = f"no model: no radii of {target} in the kernels ({spice_message(exc)})"
         else:

@@ -247,6 +247,15 @@ def global_tiny_sim(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
+def castalia_tiny_sim(tmp_path_factory) -> Path:
+    """OUT directory of `pwm simulate OUT --scenario castalia-tiny --seed 1`: a contact binary's
+    whole-body survey, with no shape model, whose labels name the body by number."""
+    out = tmp_path_factory.mktemp("castalia-tiny") / "sim"
+    simulate(out, scenario=get_scenario("castalia-tiny"), seed=1)
+    return out
+
+
+@pytest.fixture(scope="session")
 def campaign_tiny_sim(tmp_path_factory) -> Path:
     """OUT directory of `pwm simulate OUT --scenario campaign-tiny --seed 4 --with-start-model`:
     a survey with its start model, then two site downlinks, in time order under downlinks/."""

@@ -24,6 +24,7 @@ from pwm.knowledge import NavigationErrors
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
+from pwm.spg.config import SpgConfig
 from pwm.spg.uncertainty import DETERMINED
 from service.api.routers.images import image_out
 from service.cli import app
@@ -207,3 +208,25 @@ def test_the_start_from_nothing_reports_what_it_did_to_the_poses(global_tiny_sim
         assert report["images"] == 12 and 0 < report["los_posterior_px"] <= report["los_prior_px"]
         assert report["tracks"] == get_version(session, 1).statistics["tracks"] > 0
         assert {"misalignment x", "drift z"} <= {u["name"] for u in report["unknowns"]}
+
+
+def test_a_body_whose_label_names_it_by_number_starts_from_nothing(castalia_tiny_sim, sqlite_url, open_catalog_at,
+                                                                   tmp_path):
+    """Castalia's labels name "(4769) Castalia", as ingest resolves it (pwm.io.labels.name_variants):
+    the start from nothing finds its radii the same way (it looked them up by the label's text).
+    On SQLite only: what it checks is the same on either database."""
+    catalog = open_catalog_at(sqlite_url)
+    out = castalia_tiny_sim
+    assert not (out / "downlink" / START_MODEL_NAME).exists()
+    data = tmp_path / "data"
+    assert ingest_and_plan(catalog, out / "downlink", data_dir=data, config=SURVEY).base_version is None
+    with catalog() as session:
+        assert session.scalars(select(Image.target)).first() == "(4769) Castalia"
+        downlink_id, note = session.execute(select(Downlink.id, Downlink.model_note)).one()
+    # its 12 images each see the body under another Sun: no pair within the default 25 deg
+    assert note == ("no model: stereo photogrammetry cannot work yet: no image pair overlaps with a usable "
+                    "stereo angle and illumination")
+    assert start_from_images(catalog, data_dir=data, downlink_id=downlink_id,
+                             config=SpgConfig(max_sun_deg=60.0)) == 1
+    with catalog() as session:
+        assert get_version(session, 1).kind is ModelKind.PHOTOGRAMMETRIC
