@@ -27,7 +27,7 @@ from pwm.config import DEFAULTS as REFINEMENT_DEFAULTS
 from pwm.io.labels import target_frame
 from pwm.io.spice_geometry import ellipsoid_of
 from pwm.io.spice_kernels import KernelError, kernel_pool, spice_message, stated_knowledge
-from pwm.knowledge import KnowledgeErrors, NavigationErrors, format_knowledge_errors
+from pwm.knowledge import IndependentErrors, KnowledgeErrors, NavigationErrors, format_knowledge_errors
 from pwm.mesh import Mesh
 from pwm.spg import stereo_photogrammetry
 from pwm.spg.config import SPG_DEFAULTS, SpgConfig
@@ -122,13 +122,16 @@ def start_from_images(sessions: sessionmaker[Session], *, data_dir: Path, downli
     """When the catalog has no model version: stereo photogrammetry on every catalogued image
     with geometry, from the images' target's PCK ellipsoid, published as the first version (kind
     photogrammetric, pose corrections stored), under the downlink's pose knowledge
-    (`downlink_knowledge`; assumed when none is stated). Its number, or None when photogrammetry
+    (`downlink_knowledge`; where none is stated or configured, `assumed_knowledge`, recorded as
+    the downlink's pose adjustment so that the feedback works under it too). Its number, or None when photogrammetry
     cannot work (too few images, too little overlap, no target radii); the downlink's model_note
     says what happened either way, and the next downlink tries again with every image so far.
     config: the photogrammetry's settings (pwm.spg.config).
     """
     with sessions() as session:
         knowledge, source = downlink_knowledge(session, downlink_id, configured)
+        if knowledge is None:
+            knowledge, source = assumed_knowledge(config), ASSUMED
         made = latest_version(session)
         targets = set(session.scalars(select(Image.target).where(
             Image.status == ImageStatus.ACCEPTED, Image.geometry_status == GeometryStatus.COMPUTED)))
@@ -180,6 +183,18 @@ def _start_report(session: Session, downlink_id: int, version: int, knowledge: K
             "los_posterior_px": float(np.median([s["posterior"]["los_px"] for s in sigmas])) if sigmas else 0.0,
             **{key: stats[key] for key in ("residual_rms_px", "tracks", "observations", "seconds", "unknowns")
                if key in stats}}
+
+
+ASSUMED = "assumed by the photogrammetry from nothing (none stated or configured)"
+"""The source of the pose knowledge a start from nothing assumes where none is stated."""
+
+
+def assumed_knowledge(config: SpgConfig) -> IndependentErrors:
+    """The knowledge the photogrammetry assumes of images whose kernels state none
+    (config.sigma_position_km and config.sigma_pointing_rad per axis): a start from nothing
+    corrects their poses under it, and so leaves them that uncertain, until the maplets'
+    registrations are fed back under it too (`feed_back_registrations`)."""
+    return IndependentErrors(position_m=config.sigma_position_km * 1e3, pointing_rad=config.sigma_pointing_rad)
 
 
 def downlink_knowledge(session: Session, downlink_id: int,
@@ -293,7 +308,8 @@ def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, 
     """Adjust a downlink's images again, once, after its maplets were first refined: the feature
     tracks with, as observations, where each image saw each maplet's landmark once registered to
     it (the revisions' `registrations`, pwm.pipeline.landmark_pixels), from the kernels' poses
-    under the same knowledge as `adjust_downlink`, tied to version `version` (the refined model). The
+    under the same knowledge as `adjust_downlink` (or the one a start from nothing assumed,
+    `assumed_knowledge`), tied to version `version` (the refined model). The
     maplets' registration works across lighting where features do not match, so it determines
     what the features could not; its new corrections replace the stored ones, and the maplets
     that the images weigh into are due again (their input changed).
@@ -307,6 +323,8 @@ def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, 
         knowledge, source = downlink_knowledge(session, downlink_id, configured)
         downlink = session.get_one(Downlink, downlink_id)
         report = dict(downlink.pose_adjustment or {})
+        if knowledge is None and report.get("source") == ASSUMED:
+            knowledge = assumed_knowledge(config)
         if knowledge is None or "feedback" in report:
             return []
         images = session.scalars(select(Image).where(

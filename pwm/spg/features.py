@@ -20,6 +20,10 @@ from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 
 COLMAP_OFFSET = 0.5  # COLMAP's pixel centres sit at +0.5
 
+# COLMAP logs a line at INFO for every matcher it creates (one per image pair): its warnings and
+# errors still reach stderr, pwm's own log says what the matching did
+pycolmap.logging.minloglevel = max(pycolmap.logging.minloglevel, int(pycolmap.logging.Level.WARNING))
+
 
 @dataclass
 class Features:

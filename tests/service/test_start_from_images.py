@@ -35,7 +35,7 @@ from service.ingest import LIDAR_PRODUCT
 from service.rows import Downlink, DownlinkFile, Image, ModelKind, ModelVersion
 from service.run import run_directory
 from service.settings import get_settings
-from service.spg import start_from_images
+from service.spg import ASSUMED, start_from_images
 from service.versions import get_version, import_model, version_mesh
 
 # A few maplets, seconds: about the survey's imaged centre, and the tiny site's
@@ -65,8 +65,12 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
     downlink = global_tiny_sim / "downlink"
     assert not (downlink / START_MODEL_NAME).exists()
     run = run_directory(catalog, downlink, data_dir=data, config=SURVEY)
-    assert (run.plan.base_version, run.versions) == (1, [2, 3]) and run.plan.work
+    # version 4: the kernels state no knowledge, so the start assumed one, corrected the poses
+    # under it and fed the maplets' registrations back under it too
+    assert (run.plan.base_version, run.versions) == (1, [2, 3, 4]) and run.plan.work
     with catalog() as session:
+        adjustment = session.scalars(select(Downlink.pose_adjustment)).one()
+        assert adjustment["source"] == ASSUMED and adjustment["feedback"]["note"] == "adjusted"
         first = get_version(session, 1)
         assert (first.kind, first.parent) == (ModelKind.PHOTOGRAMMETRIC, None)
         assert [d.name for d in first.downlinks] == ["downlink"]
@@ -97,15 +101,15 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         assert shown.determined == [k for k in before if after[k] < DETERMINED * before[k]]
         photogrammetric = version_mesh(data, first)
         # the refined survey is one closed surface: the maplets where they reach, version 1 elsewhere
-        refined = get_version(session, 3)
+        refined = get_version(session, 4)
         assert refined.statistics["surface"] == "closed"
         checks = closure(version_mesh(data, refined))
         assert checks.closed, checks
         if catalog.kw["bind"].dialect.name == "sqlite":  # once: the exports do not depend on the catalog
             # every export of a body made from nothing is one closed surface, decimated too
-            for number, fmt, faces in [(1, ExportFormat.OBJ, None), (3, ExportFormat.PLY, None),
-                                       (3, ExportFormat.DSK, None), (3, ExportFormat.ICQ, None),
-                                       (3, ExportFormat.OBJ, 20_000)]:
+            for number, fmt, faces in [(1, ExportFormat.OBJ, None), (4, ExportFormat.PLY, None),
+                                       (4, ExportFormat.DSK, None), (4, ExportFormat.ICQ, None),
+                                       (4, ExportFormat.OBJ, 20_000)]:
                 plan = plan_export(session, data_dir=data, version=get_version(session, number), fmt=fmt,
                                    faces=faces)
                 made = make_export(plan, cache_bytes=None)

@@ -362,8 +362,11 @@ def test_a_first_survey_with_no_model_becomes_a_closed_global_model(
         assert session.scalar(select(func.count()).select_from(Image).where(
             Image.pose_corrected_at.is_(None))) == 0
     # the survey's places round the body were tiled and refined, and fused into one closed surface
+    # (while the feedback under the knowledge the start assumed may weigh the images again and
+    # tile more places for the next round)
     maplets = _image_sets(catalog)
-    assert len(maplets) > 1 and {r.maplet_id for r in refined.maplet_revisions} == maplets.keys()
+    fused = {r.maplet_id for r in refined.maplet_revisions}
+    assert len(fused) > 1 and fused <= maplets.keys()
     assert refined.statistics["surface"] == "closed"
     checks = closure(version_mesh(Path(settings.data_dir), refined))
     assert checks.closed, checks
