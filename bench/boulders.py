@@ -56,6 +56,9 @@ def main() -> None:
     parser.add_argument("--shift-m", nargs=2, type=float, default=(0.0, 0.0))
     parser.add_argument("--nodes", type=int, default=DEFAULTS.nodes)
     parser.add_argument("--boulders", type=int, default=4)
+    parser.add_argument("--plots", type=Path, default=None, help="write each maplet's height error map here")
+    parser.add_argument("--at", nargs=2, type=float, default=None, help="the boulder nearest this x, y (m) instead")
+    parser.add_argument("--only", type=int, nargs="*", default=None, help="these of the largest (0: the largest)")
     args = parser.parse_args()
 
     from pwm.evaluate.profiles import boulder_height_ratio
@@ -77,6 +80,9 @@ def main() -> None:
     spacing = imaged_region(views, start).spacing_km * config.spacing_gsd
     inside = [b for b in truth.boulders if np.hypot(b.x_km, b.y_km) + b.diameter_km < truth.eval_radius_km]
     largest = sorted(inside, key=lambda b: -b.diameter_km)[: args.boulders]
+    largest = largest if args.only is None else [largest[k] for k in args.only]
+    if args.at is not None:  # the boulder nearest this point (m), wherever it lies
+        largest = [min(truth.boulders, key=lambda b: np.hypot(b.x_km * 1e3 - args.at[0], b.y_km * 1e3 - args.at[1]))]
     print(f"changes: {args.changes or 'none'}; start {args.start or 'start_model.obj'}; shift {args.shift_m} m; "
           f"{config.nodes} nodes at {spacing * 1e3:.3f} m")
     print(f"{'boulder':>16}{'':>3}{'ratio':>7}{'rms':>8}{'top':>8}{'apron':>8}{'s':>6}")
@@ -99,6 +105,22 @@ def main() -> None:
         clock = time.perf_counter()
         refined = refine_maplet(maplet, views, tracer, config=config).maplet.heights
         seconds = time.perf_counter() - clock
+        if args.plots is not None:
+            import matplotlib.pyplot as plt
+
+            args.plots.mkdir(parents=True, exist_ok=True)
+            fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+            extent = [maplet.axis_km[0] * 1e3, maplet.axis_km[-1] * 1e3] * 2
+            for ax, (title, grid) in zip(axes, (("truth - start", truth_h - maplet.heights),
+                                                ("model - truth", refined - truth_h),
+                                                ("truth", truth_h)), strict=True):
+                shown = ax.imshow(grid * 1e3, origin="lower", extent=extent, cmap="RdBu_r" if "-" in title else None,
+                                  vmin=-0.4 if "-" in title else None, vmax=0.4 if "-" in title else None)
+                ax.add_patch(plt.Circle(tuple(centre * 1e3), b.diameter_km * 1e3 / 2, fill=False))
+                ax.set_title(f"{title} (m), x east")
+                fig.colorbar(shown, ax=ax)
+            fig.savefig(args.plots / f"boulder_{b.diameter_km * 1e3:.2f}.png", dpi=70)
+            plt.close(fig)
         for label, heights in (("start", maplet.heights), ("refined", refined)):
             ratio = boulder_height_ratio(maplet.axis_km, maplet.axis_km, truth_h, heights, centres_km=centre[None],
                                          diameters_km=np.array([b.diameter_km]))[0]
@@ -109,7 +131,8 @@ def main() -> None:
             aprons = [np.nanmean(error[apron & (sector == s)]) for s in range(-4, 4) if (apron & (sector == s)).any()]
             print(f"{b.diameter_km * 1e3:5.2f} x {b.height_km * 1e3:4.2f} m {label:>7}{ratio:7.3f}"
                   f"{np.sqrt(np.nanmean(error**2)) * 1e3:8.3f}{np.nanmean(error[r <= 0.5]) * 1e3:8.3f}"
-                  f"{max(aprons) * 1e3:8.3f}{seconds if label == 'refined' else 0:6.0f}", flush=True)
+                  f"{max(aprons) * 1e3:8.3f}{seconds if label == 'refined' else 0:6.0f}  "
+                  f"apron by sector from east: {' '.join(f'{a * 1e3:+.2f}' for a in aprons)}", flush=True)
 
 
 if __name__ == "__main__":
