@@ -1,6 +1,7 @@
 """Accuracy of the refinement against the proving ground's truth: one table per downlink with
 the start model, standard photoclinometry and PWM (RMS in m and GSD, median, coverage of a
-global model, NCC, SSIM, boulder height ratio, runtime, peak memory), and a second with the
+global model, NCC, SSIM, boulder height ratio, the least of the largest boulders' and the share
+of the squared error beyond 3 GSD, runtime, peak memory), and a second with the
 height error by wavelength band and where it lies (walls, rims, maplet edges, shadow,
 elsewhere: RMS in GSD).
 
@@ -63,12 +64,13 @@ def row(label: str, figures: dict, seconds: float | None, peak: float | None) ->
         return format(value, fmt) if value is not None else "-"
 
     time_s = f"{seconds:.0f}" if seconds is not None else "-"
+    tail = f"{figures['tail']['squared_error_share']:.2f}" if "tail" in figures else "-"
     peak_g = f"{peak:.2f}" if peak is not None else "-"
     return (f"{label:<10}{f('rms_m', '.3f'):>8}{f('rms_gsd', '.2f'):>8}{f('median_m', '.3f'):>9}"
             f"{f('completeness', '.3f'):>9}{f('ncc', '.3f'):>7}"
             f"{f('ssim', '.3f'):>7}{f('boulder_height_ratio_median', '.2f'):>9}"
-            f"{f('steep_boulder_height_ratio_median', '.2f'):>7}"
-            f"{time_s:>8}{peak_g:>8}")
+            f"{f('steep_boulder_height_ratio_median', '.2f'):>7}{f('largest_boulder_height_ratio_min', '.2f'):>8}"
+            f"{tail:>7}{time_s:>8}{peak_g:>8}")
 
 
 def split_row(label: str, figures: dict) -> str:
@@ -165,7 +167,7 @@ def main() -> None:
             splits.append((split_row(label, figures), list(figures.get("bands_rms_m", {}))))
         print(f"\n{run.name}: GSD {manifest['gsd_m']:.3f} m, {manifest['image_count']} images")
         print(f"{'model':<10}{'RMS m':>8}{'RMS GSD':>8}{'median m':>9}{'coverage':>9}{'NCC':>7}{'SSIM':>7}"
-              f"{'boulders':>9}{'steep':>7}{'time s':>8}{'GiB':>8}")
+              f"{'boulders':>9}{'steep':>7}{'largest':>8}{'>3GSD':>7}{'time s':>8}{'GiB':>8}")
         print("\n".join(lines), flush=True)
         if not any(bands for _, bands in splits):  # a survey's: no site heights to split
             continue

@@ -354,3 +354,29 @@ def test_completeness_sees_a_hole_that_distances_cannot():
     assert missing == pytest.approx(cap, abs=0.01)
     with pytest.raises(ValueError, match="tolerance"):
         completeness(whole, holed, tolerance_km=0.0)
+
+
+def test_boulder_size_classes_take_each_boulders_disc_and_apron():
+    from pwm.evaluate.classes import boulder_size_masks
+    from pwm.simulate.terrain import Boulder
+
+    axis = np.arange(-100, 101) * 1e-4  # a 20 m square every 10 cm, km
+    small = Boulder(x_km=-0.005, y_km=0.0, diameter_km=0.8e-3, height_km=0.3e-3, steep=False, albedo_factor=1.0)
+    large = Boulder(x_km=0.00405, y_km=0.00205, diameter_km=4e-3, height_km=1e-3, steep=False, albedo_factor=1.0)
+    masks = boulder_size_masks(axis, axis, [small, large])
+    assert list(masks) == ["boulders <1 m", "boulders 1-2 m", "boulders 2-3 m", "boulders >=3 m"]
+    assert not masks["boulders 1-2 m"].any() and not masks["boulders 2-3 m"].any()
+    gx, gy = np.meshgrid(axis, axis)
+    # 0.75 diameters: the disc and an apron half a radius wide, and nothing else
+    assert masks["boulders >=3 m"].sum() == np.sum(np.hypot(gx - 0.00405, gy - 0.00205) <= 3e-3)
+    assert masks["boulders <1 m"][100, 44] and not masks["boulders <1 m"][100, 57]
+
+
+def test_the_tail_beyond_three_gsd_carries_its_share_of_the_squared_error():
+    from pwm.evaluate.report import _tail
+
+    distance = np.r_[np.full(97, 0.5e-4), np.full(3, 5e-4)]  # 3% of the vertices 5 GSD off at 10 cm
+    tail = _tail(distance, threshold_km=3e-4)
+    assert tail["vertex_share"] == pytest.approx(0.03)
+    assert tail["squared_error_share"] == pytest.approx(3 * 25 / (3 * 25 + 97 * 0.25))
+    assert tail["rms_without_m"] == pytest.approx(0.05)

@@ -151,12 +151,18 @@ def test_truth_against_itself_is_perfect(tiny_sim, tmp_path):
     assert result["rms_gsd"] < 0.01
     assert result["ncc"] > 0.99
     assert result["boulder_height_ratio_median"] == pytest.approx(1.0, abs=0.02)
+    assert result["largest_boulder_height_ratio_min"] == pytest.approx(1.0, abs=0.02)
+    assert result["tail"]["squared_error_share"] == 0.0
+    assert all(c["rms"] < 0.01 * result["gsd_m"] for c in result["boulder_sizes_m"].values() if c["nodes"])
     assert (tmp_path / "height_error.png").stat().st_size > 1000
 
 
 def test_start_model_is_worse_than_a_pixel(tiny_sim):
     result = evaluate(tiny_sim / "downlink" / "start_model.obj", truth_dir=tiny_sim / "truth")
     assert result["rms_gsd"] > 1.0
+    tail = result["tail"]  # the few vertices of a 30 GSD low-pass far off (boulders' tops) carry more than their share
+    assert tail["squared_error_share"] > 2 * tail["vertex_share"] > 0
+    assert result["largest_boulder_height_ratio_min"] < 0.7
     assert "ncc" not in result  # the start model carries no albedo
 
 

@@ -241,3 +241,31 @@ def test_global_roughness_has_the_requested_rms_and_low_passes_on_the_same_body(
     assert 0.0 < np.sqrt(np.mean((bump - bump_start) ** 2)) < np.sqrt(np.mean(bump**2))
     assert np.abs(np.mean(smooth.albedo) / 0.044 - 1) < 0.1
     assert 0.05 < np.std(np.log(smooth.albedo)) < 0.25
+
+
+def test_large_boulders_are_the_largest_about_them_and_leave_the_others_as_they_were():
+    from pwm.simulate.terrain import (
+        LARGE_BOULDER_DIAMETER_KM,
+        LARGE_BOULDER_HEIGHT_KM,
+        add_large_boulders,
+        sample_boulders,
+    )
+
+    site = dict(site_size_km=0.05, resolution_km=2.5e-5)
+    others = sample_boulders(np.random.default_rng(1), n=100, n_steep=25, **site)
+    placed = add_large_boulders(np.random.default_rng(2), others, n=4, clearance_km=0.01, **site)
+    assert placed == add_large_boulders(np.random.default_rng(2), others, n=4, clearance_km=0.01, **site)
+    assert add_large_boulders(np.random.default_rng(2), others, n=0, clearance_km=0.01, **site) == others
+    large, kept = placed[:4], placed[4:]
+    assert set(kept) < set(others) and len(kept) >= 80  # only the boulders in their way are dropped
+    for big in large:
+        assert LARGE_BOULDER_DIAMETER_KM[0] <= big.diameter_km <= LARGE_BOULDER_DIAMETER_KM[1]
+        assert LARGE_BOULDER_HEIGHT_KM[0] <= big.height_km <= LARGE_BOULDER_HEIGHT_KM[1]
+        assert max(abs(big.x_km), abs(big.y_km)) <= 0.0125  # well inside the site and its evaluation disc
+        for b in placed:
+            gap = np.hypot(b.x_km - big.x_km, b.y_km - big.y_km)
+            if b is not big:
+                assert gap > (b.diameter_km + big.diameter_km) / 2  # no overlap
+                assert gap >= 0.01 or b.diameter_km < big.diameter_km  # the largest within a maplet's side
+    with pytest.raises(ValueError, match="cannot place"):
+        add_large_boulders(np.random.default_rng(2), [], n=4, clearance_km=0.03, **site)

@@ -15,7 +15,7 @@ import numpy as np
 
 from pwm.frames import LocalFrame
 from pwm.raytrace import RayTracer
-from pwm.simulate.terrain import Crater
+from pwm.simulate.terrain import Boulder, Crater
 
 WALL_SLOPE_DEG = 60.0
 """Steeper than this (from the site's regional normal): a boulder wall."""
@@ -26,6 +26,11 @@ EDGE_BAND_GSD = 2.0
 SHADOW_SHARE = 0.5
 """Shadowed in at least this share of the images: in shadow."""
 CLASSES = ("walls", "rims", "maplet edges", "shadow", "elsewhere")
+BOULDER_REACH = 0.75
+"""A boulder's nodes lie within this many of its diameters of its centre: its disc and an apron
+half its radius wide, where a model that holds its top low may hold its foot high."""
+BOULDER_SIZE_CLASSES_M = (1.0, 2.0, 3.0)
+"""Boulder diameters (m) that bound the size classes: below 1 m, 1-2 m, 2-3 m, 3 m and above."""
 
 
 @dataclass(frozen=True)
@@ -44,6 +49,24 @@ def rim_mask(x_km: np.ndarray, y_km: np.ndarray, craters: list[Crater], band: fl
         radius = c.diameter_km / 2
         mask |= np.abs(np.hypot(gx - c.x_km, gy - c.y_km) - radius) <= band * radius
     return mask
+
+
+def boulder_size_masks(x_km: np.ndarray, y_km: np.ndarray, boulders: list[Boulder],
+                       bounds_m: tuple[float, ...] = BOULDER_SIZE_CLASSES_M) -> dict[str, np.ndarray]:
+    """Nodes (len(y), len(x)) within BOULDER_REACH diameters of a boulder, by the boulder's size
+    class ('boulders <1 m', 'boulders 1-2 m', ..., 'boulders >=3 m' for the default bounds)."""
+    edges = [f"{b:g}" for b in bounds_m]
+    names = [f"boulders <{edges[0]} m", *(f"boulders {a}-{b} m" for a, b in zip(edges, edges[1:], strict=False)),
+             f"boulders >={edges[-1]} m"]
+    x, y = np.asarray(x_km), np.asarray(y_km)
+    masks = {name: np.zeros((len(y), len(x)), bool) for name in names}
+    for b in boulders:
+        reach = BOULDER_REACH * b.diameter_km
+        cols = slice(np.searchsorted(x, b.x_km - reach), np.searchsorted(x, b.x_km + reach, side="right"))
+        rows = slice(np.searchsorted(y, b.y_km - reach), np.searchsorted(y, b.y_km + reach, side="right"))
+        near = np.hypot(x[cols][None, :] - b.x_km, y[rows][:, None] - b.y_km) <= reach
+        masks[names[int(np.searchsorted(bounds_m, b.diameter_km * 1e3, side="right"))]][rows, cols] |= near
+    return masks
 
 
 def edge_mask(points_body: np.ndarray, footprints: list[MapletFootprint], band_km: float) -> np.ndarray:

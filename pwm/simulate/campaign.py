@@ -93,7 +93,7 @@ def simulate(out: str | Path, *, scenario: Scenario, seed: int = 0,
         site_size_km=scenario.site_size_km, resolution_km=scenario.truth_resolution_km, seed=seed,
         base_edge_km=scenario.base_edge_km, global_roughness_km=scenario.global_roughness_km,
         n_craters=scenario.n_craters, n_boulders=scenario.n_boulders, steep_boulders=scenario.steep_boulders,
-        cobble_cover=scenario.cobble_cover,
+        cobble_cover=scenario.cobble_cover, large_boulders=scenario.large_boulders,
     )
     log.info("truth: %d vertices, %d faces (%.1f s)", len(truth.mesh.vertices), len(truth.mesh.faces),
              time.perf_counter() - clock)
@@ -121,7 +121,8 @@ def simulate_campaign(out: str | Path, *, campaign: Campaign, seed: int = 0, kno
     body = build_base(base, base_edge_km=survey.base_edge_km, seed=seed, global_roughness_km=survey.global_roughness_km)
     sites = [SiteSpec(lat_deg=s.site_lat_deg, lon_deg=s.site_lon_deg, size_km=s.site_size_km,
                       resolution_km=s.truth_resolution_km, n_craters=s.n_craters, n_boulders=s.n_boulders,
-                      steep_boulders=s.steep_boulders, cobble_cover=s.cobble_cover) for s in campaign.sites]
+                      steep_boulders=s.steep_boulders, cobble_cover=s.cobble_cover, large_boulders=s.large_boulders)
+             for s in campaign.sites]
     landforms = _landforms(body, campaign=campaign, sites=sites, seed=seed)
     body = apply_landforms(body, landforms)
     params = dict(base_edge_km=survey.base_edge_km, global_roughness_km=survey.global_roughness_km,

@@ -40,6 +40,8 @@ class Scenario(BaseModel):
     n_boulders: int = 10
     steep_boulders: int = 3
     cobble_cover: float = Field(0.8, description="fraction of the site strewn with 0.3-3 m rocks")
+    large_boulders: int = Field(0, ge=0, description="boulders 3-5 m across and about 1 m tall, each the largest "
+                                                     "within a maplet's side (pwm.simulate.terrain.add_large_boulders)")
 
     global_views: bool = Field(False, description="look at the whole body instead of a site")
     survey_latitudes_deg: tuple[float, ...] = Field(
@@ -140,7 +142,7 @@ SCENARIOS: dict[str, Scenario] = {
             description="a 50 m candidate sampling site at mid latitude, 10 cm GSD, 30+ images, and lidar "
                         "profiles through each view's window",
             site_lat_deg=12.0, site_lon_deg=60.0, site_size_km=0.05,
-            gsd_km=1.0e-4, truth_resolution_km=2.5e-5, n_boulders=100, steep_boulders=25,
+            gsd_km=1.0e-4, truth_resolution_km=2.5e-5, n_boulders=100, steep_boulders=25, large_boulders=4,
             pointing_scatter_km=0.008,
             # profiles as NEAR's or Hayabusa's lidar took them, the body turning beneath
             lidar=LidarSpec(pattern="profile", shots_per_view=200),
@@ -151,7 +153,7 @@ SCENARIOS: dict[str, Scenario] = {
                         "an opposition surge, 2x2 sub-pixel sampling, blur, smear, a flat-field residual, and a "
                         "start model with 1 GSD RMS of 10-40 m undulations",
             site_lat_deg=12.0, site_lon_deg=60.0, site_size_km=0.05,
-            gsd_km=1.0e-4, truth_resolution_km=2.5e-5, n_boulders=100, steep_boulders=25,
+            gsd_km=1.0e-4, truth_resolution_km=2.5e-5, n_boulders=100, steep_boulders=25, large_boulders=4,
             pointing_scatter_km=0.008,
             photometry="hapke", supersample=2,
             optics=Optics(psf_sigma_px=0.6, smear_px=0.8, flat_field_rms=0.01),
@@ -163,7 +165,7 @@ SCENARIOS: dict[str, Scenario] = {
             description="the same site design at high latitude: long shadows",
             site_lat_deg=62.0, site_lon_deg=200.0, site_size_km=0.05,
             gsd_km=1.0e-4, truth_resolution_km=2.5e-5,
-            n_boulders=100, steep_boulders=25, incidences_deg=(55.0, 60.0, 65.0, 70.0, 75.0),
+            n_boulders=100, steep_boulders=25, large_boulders=4, incidences_deg=(55.0, 60.0, 65.0, 70.0, 75.0),
             pointing_scatter_km=0.008,
         ),
         Scenario(

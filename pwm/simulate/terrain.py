@@ -21,6 +21,14 @@ STEEP_EXPONENT = 4.0
 CRATER_EXTENT = 2.0
 """Ejecta blanket radius in crater radii; the relief is zero beyond it."""
 
+LARGE_BOULDER_DIAMETER_KM = (3e-3, 5e-3)
+LARGE_BOULDER_HEIGHT_KM = (0.8e-3, 1.2e-3)
+"""Size and height ranges of a site's large boulders (`add_large_boulders`): those whose tops an
+independent site's models held 0.2-0.4 m low (issue 49)."""
+LARGE_BOULDER_CLEARANCE_KM = 0.01
+"""How far apart a site's large boulders lie, each the largest within it: a maplet's side at the
+sites' 10 cm GSD (100 nodes), so that each is the largest in the maplets about it."""
+
 
 @dataclass(frozen=True)
 class Crater:
@@ -178,6 +186,51 @@ def sample_boulders(
         centre[m] = c
     return [Boulder(x_km=float(c[0]), y_km=float(c[1]), diameter_km=float(diameter[k]), height_km=float(height[k]),
                     steep=bool(steep[k]), albedo_factor=float(albedo[k])) for c, k in zip(centre, order, strict=True)]
+
+
+def add_large_boulders(
+    rng: np.random.Generator, boulders: list[Boulder], *, n: int, site_size_km: float, clearance_km: float,
+    resolution_km: float,
+) -> list[Boulder]:
+    """The site's boulders with n large ones added first: rounded caps 3-5 m across and 0.8-1.2 m
+    tall (foot slopes 50-80 deg), centred within the inner half of the site square and at least
+    clearance_km apart, so that each is the largest boulder within clearance_km of it: the
+    boulders that overlap one, or lie within clearance_km of it and are not smaller, are dropped.
+    """
+    if n < 0:
+        raise ValueError(f"{n} large boulders: must be non-negative")
+    if n == 0:
+        return list(boulders)
+    if LARGE_BOULDER_DIAMETER_KM[0] < 16 * resolution_km:
+        raise ValueError(f"a {resolution_km * 1e3:g} m grid cannot resolve {LARGE_BOULDER_DIAMETER_KM[0] * 1e3:g} m "
+                         "boulders")
+    diameter = rng.uniform(*LARGE_BOULDER_DIAMETER_KM, n)
+    height = np.minimum(rng.uniform(*LARGE_BOULDER_HEIGHT_KM, n), diameter / 2)
+    albedo = np.exp(rng.uniform(-0.35, 0.35, n))
+    inner = site_size_km / 4
+    centre = np.empty((n, 2))
+    for k in range(n):
+        for _ in range(2000):
+            c = rng.uniform(-inner, inner, 2)
+            if np.all(np.hypot(*(centre[:k] - c).T) >= clearance_km):
+                break
+        else:
+            raise ValueError(f"cannot place {n} large boulders {clearance_km * 1e3:g} m apart in a "
+                             f"{site_size_km * 1e3:g} m site")
+        centre[k] = c
+    large = [Boulder(x_km=float(c[0]), y_km=float(c[1]), diameter_km=float(d), height_km=float(h), steep=False,
+                     albedo_factor=float(a)) for c, d, h, a in zip(centre, diameter, height, albedo, strict=True)]
+
+    def kept(b: Boulder) -> bool:
+        for big in large:
+            gap = np.hypot(b.x_km - big.x_km, b.y_km - big.y_km)
+            if gap < (b.diameter_km + big.diameter_km) / 2 + 2 * resolution_km:
+                return False
+            if gap < clearance_km and b.diameter_km >= big.diameter_km:
+                return False
+        return True
+
+    return large + [b for b in boulders if kept(b)]
 
 
 def crater_profile(crater: Crater, r_km: np.ndarray) -> np.ndarray:

@@ -24,8 +24,10 @@ from pwm.mesh import Mesh, grid_faces, split_edges
 from pwm.raytrace import RayTracer
 from pwm.simulate.landforms import Landform
 from pwm.simulate.terrain import (
+    LARGE_BOULDER_CLEARANCE_KM,
     Boulder,
     Crater,
+    add_large_boulders,
     albedo_patches,
     boulder_relief,
     cobble_relief,
@@ -53,7 +55,7 @@ RESOLVED_NODES = 4
 """Shortest wavelength of any fractal detail, in grid spacings or mean base edges."""
 
 _STREAMS = {"roughness": 1, "albedo": 2, "site_roughness": 3, "site_albedo": 4, "craters": 5,
-            "boulders": 6, "patches": 7, "cobbles": 8, "start_error": 9}
+            "boulders": 6, "patches": 7, "cobbles": 8, "start_error": 9, "large_boulders": 10}
 
 
 def _rng(seed: int, stream: str, site: int = 0) -> np.random.Generator:
@@ -275,7 +277,9 @@ class SiteSpec:
     """A site of the truth: the square of side size_km centred at planetocentric (lat, lon),
     sampled every resolution_km over the site plus margin_km per side (default a quarter of the
     site size) where the detail blends into the body. steep_boulders of the n_boulders have side
-    slopes above 60 degrees; cobble_cover is the fraction of the site strewn with sub-metre rocks."""
+    slopes above 60 degrees; large_boulders more, 3-5 m across and about 1 m tall, are each the
+    largest about it (pwm.simulate.terrain.add_large_boulders); cobble_cover is the fraction of
+    the site strewn with sub-metre rocks."""
 
     lat_deg: float
     lon_deg: float
@@ -286,6 +290,7 @@ class SiteSpec:
     steep_boulders: int
     cobble_cover: float = 0.0
     margin_km: float | None = None
+    large_boulders: int = 0
 
     @property
     def margin(self) -> float:
@@ -324,14 +329,14 @@ class _Patch:
 def build_truth(
     *, base: Mesh, site_lat_deg: float, site_lon_deg: float, site_size_km: float, resolution_km: float,
     seed: int, base_edge_km: float, global_roughness_km: float = 0.0, n_craters: int, n_boulders: int,
-    steep_boulders: int, cobble_cover: float = 0.0, margin_km: float | None = None,
+    steep_boulders: int, cobble_cover: float = 0.0, margin_km: float | None = None, large_boulders: int = 0,
 ) -> Truth:
     """Build the truth asteroid with one site (see the module docstring and SiteSpec). Lengths
     in km, angles in degrees; deterministic for a given seed."""
     body = build_base(base, base_edge_km=base_edge_km, seed=seed, global_roughness_km=global_roughness_km)
     site = SiteSpec(lat_deg=site_lat_deg, lon_deg=site_lon_deg, size_km=site_size_km, resolution_km=resolution_km,
                     n_craters=n_craters, n_boulders=n_boulders, steep_boulders=steep_boulders,
-                    cobble_cover=cobble_cover, margin_km=margin_km)
+                    cobble_cover=cobble_cover, margin_km=margin_km, large_boulders=large_boulders)
     extra = dict(base_edge_km=base_edge_km, global_roughness_km=global_roughness_km)
     return stitch_sites(body, [site], seed=seed, params=extra).truth(0)
 
@@ -382,6 +387,9 @@ def stitch_sites(body: Mesh, sites: list[SiteSpec], *, seed: int, params: dict |
                                  resolution_km=site.resolution_km)
         boulders = sample_boulders(_rng(seed, "boulders", k), n=site.n_boulders, n_steep=site.steep_boulders,
                                    site_size_km=site.size_km, resolution_km=site.resolution_km)
+        boulders = add_large_boulders(_rng(seed, "large_boulders", k), boulders, n=site.large_boulders,
+                                      site_size_km=site.size_km, clearance_km=LARGE_BOULDER_CLEARANCE_KM,
+                                      resolution_km=site.resolution_km)
         detail, log_albedo = _site_detail(seed, k, axis, site.size_km, craters, boulders, site.cobble_cover)
         patches.append(_Patch(spec=site, frame=frame, axis=axis, height=ground + weight * detail,
                               albedo=ground_albedo * np.exp(weight * log_albedo), zero_band=zero_band,
@@ -423,6 +431,7 @@ def _compose(cut: Mesh, patches: list[_Patch], *, seed: int, params: dict, landf
     params = dict(site_lat_deg=spec.lat_deg, site_lon_deg=spec.lon_deg, site_size_km=spec.size_km,
                   resolution_km=spec.resolution_km, seed=seed, n_craters=spec.n_craters, n_boulders=spec.n_boulders,
                   steep_boulders=spec.steep_boulders, cobble_cover=spec.cobble_cover, margin_km=spec.margin,
+                  large_boulders=spec.large_boulders,
                   **params)
     return Truth(mesh=Mesh(np.vstack(vertices), np.vstack(faces), np.concatenate(albedo)), site_frame=site.frame,
                  site_size_km=spec.size_km, x_km=site.axis, y_km=site.axis.copy(), height_km=site.height,
