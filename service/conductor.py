@@ -77,7 +77,7 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     """
     directory = Path(directory)
     shape, base_version = _current_model(sessions, directory, data_dir=data_dir, start=start)
-    report = ingest_directory(sessions, directory, shape=shape)
+    report = ingest_directory(sessions, directory, shape=shape, data_dir=data_dir)
     with sessions() as session:
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
     if shape is not None:

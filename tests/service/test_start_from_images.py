@@ -30,8 +30,7 @@ from service.cli import app
 from service.conductor import START_MODEL_NAME, ingest_and_plan
 from service.db import session_scope
 from service.exports import ExportFormat, make_export, plan_export
-from service.ingest import LIDAR_PRODUCT
-from service.rows import Downlink, DownlinkFile, Image, ModelKind, ModelVersion
+from service.rows import Acceptance, Downlink, DownlinkFile, Image, LidarProduct, ModelKind, ModelVersion
 from service.run import run_directory
 from service.settings import get_settings
 from service.spg import start_from_images
@@ -74,9 +73,10 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         assert session.scalars(select(Downlink.model_note)).one() == (
             "version 1 (photogrammetric) made from the images, with no model before")
         images = session.scalars(select(Image)).all()
-        # the survey's lidar product is set aside, with why, until the catalog takes lidar
-        lidar = session.scalars(select(DownlinkFile).filter_by(code=LIDAR_PRODUCT)).all()
-        assert lidar and all("shots in the pwm layout, readable" in f.reason for f in lidar)
+        # the survey's lidar product is catalogued with its tracks, none of its files left unused
+        lidar = session.scalars(select(LidarProduct)).one()
+        assert lidar.status is Acceptance.ACCEPTED and lidar.valid_shots > 0 and lidar.tracks
+        assert not session.scalars(select(DownlinkFile)).all()
         # each image's pose correction is stored, and its coverage weighed against version 1
         assert len(images) == 12 and all(i.pose_corrected_at is not None for i in images)
         assert all(i.coverage_computed_at >= i.pose_corrected_at for i in images)
