@@ -74,6 +74,8 @@ def track_extents(spots_km: np.ndarray, et: np.ndarray, track: np.ndarray) -> li
     keep = (track != NO_TRACK) & np.isfinite(spots_km).all(axis=1) & np.isfinite(et)
     keep &= np.linalg.norm(np.where(np.isfinite(spots_km), spots_km, 0.0), axis=1) > 0
     order = np.flatnonzero(keep)
+    if not len(order):
+        return []
     order = order[np.argsort(track[order], kind="stable")]
     ids, starts = np.unique(track[order], return_index=True)
     extents = []
