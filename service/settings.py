@@ -89,6 +89,10 @@ class Settings(BaseSettings):
         refinement configuration (another pwm.config.RefinementConfig.digest; the whole catalog,
         after a change of a setting it names); false: only those whose images changed, the rest
         left to `pwm refine-catalog --because-config-changed` (service.refinement.stale_maplets).
+    lidar_residual_shots: PWM_LIDAR_RESIDUAL_SHOTS, at most how many of the catalog's usable
+        lidar shots each published version is checked against (a uniform sample; its lidar
+        statistics, service.publish.lidar_statistics): enough for a per-track figure and a
+        10-degree map, cheap to ray-cast (0: none checked).
     pose_knowledge: PWM_POSE_KNOWLEDGE, the 1-sigma pose knowledge of kernels that state none
         (`POS_M,POINT_RAD` or `nav:ALONG_M,CROSS_M,MISALIGN_URAD,DRIFT_URAD`, as
         pwm.knowledge.parse_knowledge_errors reads it); unset: none to adjust.
@@ -117,6 +121,7 @@ class Settings(BaseSettings):
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
     refine_on_config_change: bool = False
+    lidar_residual_shots: int = Field(200_000, ge=0)
     pose_knowledge: str | None = None
 
     @field_validator("database_url")

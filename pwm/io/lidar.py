@@ -1,6 +1,7 @@
 """PDS4 laser altimeter products: a label with a Table_Binary or Table_Character of shots, read
 into pwm.lidar.shots.Shots through the loaded SPICE kernels; the writer of pwm's own plain
-layout (the simulator's); and the catalog's shots file (`write_shots`, `read_shots`: a
+layout (the simulator's); a directory's lidar products read through its one meta-kernel
+without the catalog (`read_lidar_directory`); and the catalog's shots file (`write_shots`, `read_shots`: a
 product's placed shots and their tracks as one compressed NumPy archive).
 
 Which fields hold a shot's time, range, validity, intensity and direction is a `Layout`, one per
@@ -27,6 +28,7 @@ import numpy as np
 import spiceypy as sp
 from pds4_tools.reader.data_types import pds_to_numpy_type
 
+from pwm.io.labels import body_name, find_labels, target_frame
 from pwm.io.pds4 import (
     INFORMATION_MODEL,
     MAX_LABEL_BYTES,
@@ -37,6 +39,7 @@ from pwm.io.pds4 import (
     utc_iso,
 )
 from pwm.io.spice_geometry import FOV_ROOM, spacecraft_of
+from pwm.io.spice_kernels import kernel_pool
 from pwm.lidar.shots import Invalid, Shots
 
 MAX_SHOTS = 2_000_000  # shots one product may hold, by default
@@ -134,6 +137,42 @@ def read_lidar_product(label: Path, *, target: str, body_frame: str, root: Path 
     table = read_lidar_table(label, root=root, max_label_bytes=max_label_bytes, max_shots=max_shots)
     return LidarProduct(table=table, shots=place_shots(table, target=target, body_frame=body_frame,
                                                        range_limits_km=range_limits_km))
+
+
+def read_lidar_directory(directory: Path, *, max_shots: int = MAX_SHOTS
+                         ) -> tuple[list[LidarProduct], list[tuple[Path, str]]]:
+    """The lidar products under `directory` (labels `is_lidar_label` takes), each read and its
+    shots placed through the directory's one meta-kernel (*.tm) in the body-fixed frame of the
+    target its label names; and those that could not be, with why. ValueError for a directory
+    without exactly one meta-kernel or without lidar labels."""
+    directory = Path(directory)
+    metakernels = sorted(directory.rglob("*.tm"))
+    if len(metakernels) != 1:
+        raise ValueError(f"{directory}: expected one meta-kernel (*.tm), found {len(metakernels)}")
+    labels = []
+    for label in find_labels(directory):
+        try:
+            if label.suffix.lower() == ".xml" and label.stat().st_size <= MAX_LABEL_BYTES \
+                    and is_lidar_label(ET.fromstring(label.read_bytes())):
+                labels.append(label)
+        except (ET.ParseError, OSError):
+            continue
+    if not labels:
+        raise ValueError(f"{directory} holds no lidar product (a PDS4 table of shots in a known layout)")
+    products, skipped = [], []
+    with kernel_pool(metakernels):
+        for label in labels:
+            try:
+                table = read_lidar_table(label, root=directory, max_shots=max_shots)
+                target, frame = target_frame(table.target)
+                if target is None or frame is None:
+                    raise ProductError("unknown_target", f"the kernels give target {table.target!r} no body-fixed "
+                                       "frame")
+                products.append(LidarProduct(table=table, shots=place_shots(table, target=body_name(target),
+                                                                            body_frame=frame)))
+            except (ProductError, OSError, sp.stypes.SpiceyError) as exc:
+                skipped.append((label, str(exc)))
+    return products, skipped
 
 
 def read_lidar_table(label: Path, *, root: Path | None = None, max_label_bytes: int = MAX_LABEL_BYTES,
