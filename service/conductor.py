@@ -10,13 +10,16 @@
 6. fuse and publish a version (service.publish.fuse_and_publish);
 7. feed back (`feed_back`): after the downlink's first fusion, the maplets' registrations
    into its poses (service.spg.feed_back_registrations), and the images corrected weighed again;
-8. the next pass: the maplets due after the fusion (`due_after_fusion`), from step 5.
+8. the next pass: the maplets due after the fusion (`due_after_fusion`), from step 5;
+9. the lidar (`adjust_lidar`): once a downlink's passes are published, every catalogued track
+   strip-adjusted to the last version (the model changed); a downlink that brought lidar and
+   published nothing, its own tracks to the current version (service.lidar.adjust_tracks).
 
 Two drivers run the stages: service.run.run_directory in one process, and the Celery tasks of
 workers.tasks (one for steps 1 to 4, one per maplet's refinement, one per fusion with its
 feedback). Both take from here the stages' order and what comes next: `ingest_and_plan` (steps
-1 to 4), `feed_back`, `due_after_fusion` (the pass rule) and, for the tasks, `fusion_due` (the
-fan-in).
+1 to 4), `feed_back`, `due_after_fusion` (the pass rule), `adjust_lidar` and, for the tasks,
+`fusion_due` (the fan-in).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from service.coverage import CoverageReport, unweighed_images, update_coverage
 from service.db import session_scope
 from service.ingest import IngestReport, ingest_directory
 from service.jobs import fusions_due
+from service.lidar import LidarAdjustment, adjust_tracks, products_of
 from service.refinement import MapletWork, stale_maplets
 from service.rows import Downlink, ModelKind
 from service.spg import adjust_downlink, feed_back_registrations, start_from_images
@@ -133,6 +137,20 @@ def due_after_fusion(session: Session, *, config: RefinementConfig, fed: bool,
     due = stale_maplets(session, config=config, maplet_ids=maplet_ids,
                         refine_on_config_change=refine_on_config_change)
     return [w for w in due if w.pass_number > 1 or fed]
+
+
+def adjust_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int,
+                 published: int | None, current: int | None) -> LidarAdjustment | None:
+    """The lidar stage after a downlink's last pass: where it published a version (`published`),
+    every catalogued track strip-adjusted to it; else, where it brought lidar products and the
+    catalog has a model (`current`), its own tracks to that. None where nothing was adjusted."""
+    if published is not None:
+        return adjust_tracks(sessions, data_dir=data_dir, version=published)
+    with sessions() as session:
+        brought = products_of(session, downlink_id)
+    if not brought or current is None:
+        return None
+    return adjust_tracks(sessions, data_dir=data_dir, version=current, product_ids=brought)
 
 
 def fusion_due(session: Session, *, downlink_id: int | None, after: str) -> str | None:

@@ -98,6 +98,15 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         # the refined survey is one closed surface: the maplets where they reach, version 1 elsewhere
         refined = get_version(session, 3)
         assert refined.statistics["surface"] == "closed"
+        # checked against the survey's lidar: its spots within a few GSD (4 m) of the refined model
+        checked = refined.statistics["lidar"]
+        assert checked["shots"] == lidar.valid_shots and checked["rms_km"] < 0.012
+        # then each track strip-adjusted to it (exact kernels: the corrections follow the model's own
+        # error, within its 3 GSD), its corrected spots no further from version 3 than ingest placed them
+        assert run.lidar is not None and run.lidar.version == 3 and run.lidar.tracks == len(lidar.tracks)
+        assert run.lidar.largest_km < 0.012 and run.lidar.rms_km <= checked["rms_km"]
+        assert all(t.adjusted_at is not None and t.residual_version == 3 and all(s is not None and 0 < s < 1e-2
+                   for s in t.correction_sigma) for t in lidar.tracks)
         checks = closure(version_mesh(data, refined))
         assert checks.closed, checks
         if catalog.kw["bind"].dialect.name == "sqlite":  # once: the exports do not depend on the catalog
