@@ -2,7 +2,8 @@
 
 1. catalogue: kernels and products, each image's geometry (service.ingest.ingest_directory);
 2. adjust the poses on the current model (service.spg.adjust_downlink), or with no model make
-   one from the images (service.spg.start_from_images);
+   one from the images (service.spg.start_from_images), else from the lidar
+   (service.lidar.start_from_lidar);
 3. weigh the images against the model (`weigh`, service.coverage.update_coverage): once per
    downlink and pass, after its poses are final;
 4. plan: the maplets whose input changed (service.refinement.stale_maplets);
@@ -38,7 +39,7 @@ from service.coverage import CoverageReport, unweighed_images, update_coverage
 from service.db import session_scope
 from service.ingest import IngestReport, ingest_directory
 from service.jobs import fusions_due
-from service.lidar import LidarAdjustment, adjust_tracks, products_of
+from service.lidar import LidarAdjustment, adjust_tracks, products_of, start_from_lidar
 from service.refinement import MapletWork, stale_maplets
 from service.rows import Downlink, ModelKind
 from service.spg import adjust_downlink, feed_back_registrations, start_from_images
@@ -73,8 +74,9 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
 
     The current model is the latest version; a catalog without one first imports `start` (or
     DIRECTORY/start_model.obj when present) as a version of kind start, and with neither makes
-    one from the catalogued images after the ingest (service.spg.start_from_images); when it
-    cannot yet, nothing is weighed nor refined (Plan.base_version None). config: the pose
+    one from the catalogued images after the ingest (service.spg.start_from_images), else from
+    its lidar spots (service.lidar.start_from_lidar); when neither can yet, nothing is weighed
+    nor refined (Plan.base_version None). config: the pose
     knowledge where the kernels state none, how maplets are tiled where the images look and none
     is catalogued, and how they are refined. refine_on_config_change: also the maplets whose
     current revision was made with another configuration (service.refinement.stale_maplets).
@@ -89,6 +91,8 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     else:
         base_version = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id,
                                          configured=config.knowledge)
+        if base_version is None:  # the images cannot make one (yet): the lidar may
+            base_version = start_from_lidar(sessions, data_dir=data_dir, downlink_id=downlink_id)
         if base_version is None:
             return Plan(downlink_id=downlink_id, ingest=report, coverage=None, work=[], base_version=None)
         with sessions() as session:

@@ -5,8 +5,13 @@ tracks' residuals on that version measured with the corrections applied
 (service.publish.lidar_statistics). The shots stay as ingest placed them (the artifact store's
 shots file); a track's spots are re-placed by its stored correction wherever they are read.
 
-When it runs is the conductor's rule (service.conductor.adjust_lidar). Lengths in km, angles in
-radians, body-fixed frame.
+When it runs is the conductor's rule (service.conductor.adjust_lidar). And where the catalog
+has no model and the images cannot make one yet, the lidar may (`start_from_lidar`): a closed
+model of the catalogued spots (pwm.lidar.model.model_from_spots), strip-adjusted to itself
+(pwm.lidar.strips.adjust, the model rebuilt each round), published as version 1. Its kind is
+`start`, its statistics' "made_from" "lidar": the catalog's model kinds are a CHECK constraint,
+which SQLite cannot widen without rebuilding model_versions, whose lineage tables would go with
+it. Lengths in km, angles in radians, body-fixed frame.
 """
 
 from __future__ import annotations
@@ -23,12 +28,15 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.io.lidar import read_shots
 from pwm.lidar.config import LIDAR, LidarConfig
-from pwm.lidar.strips import adjust
+from pwm.lidar.model import usable
+from pwm.lidar.shots import Shots
+from pwm.lidar.strips import Correction, adjust
+from pwm.lidar.tracks import NO_TRACK
 from service.artifacts import artifact_path
 from service.db import session_scope
 from service.publish import lidar_statistics
-from service.rows import Acceptance, LidarProduct, utcnow
-from service.versions import get_version, version_mesh
+from service.rows import Acceptance, Downlink, LidarProduct, LidarTrack, ModelKind, utcnow
+from service.versions import get_version, latest_version, publication_lock, publish_version, version_mesh
 
 log = logging.getLogger(__name__)
 
@@ -78,18 +86,10 @@ def adjust_tracks(sessions: sessionmaker[Session], *, data_dir: Path, version: i
             shots, _ = read_shots(artifact_path(data_dir, product.shots_artifact, verify=True))
             adjustment = adjust(shots, mesh, config=config, rebuild=False)
             for row in product.tracks:
-                correction = adjustment.corrections.get(row.track)
-                if correction is None or not np.isfinite(correction.sigma).any():
-                    uncorrected += 1  # too few shots met the model: not measured, nothing stored
-                    continue
-                row.rotation_x_rad, row.rotation_y_rad, row.rotation_z_rad = map(float, correction.rotation_rad)
-                row.translation_x_km, row.translation_y_km, row.translation_z_km = map(
-                    float, correction.translation_km)
-                row.about_x_km, row.about_y_km, row.about_z_km = map(float, correction.about_km)
-                row.correction_sigma = [float(s) if np.isfinite(s) else None for s in correction.sigma]
-                row.adjusted_at = utcnow()
-                corrected += 1
-                largest = max(largest, correction.change_km(None))
+                change = _store(row, adjustment.corrections.get(row.track))
+                corrected += change is not None
+                uncorrected += change is None
+                largest = max(largest, change or 0.0)
         if not corrected + uncorrected:
             return None
         session.flush()
@@ -99,6 +99,74 @@ def adjust_tracks(sessions: sessionmaker[Session], *, data_dir: Path, version: i
                              seconds=time.perf_counter() - clock)
     log.info("%s", report.summary())
     return report
+
+
+def _store(row: LidarTrack, correction: Correction | None) -> float | None:
+    """Store a track's correction and sigma (unconstrained parts null) on its row; how far it
+    moves the track (km), or None (and nothing stored) where too few shots met the model."""
+    if correction is None or not np.isfinite(correction.sigma).any():
+        return None
+    row.rotation_x_rad, row.rotation_y_rad, row.rotation_z_rad = map(float, correction.rotation_rad)
+    row.translation_x_km, row.translation_y_km, row.translation_z_km = map(float, correction.translation_km)
+    row.about_x_km, row.about_y_km, row.about_z_km = map(float, correction.about_km)
+    row.correction_sigma = [float(s) if np.isfinite(s) else None for s in correction.sigma]
+    row.adjusted_at = utcnow()
+    return correction.change_km(None)
+
+
+def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int,
+                     config: LidarConfig = LIDAR) -> int | None:
+    """When the catalog has no model version and its images cannot make one: a closed model of
+    every accepted lidar product's spots (one body-fixed frame), strip-adjusted to itself, its
+    tracks' corrections stored, published as the first version (the module's docstring); its
+    number, or None where the catalog has no lidar or its spots do not enclose the body (the
+    downlink's model_note then adds why)."""
+    with session_scope(sessions) as session:
+        publication_lock(session)
+        if latest_version(session) is not None:
+            return None
+        products = session.scalars(select(LidarProduct).where(
+            LidarProduct.status == Acceptance.ACCEPTED, LidarProduct.valid_shots > 0,
+            LidarProduct.shots_artifact.is_not(None)).order_by(LidarProduct.id)).all()
+        parts = [read_shots(artifact_path(data_dir, p.shots_artifact, verify=True)) for p in products
+                 if p.shots_artifact is not None]  # all, by the query
+        if not parts:
+            return None
+        downlink = session.get_one(Downlink, downlink_id)
+        try:
+            shots = Shots.joined([part for part, _ in parts])
+            adjustment = adjust(shots, config=config)
+        except ValueError as exc:
+            note = f"no model from the lidar either: {exc}"
+            downlink.model_note = f"{downlink.model_note}; {note}" if downlink.model_note else note
+            log.info("downlink %d: %s", downlink_id, note)
+            return None
+        tracks = corrected = 0
+        start = 0
+        for product, (_, track) in zip(products, parts, strict=True):
+            # the adjustment numbers the tracks of all the products together: a catalogued track
+            # is the one most of its shots fell in
+            theirs = adjustment.track[start:start + len(track)]
+            start += len(track)
+            for row in product.tracks:
+                tracks += 1
+                ids, counts = np.unique(theirs[(track == row.track) & (theirs != NO_TRACK)], return_counts=True)
+                correction = adjustment.corrections.get(int(ids[np.argmax(counts)])) if len(ids) else None
+                corrected += _store(row, correction) is not None
+        session.flush()
+        # the first version (none before, under the lock), checked against the adjusted spots
+        figures = lidar_statistics(session, data_dir=data_dir, mesh=adjustment.model, version=1)
+        version = publish_version(session, data_dir=data_dir, mesh=adjustment.model, kind=ModelKind.START,
+                                  statistics={"made_from": "lidar", "products": len(products),
+                                              "shots": int(usable(shots).sum()), "tracks": tracks,
+                                              "tracks_corrected": corrected, "loop_changes_km": adjustment.changes,
+                                              "converged": adjustment.converged,
+                                              **({"lidar": figures} if figures is not None else {})},
+                                  downlinks=[downlink])
+        note = f"version {version.version} (start) made from the lidar, with no model before and none from the images"
+        downlink.model_note = note
+        log.info("downlink %d: %s", downlink_id, note)
+        return version.version
 
 
 def products_of(session: Session, downlink_id: int) -> list[int]:

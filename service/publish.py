@@ -178,9 +178,7 @@ def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: i
         parts.append(shots.take(pick))
         ids.append(np.array([mine[t].id if t in mine else NO_TRACK for t in track[pick]], dtype=np.int64))
         rows.update({row.id: row for row in mine.values()})
-    sample = Shots(frame=parts[0].frame, **{name: np.concatenate([getattr(p, name) for p in parts])
-                                            for name in ("et", "origin_km", "direction", "range_km", "sigma_km",
-                                                         "invalid")})
+    sample = Shots.joined(parts)
     summary = residual_summary(sample, mesh, np.concatenate(ids))
     for key, figures in summary["tracks"].items():
         row = rows[int(key)]

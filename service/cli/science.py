@@ -198,18 +198,15 @@ def _lidar_figures(model: Path, directory: Path) -> dict:
         raise typer.BadParameter(str(exc), param_hint="--lidar") from None
     for label, why in skipped:
         typer.echo(f"skipped {label}: {why}", err=True)
-    frames = {p.shots.frame for p in products}
-    if len(frames) != 1:
-        raise typer.BadParameter(f"the products' shots lie in {len(frames)} body-fixed frames "
-                                 f"({', '.join(sorted(frames)) or 'none'}), not one", param_hint="--lidar")
     tracks, offset = [], 0
     for product in products:  # each product's tracks numbered after the previous one's
         ids = track_ids(product.shots)
         tracks.append(np.where(ids == NO_TRACK, NO_TRACK, ids + offset))
         offset += int(ids.max(initial=-1)) + 1
-    shots = Shots(frame=frames.pop(), **{name: np.concatenate([getattr(p.shots, name) for p in products])
-                                         for name in ("et", "origin_km", "direction", "range_km", "sigma_km",
-                                                      "invalid")})
+    try:
+        shots = Shots.joined([p.shots for p in products])
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--lidar") from None
     figures = residual_summary(shots, read_mesh(model), np.concatenate(tracks))
 
     def metres(value: float | None) -> str:
