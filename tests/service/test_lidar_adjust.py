@@ -82,12 +82,12 @@ def test_a_catalog_with_no_model_takes_its_first_from_the_lidar(
         assert first.statistics["tracks_corrected"] == first.statistics["tracks"] > 1
         model = version_mesh(data, first)
         assert closure(model).closed
-        # the true spots within a fraction of the survey's 4 m GSD of it, and so are the adjusted ones
+        # the true spots within a tenth of the survey's 4 m GSD of it (measured 0.40 m RMS), the adjusted ones too
         returned = truth["returned"]
         true_spots = Shots(frame="IAU_BENNU", et=truth["et"][returned], origin_km=truth["origin_km"][returned],
                            direction=truth["direction"][returned], range_km=truth["true_range_km"][returned],
                            sigma_km=np.full(int(returned.sum()), 1e-4),
                            invalid=np.zeros(int(returned.sum()), dtype=np.int8))
         against_truth = lidar_residuals(true_spots, model)
-        assert abs(against_truth.mean_km) < 0.001 and against_truth.rms_km < 0.002, against_truth.rms_km
-        assert first.statistics["lidar"]["rms_km"] < 0.002
+        assert abs(against_truth.mean_km) < 0.0005 and against_truth.rms_km < 0.0008, against_truth.rms_km
+        assert first.statistics["lidar"]["rms_km"] < 0.0008
