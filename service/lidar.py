@@ -8,10 +8,8 @@ shots file); a track's spots are re-placed by its stored correction wherever the
 When it runs is the conductor's rule (service.conductor.adjust_lidar). And where the catalog
 has no model and the images cannot make one yet, the lidar may (`start_from_lidar`): a closed
 model of the catalogued spots (pwm.lidar.model.model_from_spots), strip-adjusted to itself
-(pwm.lidar.strips.adjust, the model rebuilt each round), published as version 1. Its kind is
-`start`, its statistics' "made_from" "lidar": the catalog's model kinds are a CHECK constraint,
-which SQLite cannot widen without rebuilding model_versions, whose lineage tables would go with
-it. Lengths in km, angles in radians, body-fixed frame.
+(pwm.lidar.strips.adjust, the model rebuilt each round), published as version 1 of kind
+`lidar`. Lengths in km, angles in radians, body-fixed frame.
 """
 
 from __future__ import annotations
@@ -156,14 +154,14 @@ def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlin
         session.flush()
         # the first version (none before, under the lock), checked against the adjusted spots
         figures = lidar_statistics(session, data_dir=data_dir, mesh=adjustment.model, version=1)
-        version = publish_version(session, data_dir=data_dir, mesh=adjustment.model, kind=ModelKind.START,
-                                  statistics={"made_from": "lidar", "products": len(products),
+        version = publish_version(session, data_dir=data_dir, mesh=adjustment.model, kind=ModelKind.LIDAR,
+                                  statistics={"products": len(products),
                                               "shots": int(usable(shots).sum()), "tracks": tracks,
                                               "tracks_corrected": corrected, "loop_changes_km": adjustment.changes,
                                               "converged": adjustment.converged,
                                               **({"lidar": figures} if figures is not None else {})},
                                   downlinks=[downlink])
-        note = f"version {version.version} (start) made from the lidar, with no model before and none from the images"
+        note = f"version {version.version} (lidar) made from the lidar, with no model before and none from the images"
         downlink.model_note = note
         log.info("downlink %d: %s", downlink_id, note)
         return version.version

@@ -161,6 +161,8 @@ class ModelKind(enum.StrEnum):
     PHOTOGRAMMETRIC = "photogrammetric"
     REFINED = "refined"
     IMPORTED = "imported"
+    # Made from the lidar alone, where a catalog had no model (service.lidar.start_from_lidar).
+    LIDAR = "lidar"
 
 
 class JobKind(enum.StrEnum):

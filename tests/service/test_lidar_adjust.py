@@ -77,8 +77,8 @@ def test_a_catalog_with_no_model_takes_its_first_from_the_lidar(
     truth = np.load(global_tiny_sim / "truth" / "lidar_spots.npz")
     with catalog() as session:
         first = get_version(session, 1)
-        assert (first.kind, first.statistics["made_from"]) == (ModelKind.START, "lidar")
-        assert session.scalars(select(Downlink.model_note)).one().startswith("version 1 (start) made from the lidar")
+        assert first.kind is ModelKind.LIDAR
+        assert session.scalars(select(Downlink.model_note)).one().startswith("version 1 (lidar) made from the lidar")
         assert first.statistics["tracks_corrected"] == first.statistics["tracks"] > 1
         model = version_mesh(data, first)
         assert closure(model).closed
