@@ -191,6 +191,7 @@ def _lidar_figures(model: Path, directory: Path) -> dict:
     from pwm.lidar.model import residual_summary
     from pwm.lidar.shots import Shots
     from pwm.lidar.tracks import NO_TRACK, track_ids
+    from service.cli.versions import lidar_lines
 
     try:
         products, skipped = read_lidar_directory(directory)
@@ -208,16 +209,9 @@ def _lidar_figures(model: Path, directory: Path) -> dict:
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--lidar") from None
     figures = residual_summary(shots, read_mesh(model), np.concatenate(tracks))
-
-    def metres(value: float | None) -> str:
-        return "-" if value is None else f"{value * 1e3:.3f}"
-
-    typer.echo(f"lidar: {len(products)} products, {figures['shots']} shots, {figures['measured']} measured, "
-               f"{figures['missed']} without a surface near their spot; mean {metres(figures['mean_km'])} m, "
-               f"RMS {metres(figures['rms_km'])} m, 95th percentile {metres(figures['p95_km'])} m")
-    for track, t in figures["tracks"].items():
-        typer.echo(f"  track {track:>4}: {t['shots']:>7} shots, mean {metres(t['mean_km'])} m, "
-                   f"RMS {metres(t['rms_km'])} m, 95th percentile {metres(t['p95_km'])} m")
+    typer.echo(f"lidar: {len(products)} products:")
+    for line in lidar_lines(figures):
+        typer.echo(line)
     return figures
 
 

@@ -71,6 +71,6 @@ def test_a_version_is_checked_against_the_catalogued_lidar(open_catalog_at, sqli
     result = pwm.invoke(app, ["evaluate", str(tmp_path / "ellipsoid.ply"), "--lidar",
                               str(global_tiny_sim / "downlink"), "--json", str(out)])
     assert result.exit_code == 0, result.output
-    assert "lidar: 1 products, 4800 shots" in result.output
+    assert "lidar: 1 products:\n4800 shots, " in result.output
     free = json.loads(out.read_text())["lidar"]
     assert free["measured"] == whole["measured"] and free["rms_km"] == pytest.approx(whole["rms_km"], rel=1e-9)
