@@ -39,10 +39,10 @@ from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.fusion_state import read_composition, read_levels, write_composition, write_levels
 from pwm.io.lidar import read_shots
 from pwm.levels import LevelGrids
-from pwm.lidar.model import residual_summary, sample_shots, usable
+from pwm.lidar.model import residual_summary, sample_shots, spot_normals, usable
 from pwm.lidar.shots import Shots
 from pwm.lidar.strips import Correction, apply_corrections
-from pwm.lidar.tracks import NO_TRACK
+from pwm.lidar.tracks import NO_TRACK, crossovers
 from pwm.mesh import Mesh
 from service.artifacts import artifact_path, scratch_path
 from service.db import session_scope
@@ -156,8 +156,9 @@ def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: i
     """The lidar statistics of `mesh`, about to be published as `version`: at most `at_most`
     (default PWM_LIDAR_RESIDUAL_SHOTS) of the catalog's usable shots, sampled uniformly over
     its accepted lidar products, each track's correction applied where adjusted, measured
-    against the mesh (pwm.lidar.model.residual_summary; tracks by their catalog id); each
-    track's figures stored on its row with the version. None where the catalog has no usable
+    against the mesh (pwm.lidar.model.residual_summary; tracks by their catalog id), and the
+    crossovers between the tracks (`_crossovers`: in all, and per track their count and height
+    RMS); each track's figures stored on its row with the version. None where the catalog has no usable
     shot (or none is to be checked)."""
     at_most = get_settings().lidar_residual_shots if at_most is None else at_most
     products = session.scalars(select(LidarProduct).where(
@@ -179,12 +180,32 @@ def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: i
         ids.append(np.array([mine[t].id if t in mine else NO_TRACK for t in track[pick]], dtype=np.int64))
         rows.update({row.id: row for row in mine.values()})
     sample = Shots.joined(parts)
-    summary = residual_summary(sample, mesh, np.concatenate(ids))
+    track_ids = np.concatenate(ids)
+    summary = residual_summary(sample, mesh, track_ids)
+    crossing = _crossovers(sample, track_ids)
     for key, figures in summary["tracks"].items():
         row = rows[int(key)]
         row.residual_mean_km, row.residual_rms_km = figures["mean_km"], figures["rms_km"]
         row.residual_p95_km, row.residual_version = figures["p95_km"], version
-    return summary | {"products": len(products), "usable_shots": total}
+        figures["crossovers"], figures["crossover_rms_km"] = crossing.get(int(key), (0, None))
+    for row in rows.values():  # a track with no measured spot may still cross others
+        row.crossovers, row.crossover_rms_km = crossing.get(row.id, (0, None))
+    return summary | {"products": len(products), "usable_shots": total,
+                      "crossovers": sum(n for n, _ in crossing.values()) // 2}
+
+
+def _crossovers(shots: Shots, track: np.ndarray) -> dict[int, tuple[int, float | None]]:
+    """Per track (by id): how many crossovers with other tracks its spots make
+    (pwm.lidar.tracks.crossovers, corrections applied, the normals from the spots themselves:
+    the tracks' agreement, whatever the model) and the RMS of their height differences (km)."""
+    spots = shots.spots_km()
+    if len(spots) < 3:
+        return {}
+    found = crossovers(spots, track, spot_normals(spots, shots.origin_km))
+    ends = np.concatenate([track[found.first], track[found.second]])
+    heights = np.concatenate([found.height_km, found.height_km])
+    return {int(t): (int((ends == t).sum()), float(np.sqrt(np.mean(heights[ends == t] ** 2))))
+            for t in np.unique(ends)}
 
 
 def _correction(row: LidarTrack) -> Correction | None:

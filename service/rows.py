@@ -522,7 +522,7 @@ class LidarTrack(Base):
     km); once adjusted, its strip correction (pwm.lidar.strips.Correction: rotation vector
     rad, translation km, about the point about_km) and its 1 sigma (6: rotation rad,
     translation km; null where unconstrained), and its spots' residuals to the model
-    (km) with the version they were measured on."""
+    (km) and crossovers with other tracks, with the version they were measured on."""
 
     __tablename__ = "lidar_tracks"
 
@@ -560,6 +560,10 @@ class LidarTrack(Base):
     residual_rms_km: Mapped[float | None]
     residual_p95_km: Mapped[float | None]
     residual_version: Mapped[int | None]
+    # Its spots' crossovers with other tracks' (corrections applied; measured with the
+    # residuals) and the RMS of their height differences (km; null with none).
+    crossovers: Mapped[int | None]
+    crossover_rms_km: Mapped[float | None]
 
     product: Mapped[LidarProduct] = relationship(back_populates="tracks")
 

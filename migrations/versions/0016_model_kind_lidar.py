@@ -1,4 +1,5 @@
-"""A version kind `lidar`: the model made from the lidar alone (issue 46).
+"""A version kind `lidar`: the model made from the lidar alone; lidar tracks' crossovers
+(issue 46).
 
 Revision ID: 0016
 Revises: 0015
@@ -9,6 +10,8 @@ constraint is replaced by one that also admits 'lidar'. PostgreSQL alters it in 
 rebuilds the table (batch mode), which service.db.migration_transaction runs with foreign keys
 off so that the lineage rows referencing model_versions stay as they are. Downgrading refuses
 while a version of kind lidar exists rather than lose it.
+
+lidar_tracks gains two nullable columns: crossovers (count) and crossover_rms_km.
 """
 
 from collections.abc import Sequence
@@ -36,6 +39,9 @@ def _replace_kind_check(old: tuple[str, ...], new: tuple[str, ...]) -> None:
 
 def upgrade() -> None:
     _replace_kind_check(KINDS, (*KINDS, "lidar"))
+    with op.batch_alter_table("lidar_tracks") as batch_op:
+        batch_op.add_column(sa.Column("crossovers", sa.Integer(), nullable=True))
+        batch_op.add_column(sa.Column("crossover_rms_km", sa.Double(), nullable=True))
 
 
 def downgrade() -> None:
@@ -44,4 +50,7 @@ def downgrade() -> None:
     if lidar:
         raise RuntimeError(f"{lidar} model versions are of kind lidar; the downgrade would "
                            "leave them unreadable: delete them first")
+    with op.batch_alter_table("lidar_tracks") as batch_op:
+        batch_op.drop_column("crossover_rms_km")
+        batch_op.drop_column("crossovers")
     _replace_kind_check((*KINDS, "lidar"), KINDS)

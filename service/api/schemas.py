@@ -258,6 +258,9 @@ class LidarFiguresOut(_Out):
     mean_km: float | None
     rms_km: float | None
     p95_km: float | None
+    crossovers: int | None = Field(None, description="crossovers with other tracks (per track; in all: the "
+                                   "version's figure)")
+    crossover_rms_km: float | None = Field(None, description="RMS of their height differences")
 
 
 class LidarMapOut(_Out):
@@ -282,6 +285,7 @@ class LidarResidualsOut(_Out):
     mean_km: float | None
     rms_km: float | None
     p95_km: float | None
+    crossovers: int | None = Field(None, description="crossovers between the sampled spots of different tracks")
     tracks: dict[int, LidarFiguresOut] = Field(description="per track, by its catalog id (GET /lidar/tracks)")
     map: LidarMapOut
 
@@ -317,6 +321,8 @@ class LidarTrackOut(_Out):
     residual_mean_km: float | None
     residual_rms_km: float | None
     residual_p95_km: float | None
+    crossovers: int | None = Field(description="its spots' crossovers with other tracks' (corrections applied)")
+    crossover_rms_km: float | None = Field(description="RMS of those crossovers' height differences")
 
 
 class Problem(_Out):

@@ -178,6 +178,7 @@ def lidar_lines(figures: dict) -> list[str]:
              f"95th percentile {metres(figures['p95_km'])} m"]
     lines += [f"  track {track:>6}: {t['shots']:>7} shots, mean {metres(t['mean_km'])} m, "
               f"RMS {metres(t['rms_km'])} m, 95th percentile {metres(t['p95_km'])} m"
+              + (f"; {t['crossovers']} crossovers, RMS {metres(t['crossover_rms_km'])} m" if "crossovers" in t else "")
               for track, t in figures["tracks"].items()]
     grid = figures.get("map")
     cells = [c for row in grid["rms_km"] for c in row if c is not None] if grid else []

@@ -55,7 +55,8 @@ def _track(row: LidarTrack, lidvid: str) -> LidarTrackOut:
                          shots=row.shots, axis_lat_deg=row.axis_lat_deg, axis_lon_deg=row.axis_lon_deg,
                          cone_half_angle_deg=math.degrees(row.cone_half_angle_rad), correction=correction,
                          residual_version=row.residual_version, residual_mean_km=row.residual_mean_km,
-                         residual_rms_km=row.residual_rms_km, residual_p95_km=row.residual_p95_km)
+                         residual_rms_km=row.residual_rms_km, residual_p95_km=row.residual_p95_km,
+                         crossovers=row.crossovers, crossover_rms_km=row.crossover_rms_km)
 
 
 def _vector(*values: float | None) -> list[float]:
