@@ -1,6 +1,8 @@
 """Migration 0016 (a version kind `lidar`) on real SQLite and PostgreSQL: the versions stored
 before it, their parents and lineage rows come through unchanged, and a lidar version can then
-be stored; the enumeration still refuses what it does not know."""
+be stored; the enumeration still refuses what it does not know. And service.db's SQLite
+migration transaction: a table rebuilt keeps the rows referencing it, a migration leaving a
+reference dangling is rolled back whole (its DDL too), foreign keys are on again after."""
 
 from __future__ import annotations
 
@@ -8,7 +10,14 @@ import pytest
 from sqlalchemy import text
 from sqlalchemy.exc import IntegrityError
 
-from service.db import make_engine, make_sessionmaker, session_scope, upgrade
+from service.db import (
+    ForeignKeyViolation,
+    make_engine,
+    make_sessionmaker,
+    migration_transaction,
+    session_scope,
+    upgrade,
+)
 from service.rows import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion
 
 _READ = {
@@ -73,5 +82,36 @@ def test_versions_and_lineage_survive_the_lidar_kind_migration(db_url: str) -> N
                                {"downlink": before["downlinks"][0][1]})
         with pytest.raises(IntegrityError), engine.begin() as connection:
             connection.execute(text("DELETE FROM downlinks"))
+    finally:
+        engine.dispose()
+
+
+def test_a_sqlite_migration_leaving_a_dangling_reference_is_rolled_back_whole(sqlite_url: str) -> None:
+    engine = make_engine(sqlite_url)
+    try:
+        with engine.begin() as connection:
+            connection.execute(text("CREATE TABLE parent (id INTEGER PRIMARY KEY)"))
+            connection.execute(text("CREATE TABLE child (id INTEGER PRIMARY KEY, "
+                                    "parent_id INTEGER REFERENCES parent (id) ON DELETE CASCADE)"))
+            connection.execute(text("INSERT INTO parent VALUES (1)"))
+            connection.execute(text("INSERT INTO child VALUES (1, 1)"))
+        # inside, foreign keys are off: a rebuild of parent keeps its child rows...
+        with migration_transaction(engine) as connection:
+            connection.execute(text("CREATE TABLE parent_new (id INTEGER PRIMARY KEY, note TEXT)"))
+            connection.execute(text("INSERT INTO parent_new (id) SELECT id FROM parent"))
+            connection.execute(text("DROP TABLE parent"))
+            connection.execute(text("ALTER TABLE parent_new RENAME TO parent"))
+        with engine.connect() as connection:
+            assert connection.execute(text("SELECT parent_id FROM child")).scalars().all() == [1]
+            assert "note" in [row[1] for row in connection.execute(text("PRAGMA table_info(parent)"))]
+        # ...but a migration that leaves a reference dangling is refused, its DDL undone too
+        with pytest.raises(ForeignKeyViolation, match="child"), migration_transaction(engine) as connection:
+            connection.execute(text("CREATE TABLE other (id INTEGER PRIMARY KEY)"))
+            connection.execute(text("DELETE FROM parent"))
+        with engine.connect() as connection:
+            assert connection.execute(text("SELECT count(*) FROM parent")).scalar_one() == 1
+            assert connection.execute(text("SELECT count(*) FROM sqlite_master WHERE name = 'other'")
+                                      ).scalar_one() == 0
+            assert connection.execute(text("PRAGMA foreign_keys")).scalar_one() == 1
     finally:
         engine.dispose()
