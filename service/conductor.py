@@ -2,7 +2,8 @@
 
 1. catalogue: kernels and products, each image's geometry (service.ingest.ingest_directory);
 2. adjust the poses on the current model (service.spg.adjust_downlink), or with no model make
-   one from the images (service.spg.start_from_images);
+   one from the images (service.spg.start_from_images), else from the lidar
+   (service.lidar.start_from_lidar);
 3. weigh the images against the model (`weigh`, service.coverage.update_coverage): once per
    downlink and pass, after its poses are final;
 4. plan: the maplets whose input changed (service.refinement.stale_maplets);
@@ -10,13 +11,16 @@
 6. fuse and publish a version (service.publish.fuse_and_publish);
 7. feed back (`feed_back`): after the downlink's first fusion, the maplets' registrations
    into its poses (service.spg.feed_back_registrations), and the images corrected weighed again;
-8. the next pass: the maplets due after the fusion (`due_after_fusion`), from step 5.
+8. the next pass: the maplets due after the fusion (`due_after_fusion`), from step 5;
+9. the lidar (`adjust_lidar`): once a downlink's passes are published, every catalogued track
+   strip-adjusted to the last version (the model changed); a downlink that brought lidar and
+   published nothing, its own tracks to the current version (service.lidar.adjust_tracks).
 
 Two drivers run the stages: service.run.run_directory in one process, and the Celery tasks of
 workers.tasks (one for steps 1 to 4, one per maplet's refinement, one per fusion with its
 feedback). Both take from here the stages' order and what comes next: `ingest_and_plan` (steps
-1 to 4), `feed_back`, `due_after_fusion` (the pass rule) and, for the tasks, `fusion_due` (the
-fan-in).
+1 to 4), `feed_back`, `due_after_fusion` (the pass rule), `adjust_lidar` and, for the tasks,
+`fusion_due` (the fan-in).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from service.coverage import CoverageReport, unweighed_images, update_coverage
 from service.db import session_scope
 from service.ingest import IngestReport, ingest_directory
 from service.jobs import fusions_due
+from service.lidar import LidarAdjustment, adjust_tracks, products_of, start_from_lidar
 from service.refinement import MapletWork, stale_maplets
 from service.rows import Downlink, ModelKind
 from service.spg import adjust_downlink, feed_back_registrations, start_from_images
@@ -69,15 +74,16 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
 
     The current model is the latest version; a catalog without one first imports `start` (or
     DIRECTORY/start_model.obj when present) as a version of kind start, and with neither makes
-    one from the catalogued images after the ingest (service.spg.start_from_images); when it
-    cannot yet, nothing is weighed nor refined (Plan.base_version None). config: the pose
+    one from the catalogued images after the ingest (service.spg.start_from_images), else from
+    its lidar spots (service.lidar.start_from_lidar); when neither can yet, nothing is weighed
+    nor refined (Plan.base_version None). config: the pose
     knowledge where the kernels state none, how maplets are tiled where the images look and none
     is catalogued, and how they are refined. refine_on_config_change: also the maplets whose
     current revision was made with another configuration (service.refinement.stale_maplets).
     """
     directory = Path(directory)
     shape, base_version = _current_model(sessions, directory, data_dir=data_dir, start=start)
-    report = ingest_directory(sessions, directory, shape=shape)
+    report = ingest_directory(sessions, directory, shape=shape, data_dir=data_dir)
     with sessions() as session:
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
     if shape is not None:
@@ -85,6 +91,8 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     else:
         base_version = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id,
                                          configured=config.knowledge)
+        if base_version is None:  # the images cannot make one (yet): the lidar may
+            base_version = start_from_lidar(sessions, data_dir=data_dir, downlink_id=downlink_id)
         if base_version is None:
             return Plan(downlink_id=downlink_id, ingest=report, coverage=None, work=[], base_version=None)
         with sessions() as session:
@@ -133,6 +141,20 @@ def due_after_fusion(session: Session, *, config: RefinementConfig, fed: bool,
     due = stale_maplets(session, config=config, maplet_ids=maplet_ids,
                         refine_on_config_change=refine_on_config_change)
     return [w for w in due if w.pass_number > 1 or fed]
+
+
+def adjust_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int,
+                 published: int | None, current: int | None) -> LidarAdjustment | None:
+    """The lidar stage after a downlink's last pass: where it published a version (`published`),
+    every catalogued track strip-adjusted to it; else, where it brought lidar products and the
+    catalog has a model (`current`), its own tracks to that. None where nothing was adjusted."""
+    if published is not None:
+        return adjust_tracks(sessions, data_dir=data_dir, version=published)
+    with sessions() as session:
+        brought = products_of(session, downlink_id)
+    if not brought or current is None:
+        return None
+    return adjust_tracks(sessions, data_dir=data_dir, version=current, product_ids=brought)
 
 
 def fusion_due(session: Session, *, downlink_id: int | None, after: str) -> str | None:

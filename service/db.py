@@ -137,13 +137,53 @@ def _quiet_alembic() -> Iterator[None]:
 @contextmanager
 def migration_transaction(engine: Engine) -> Iterator[Connection]:
     """A transaction on `engine` holding the migration lock (upgrade; the alembic command line
-    through migrations/env.py)."""
-    with _migration_file_lock(engine.url), engine.begin() as connection:
-        if connection.dialect.name == "postgresql":
-            # Released when the transaction ends, that is after the migration committed.
-            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"),
-                               {"key": MIGRATION_LOCK_KEY})
-        yield connection
+    through migrations/env.py). On SQLite the transaction runs with foreign keys off, and every
+    reference is checked before it commits (ForeignKeyViolation, and nothing committed, if one
+    dangles)."""
+    with _migration_file_lock(engine.url), engine.connect() as connection:
+        if connection.dialect.name != "sqlite":
+            with connection.begin():
+                if connection.dialect.name == "postgresql":
+                    # Released when the transaction ends, that is after the migration committed.
+                    connection.execute(text("SELECT pg_advisory_xact_lock(:key)"),
+                                       {"key": MIGRATION_LOCK_KEY})
+                yield connection
+            return
+        with _sqlite_transaction_without_foreign_keys(connection):
+            yield connection
+
+
+@contextmanager
+def _sqlite_transaction_without_foreign_keys(connection: Connection) -> Iterator[None]:
+    """One SQLite transaction, DDL included, with foreign keys off: SQLite changes a table's
+    constraints by rebuilding it (Alembic's batch mode), and with foreign keys on, dropping the
+    old table would delete the rows that reference it (ON DELETE CASCADE) or be refused
+    (RESTRICT). The pragma is a no-op inside a transaction, so it is set before BEGIN; the
+    driver's own transaction handling (an implicit BEGIN before DML only, none before DDL) is
+    set aside so that the whole migration commits or rolls back as one."""
+    driver = connection.connection.driver_connection
+    assert driver is not None
+    isolation_level = driver.isolation_level
+    driver.isolation_level = None
+    try:
+        connection.exec_driver_sql("PRAGMA foreign_keys=OFF")
+        connection.commit()  # ends SQLAlchemy's autobegun transaction; the driver began none
+        with connection.begin():
+            connection.exec_driver_sql("BEGIN")
+            yield
+            dangling = connection.exec_driver_sql("PRAGMA foreign_key_check").all()
+            if dangling:
+                raise ForeignKeyViolation(
+                    "the migration left rows referencing missing ones (table, rowid, referenced "
+                    f"table): {[tuple(row[:3]) for row in dangling[:10]]}")
+    finally:
+        connection.exec_driver_sql("PRAGMA foreign_keys=ON")
+        connection.commit()
+        driver.isolation_level = isolation_level
+
+
+class ForeignKeyViolation(RuntimeError):
+    """A migration left rows whose references point nowhere; it was rolled back."""
 
 
 @contextmanager

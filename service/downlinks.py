@@ -1,8 +1,9 @@
-"""Each downlink's outcome: how many of its products were accepted, rejected or in conflict,
-its kernels, the files it offered that are not used, and how often it was delivered; the one
-source of `pwm downlinks` and the API's /downlinks. Also what `pwm downlinks` says of the
-catalog as a whole: the maplets whose current revision was made with another refinement
-configuration, which no downlink re-refines unless asked (service.refinement.stale_maplets)."""
+"""Each downlink's outcome: how many of its products were accepted, rejected or in conflict, its
+lidar products and their shots, its kernels, the files it offered that are not used, and how
+often it was delivered; the one source of `pwm downlinks` and the API's /downlinks. Also what
+`pwm downlinks` says of the catalog as a whole: the maplets whose current revision was made with
+another refinement configuration, which no downlink re-refines unless asked
+(service.refinement.stale_maplets)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,18 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from pwm.config import RefinementConfig
-from service.rows import Downlink, DownlinkFile, DownlinkStatus, Image, ImageStatus, Kernel, Maplet, MapletRevision
+from service.rows import (
+    Acceptance,
+    Downlink,
+    DownlinkFile,
+    DownlinkStatus,
+    Image,
+    ImageStatus,
+    Kernel,
+    LidarProduct,
+    Maplet,
+    MapletRevision,
+)
 
 
 class Outcome(enum.StrEnum):
@@ -45,6 +57,10 @@ class DownlinkSummary:
     unused_files: int = 0
     model_note: str | None = None
     pose_adjustment: dict | None = None
+    # its lidar products by status, and the shots (all, and usable) of those accepted
+    lidar: dict[Acceptance, int] = field(default_factory=dict)
+    lidar_shots: int = 0
+    lidar_valid_shots: int = 0
 
     @property
     def accepted(self) -> int:
@@ -62,12 +78,13 @@ class DownlinkSummary:
     def outcome(self) -> Outcome:
         if self.status is not DownlinkStatus.INGESTED:
             return Outcome.PENDING
-        offered = sum(self.images.values())
+        offered = sum(self.images.values()) + sum(self.lidar.values())
+        accepted = self.accepted + self.lidar.get(Acceptance.ACCEPTED, 0)
         if offered == 0:
             return Outcome.EMPTY
-        if self.accepted == offered:
+        if accepted == offered:
             return Outcome.ACCEPTED
-        return Outcome.PARTIAL if self.accepted else Outcome.REJECTED
+        return Outcome.PARTIAL if accepted else Outcome.REJECTED
 
 
 def downlink_ids(session: Session, *, status: DownlinkStatus | None = None, limit: int | None = None,
@@ -97,13 +114,24 @@ def downlink_summaries(session: Session, ids: list[int]) -> list[DownlinkSummary
             select(Image.downlink_id, Image.status, func.count())
             .where(Image.downlink_id.in_(ids)).group_by(Image.downlink_id, Image.status)):
         images.setdefault(downlink_id, {})[image_status] = n
+    lidar: dict[int | None, dict[Acceptance, int]] = {}
+    shots: dict[int | None, tuple[int, int]] = {}
+    for downlink_id, lidar_status, n, all_shots, valid_shots in session.execute(
+            select(LidarProduct.downlink_id, LidarProduct.status, func.count(), func.sum(LidarProduct.shots),
+                   func.sum(LidarProduct.valid_shots))
+            .where(LidarProduct.downlink_id.in_(ids)).group_by(LidarProduct.downlink_id, LidarProduct.status)):
+        lidar.setdefault(downlink_id, {})[lidar_status] = n
+        if lidar_status is Acceptance.ACCEPTED:
+            shots[downlink_id] = (int(all_shots or 0), int(valid_shots or 0))
     rows = session.scalars(select(Downlink).where(Downlink.id.in_(ids))
                            .order_by(Downlink.received_at.desc(), Downlink.id.desc()))
     return [DownlinkSummary(id=d.id, name=d.name, path=d.path, received_at=d.received_at,
                             status=d.status, repeat_count=d.repeat_count,
                             last_seen_at=d.last_seen_at, kernels=kernels.get(d.id, 0),
                             images=images.get(d.id, {}), unused_files=unused.get(d.id, 0),
-                            model_note=d.model_note, pose_adjustment=d.pose_adjustment)
+                            model_note=d.model_note, pose_adjustment=d.pose_adjustment,
+                            lidar=lidar.get(d.id, {}), lidar_shots=shots.get(d.id, (0, 0))[0],
+                            lidar_valid_shots=shots.get(d.id, (0, 0))[1])
             for d in rows]
 
 

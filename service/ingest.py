@@ -14,9 +14,19 @@ and becomes one Image row:
   bad_dimensions);
 - conflict: the LIDVID is catalogued already with other content (label + data sha256); the
   first good copy stays authoritative.
-A laser altimetry product (a PDS4 table of shots that pwm.io.lidar reads) is set aside: its
-label and files recorded as unused (`lidar_product`, with the reader's verdict), not a failure,
-until the catalog takes lidar.
+A laser altimetry product (a label whose table of shots is in a layout pwm.io.lidar knows)
+becomes one LidarProduct row, keyed by its LIDVID and content as an image is: its table read
+within the limits (IngestLimits.max_lidar_shots), its target and body-fixed frame resolved
+against the kernel pool, each shot placed with SPICE at its time (pwm.io.lidar.place_shots:
+unusable shots kept, with why), grouped into tracks (pwm.lidar.tracks.track_ids, one
+LidarTrack row each with its span, cone and box), and its shots stored in the artifact store
+as one compressed array file (pwm.io.lidar.write_shots), never one row per shot. Rejected
+with a code: the reader's (pwm.io.pds4.ProductError: not_lidar, unknown_layout, truncated,
+too_many_shots, ...), unknown_target, unknown_instrument, bad_kernel, no_shots, geometry,
+outside_coverage (no shot's time in the kernels). Judged again when seen again: those
+rejected for their kernels or their transfer, and those accepted with shots outside the
+kernels. Another copy of an accepted LIDVID with other content is recorded as a file not used
+(code conflict); a broken copy's row is taken by the next whole one.
 
 An ISIS cube (*.cub, pwm.io.isis) is a product of one file whose geometry is its own: its
 attached SPICE tables give its pose and Sun, its label the camera and the target's ellipsoid,
@@ -54,10 +64,11 @@ import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from datetime import timedelta
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any, cast
 
+import numpy as np
 import spiceypy as sp
 from sqlalchemy import CursorResult, Engine, or_, select, update
 from sqlalchemy.exc import IntegrityError
@@ -66,8 +77,8 @@ from sqlalchemy.orm import Session, sessionmaker
 from pwm.camera import Camera
 from pwm.geometry import Ellipsoid, MeshSurface, Surface, ViewGeometry, view_geometry
 from pwm.io.isis import Cube, cube_key, is_cube, read_cube, read_cube_pixels
-from pwm.io.labels import LABEL_SUFFIXES
-from pwm.io.lidar import is_lidar_label, read_lidar_table
+from pwm.io.labels import LABEL_SUFFIXES, body_name, target_frame
+from pwm.io.lidar import is_lidar_label, place_shots, read_lidar_table, write_shots
 from pwm.io.pds4 import ImageLabel, ProductError, read_array, read_image_label
 from pwm.io.resolve import (
     NO_KERNELS,
@@ -81,8 +92,12 @@ from pwm.io.resolve import (
 )
 from pwm.io.spice_geometry import ABCORR, camera_from_kernel, ellipsoid_of, instrument_frame, spacecraft_of
 from pwm.io.spice_kernels import kernel_pool
+from pwm.lidar.config import LIDAR
+from pwm.lidar.shots import Invalid
+from pwm.lidar.tracks import track_extents, track_ids
 from pwm.mesh import Mesh
 from pwm.parallel import Progress
+from service.artifacts import scratch_file, store_artifact
 from service.db import insert_ignoring_conflict, make_sessionmaker, session_scope
 from service.kernels import (
     KernelOutcome,
@@ -94,6 +109,7 @@ from service.kernels import (
     spice_message,
 )
 from service.rows import (
+    Acceptance,
     Downlink,
     DownlinkStatus,
     GeometryStatus,
@@ -102,6 +118,8 @@ from service.rows import (
     ImageStatus,
     Instrument,
     KernelKind,
+    LidarProduct,
+    LidarTrack,
     utcnow,
 )
 from service.settings import IngestLimits, get_settings
@@ -120,7 +138,9 @@ TRANSFER_CODES = frozenset({"missing_file", "size_mismatch", "md5_mismatch", "tr
                             "unreadable", INCOMPLETE})
 _PROVISIONAL_CODES = TRANSFER_CODES | {UNEXPECTED}
 _UNIDENTIFIED = "unidentified:"
-LIDAR_PRODUCT = "lidar_product"  # a laser altimetry product, set aside until the catalog takes lidar
+# Lidar outcomes that new kernels can change (outside_coverage: no shot's time in them).
+LIDAR_KERNEL_CODES = frozenset({"unknown_instrument", "unknown_target", "bad_kernel", "geometry", "outside_coverage"})
+CONFLICT = "conflict"  # a copy of a catalogued product with other content: not used
 _CUBE_LID, _CUBE_VID = "isis:", "1.0"
 _HASH_CHUNK = 1 << 20
 # Column sizes of service.rows.Image: a LIDVID must leave room for a conflict's suffix.
@@ -158,6 +178,9 @@ class IngestReport:
     kernels: Counts = field(default_factory=Counts)
     images: Counts = field(default_factory=Counts)
     geometry_unavailable: int = 0
+    lidar: Counts = field(default_factory=Counts)
+    lidar_shots: int = 0  # shots of the lidar products this ingest accepted
+    lidar_valid_shots: int = 0  # of which usable
     failures: list[Failure] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     elapsed_s: float = 0.0
@@ -167,11 +190,14 @@ class IngestReport:
         return len(self.failures)
 
     def summary(self) -> str:
-        k, i = self.kernels, self.images
+        k, i, lidar = self.kernels, self.images, self.lidar
+        said = (f"; lidar products {lidar.accepted} accepted ({self.lidar_shots} shots, {self.lidar_valid_shots} "
+                f"valid), {lidar.rejected} rejected, {lidar.unchanged} unchanged"
+                if lidar.accepted + lidar.rejected + lidar.unchanged else "")
         return (f"{self.downlink}: kernels {k.accepted} accepted, {k.rejected} rejected, "
                 f"{k.unchanged} unchanged; images {i.accepted} accepted "
                 f"({self.geometry_unavailable} without geometry), {i.rejected} rejected, "
-                f"{i.unchanged} unchanged; {self.failed} failed; {self.elapsed_s:.1f} s")
+                f"{i.unchanged} unchanged{said}; {self.failed} failed; {self.elapsed_s:.1f} s")
 
 
 @dataclass(frozen=True)
@@ -259,7 +285,8 @@ class IngestTakenOver(RuntimeError):
 
 def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *,
                      downlink_name: str | None = None, shape: Mesh | None = None,
-                     limits: IngestLimits | None = None, progress: Progress | None = None) -> IngestReport:
+                     limits: IngestLimits | None = None, data_dir: Path | None = None,
+                     progress: Progress | None = None) -> IngestReport:
     """Catalogue the SPICE kernels and PDS4 products under `directory` as one downlink.
 
     downlink_name defaults to the directory's name (a suffix is added when another directory
@@ -280,6 +307,7 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
     """
     sessions = make_sessionmaker(catalog) if isinstance(catalog, Engine) else catalog
     limits = limits or get_settings().ingest_limits()
+    data_dir = Path(data_dir) if data_dir is not None else get_settings().data_dir
     directory = Path(directory).resolve()
     if not directory.is_dir():
         raise NotADirectoryError(f"{directory} is not a directory")
@@ -295,7 +323,7 @@ def ingest_directory(catalog: sessionmaker[Session] | Engine, directory: Path, *
         manifest = _read_manifest(directory, limits, report)
         named = _ingest_images(sessions, directory, labels, downlink_id=downlink_id,
                                report=report, shape=None if shape is None else MeshSurface(shape),
-                               limits=limits, manifest=manifest, progress=progress)
+                               limits=limits, manifest=manifest, data_dir=data_dir, progress=progress)
         used = {o.path for o in outcomes} | named | set(labels)
         with _owned(sessions, downlink_id) as session:
             for path in others:
@@ -594,9 +622,11 @@ class _Catalog:
     """The image pass's view of the catalog and of the loaded kernel pool."""
 
     def __init__(self, session: Session, downlink_id: int, shape: Surface | None,
-                 directory: Path, limits: IngestLimits, manifest: Mapping[Path, _Listed]) -> None:
+                 directory: Path, limits: IngestLimits, manifest: Mapping[Path, _Listed], data_dir: Path) -> None:
         self.session, self.downlink_id, self.shape = session, downlink_id, shape
         self.directory, self.limits, self.manifest = directory, limits, manifest
+        self.data_dir = data_dir
+        self.lidar_seen: set[str] = set()  # the LIDVIDs of the lidar products this ingest judged
         self.windows = KernelWindows(spk=coverage_windows(session, KernelKind.SPK),
                                      ck=coverage_windows(session, KernelKind.CK))
         self.instruments: dict[int, Instrument | str] = {
@@ -681,7 +711,7 @@ def _focal_source(naif_id: int, fx: float) -> tuple[str, str]:
 
 def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: list[Path], *,
                    downlink_id: int, report: IngestReport, shape: Surface | None,
-                   limits: IngestLimits, manifest: Mapping[Path, _Listed],
+                   limits: IngestLimits, manifest: Mapping[Path, _Listed], data_dir: Path,
                    progress: Progress | None) -> set[Path]:
     """Catalogue each label; the files the labels name."""
     named: set[Path] = set()
@@ -690,11 +720,10 @@ def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: lis
         missing = [k.path for k in kernels if not Path(k.path).is_file()]
         report.warnings += [f"catalogued kernel {p} is missing on disk" for p in missing]
         with kernel_pool(Path(k.path) for k in kernels if k.path not in missing):
-            catalog = _Catalog(session, downlink_id, shape, directory, limits, manifest)
+            catalog = _Catalog(session, downlink_id, shape, directory, limits, manifest, data_dir)
             for n, label in enumerate(labels, 1):
-                lidar = _lidar_product(label, directory, limits)
-                if lidar is not None:
-                    named |= _set_aside(catalog, label, *lidar)
+                if _is_lidar(label, limits):
+                    named |= _ingest_lidar(catalog, label, report)
                 else:
                     named |= _ingest_product(catalog, label, report)
                 if progress is not None:
@@ -707,40 +736,199 @@ def _ingest_images(sessions: sessionmaker[Session], directory: Path, labels: lis
     return named
 
 
-def _lidar_product(label: Path, directory: Path, limits: IngestLimits) -> tuple[str, list[Path]] | None:
-    """Why a laser altimetry product (a PDS4 table of shots in a layout pwm.io.lidar knows) is
-    not catalogued, and the files its label names; None for any other label (another table is
-    judged as any product: not an image). The reader's verdict is in the reason, so a broken
-    lidar product says how it is broken."""
+def _is_lidar(label: Path, limits: IngestLimits) -> bool:
+    """Whether a label is a laser altimetry product's: a PDS4 table of shots in a layout
+    pwm.io.lidar knows, whole or broken (another table is judged as any product: not an
+    image). A label too large to read is left to the image path, which says so."""
     if is_cube(label) or label.stat().st_size > limits.max_label_bytes:
-        return None
+        return False
     raw = label.read_bytes()
     # an image's label holds no table: it is parsed once, by _identify, not here too
     if b"Table_Binary" not in raw and b"Table_Character" not in raw:
-        return None
+        return False
     try:
-        root = ET.fromstring(raw)
+        return is_lidar_label(ET.fromstring(raw))
     except ET.ParseError:
-        return None
-    if not is_lidar_label(root):
-        return None
-    names = [e.text.strip() for e in root.iterfind("{*}File_Area_Observational/{*}File/{*}file_name") if e.text]
+        return False
+
+
+@dataclass(frozen=True)
+class _LidarOutcome:
+    """What judging one lidar product's copy gave: accepted with its rows' values, or rejected."""
+
+    status: Acceptance
+    code: str | None = None
+    reason: str | None = None
+    values: Mapping[str, Any] = field(default_factory=dict)
+    tracks: tuple[LidarTrack, ...] = ()
+
+    @property
+    def verdict(self) -> tuple:
+        return (self.status, self.code, self.reason, self.values.get("invalid_shots", {}),
+                self.values.get("shots_artifact"))
+
+
+def _lidar_provisional(row: LidarProduct) -> bool:
+    """A catalogued lidar product whose outcome may change with the same content: rejected for
+    its transfer or its kernels, or with shots whose time the kernels did not cover."""
+    if row.status is Acceptance.REJECTED:
+        return row.rejection_code in _PROVISIONAL_CODES | LIDAR_KERNEL_CODES
+    return bool(row.invalid_shots.get(Invalid.OUTSIDE_KERNELS.name.lower()))
+
+
+def _ingest_lidar(catalog: _Catalog, label: Path, report: IngestReport) -> frozenset[Path]:
+    """Catalogue one lidar product (the module's docstring) in a savepoint and count it in
+    `report`; the files its label names. Any exception in its checks is its rejection (code
+    `unexpected`); a row of its LIDVID that a concurrent ingest inserted first is read, and the
+    product judged once more against it."""
     try:
-        table = read_lidar_table(label, root=directory, max_label_bytes=limits.max_label_bytes)
-        verdict = f"{len(table.et)} shots in the {table.layout} layout, readable"
-    except (ProductError, OSError, ValueError) as exc:
-        verdict = f"not readable: {exc}"
-    reason = f"a laser altimetry table ({verdict}); the catalog does not take lidar products yet"
-    return reason, [label.parent / n for n in names if Path(n).name == n]
+        identity = _identify(label, catalog.directory, catalog.limits, catalog.manifest)
+    except OSError as exc:
+        report.lidar.rejected += 1
+        report.failures.append(Failure(str(label), "unreadable", str(exc)))
+        return frozenset()
+    outcome: _LidarOutcome | None
+    try:
+        try:
+            outcome = _lidar_in_savepoint(catalog, label, identity)
+        except IntegrityError:
+            outcome = _lidar_in_savepoint(catalog, label, identity)
+    except Exception as exc:
+        log.exception("%s: rejected on an unexpected error", label)
+        outcome = _LidarOutcome(Acceptance.REJECTED, UNEXPECTED, f"{type(exc).__name__}: {exc}")
+        try:
+            with catalog.session.begin_nested():
+                _record_lidar(catalog, label, identity, outcome)
+        except Exception:
+            log.exception("%s: its rejection could not be stored", label)
+    if outcome is None:
+        report.lidar.unchanged += 1
+    elif outcome.status is Acceptance.ACCEPTED:
+        report.lidar.accepted += 1
+        report.lidar_shots += outcome.values["shots"]
+        report.lidar_valid_shots += outcome.values["valid_shots"]
+    else:
+        report.lidar.rejected += 1
+        report.failures.append(Failure(str(label), outcome.code or "", outcome.reason or ""))
+    return identity.files
 
 
-def _set_aside(catalog: _Catalog, label: Path, reason: str, files: list[Path]) -> frozenset[Path]:
-    """Record a lidar product's label and files as unused, with why: kept, not a failure."""
-    for path in [label, *files]:
-        if path.is_file():
-            record_file(catalog.session, downlink_id=catalog.downlink_id, path=path, code=LIDAR_PRODUCT,
-                        reason=reason)
-    return frozenset(files)
+def _lidar_in_savepoint(catalog: _Catalog, label: Path, identity: _Identity) -> _LidarOutcome | None:
+    """Judge and record one lidar product's copy; None when the catalog already says what it
+    would. A catalogued copy with other content stays, unless it arrived broken."""
+    with catalog.session.begin_nested():
+        row = catalog.session.scalars(select(LidarProduct).filter_by(lidvid=identity.lidvid)).one_or_none()
+        if row is not None and row.sha256 == identity.sha256 and (
+                identity.lidvid in catalog.lidar_seen or not _lidar_provisional(row)):
+            return None
+        if row is not None and row.sha256 != identity.sha256 and not (
+                row.status is Acceptance.REJECTED and row.rejection_code in _PROVISIONAL_CODES):
+            reason = (f"{identity.lidvid} is catalogued already with other content (sha256 {row.sha256}); "
+                      f"this copy (sha256 {identity.sha256}) is not used")
+            for path in [label, *identity.files]:
+                if path.is_file():
+                    record_file(catalog.session, downlink_id=catalog.downlink_id, path=path, code=CONFLICT,
+                                reason=reason)
+            return _LidarOutcome(Acceptance.REJECTED, CONFLICT, reason)
+        outcome = _judge_lidar(catalog, label, identity)
+        changed = _record_lidar(catalog, label, identity, outcome, row)
+        catalog.session.flush()
+    catalog.lidar_seen.add(identity.lidvid)
+    return outcome if changed else None
+
+
+def _record_lidar(catalog: _Catalog, label: Path, identity: _Identity, outcome: _LidarOutcome,
+                  row: LidarProduct | None = None) -> bool:
+    """Store the outcome on `row` (a new one for None), its tracks replaced; False where the
+    row already said it."""
+    if row is None:
+        row = catalog.session.scalars(select(LidarProduct).filter_by(lidvid=identity.lidvid)).one_or_none()
+    if row is None:
+        row = LidarProduct(lidvid=identity.lidvid, lid=identity.lid, vid=identity.vid)
+        catalog.session.add(row)
+    elif (row.sha256 == identity.sha256 and (row.status, row.rejection_code, row.rejection_reason, row.invalid_shots,
+                                               row.shots_artifact) == outcome.verdict):
+        return False
+    row.label_path, row.data_path = str(label), str(identity.data_path or "")
+    row.sha256, row.size_bytes, row.downlink_id = identity.sha256, identity.size_bytes, catalog.downlink_id
+    row.status, row.rejection_code, row.rejection_reason = outcome.status, outcome.code, outcome.reason
+    blank: dict[str, Any] = {"layout": None, "instrument": None, "target": None, "body_frame": None,
+                             "start_et": None, "stop_et": None, "start_utc": None, "stop_utc": None, "shots": 0,
+                             "valid_shots": 0, "invalid_shots": {}, "shots_artifact": None}
+    for name, value in (blank | dict(outcome.values)).items():
+        setattr(row, name, value)
+    row.ingested_at = utcnow()
+    row.tracks = list(outcome.tracks)
+    return True
+
+
+def _judge_lidar(catalog: _Catalog, label: Path, identity: _Identity) -> _LidarOutcome:
+    """Read a lidar product's table within the limits, resolve its target's frame, place its
+    shots with the loaded kernels, group them into tracks and store them (the module's
+    docstring); or its rejection."""
+    if identity.rejection is not None:
+        return _LidarOutcome(Acceptance.REJECTED, *identity.rejection)
+    incomplete = _off_manifest(catalog, identity)
+    if incomplete is not None:
+        return _LidarOutcome(Acceptance.REJECTED, incomplete.code, incomplete.reason)
+    try:
+        table = read_lidar_table(label, root=catalog.directory, max_label_bytes=catalog.limits.max_label_bytes,
+                                 max_shots=catalog.limits.max_lidar_shots)
+    except ProductError as exc:
+        return _LidarOutcome(Acceptance.REJECTED, exc.code, str(exc))
+    except OSError as exc:
+        return _LidarOutcome(Acceptance.REJECTED, "unreadable", str(exc))
+    named = {"layout": table.layout, "instrument": (table.instrument or "")[:64] or None,
+             "target": (table.target or "")[:64] or None, "shots": len(table.et)}
+    if not len(table.et):
+        return _LidarOutcome(Acceptance.REJECTED, "no_shots", f"{label.name}: its table holds no shots", named)
+    target, frame = target_frame(table.target)
+    if target is None or frame is None:
+        said = "no target" if not table.target else f"target {table.target!r}"
+        why = "SPICE knows no such body" if target is None else "the kernels give it no body-fixed frame"
+        return _LidarOutcome(Acceptance.REJECTED, "unknown_target", f"{label.name} names {said}: {why}", named)
+    try:
+        shots = place_shots(table, target=body_name(target), body_frame=frame)
+    except ProductError as exc:
+        return _LidarOutcome(Acceptance.REJECTED, exc.code, str(exc), named)
+    except sp.utils.exceptions.SpiceyError as exc:
+        return _LidarOutcome(Acceptance.REJECTED, "geometry", spice_message(exc), named)
+    codes, counts = np.unique(shots.invalid, return_counts=True)
+    invalid = {Invalid(int(c)).name.lower(): int(n) for c, n in zip(codes, counts, strict=True)
+               if c != Invalid.VALID}
+    valid = int(shots.valid.sum())
+    if not valid and invalid.get(Invalid.OUTSIDE_KERNELS.name.lower()):
+        return _LidarOutcome(Acceptance.REJECTED, "outside_coverage", (
+            f"{label.name}: none of its {len(shots)} shots is usable, {invalid['outside_kernels']} of them at "
+            "times the kernels hold no pose for; judged again when kernels come"), named)
+    track = track_ids(shots, LIDAR)
+    with scratch_file(catalog.data_dir, ".npz") as scratch:
+        write_shots(scratch, shots, track)
+        artifact = store_artifact(catalog.data_dir, scratch)
+    finite = table.et[np.isfinite(table.et)]
+    span = (float(finite.min()), float(finite.max())) if len(finite) else (None, None)
+    tracks = tuple(LidarTrack(
+        track=e.track, start_et=e.start_et, stop_et=e.stop_et, shots=e.shots,
+        cone_axis_x=float(e.axis[0]), cone_axis_y=float(e.axis[1]), cone_axis_z=float(e.axis[2]),
+        cone_half_angle_rad=e.half_angle_rad, axis_lat_deg=float(np.degrees(np.arcsin(np.clip(e.axis[2], -1, 1)))),
+        axis_lon_deg=float(np.degrees(np.arctan2(e.axis[1], e.axis[0])) % 360.0),
+        min_x_km=float(e.box_min_km[0]), min_y_km=float(e.box_min_km[1]), min_z_km=float(e.box_min_km[2]),
+        max_x_km=float(e.box_max_km[0]), max_y_km=float(e.box_max_km[1]), max_z_km=float(e.box_max_km[2]))
+        for e in track_extents(shots.spots_km(), shots.et, track))
+    return _LidarOutcome(Acceptance.ACCEPTED, values=named | {
+        "body_frame": frame, "start_et": span[0], "stop_et": span[1], "start_utc": _utc(span[0]),
+        "stop_utc": _utc(span[1]), "valid_shots": valid, "invalid_shots": invalid, "shots_artifact": artifact},
+        tracks=tracks)
+
+
+def _utc(et: float | None) -> datetime | None:
+    """An ephemeris time as UTC (the pool's leapseconds), None where there is none."""
+    if et is None:
+        return None
+    try:
+        return sp.et2datetime(et).astimezone(UTC)
+    except (sp.utils.exceptions.SpiceyError, ValueError, OverflowError):
+        return None
 
 
 def _ingest_product(catalog: _Catalog, label: Path, report: IngestReport) -> frozenset[Path]:

@@ -17,6 +17,11 @@ All of it runs under the publication lock (service.versions.publication_lock), t
 parent is read, so two fusions never build on the same parent. Publication only publishes: what
 is made from a version for its readers (the console's documents, exports) is made by their own
 modules, after publication or on request.
+
+Each version is checked against the catalog's lidar (`lidar_statistics`): a uniform sample of
+its usable shots (PWM_LIDAR_RESIDUAL_SHOTS), each track's strip correction applied where it was
+adjusted, gives the version's statistics "lidar" (pwm.lidar.model.residual_summary) and each
+track's residuals on it.
 """
 
 from __future__ import annotations
@@ -26,17 +31,35 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.fusion_state import read_composition, read_levels, write_composition, write_levels
+from pwm.io.lidar import read_shots
 from pwm.levels import LevelGrids
+from pwm.lidar.model import residual_summary, sample_shots, spot_normals, usable
+from pwm.lidar.shots import Shots
+from pwm.lidar.strips import Correction, apply_corrections
+from pwm.lidar.tracks import NO_TRACK, crossovers
+from pwm.mesh import Mesh
 from service.artifacts import artifact_path, scratch_path
 from service.db import session_scope
 from service.jobs import refined_downlinks
 from service.refinement import load_revision_maplet
-from service.rows import Downlink, Maplet, MapletRevision, ModelKind, ModelVersion, model_version_downlinks
+from service.rows import (
+    Acceptance,
+    Downlink,
+    LidarProduct,
+    LidarTrack,
+    Maplet,
+    MapletRevision,
+    ModelKind,
+    ModelVersion,
+    model_version_downlinks,
+)
+from service.settings import get_settings
 from service.versions import latest_version, publication_lock, publish_version, version_mesh
 
 log = logging.getLogger(__name__)
@@ -114,6 +137,9 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
             "composition": {"regions_laid": laid.regions_laid, "regions_carried": laid.regions_carried,
                             "closed_levels_made": laid.below_made},
             "fusion_seconds": time.perf_counter() - clock}
+        lidar = lidar_statistics(session, data_dir=data_dir, mesh=mesh, version=parent.version + 1)
+        if lidar is not None:
+            statistics["lidar"] = lidar
         version = publish_version(session, data_dir=data_dir, mesh=mesh, kind=ModelKind.REFINED,
                                   parent=parent, statistics=statistics,
                                   extra_artifacts=scratch,
@@ -123,6 +149,77 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
                  version.version, parent.version, len(changed), len(current),
                  time.perf_counter() - clock)
         return version.version
+
+
+def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: int,
+                     at_most: int | None = None) -> dict | None:
+    """The lidar statistics of `mesh`, about to be published as `version`: at most `at_most`
+    (default PWM_LIDAR_RESIDUAL_SHOTS) of the catalog's usable shots, sampled uniformly over
+    its accepted lidar products, each track's correction applied where adjusted, measured
+    against the mesh (pwm.lidar.model.residual_summary; tracks by their catalog id), and the
+    crossovers between the tracks (`_crossovers`: in all, and per track their count and height
+    RMS); each track's figures stored on its row with the version. None where the catalog has no usable
+    shot (or none is to be checked)."""
+    at_most = get_settings().lidar_residual_shots if at_most is None else at_most
+    products = session.scalars(select(LidarProduct).where(
+        LidarProduct.status == Acceptance.ACCEPTED, LidarProduct.valid_shots > 0,
+        LidarProduct.shots_artifact.is_not(None)).order_by(LidarProduct.id)).all()
+    total = sum(p.valid_shots for p in products)
+    if not total or not at_most:
+        return None
+    parts, ids, rows = [], [], {}
+    for product in products:
+        if product.shots_artifact is None:  # none, by the query
+            continue
+        shots, track = read_shots(artifact_path(data_dir, product.shots_artifact, verify=True))
+        mine = {t.track: t for t in product.tracks}
+        shots = apply_corrections(shots, track, {t: c for t, row in mine.items()
+                                                 if (c := _correction(row)) is not None})
+        pick = sample_shots(usable(shots), round(at_most * product.valid_shots / total), seed=product.id)
+        parts.append(shots.take(pick))
+        ids.append(np.array([mine[t].id if t in mine else NO_TRACK for t in track[pick]], dtype=np.int64))
+        rows.update({row.id: row for row in mine.values()})
+    sample = Shots.joined(parts)
+    track_ids = np.concatenate(ids)
+    summary = residual_summary(sample, mesh, track_ids)
+    crossing = _crossovers(sample, track_ids)
+    for key, figures in summary["tracks"].items():
+        row = rows[int(key)]
+        row.residual_mean_km, row.residual_rms_km = figures["mean_km"], figures["rms_km"]
+        row.residual_p95_km, row.residual_version = figures["p95_km"], version
+        figures["crossovers"], figures["crossover_rms_km"] = crossing.get(int(key), (0, None))
+    for row in rows.values():  # a track with no measured spot may still cross others
+        row.crossovers, row.crossover_rms_km = crossing.get(row.id, (0, None))
+    return summary | {"products": len(products), "usable_shots": total,
+                      "crossovers": sum(n for n, _ in crossing.values()) // 2}
+
+
+def _crossovers(shots: Shots, track: np.ndarray) -> dict[int, tuple[int, float | None]]:
+    """Per track (by id): how many crossovers with other tracks its spots make
+    (pwm.lidar.tracks.crossovers, corrections applied, the normals from the spots themselves:
+    the tracks' agreement, whatever the model) and the RMS of their height differences (km)."""
+    spots = shots.spots_km()
+    if len(spots) < 3:
+        return {}
+    found = crossovers(spots, track, spot_normals(spots, shots.origin_km))
+    ends = np.concatenate([track[found.first], track[found.second]])
+    heights = np.concatenate([found.height_km, found.height_km])
+    return {int(t): (int((ends == t).sum()), float(np.sqrt(np.mean(heights[ends == t] ** 2))))
+            for t in np.unique(ends)}
+
+
+def _correction(row: LidarTrack) -> Correction | None:
+    """A track's stored strip correction, None where it was not adjusted."""
+    if row.adjusted_at is None:
+        return None
+    about = np.array([row.about_x_km, row.about_y_km, row.about_z_km], dtype=float)
+    sigma = np.array([np.inf if s is None else s for s in row.correction_sigma or [None] * 6], dtype=float)
+    return Correction(track=row.track, rotation_rad=np.array([row.rotation_x_rad, row.rotation_y_rad,
+                                                              row.rotation_z_rad], dtype=float),
+                      translation_km=np.array([row.translation_x_km, row.translation_y_km, row.translation_z_km],
+                                              dtype=float),
+                      about_km=about, sigma=sigma, covariance=np.zeros((6, 6)), shots=row.shots,
+                      rms_km=float("nan"), extent_km=0.0)
 
 
 def first_version_with(session: Session, *, downlink_id: int) -> int | None:

@@ -1,5 +1,6 @@
 """The catalog read by maplet: which images see a surface point, which maplets an image sees,
-how well a maplet's image set covers it, and maplet listings.
+which maplets a lidar track may cross, how well a maplet's image set covers it, and maplet
+listings.
 
 A surface point is given by planetocentric latitude and east longitude (deg). It lies in a
 maplet when the radial line through it meets the maplet's plane (local z = 0) inside the
@@ -28,7 +29,7 @@ from sqlalchemy.orm import Session
 
 from pwm.frames import LocalFrame, latlon_to_unit
 from pwm.weights import azimuth_spread_deg
-from service.rows import Coverage, CoverageRole, Image, ImageGeometry, Maplet, MapletRevision
+from service.rows import Coverage, CoverageRole, Image, ImageGeometry, LidarTrack, Maplet, MapletRevision
 
 
 class _Result(BaseModel):
@@ -312,7 +313,14 @@ def _prefilter(
     reach_km = size_km / math.sqrt(2.0) + radius_km
     if reach_km >= math.sqrt(radius2_km2):
         return true()
-    cap_deg = math.degrees(math.asin(reach_km / math.sqrt(radius2_km2)))
+    return _in_cap(lat_deg, lon_deg, math.degrees(math.asin(reach_km / math.sqrt(radius2_km2))))
+
+
+def _in_cap(lat_deg: float, lon_deg: float, cap_deg: float) -> ColumnElement[bool]:
+    """A condition on the maplets' centre latitude and longitude that holds for every centre
+    within cap_deg of (lat_deg, lon_deg) on the sphere (a range scan of their index)."""
+    if cap_deg >= 180.0:
+        return true()
     in_latitude = Maplet.center_lat_deg.between(lat_deg - cap_deg, lat_deg + cap_deg)
     if abs(lat_deg) + cap_deg >= 90.0:
         return in_latitude  # the cap holds a pole: every longitude
@@ -323,6 +331,58 @@ def _prefilter(
     return and_(in_latitude, or_(*(
         Maplet.center_lon_deg.between(lon - half_deg + turn, lon + half_deg + turn)
         for turn in (-360.0, 0.0, 360.0))))
+
+
+class TrackCrossing(_Result):
+    """A maplet a lidar track may cross: its spots' cone (about the body's centre) meets the
+    maplet's square. angle_deg: from the cone's axis to the maplet's centre."""
+
+    maplet_id: int
+    maplet: str
+    center_lat_deg: float
+    center_lon_deg: float
+    level: int
+    angle_deg: float
+
+
+def maplets_crossed(session: Session, *, track_id: int) -> list[TrackCrossing]:
+    """The maplets a lidar track (service.rows.LidarTrack, by id) may cross, nearest its
+    cone's axis first: those whose square reaches into the cone of its spots about the body's
+    centre, found as images' maplets are, by a range scan of the maplets' centres over the cap
+    the cone and the largest maplet's half-diagonal span, then each maplet's own reach. A
+    superset of those its spots fall in (a cone holds a track's whole sweep). LookupError if
+    the catalog has no such track."""
+    track = session.get(LidarTrack, track_id)
+    if track is None:
+        raise LookupError(f"no lidar track {track_id} in the catalog")
+    size_km, radius2_km2 = session.execute(select(
+        func.max(Maplet.size_km),
+        func.min(Maplet.origin_x_km * Maplet.origin_x_km + Maplet.origin_y_km * Maplet.origin_y_km
+                 + Maplet.origin_z_km * Maplet.origin_z_km))).one()
+    if size_km is None:
+        return []
+    half_diagonal = size_km / math.sqrt(2.0)
+    radius_km = math.sqrt(radius2_km2)
+    # a maplet whose origin is nearer the centre than its half-diagonal may be seen from anywhere
+    reach_deg = 180.0 if half_diagonal >= radius_km else math.degrees(math.asin(half_diagonal / radius_km))
+    cap_deg = math.degrees(track.cone_half_angle_rad) + reach_deg
+    axis = np.array([track.cone_axis_x, track.cone_axis_y, track.cone_axis_z])
+    rows = session.execute(select(Maplet.id, Maplet.name, Maplet.center_lat_deg, Maplet.center_lon_deg,
+                                  Maplet.level, Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
+                                  Maplet.size_km)
+                           .where(_in_cap(track.axis_lat_deg, track.axis_lon_deg, cap_deg))).all()
+    if not rows:
+        return []
+    origin = np.array([(r.origin_x_km, r.origin_y_km, r.origin_z_km) for r in rows])
+    distance = np.linalg.norm(origin, axis=1)
+    angle = np.degrees(np.arccos(np.clip(origin @ axis / np.maximum(distance, 1e-300), -1.0, 1.0)))
+    own = np.array([r.size_km for r in rows]) / math.sqrt(2.0)
+    reach = np.degrees(np.arcsin(np.clip(own / np.maximum(distance, 1e-300), 0.0, 1.0)))
+    within = angle <= math.degrees(track.cone_half_angle_rad) + reach
+    found = [TrackCrossing(maplet_id=r.id, maplet=r.name, center_lat_deg=r.center_lat_deg,
+                           center_lon_deg=r.center_lon_deg, level=r.level, angle_deg=float(a))
+             for r, a, inside in zip(rows, angle, within, strict=True) if inside]
+    return sorted(found, key=lambda c: (c.angle_deg, c.maplet))
 
 
 class MapletImage(_Result):

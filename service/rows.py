@@ -1,5 +1,6 @@
-"""The catalog schema: downlinks, kernels, instruments, images and their geometry, maplets,
-maplet revisions, model versions and jobs (SQLAlchemy 2.0 declarative, SQLite and PostgreSQL).
+"""The catalog schema: downlinks, kernels, instruments, images and their geometry, lidar
+products and their tracks, maplets, maplet revisions, model versions and jobs (SQLAlchemy 2.0
+declarative, SQLite and PostgreSQL).
 
 Units are in column names (km, m, deg, px); positions are body-fixed (e.g. IAU_BENNU). Times
 are timezone-aware UTC datetimes, and ephemeris times (ET) are TDB seconds past J2000 as SPICE
@@ -160,6 +161,8 @@ class ModelKind(enum.StrEnum):
     PHOTOGRAMMETRIC = "photogrammetric"
     REFINED = "refined"
     IMPORTED = "imported"
+    # Made from the lidar alone, where a catalog had no model (service.lidar.start_from_lidar).
+    LIDAR = "lidar"
 
 
 class JobKind(enum.StrEnum):
@@ -461,6 +464,114 @@ class ImageGeometry(Base):
     computed_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     image: Mapped[Image] = relationship(back_populates="geometry")
+
+
+class LidarProduct(Base):
+    """A PDS4 laser altimetry product (a table of shots, pwm.io.lidar), catalogued once per
+    LIDVID: its shots placed with SPICE at ingest, stored in the artifact store as one
+    compressed array file (`shots`: service.lidar's record), never one row per shot; its
+    counts here, its tracks in LidarTrack. A copy of a LIDVID with other content is not a row
+    but a DownlinkFile (code conflict); a copy that arrived broken holds the LIDVID until a
+    whole one takes its row, as images do (service.ingest)."""
+
+    __tablename__ = "lidar_products"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    lidvid: Mapped[str] = mapped_column(String(255), unique=True)
+    lid: Mapped[str] = mapped_column(String(255))
+    vid: Mapped[str] = mapped_column(String(32))
+    label_path: Mapped[str] = mapped_column(Text)
+    data_path: Mapped[str] = mapped_column(Text)
+    # of the label and the data files it names, one after another, as an image's
+    sha256: Mapped[str] = mapped_column(String(64))
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    downlink_id: Mapped[int | None] = mapped_column(ForeignKey("downlinks.id", ondelete="SET NULL"), index=True)
+    status: Mapped[Acceptance] = mapped_column(_enum(Acceptance, "lidar_status"), index=True)
+    rejection_code: Mapped[str | None] = mapped_column(String(32))
+    rejection_reason: Mapped[str | None] = mapped_column(Text)
+    # the record layout (pwm.io.lidar.LAYOUTS), the instrument and target as the label names
+    # them, the body-fixed frame the shots are placed in
+    layout: Mapped[str | None] = mapped_column(String(16))
+    instrument: Mapped[str | None] = mapped_column(String(64))
+    target: Mapped[str | None] = mapped_column(String(64))
+    body_frame: Mapped[str | None] = mapped_column(String(64))
+    # the finite shot times' span
+    start_et: Mapped[float | None]
+    stop_et: Mapped[float | None]
+    start_utc: Mapped[datetime | None] = mapped_column(index=True)
+    stop_utc: Mapped[datetime | None]
+    shots: Mapped[int] = mapped_column(BigInteger, default=0)
+    valid_shots: Mapped[int] = mapped_column(BigInteger, default=0)
+    # {reason: count} of the invalid shots, by pwm.lidar.shots.Invalid's lower-case names
+    invalid_shots: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    # the shots' array file: an artifact record (service.artifacts), null for a rejected product
+    shots_artifact: Mapped[dict[str, Any] | None]
+    ingested_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+    tracks: Mapped[list[LidarTrack]] = relationship(back_populates="product", cascade="all, delete-orphan",
+                                                    order_by="LidarTrack.track")
+
+    __table_args__ = (CheckConstraint("valid_shots >= 0 AND valid_shots <= shots", name="shot_counts"),)
+
+
+class LidarTrack(Base):
+    """One track of a lidar product (pwm.lidar.tracks.track_ids: a time window one rigid
+    correction serves): its span, its valid shots, the cone about the body centre that holds
+    its spots (unit body-fixed axis and half-angle, as an image's cone, queried against the
+    maplets' centres by service.queries.maplets_crossed) and their bounding box (body-fixed,
+    km); once adjusted, its strip correction (pwm.lidar.strips.Correction: rotation vector
+    rad, translation km, about the point about_km) and its 1 sigma (6: rotation rad,
+    translation km; null where unconstrained), and its spots' residuals to the model
+    (km) and crossovers with other tracks, with the version they were measured on."""
+
+    __tablename__ = "lidar_tracks"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    product_id: Mapped[int] = mapped_column(ForeignKey("lidar_products.id", ondelete="CASCADE"))
+    track: Mapped[int]
+    start_et: Mapped[float]
+    stop_et: Mapped[float]
+    shots: Mapped[int]
+    cone_axis_x: Mapped[float]
+    cone_axis_y: Mapped[float]
+    cone_axis_z: Mapped[float]
+    cone_half_angle_rad: Mapped[float]
+    # the cone's axis as latitude and east longitude (deg): the prefilter's index
+    axis_lat_deg: Mapped[float]
+    axis_lon_deg: Mapped[float]
+    min_x_km: Mapped[float]
+    min_y_km: Mapped[float]
+    min_z_km: Mapped[float]
+    max_x_km: Mapped[float]
+    max_y_km: Mapped[float]
+    max_z_km: Mapped[float]
+    rotation_x_rad: Mapped[float | None]
+    rotation_y_rad: Mapped[float | None]
+    rotation_z_rad: Mapped[float | None]
+    translation_x_km: Mapped[float | None]
+    translation_y_km: Mapped[float | None]
+    translation_z_km: Mapped[float | None]
+    about_x_km: Mapped[float | None]
+    about_y_km: Mapped[float | None]
+    about_z_km: Mapped[float | None]
+    correction_sigma: Mapped[list[Any] | None]
+    adjusted_at: Mapped[datetime | None]
+    residual_mean_km: Mapped[float | None]
+    residual_rms_km: Mapped[float | None]
+    residual_p95_km: Mapped[float | None]
+    residual_version: Mapped[int | None]
+    # Its spots' crossovers with other tracks' (corrections applied; measured with the
+    # residuals) and the RMS of their height differences (km; null with none).
+    crossovers: Mapped[int | None]
+    crossover_rms_km: Mapped[float | None]
+
+    product: Mapped[LidarProduct] = relationship(back_populates="tracks")
+
+    __table_args__ = (
+        UniqueConstraint("product_id", "track"),
+        CheckConstraint("cone_half_angle_rad >= 0", name="cone_half_angle_nonnegative"),
+        Index(None, "axis_lat_deg", "axis_lon_deg"),
+    )
 
 
 def _level(gsd_m: float) -> int:

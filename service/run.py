@@ -30,11 +30,12 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.parallel import Progress, map_processes
-from service.conductor import Plan, due_after_fusion, feed_back, fusion_due, ingest_and_plan
+from service.conductor import Plan, adjust_lidar, due_after_fusion, feed_back, fusion_due, ingest_and_plan
 from service.console.documents import make_mesh_document
 from service.db import make_engine, make_sessionmaker, session_scope
 from service.downlinks import other_configurations
 from service.jobs import ingest_key, record_attempt, refine_key
+from service.lidar import LidarAdjustment
 from service.publish import fuse_and_publish
 from service.refinement import MapletWork, refine_catalog_maplet, stale_maplets
 from service.rows import JobKind, utcnow
@@ -55,11 +56,12 @@ class Refinements:
 class RunReport:
     """What `run_directory` did: the plan, the revisions refined (ids, of every pass), the
     versions published (one per pass that changed a maplet), the last of them (None when
-    nothing changed) and the time taken (s)."""
+    nothing changed), the lidar's strip adjustment (None where none ran) and the time taken (s)."""
 
     plan: Plan
     revisions: list[int] = field(default_factory=list)
     versions: list[int] = field(default_factory=list)
+    lidar: LidarAdjustment | None = None
     seconds: float = 0.0
 
     @property
@@ -73,8 +75,9 @@ class RunReport:
         outcome = (f"published version{'s' * (len(self.versions) > 1)} "
                    f"{', '.join(map(str, self.versions))}" if self.versions
                    else "no new version (nothing changed)")
+        lidar = "" if self.lidar is None else f"\n{self.lidar.summary()}"
         return (f"{self.plan.ingest.summary()}\n{len(self.revisions)} maplet refinements from "
-                f"version {self.plan.base_version}; {outcome}; {self.seconds:.1f} s")
+                f"version {self.plan.base_version}; {outcome}{lidar}; {self.seconds:.1f} s")
 
 
 def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir: Path,
@@ -103,6 +106,8 @@ def run_directory(sessions: sessionmaker[Session], directory: Path, *, data_dir:
                                downlink_id=plan.downlink_id,
                                refine_on_config_change=refine_on_config_change, progress=progress)
         report.revisions, report.versions = done.revisions, done.versions
+        report.lidar = adjust_lidar(sessions, data_dir=data_dir, downlink_id=plan.downlink_id,
+                                    published=report.version, current=plan.base_version)
     report.seconds = time.perf_counter() - clock
     log.debug("run %s: %s", directory, report.summary())  # the command line prints it
     return report

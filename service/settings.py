@@ -15,6 +15,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
 from pwm.config import DEFAULTS, RefinementConfig
+from pwm.io.lidar import MAX_SHOTS
 from pwm.io.pds4 import FITS_BLOCK, MAX_FITS_HEADER_BYTES, MAX_LABEL_BYTES, MAX_PIXELS
 from pwm.io.spice_kernels import MAX_METAKERNEL_ENTRIES
 from pwm.knowledge import parse_knowledge_errors
@@ -44,6 +45,7 @@ class IngestLimits:
     FITS header read (pwm.io.pds4.read_image_label); max_metakernel_entries, the most kernels
     one meta-kernel may name (pwm.io.spice_kernels.metakernel_files); max_label_files, the most
     file references one label may hold (max_label_bytes bounds a downlink's manifest.json too);
+    max_lidar_shots, the most shots one lidar product may hold (pwm.io.lidar.read_lidar_table);
     stale_s, how long an ingest may go without committing before another takes its downlink over."""
 
     kernel_library: Path | None = None
@@ -52,6 +54,7 @@ class IngestLimits:
     max_fits_header_bytes: int = MAX_FITS_HEADER_BYTES
     max_metakernel_entries: int = MAX_METAKERNEL_ENTRIES
     max_label_files: int = MAX_LABEL_FILES
+    max_lidar_shots: int = MAX_SHOTS
     stale_s: float = INGEST_STALE_S
 
 
@@ -69,10 +72,11 @@ class Settings(BaseSettings):
     cors_origins: PWM_CORS_ORIGINS, the origins (a JSON list) whose pages may call the API from
         a browser; empty: none (no CORS headers).
     kernel_library, max_label_bytes, max_image_pixels, max_fits_header_bytes,
-    max_metakernel_entries, max_label_files, ingest_stale_s:
+    max_metakernel_entries, max_label_files, max_lidar_shots, ingest_stale_s:
         PWM_KERNEL_LIBRARY, PWM_MAX_LABEL_BYTES, PWM_MAX_IMAGE_PIXELS,
         PWM_MAX_FITS_HEADER_BYTES (at least one 2880-byte block), PWM_MAX_METAKERNEL_ENTRIES,
-        PWM_MAX_LABEL_FILES and PWM_INGEST_STALE_S, what ingest accepts (`ingest_limits`).
+        PWM_MAX_LABEL_FILES, PWM_MAX_LIDAR_SHOTS and PWM_INGEST_STALE_S, what ingest accepts
+        (`ingest_limits`).
     heartbeat_s: PWM_HEARTBEAT_S, how often a running job's attempt records that it is alive.
     heartbeat_grace_s: PWM_HEARTBEAT_GRACE_S, how long after its latest heartbeat an attempt is
         lost (shown so, and taken over by the next delivery); several heartbeats, so that a
@@ -85,6 +89,10 @@ class Settings(BaseSettings):
         refinement configuration (another pwm.config.RefinementConfig.digest; the whole catalog,
         after a change of a setting it names); false: only those whose images changed, the rest
         left to `pwm refine-catalog --because-config-changed` (service.refinement.stale_maplets).
+    lidar_residual_shots: PWM_LIDAR_RESIDUAL_SHOTS, at most how many of the catalog's usable
+        lidar shots each published version is checked against (a uniform sample; its lidar
+        statistics, service.publish.lidar_statistics): enough for a per-track figure and a
+        10-degree map, cheap to ray-cast (0: none checked).
     pose_knowledge: PWM_POSE_KNOWLEDGE, the 1-sigma pose knowledge of kernels that state none
         (`POS_M,POINT_RAD` or `nav:ALONG_M,CROSS_M,MISALIGN_URAD,DRIFT_URAD`, as
         pwm.knowledge.parse_knowledge_errors reads it); unset: none to adjust.
@@ -104,6 +112,7 @@ class Settings(BaseSettings):
     max_fits_header_bytes: int = Field(MAX_FITS_HEADER_BYTES, ge=FITS_BLOCK)
     max_metakernel_entries: int = Field(MAX_METAKERNEL_ENTRIES, ge=1)
     max_label_files: int = Field(MAX_LABEL_FILES, ge=1)
+    max_lidar_shots: int = Field(MAX_SHOTS, ge=1)
     ingest_stale_s: float = Field(INGEST_STALE_S, gt=0)
     heartbeat_s: float = Field(10.0, gt=0)
     heartbeat_grace_s: float = Field(60.0, gt=0)
@@ -112,6 +121,7 @@ class Settings(BaseSettings):
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
     refine_on_config_change: bool = False
+    lidar_residual_shots: int = Field(200_000, ge=0)
     pose_knowledge: str | None = None
 
     @field_validator("database_url")
@@ -170,7 +180,8 @@ class Settings(BaseSettings):
                             max_label_bytes=self.max_label_bytes, max_pixels=self.max_image_pixels,
                             max_fits_header_bytes=self.max_fits_header_bytes,
                             max_metakernel_entries=self.max_metakernel_entries,
-                            max_label_files=self.max_label_files, stale_s=self.ingest_stale_s)
+                            max_label_files=self.max_label_files, max_lidar_shots=self.max_lidar_shots,
+                            stale_s=self.ingest_stale_s)
 
     def refinement(self) -> RefinementConfig:
         """How the catalog tiles and refines maplets: pwm.config.DEFAULTS with these settings."""

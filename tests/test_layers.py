@@ -109,9 +109,9 @@ def test_no_module_imports_another_that_imports_it_back():
 
 
 STAGES = ("service.ingest", "service.spg", "service.coverage", "service.refinement", "service.publish",
-          "service.conductor")
+          "service.lidar", "service.conductor")
 """A downlink's stages in the method's order: catalogue, adjust poses, weigh, plan and refine, fuse
-and publish; the conductor that calls them in that order last."""
+and publish, strip-adjust the lidar; the conductor that calls them in that order last."""
 SHARED = {"service.db", "service.rows", "service.settings", "service.kernels", "service.views",
           "service.versions", "service.artifacts", "service.jobs"}
 """What every stage may use: the catalog's engine, rows and settings, its kernels, views, versions,

@@ -51,7 +51,7 @@ from sqlalchemy import event
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import RefinementConfig
-from service.conductor import due_after_fusion, feed_back, fusion_due, ingest_and_plan
+from service.conductor import adjust_lidar, due_after_fusion, feed_back, fusion_due, ingest_and_plan
 from service.console.documents import make_mesh_document
 from service.db import session_scope
 from service.jobs import (
@@ -165,13 +165,18 @@ def ingest_downlink(self: Task, directory: str, key: str | None = None) -> dict[
                                refine_on_config_change=settings.refine_on_config_change)
         with session_scope(state.sessions) as session:
             pending = [w for w in plan.work if _submit_refine(session, plan.downlink_id, w)]
+        # nothing to refine, so no fusion follows: the lidar it brought is adjusted here
+        lidar = None if plan.work else adjust_lidar(state.sessions, data_dir=settings.data_dir,
+                                                     downlink_id=plan.downlink_id, published=None,
+                                                     current=plan.base_version)
         # Enqueued once their jobs are committed, so that the fan-in sees every sibling.
         for work_item in pending:
             _enqueue_refine(state.sessions, plan.downlink_id, work_item)
         then = (f"{len(plan.work)} maplets to refine from version {plan.base_version}"
                 if plan.base_version is not None else
                 "no model to refine yet (the downlink's model note says why)")
-        return Outcome(f"{plan.ingest.summary()}; {then}", downlink_id=plan.downlink_id)
+        said = "" if lidar is None else f"; {lidar.summary()}"
+        return Outcome(f"{plan.ingest.summary()}; {then}{said}", downlink_id=plan.downlink_id)
 
     return _run_job(self, kind=JobKind.INGEST, key=key or ingest_key(path), work=work)
 
@@ -234,7 +239,12 @@ def fuse_downlink(self: Task, downlink_id: int | None, key: str | None = None
                      if _submit_refine(session, downlink_id, w)]
         for work_item in later:
             _enqueue_refine(state.sessions, downlink_id, work_item)
+        # the downlink's last pass published: its tracks (all the catalog's) adjusted to the version
+        lidar = (adjust_lidar(state.sessions, data_dir=settings.data_dir, downlink_id=downlink_id,
+                              published=version, current=None)
+                 if version is not None and downlink_id is not None and not later else None)
         then = f"; {len(later)} maplets due for another pass" if later else ""
+        then += "" if lidar is None else f"; {lidar.summary()}"
         if version is not None:
             message = f"published version {version}"
         else:

@@ -1,6 +1,8 @@
 """PDS4 laser altimeter products: a label with a Table_Binary or Table_Character of shots, read
-into pwm.lidar.shots.Shots through the loaded SPICE kernels; and the writer of pwm's own plain
-layout (the simulator's).
+into pwm.lidar.shots.Shots through the loaded SPICE kernels; the writer of pwm's own plain
+layout (the simulator's); a directory's lidar products read through its one meta-kernel
+without the catalog (`read_lidar_directory`); and the catalog's shots file (`write_shots`, `read_shots`: a
+product's placed shots and their tracks as one compressed NumPy archive).
 
 Which fields hold a shot's time, range, validity, intensity and direction is a `Layout`, one per
 known record layout (LAYOUTS: pwm's plain one and OSIRIS-REx OLA's Level 2 science record),
@@ -26,6 +28,7 @@ import numpy as np
 import spiceypy as sp
 from pds4_tools.reader.data_types import pds_to_numpy_type
 
+from pwm.io.labels import body_name, find_labels, target_frame
 from pwm.io.pds4 import (
     INFORMATION_MODEL,
     MAX_LABEL_BYTES,
@@ -36,6 +39,7 @@ from pwm.io.pds4 import (
     utc_iso,
 )
 from pwm.io.spice_geometry import FOV_ROOM, spacecraft_of
+from pwm.io.spice_kernels import kernel_pool
 from pwm.lidar.shots import Invalid, Shots
 
 MAX_SHOTS = 2_000_000  # shots one product may hold, by default
@@ -98,11 +102,13 @@ class LidarTable:
     """A lidar product's shots as its table gives them, before any geometry. et: TDB s;
     range_km; flagged: the product's own flag says no usable return; intensity or None;
     direction: (N, 3) unit vectors in the instrument frame, or None (the boresight); frames: the
-    instrument frame of each shot (names; `frame_index` indexes them)."""
+    instrument frame of each shot (names; `frame_index` indexes them); target: the name the
+    label's Target_Identification gives, None where it gives none."""
 
     lid: str
     layout: str
     instrument: str | None
+    target: str | None
     et: np.ndarray
     range_km: np.ndarray
     flagged: np.ndarray
@@ -131,6 +137,42 @@ def read_lidar_product(label: Path, *, target: str, body_frame: str, root: Path 
     table = read_lidar_table(label, root=root, max_label_bytes=max_label_bytes, max_shots=max_shots)
     return LidarProduct(table=table, shots=place_shots(table, target=target, body_frame=body_frame,
                                                        range_limits_km=range_limits_km))
+
+
+def read_lidar_directory(directory: Path, *, max_shots: int = MAX_SHOTS
+                         ) -> tuple[list[LidarProduct], list[tuple[Path, str]]]:
+    """The lidar products under `directory` (labels `is_lidar_label` takes), each read and its
+    shots placed through the directory's one meta-kernel (*.tm) in the body-fixed frame of the
+    target its label names; and those that could not be, with why. ValueError for a directory
+    without exactly one meta-kernel or without lidar labels."""
+    directory = Path(directory)
+    metakernels = sorted(directory.rglob("*.tm"))
+    if len(metakernels) != 1:
+        raise ValueError(f"{directory}: expected one meta-kernel (*.tm), found {len(metakernels)}")
+    labels = []
+    for label in find_labels(directory):
+        try:
+            if label.suffix.lower() == ".xml" and label.stat().st_size <= MAX_LABEL_BYTES \
+                    and is_lidar_label(ET.fromstring(label.read_bytes())):
+                labels.append(label)
+        except (ET.ParseError, OSError):
+            continue
+    if not labels:
+        raise ValueError(f"{directory} holds no lidar product (a PDS4 table of shots in a known layout)")
+    products, skipped = [], []
+    with kernel_pool(metakernels):
+        for label in labels:
+            try:
+                table = read_lidar_table(label, root=directory, max_shots=max_shots)
+                target, frame = target_frame(table.target)
+                if target is None or frame is None:
+                    raise ProductError("unknown_target", f"the kernels give target {table.target!r} no body-fixed "
+                                       "frame")
+                products.append(LidarProduct(table=table, shots=place_shots(table, target=body_name(target),
+                                                                            body_frame=frame)))
+            except (ProductError, OSError, sp.stypes.SpiceyError) as exc:
+                skipped.append((label, str(exc)))
+    return products, skipped
 
 
 def read_lidar_table(label: Path, *, root: Path | None = None, max_label_bytes: int = MAX_LABEL_BYTES,
@@ -211,8 +253,9 @@ def read_lidar_table(label: Path, *, root: Path | None = None, max_label_bytes: 
         if instrument is None:
             raise ProductError("missing_element", f"{label.name} names no instrument")
         frames, frame_index = (instrument,), np.zeros(records, dtype=np.int64)
-    return LidarTable(lid=lid, layout=layout.name, instrument=instrument, et=et, range_km=range_km, flagged=flagged,
-                      intensity=intensity, direction=direction, frames=frames, frame_index=frame_index,
+    target = _text(root_element, "pds:Observation_Area/pds:Target_Identification/pds:name")
+    return LidarTable(lid=lid, layout=layout.name, instrument=instrument, target=target, et=et, range_km=range_km,
+                      flagged=flagged, intensity=intensity, direction=direction, frames=frames, frame_index=frame_index,
                       label_path=label)
 
 
@@ -442,3 +485,50 @@ def write_lidar_product(*, directory: Path, basename: str, lid: str, et: np.ndar
     with open(label_path, "x", encoding="utf-8") as fh:
         fh.write(text)
     return label_path, data_path
+
+
+# the arrays of a shots file: (name, dtype, per-shot shape); intensity is optional
+_SHOTS_ARRAYS = (("et", "f8", ()), ("origin_km", "f8", (3,)), ("direction", "f8", (3,)), ("range_km", "f8", ()),
+                 ("sigma_km", "f8", ()), ("invalid", "i1", ()), ("track", "i8", ()), ("spots_km", "f8", (3,)))
+
+
+def write_shots(path: Path, shots: Shots, track: np.ndarray) -> None:
+    """Write placed shots and each one's track (pwm.lidar.tracks.track_ids) to `path` as a
+    compressed NumPy archive (.npz): times (TDB s), origins, directions, ranges, range sigmas,
+    invalid reasons (pwm.lidar.shots.Invalid), tracks, the spots (origin + range * direction,
+    km, the shots' body-fixed frame, kept so that a reader needs no arithmetic), the frame's
+    name and the intensity where given."""
+    track = np.asarray(track, dtype=np.int64)
+    if track.shape != (len(shots),):
+        raise ValueError(f"track has shape {track.shape}, expected ({len(shots)},)")
+    arrays = {"et": shots.et, "origin_km": shots.origin_km, "direction": shots.direction, "range_km": shots.range_km,
+              "sigma_km": shots.sigma_km, "invalid": shots.invalid, "track": track, "spots_km": shots.spots_km()}
+    typed = {name: np.asarray(arrays[name], dtype=dtype) for name, dtype, _ in _SHOTS_ARRAYS}
+    if shots.intensity is not None:
+        typed["intensity"] = np.asarray(shots.intensity, dtype=float)
+    typed["frame"] = np.array(shots.frame)
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, allow_pickle=False, **typed)
+
+
+def read_shots(path: Path) -> tuple[Shots, np.ndarray]:
+    """The shots and tracks `write_shots` wrote (ValueError for a file that is not one: no
+    pickled objects are loaded, every array's type and length is checked)."""
+    with np.load(path, allow_pickle=False) as archive:
+        names = set(archive.files)
+        missing = {name for name, _, _ in _SHOTS_ARRAYS} - names
+        if missing or "frame" not in names:
+            raise ValueError(f"{Path(path).name} is no shots file: it lacks {sorted(missing | ({'frame'} - names))}")
+        n = len(archive["et"])
+        arrays = {}
+        for name, dtype, shape in _SHOTS_ARRAYS:
+            value = archive[name]
+            if value.dtype != np.dtype(dtype) or value.shape != (n, *shape):
+                raise ValueError(f"{Path(path).name}: {name} is {value.dtype} {value.shape}, not {dtype} {(n, *shape)}")
+            arrays[name] = value
+        intensity = archive["intensity"] if "intensity" in names else None
+        frame = str(archive["frame"])
+    shots = Shots(frame=frame, et=arrays["et"], origin_km=arrays["origin_km"], direction=arrays["direction"],
+                  range_km=arrays["range_km"], sigma_km=arrays["sigma_km"], invalid=arrays["invalid"],
+                  intensity=intensity)
+    return shots, arrays["track"]

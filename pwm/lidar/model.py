@@ -20,8 +20,9 @@ the loop (pwm.lidar.strips.adjust), whose tracks follow the model, adds a little
 planes fitted with curvature, or a screened Poisson solve, would remove it.
 
 Distances to a model are measured along each shot: from the first hit of the shot's ray, along
-that face's normal (positive outside), which for a spot near the surface is its distance to it.
-Lengths in km, body-fixed frame.
+that face's normal (positive outside), which for a spot near the surface is its distance to it;
+`residual_summary` gives them as a model's statistics: overall, per track and on a coarse map
+over longitude and latitude, from a bounded sample of the shots. Lengths in km, body-fixed frame.
 """
 
 from __future__ import annotations
@@ -234,3 +235,63 @@ def model_from_spots(shots: Shots, config: LidarConfig = LIDAR, *, voxel_km: flo
     else:
         raise ValueError(f"the lidar model is not one closed surface: {shut.describe()}")
     return model
+
+
+MAP_CELLS = (36, 18)
+"""The residual map's cells in longitude and latitude: 10 degrees square."""
+
+
+def sample_shots(valid: np.ndarray, at_most: int, *, seed: int = 0) -> np.ndarray:
+    """The indices (ascending) of at most `at_most` of the `valid` shots, chosen uniformly at
+    random (a fixed seed: the same shots give the same sample)."""
+    index = np.flatnonzero(valid)
+    if at_most < 0:
+        raise ValueError(f"at_most must be >= 0, not {at_most}")
+    if len(index) <= at_most:
+        return index
+    return np.sort(np.random.default_rng(seed).choice(index, size=at_most, replace=False))
+
+
+def residual_map(spots_km: np.ndarray, distance_km: np.ndarray, cells: tuple[int, int] = MAP_CELLS
+                 ) -> list[list[float | None]]:
+    """The RMS of the measured distances (finite ones) in each cell of longitude (east, 0-360
+    deg) and planetocentric latitude of the spots: rows from the south, columns from longitude
+    0; None for a cell with none."""
+    measured = np.isfinite(distance_km) & np.isfinite(spots_km).all(axis=1)
+    x, y, z = spots_km[measured].T
+    d = distance_km[measured]
+    lon = np.degrees(np.arctan2(y, x)) % 360.0
+    lat = np.degrees(np.arctan2(z, np.hypot(x, y)))
+    columns, rows = cells
+    col = np.minimum((lon / (360.0 / columns)).astype(np.int64), columns - 1)
+    row = np.minimum(((lat + 90.0) / (180.0 / rows)).astype(np.int64), rows - 1)
+    cell = row * columns + col
+    count = np.bincount(cell, minlength=rows * columns)
+    square = np.bincount(cell, weights=d ** 2, minlength=rows * columns)
+    rms = np.sqrt(square / np.maximum(count, 1))
+    return [[float(rms[r * columns + c]) if count[r * columns + c] else None for c in range(columns)]
+            for r in range(rows)]
+
+
+def residual_summary(shots: Shots, mesh: Mesh, track: np.ndarray, *, config: LidarConfig = LIDAR,
+                     cells: tuple[int, int] = MAP_CELLS) -> dict:
+    """A model's lidar statistics from these shots (`lidar_residuals`): the shots given and
+    measured, those that met no surface near their spot, mean, RMS and 95th percentile of the
+    signed distances (km) overall and per track ({track: {shots, mean_km, rms_km, p95_km}}),
+    and the RMS map (`residual_map`, km). JSON-ready."""
+    residuals = lidar_residuals(shots, mesh, track, config=config)
+    measured = np.isfinite(residuals.distance_km)
+    counts = dict(zip(*np.unique(np.asarray(track)[measured], return_counts=True), strict=True))
+
+    def figures(mean: float, rms: float, p95: float) -> dict[str, float | None]:
+        return {"mean_km": _finite(mean), "rms_km": _finite(rms), "p95_km": _finite(p95)}
+
+    return {"shots": len(shots), "measured": int(measured.sum()), "missed": residuals.missed,
+            **figures(residuals.mean_km, residuals.rms_km, residuals.p95_km),
+            "tracks": {str(t): {"shots": int(counts.get(t, 0)), **figures(*v)} for t, v in residuals.per_track.items()},
+            "map": {"lon_cells": cells[0], "lat_cells": cells[1],
+                    "rms_km": residual_map(shots.spots_km(), residuals.distance_km, cells)}}
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None

@@ -62,6 +62,20 @@ class Shots:
         """(N, 3) where each shot met the surface, body-fixed."""
         return self.origin_km + self.range_km[:, None] * self.direction
 
+    @staticmethod
+    def joined(parts: list[Shots]) -> Shots:
+        """The shots of `parts` one after another (intensity kept only where every part has it).
+        ValueError for none, or parts in different frames."""
+        frames = {p.frame for p in parts}
+        if len(frames) != 1:
+            raise ValueError(f"shots in {len(frames)} frames ({', '.join(sorted(frames))}) cannot be joined: "
+                             "one body-fixed frame is needed")
+        intensity = (np.concatenate([p.intensity for p in parts if p.intensity is not None])
+                     if all(p.intensity is not None for p in parts) else None)
+        return Shots(frame=frames.pop(), intensity=intensity, **{
+            name: np.concatenate([getattr(p, name) for p in parts])
+            for name in ("et", "origin_km", "direction", "range_km", "sigma_km", "invalid")})
+
     def take(self, which: np.ndarray) -> Shots:
         """The shots selected by a boolean mask or an index array, in that order."""
         return Shots(frame=self.frame, et=self.et[which], origin_km=self.origin_km[which],

@@ -6,7 +6,8 @@ than LidarConfig.max_gap_s and wherever the sub-spacecraft point (the direction 
 instrument's position from the body's centre) has swept LidarConfig.max_sweep_deg along its path
 since the track began. A crossover is a pair of spots of different tracks within a distance;
 their height difference along the surface normal says how far apart the two tracks lie there.
-Lengths in km, body-fixed frame.
+A track's extent (`TrackExtent`): its span, and the cone about the body's centre and the box
+that hold its spots, by which a catalog finds what it crosses. Lengths in km, body-fixed frame.
 """
 
 from __future__ import annotations
@@ -50,6 +51,45 @@ def track_ids(shots: Shots, config: LidarConfig = LIDAR) -> np.ndarray:
     new = np.r_[True, (np.diff(segment) != 0) | (np.diff(window) != 0)]
     out[index] = np.cumsum(new) - 1
     return out
+
+
+@dataclass(frozen=True)
+class TrackExtent:
+    """One track's span (TDB s), valid shots, the cone about the body's centre that holds its
+    spots (unit axis, half-angle rad) and their bounding box (km)."""
+
+    track: int
+    start_et: float
+    stop_et: float
+    shots: int
+    axis: np.ndarray
+    half_angle_rad: float
+    box_min_km: np.ndarray
+    box_max_km: np.ndarray
+
+
+def track_extents(spots_km: np.ndarray, et: np.ndarray, track: np.ndarray) -> list[TrackExtent]:
+    """Each track's extent (NO_TRACK and spots that are not finite left out), by track id. The
+    cone's axis is the mean of the spots' unit directions; its half-angle reaches the farthest."""
+    keep = (track != NO_TRACK) & np.isfinite(spots_km).all(axis=1) & np.isfinite(et)
+    keep &= np.linalg.norm(np.where(np.isfinite(spots_km), spots_km, 0.0), axis=1) > 0
+    order = np.flatnonzero(keep)
+    if not len(order):
+        return []
+    order = order[np.argsort(track[order], kind="stable")]
+    ids, starts = np.unique(track[order], return_index=True)
+    extents = []
+    for t, part in zip(ids, np.split(order, starts[1:]), strict=True):
+        spots = spots_km[part]
+        unit = spots / np.linalg.norm(spots, axis=1)[:, None]
+        mean = unit.mean(axis=0)
+        # a track wound all about the centre has no mean direction: any axis, the whole sphere
+        axis = mean / np.linalg.norm(mean) if np.linalg.norm(mean) > 1e-9 else np.array([0.0, 0.0, 1.0])
+        half = float(np.arccos(np.clip(unit @ axis, -1.0, 1.0)).max())
+        extents.append(TrackExtent(track=int(t), start_et=float(et[part].min()), stop_et=float(et[part].max()),
+                                   shots=len(part), axis=axis, half_angle_rad=half,
+                                   box_min_km=spots.min(axis=0), box_max_km=spots.max(axis=0)))
+    return extents
 
 
 @dataclass(frozen=True)

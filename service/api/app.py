@@ -24,7 +24,7 @@ from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 import pwm
-from service.api.routers import console, diffs, downlinks, health, images, jobs, maplets, versions
+from service.api.routers import console, diffs, downlinks, health, images, jobs, lidar, maplets, versions
 from service.artifacts import RETRY_AFTER_S, CacheBusy
 from service.catalog import open_catalog
 from service.jobs import JobQueue
@@ -75,7 +75,7 @@ def create_app(settings: Settings | None = None, *, job_queue: JobQueue | None =
     app.state.settings = settings
     app.state.sessions = sessions
     app.state.job_queue = job_queue
-    for module in (health, versions, diffs, maplets, images, downlinks, jobs, console):
+    for module in (health, versions, lidar, diffs, maplets, images, downlinks, jobs, console):
         app.include_router(module.router)
     app.mount("/console", console.static_files(), name="console")
     app.add_exception_handler(CacheBusy, _busy_making)

@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from service.downlinks import Outcome
 from service.jobs import JobState, error_reason, job_state
 from service.queries import CoverageSummary, MapletCoverage, MapletImage, MapletInfo, RevisionInfo
-from service.rows import DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, ModelKind
+from service.rows import Acceptance, DownlinkStatus, GeometryStatus, ImageStatus, Job, JobKind, ModelKind
 
 Item = TypeVar("Item")
 
@@ -190,6 +190,9 @@ class DownlinkOut(_Out):
     rejected: int
     conflict: int
     unused_files: int
+    lidar: dict[Acceptance, int] = Field(description="its lidar products by status")
+    lidar_shots: int = Field(description="the shots of its accepted lidar products")
+    lidar_valid_shots: int = Field(description="those of them usable (a valid return, placed)")
     repeat_count: int
     last_seen_at: datetime | None
     model_note: str | None = Field(description="set when the downlink came to a catalog without "
@@ -245,6 +248,81 @@ class MapletDetail(_Out):
     coverage: CoverageSummary
     images: list[MapletImage]
     revisions: list[RevisionInfo]
+
+
+class LidarFiguresOut(_Out):
+    """Signed distances of lidar spots to a model (km, positive outside): mean, RMS and 95th
+    percentile of their magnitudes; None where no spot was measured."""
+
+    shots: int = Field(description="spots measured")
+    mean_km: float | None
+    rms_km: float | None
+    p95_km: float | None
+    crossovers: int | None = Field(None, description="crossovers with other tracks (per track; in all: the "
+                                   "version's figure)")
+    crossover_rms_km: float | None = Field(None, description="RMS of their height differences")
+
+
+class LidarMapOut(_Out):
+    lon_cells: int
+    lat_cells: int
+    rms_km: list[list[float | None]] = Field(
+        description="RMS distance per cell (km): rows from the south pole up in planetocentric latitude, "
+                    "columns east from longitude 0; null where no spot fell")
+
+
+class LidarResidualsOut(_Out):
+    """A version checked against the catalog's lidar when it was published
+    (service.publish.lidar_statistics): a uniform sample of the usable shots, each track's strip
+    correction applied where it had one."""
+
+    version: int
+    products: int
+    usable_shots: int = Field(description="the catalog's usable shots, of which `shots` were sampled")
+    shots: int
+    measured: int
+    missed: int = Field(description="sampled spots that met no surface near them")
+    mean_km: float | None
+    rms_km: float | None
+    p95_km: float | None
+    crossovers: int | None = Field(None, description="crossovers between the sampled spots of different tracks")
+    tracks: dict[int, LidarFiguresOut] = Field(description="per track, by its catalog id (GET /lidar/tracks)")
+    map: LidarMapOut
+
+
+class LidarCorrectionOut(_Out):
+    """A track's strip correction (pwm.lidar.strips): a rotation vector (rad) about `about_km`
+    and a translation (km), body-fixed, applied to its spots; 1 sigma of the six (rotation rad,
+    then translation km; null where the track did not constrain it)."""
+
+    rotation_rad: list[float]
+    translation_km: list[float]
+    about_km: list[float]
+    sigma: list[float | None]
+    adjusted_at: datetime
+
+
+class LidarTrackOut(_Out):
+    """A catalogued lidar track: its span (TDB seconds past J2000), usable shots, the cone about
+    the body's centre holding its spots, its strip correction once adjusted, and its spots'
+    residuals on the version they were last measured on."""
+
+    id: int
+    product: str = Field(description="the LIDVID of its product")
+    track: int = Field(description="its number in the product")
+    start_et: float
+    stop_et: float
+    shots: int
+    axis_lat_deg: float
+    axis_lon_deg: float
+    cone_half_angle_deg: float
+    correction: LidarCorrectionOut | None
+    residual_version: int | None = Field(description="the version its residuals were measured on")
+    residual_mean_km: float | None
+    residual_rms_km: float | None
+    residual_p95_km: float | None
+    crossovers: int | None = Field(description="its spots' crossovers with other tracks' (corrections applied)")
+    crossover_rms_km: float | None = Field(description="RMS of those crossovers' height differences")
 
 
 class Problem(_Out):

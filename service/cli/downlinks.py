@@ -15,14 +15,15 @@ def downlinks(
     json_out: bool = typer.Option(False, "--json", help="print JSON instead of a table"),
 ) -> None:
     """List downlinks with their outcome: products accepted, rejected and in conflict (outcome rejected when every
-    product failed), kernels, unused files and repeated deliveries; below the table, how many maplets' current
-    revisions were made with another refinement configuration than the present one, which no downlink re-refines
-    unless PWM_REFINE_ON_CONFIG_CHANGE is set (`pwm refine-catalog --because-config-changed` does)."""
+    product failed), lidar products accepted and rejected with their shots, kernels, unused files and repeated
+    deliveries; below the table, how many maplets' current revisions were made with another refinement
+    configuration than the present one, which no downlink re-refines unless PWM_REFINE_ON_CONFIG_CHANGE is set
+    (`pwm refine-catalog --because-config-changed` does)."""
     from sqlalchemy import select
 
     from service.catalog import open_catalog
     from service.downlinks import configuration_note, downlink_ids, downlink_summaries
-    from service.rows import DownlinkFile, DownlinkStatus
+    from service.rows import Acceptance, DownlinkFile, DownlinkStatus
     from service.settings import get_settings
 
     try:
@@ -41,6 +42,9 @@ def downlinks(
         echo_json([{"id": d.id, "name": d.name, "path": d.path, "received_at": d.received_at.isoformat(),
                     "status": d.status.value, "outcome": d.outcome.value, "accepted": d.accepted,
                     "rejected": d.rejected, "conflict": d.conflict, "kernels": d.kernels,
+                    "lidar_accepted": d.lidar.get(Acceptance.ACCEPTED, 0),
+                    "lidar_rejected": d.lidar.get(Acceptance.REJECTED, 0), "lidar_shots": d.lidar_shots,
+                    "lidar_valid_shots": d.lidar_valid_shots,
                     "unused_files": [dict(zip(("path", "code", "reason"), f, strict=True)) for f in unused[d.id]],
                     "repeat_count": d.repeat_count,
                     "last_seen_at": d.last_seen_at.isoformat() if d.last_seen_at else None,
@@ -51,6 +55,10 @@ def downlinks(
     for d in rows:
         typer.echo(f"{d.id:>4} {d.name[:32]:<32} {d.status.value:<10} {d.outcome.value:<9} {d.accepted:>8} "
                    f"{d.rejected:>8} {d.conflict:>8} {d.kernels:>7} {d.unused_files:>6} {d.repeat_count:>7}")
+        if d.lidar:
+            typer.echo(f"      lidar: {d.lidar.get(Acceptance.ACCEPTED, 0)} products accepted "
+                       f"({d.lidar_shots} shots, {d.lidar_valid_shots} valid), "
+                       f"{d.lidar.get(Acceptance.REJECTED, 0)} rejected")
         if d.model_note:
             typer.echo(f"      model: {d.model_note}")
         if d.pose_adjustment:

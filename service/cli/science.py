@@ -133,7 +133,11 @@ def simulate(
 @app.command()
 def evaluate(
     model: Path = typer.Argument(..., exists=True, dir_okay=False, help="model mesh (.obj or .ply, km, body-fixed)"),
-    truth: Path = typer.Option(..., exists=True, file_okay=False, help="the simulation's truth/ directory"),
+    truth: Path | None = typer.Option(None, exists=True, file_okay=False,
+                                      help="the simulation's truth/ directory (needed unless --lidar is given)"),
+    lidar: Path | None = typer.Option(None, exists=True, file_okay=False,
+                                      help="a directory of lidar products with its kernels (one meta-kernel): the "
+                                           "spots' distances to MODEL, overall, per track and on a 10-degree map"),
     json_out: Path | None = typer.Option(None, "--json", help="write the figures as JSON here"),
     plots: Path | None = typer.Option(None, help="write PNG plots (height error, classes, profiles, views) here"),
     maplets: Path | None = typer.Option(None, exists=True, dir_okay=False,
@@ -145,10 +149,22 @@ def evaluate(
 ) -> None:
     """Measure a model against the truth: ICP, RMS and median error, NCC/SSIM, boulder heights;
     for a site, the error by wavelength band and where it lies (walls, rims, maplet edges,
-    shadow, elsewhere); for the whole body, the coverage of the true surface."""
+    shadow, elsewhere); for the whole body, the coverage of the true surface. With --lidar, or
+    instead: against laser altimetry, the mean, RMS and 95th percentile of the spots' distances
+    to the model (no catalog needed)."""
     from pwm.evaluate.report import evaluate as run_evaluation, format_table, maplet_footprints
 
     setup_logging(verbose)
+    if truth is None and lidar is None:
+        raise typer.BadParameter("give --truth, --lidar or both")
+    result: dict = {}
+    if lidar is not None:
+        result["lidar"] = _lidar_figures(model, lidar)
+    if truth is None:
+        if json_out is not None:
+            json_out.parent.mkdir(parents=True, exist_ok=True)
+            json_out.write_text(json.dumps(result, indent=2))
+        return
     footprints = None
     if maplets is not None:
         try:
@@ -157,13 +173,46 @@ def evaluate(
             raise typer.BadParameter(f"{maplets}: not a maplets.json of pwm refine ({exc})",
                                      param_hint="--maplets") from None
     try:
-        result = run_evaluation(model, truth_dir=truth, plots_dir=plots, maplets=footprints, scope=scope)
+        result = run_evaluation(model, truth_dir=truth, plots_dir=plots, maplets=footprints, scope=scope) | result
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
     typer.echo(format_table(result))
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(result, indent=2))
+
+
+def _lidar_figures(model: Path, directory: Path) -> dict:
+    """The lidar statistics of a mesh against a directory's lidar products (printed as well)."""
+    import numpy as np
+
+    from pwm.io.lidar import read_lidar_directory
+    from pwm.io.meshio import read_mesh
+    from pwm.lidar.model import residual_summary
+    from pwm.lidar.shots import Shots
+    from pwm.lidar.tracks import NO_TRACK, track_ids
+    from service.cli.versions import lidar_lines
+
+    try:
+        products, skipped = read_lidar_directory(directory)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--lidar") from None
+    for label, why in skipped:
+        typer.echo(f"skipped {label}: {why}", err=True)
+    tracks, offset = [], 0
+    for product in products:  # each product's tracks numbered after the previous one's
+        ids = track_ids(product.shots)
+        tracks.append(np.where(ids == NO_TRACK, NO_TRACK, ids + offset))
+        offset += int(ids.max(initial=-1)) + 1
+    try:
+        shots = Shots.joined([p.shots for p in products])
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--lidar") from None
+    figures = residual_summary(shots, read_mesh(model), np.concatenate(tracks))
+    typer.echo(f"lidar: {len(products)} products:")
+    for line in lidar_lines(figures):
+        typer.echo(line)
+    return figures
 
 
 @app.command()

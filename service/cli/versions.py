@@ -132,19 +132,71 @@ def versions(
 @version_app.command("show")
 def version_show(
     version: str = typer.Argument(..., parser=version_ref, help="version number, release tag, latest or released"),
+    lidar: bool = typer.Option(False, "--lidar", help="instead, its lidar residuals in words: overall, per "
+                               "track and a map over longitude and latitude"),
 ) -> None:
     """A version in full (JSON, as the API's GET /versions/V gives it): kind, parent, lineage, statistics and
-    artifacts with checksums."""
-    from service.api.routers.versions import detail
+    artifacts with checksums; with --lidar, how far the catalog's lidar spots lie from it."""
     from service.catalog import open_catalog
     from service.versions import get_version
 
     with open_catalog()() as session:
         try:
-            echo_json(detail(get_version(session, version)).model_dump(mode="json"))
+            found = get_version(session, version)
         except LookupError as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
+        if not lidar:
+            from service.api.routers.versions import detail
+
+            echo_json(detail(found).model_dump(mode="json"))
+            return
+        figures = found.statistics.get("lidar")
+        if figures is None:
+            typer.echo(f"version {found.version} was not checked against the lidar: the catalog had no usable "
+                       "shot when it was published", err=True)
+            raise typer.Exit(1)
+        typer.echo(f"version {found.version} ({found.kind}) against {figures['products']} lidar products "
+                   f"({figures['usable_shots']} usable shots):")
+        for line in lidar_lines(figures):
+            typer.echo(line)
+
+
+# The map's shades, from no residual to the map's largest.
+SHADES = " .:-=+*#%@"
+
+
+def lidar_lines(figures: dict) -> list[str]:
+    """Lidar statistics (pwm.lidar.model.residual_summary) in words, in metres: overall, per track
+    and, where there is one, the RMS map drawn north up in shades of its largest cell."""
+
+    def metres(value: float | None) -> str:
+        return "-" if value is None else f"{value * 1e3:.3f}"
+
+    lines = [f"{figures['shots']} shots, {figures['measured']} measured, {figures['missed']} without a surface "
+             f"near their spot; mean {metres(figures['mean_km'])} m, RMS {metres(figures['rms_km'])} m, "
+             f"95th percentile {metres(figures['p95_km'])} m"]
+    lines += [f"  track {track:>6}: {t['shots']:>7} shots, mean {metres(t['mean_km'])} m, "
+              f"RMS {metres(t['rms_km'])} m, 95th percentile {metres(t['p95_km'])} m"
+              + (f"; {t['crossovers']} crossovers, RMS {metres(t['crossover_rms_km'])} m" if "crossovers" in t else "")
+              for track, t in figures["tracks"].items()]
+    grid = figures.get("map")
+    cells = [c for row in grid["rms_km"] for c in row if c is not None] if grid else []
+    if not grid or not cells:
+        return lines
+    top, rows = max(cells), len(grid["rms_km"])
+    step = 180.0 / rows
+
+    def shade(rms: float | None) -> str:
+        if rms is None:
+            return " "
+        return SHADES[1 + min(len(SHADES) - 2, int(rms / top * (len(SHADES) - 1)))] if top > 0 else SHADES[1]
+
+    lines.append(f"RMS map (north up, east longitude 0 to 360 left to right; blank: no spot; "
+                 f"'{SHADES[1]}' to '{SHADES[-1]}': up to {metres(top)} m):")
+    for r in range(rows - 1, -1, -1):  # stored from the south
+        lines.append(f"  {-90 + (r + 1) * step:+6.1f} |{''.join(shade(c) for c in grid['rms_km'][r])}|")
+    return lines
 
 
 @app.command()

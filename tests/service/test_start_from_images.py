@@ -31,8 +31,7 @@ from service.cli import app
 from service.conductor import START_MODEL_NAME, ingest_and_plan
 from service.db import session_scope
 from service.exports import ExportFormat, make_export, plan_export
-from service.ingest import LIDAR_PRODUCT
-from service.rows import Downlink, DownlinkFile, Image, ModelKind, ModelVersion
+from service.rows import Acceptance, Downlink, DownlinkFile, Image, LidarProduct, ModelKind, ModelVersion
 from service.run import run_directory
 from service.settings import get_settings
 from service.spg import ASSUMED, start_from_images
@@ -79,9 +78,10 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         assert session.scalars(select(Downlink.model_note)).one() == (
             "version 1 (photogrammetric) made from the images, with no model before")
         images = session.scalars(select(Image)).all()
-        # the survey's lidar product is set aside, with why, until the catalog takes lidar
-        lidar = session.scalars(select(DownlinkFile).filter_by(code=LIDAR_PRODUCT)).all()
-        assert lidar and all("shots in the pwm layout, readable" in f.reason for f in lidar)
+        # the survey's lidar product is catalogued with its tracks, none of its files left unused
+        lidar = session.scalars(select(LidarProduct)).one()
+        assert lidar.status is Acceptance.ACCEPTED and lidar.valid_shots > 0 and lidar.tracks
+        assert not session.scalars(select(DownlinkFile)).all()
         # each image's pose correction is stored, and its coverage weighed against version 1
         assert len(images) == 12 and all(i.pose_corrected_at is not None for i in images)
         assert all(i.coverage_computed_at >= i.pose_corrected_at for i in images)
@@ -103,6 +103,15 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         # the refined survey is one closed surface: the maplets where they reach, version 1 elsewhere
         refined = get_version(session, 4)
         assert refined.statistics["surface"] == "closed"
+        # checked against the survey's lidar: its spots within a few GSD (4 m) of the refined model
+        checked = refined.statistics["lidar"]
+        assert checked["shots"] == lidar.valid_shots and checked["rms_km"] < 0.012
+        # then each track strip-adjusted to it (exact kernels: the corrections follow the model's own
+        # error, within its 3 GSD), its corrected spots no further from version 4 than ingest placed them
+        assert run.lidar is not None and run.lidar.version == 4 and run.lidar.tracks == len(lidar.tracks)
+        assert run.lidar.largest_km < 0.012 and run.lidar.rms_km <= checked["rms_km"]
+        assert all(t.adjusted_at is not None and t.residual_version == 4 and all(s is not None and 0 < s < 1e-2
+                   for s in t.correction_sigma) for t in lidar.tracks)
         checks = closure(version_mesh(data, refined))
         assert checks.closed, checks
         if catalog.kw["bind"].dialect.name == "sqlite":  # once: the exports do not depend on the catalog

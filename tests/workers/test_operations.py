@@ -368,6 +368,8 @@ def test_a_first_survey_with_no_model_becomes_a_closed_global_model(
     fused = {r.maplet_id for r in refined.maplet_revisions}
     assert len(fused) > 1 and fused <= maplets.keys()
     assert refined.statistics["surface"] == "closed"
+    # checked against the survey's lidar, catalogued by the ingest task
+    assert refined.statistics["lidar"]["shots"] > 1000 and refined.statistics["lidar"]["rms_km"] < 0.012
     checks = closure(version_mesh(Path(settings.data_dir), refined))
     assert checks.closed, checks
 

@@ -40,7 +40,8 @@ def _downlinks(session: Session, ids: list[int]) -> list[DownlinkOut]:
     return [DownlinkOut(id=d.id, name=d.name, received_at=d.received_at, status=d.status,
                         outcome=d.outcome, kernels=d.kernels, images=d.images,
                         accepted=d.accepted, rejected=d.rejected, conflict=d.conflict,
-                        unused_files=d.unused_files, repeat_count=d.repeat_count,
+                        unused_files=d.unused_files, lidar=d.lidar,
+                        lidar_shots=d.lidar_shots, lidar_valid_shots=d.lidar_valid_shots, repeat_count=d.repeat_count,
                         last_seen_at=d.last_seen_at, model_note=d.model_note,
                         pose_adjustment=d.pose_adjustment)
             for d in downlink_summaries(session, ids)]
@@ -50,7 +51,7 @@ def _downlinks(session: Session, ids: list[int]) -> list[DownlinkOut]:
 def list_downlinks(session: SessionDep, paging: PagingDep,
                    status_: Annotated[DownlinkStatus | None, Query(alias="status")] = None
                    ) -> Page[DownlinkOut]:
-    """Downlinks, newest first, with their outcome and their kernel and image counts."""
+    """Downlinks, newest first, with their outcome and their kernel, image and lidar counts."""
     ids, total = downlink_ids(session, status=status_, limit=paging.limit, offset=paging.offset)
     return Page(items=_downlinks(session, ids), total=total, **paging.model_dump())
 

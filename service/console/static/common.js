@@ -5,7 +5,8 @@
 
 const PAGES = [
   ["/", "Versions"], ["/console/view.html", "3D view"], ["/console/coverage.html", "Coverage"],
-  ["/console/diff.html", "Difference"], ["/console/site.html", "Site"], ["/console/jobs.html", "Jobs & downlinks"],
+  ["/console/diff.html", "Difference"], ["/console/site.html", "Site"], ["/console/lidar.html", "Lidar"],
+  ["/console/jobs.html", "Jobs & downlinks"],
 ];
 const TOKEN_KEY = "pwm-api-token";
 

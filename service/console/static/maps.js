@@ -91,8 +91,10 @@ export function classBar({ label, classes, width = 300 }) {
 // A scale bar at (x, y) (its left end; the bar's baseline): the longest nice length within
 // `maxPx` pixels at `metresPerPx`, labelled in m or km.
 export function scaleBar(x, y, metresPerPx, maxPx = 100) {
-  const step = niceStep(maxPx * metresPerPx, 1);
-  const length = step > maxPx * metresPerPx ? step / 2 : step;
+  // the largest 1, 2 or 5 x 10^n within maxPx (halving the nice step above it gave 2.5 x 10^n)
+  const most = maxPx * metresPerPx;
+  const power = 10 ** Math.floor(Math.log10(most));
+  const length = [5, 2, 1].map((f) => f * power).find((v) => v <= most * (1 + 1e-9)) ?? power;
   const px = length / metresPerPx;
   const group = svg("g", { class: "scale-bar", "data-role": "scale-bar", "data-metres": length });
   group.append(svg("rect", { x: x - 4, y: y - 18, width: px + 8, height: 24, class: "badge" }),

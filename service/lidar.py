@@ -1,0 +1,173 @@
+"""The lidar stage on the catalog: each catalogued track strip-adjusted to a published version
+(pwm.lidar.strips.adjust, the model kept: one round of robust point-to-plane ICP per track, to
+convergence), its correction and 1 sigma stored on its row (service.rows.LidarTrack), and the
+tracks' residuals on that version measured with the corrections applied
+(service.publish.lidar_statistics). The shots stay as ingest placed them (the artifact store's
+shots file); a track's spots are re-placed by its stored correction wherever they are read.
+
+When it runs is the conductor's rule (service.conductor.adjust_lidar). And where the catalog
+has no model and the images cannot make one yet, the lidar may (`start_from_lidar`): a closed
+model of the catalogued spots (pwm.lidar.model.model_from_spots), strip-adjusted to itself
+(pwm.lidar.strips.adjust, the model rebuilt each round), published as version 1 of kind
+`lidar`. Lengths in km, angles in radians, body-fixed frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Collection
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from pwm.io.lidar import read_shots
+from pwm.lidar.config import LIDAR, LidarConfig
+from pwm.lidar.model import usable
+from pwm.lidar.shots import Shots
+from pwm.lidar.strips import Correction, adjust
+from pwm.lidar.tracks import NO_TRACK
+from service.artifacts import artifact_path
+from service.db import session_scope
+from service.publish import lidar_statistics
+from service.rows import Acceptance, Downlink, LidarProduct, LidarTrack, ModelKind, utcnow
+from service.versions import get_version, latest_version, publication_lock, publish_version, version_mesh
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LidarAdjustment:
+    """What one strip adjustment did: the version the tracks were registered to, the tracks
+    corrected (and those too short or too far off the model to be), the largest correction
+    (km, pwm.lidar.strips.Correction.change_km from none), the residual RMS of the adjusted
+    spots on the version (km; None without a measured spot) and the seconds taken."""
+
+    version: int
+    tracks: int
+    uncorrected: int
+    largest_km: float
+    rms_km: float | None
+    seconds: float
+
+    def summary(self) -> str:
+        rms = "-" if self.rms_km is None else f"{self.rms_km * 1e3:.2f} m"
+        return (f"lidar: {self.tracks} tracks strip-adjusted to version {self.version} ({self.uncorrected} left "
+                f"uncorrected), largest correction {self.largest_km * 1e3:.2f} m, residual RMS {rms}; "
+                f"{self.seconds:.1f} s")
+
+
+def adjust_tracks(sessions: sessionmaker[Session], *, data_dir: Path, version: int,
+                  product_ids: Collection[int] | None = None, config: LidarConfig = LIDAR) -> LidarAdjustment | None:
+    """Strip-adjust the tracks of the accepted lidar products (of product_ids, or all) to
+    `version`'s mesh, store each track's correction and sigma (unconstrained parts null), and
+    measure the tracks' residuals on it (service.publish.lidar_statistics, which records them on
+    the rows). None where there is no track to adjust."""
+    clock = time.perf_counter()
+    with session_scope(sessions) as session:
+        query = select(LidarProduct).where(LidarProduct.status == Acceptance.ACCEPTED,
+                                           LidarProduct.shots_artifact.is_not(None))
+        if product_ids is not None:
+            query = query.where(LidarProduct.id.in_(list(product_ids)))
+        products = session.scalars(query.order_by(LidarProduct.id)).all()
+        if not products:  # a catalog without lidar reads no mesh
+            return None
+        mesh = version_mesh(data_dir, get_version(session, version))
+        corrected = uncorrected = 0
+        largest = 0.0
+        for product in products:
+            if product.shots_artifact is None or not product.tracks:  # none, by the query; no valid shot
+                continue
+            shots, _ = read_shots(artifact_path(data_dir, product.shots_artifact, verify=True))
+            adjustment = adjust(shots, mesh, config=config, rebuild=False)
+            for row in product.tracks:
+                change = _store(row, adjustment.corrections.get(row.track))
+                corrected += change is not None
+                uncorrected += change is None
+                largest = max(largest, change or 0.0)
+        if not corrected + uncorrected:
+            return None
+        session.flush()
+        figures = lidar_statistics(session, data_dir=data_dir, mesh=mesh, version=version)
+    report = LidarAdjustment(version=version, tracks=corrected, uncorrected=uncorrected, largest_km=largest,
+                             rms_km=None if figures is None else figures["rms_km"],
+                             seconds=time.perf_counter() - clock)
+    log.info("%s", report.summary())
+    return report
+
+
+def _store(row: LidarTrack, correction: Correction | None) -> float | None:
+    """Store a track's correction and sigma (unconstrained parts null) on its row; how far it
+    moves the track (km), or None (and nothing stored) where too few shots met the model."""
+    if correction is None or not np.isfinite(correction.sigma).any():
+        return None
+    row.rotation_x_rad, row.rotation_y_rad, row.rotation_z_rad = map(float, correction.rotation_rad)
+    row.translation_x_km, row.translation_y_km, row.translation_z_km = map(float, correction.translation_km)
+    row.about_x_km, row.about_y_km, row.about_z_km = map(float, correction.about_km)
+    row.correction_sigma = [float(s) if np.isfinite(s) else None for s in correction.sigma]
+    row.adjusted_at = utcnow()
+    return correction.change_km(None)
+
+
+def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int,
+                     config: LidarConfig = LIDAR) -> int | None:
+    """When the catalog has no model version and its images cannot make one: a closed model of
+    every accepted lidar product's spots (one body-fixed frame), strip-adjusted to itself, its
+    tracks' corrections stored, published as the first version (the module's docstring); its
+    number, or None where the catalog has no lidar or its spots do not enclose the body (the
+    downlink's model_note then adds why)."""
+    with session_scope(sessions) as session:
+        publication_lock(session)
+        if latest_version(session) is not None:
+            return None
+        products = session.scalars(select(LidarProduct).where(
+            LidarProduct.status == Acceptance.ACCEPTED, LidarProduct.valid_shots > 0,
+            LidarProduct.shots_artifact.is_not(None)).order_by(LidarProduct.id)).all()
+        parts = [read_shots(artifact_path(data_dir, p.shots_artifact, verify=True)) for p in products
+                 if p.shots_artifact is not None]  # all, by the query
+        if not parts:
+            return None
+        downlink = session.get_one(Downlink, downlink_id)
+        try:
+            shots = Shots.joined([part for part, _ in parts])
+            adjustment = adjust(shots, config=config)
+        except ValueError as exc:
+            note = f"no model from the lidar either: {exc}"
+            downlink.model_note = f"{downlink.model_note}; {note}" if downlink.model_note else note
+            log.info("downlink %d: %s", downlink_id, note)
+            return None
+        tracks = corrected = 0
+        start = 0
+        for product, (_, track) in zip(products, parts, strict=True):
+            # the adjustment numbers the tracks of all the products together: a catalogued track
+            # is the one most of its shots fell in
+            theirs = adjustment.track[start:start + len(track)]
+            start += len(track)
+            for row in product.tracks:
+                tracks += 1
+                ids, counts = np.unique(theirs[(track == row.track) & (theirs != NO_TRACK)], return_counts=True)
+                correction = adjustment.corrections.get(int(ids[np.argmax(counts)])) if len(ids) else None
+                corrected += _store(row, correction) is not None
+        session.flush()
+        # the first version (none before, under the lock), checked against the adjusted spots
+        figures = lidar_statistics(session, data_dir=data_dir, mesh=adjustment.model, version=1)
+        version = publish_version(session, data_dir=data_dir, mesh=adjustment.model, kind=ModelKind.LIDAR,
+                                  statistics={"products": len(products),
+                                              "shots": int(usable(shots).sum()), "tracks": tracks,
+                                              "tracks_corrected": corrected, "loop_changes_km": adjustment.changes,
+                                              "converged": adjustment.converged,
+                                              **({"lidar": figures} if figures is not None else {})},
+                                  downlinks=[downlink])
+        note = f"version {version.version} (lidar) made from the lidar, with no model before and none from the images"
+        downlink.model_note = note
+        log.info("downlink %d: %s", downlink_id, note)
+        return version.version
+
+
+def products_of(session: Session, downlink_id: int) -> list[int]:
+    """The ids of a downlink's accepted lidar products."""
+    return list(session.scalars(select(LidarProduct.id).where(LidarProduct.downlink_id == downlink_id,
+                                                              LidarProduct.status == Acceptance.ACCEPTED)))
