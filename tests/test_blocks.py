@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pwm.blocks import BlockedSums, fuse_in_blocks, maplet_blocks, split
+from pwm.blocks import BlockedSums, Shape, context, fuse_in_blocks, maplet_blocks, split
 from pwm.config import FusionBlocks
 from pwm.evaluate.closure import closure
 from pwm.evaluate.distance import ClosestPoint
@@ -19,6 +19,7 @@ from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface, tile
 from pwm.volume import DistanceGrid
+from pwm.voxels import unpack
 
 VOXEL, NODES, CELLS, MARGIN = 0.006, 11, 16, 16
 AXES = np.array([0.10, 0.075, 0.06])
@@ -107,3 +108,25 @@ def test_a_revision_changes_only_the_blocks_it_reaches(body, tmp_path):
         held, part = store.read("sums", block), split(whole, CELLS)[block]
         assert held is not None and np.array_equal(held.keys, part.keys)
         assert np.allclose(held.sums, part.sums, rtol=0, atol=1e-12)
+
+
+def test_a_block_holds_its_own_points_and_its_margin_not_the_body(body, tmp_path):
+    _, maplets = body
+    store = _store(tmp_path, maplets)
+    whole = DistanceGrid(VOXEL, taper_fraction=0.25)
+    whole.add_all(maplets)
+    index = unpack(whole.keys)
+    shape = Shape(cells=CELLS, margin=MARGIN // 2, voxel_km=VOXEL, taper_fraction=0.25)
+    counts = []
+    for block in store.blocks("sums"):
+        origin = unpack(np.array([block]))[0] * CELLS
+        held = store.read("sums", block)
+        assert held is not None
+        own = unpack(held.keys) - origin
+        assert own.min() >= 0 and own.max() < CELLS
+        # a job reads its block's points and its neighbours' within the margin, no others
+        counts.append(len(context(store, block, shape=shape).keys))
+        about = ((index >= origin - shape.margin) & (index < origin + CELLS + shape.margin)).all(axis=1).sum()
+        assert counts[-1] == about
+    assert sum(len(store.read("sums", b).keys) for b in store.blocks("sums")) == len(whole.keys)
+    assert max(counts) < 0.8 * len(whole.keys)

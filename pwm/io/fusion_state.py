@@ -10,17 +10,21 @@ what it added. Lengths in km, body-fixed frame.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pwm.blocks import BlockedSums, maplet_blocks
 from pwm.frames import LocalFrame
 from pwm.fusion import VoxelGrid
-from pwm.levels import Composition, LevelGrids
+from pwm.levels import BATCH, Composition, LevelGrids
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
+from pwm.parallel import map_processes
 from pwm.tiling import level_of
 from pwm.volume import DistanceGrid
 from pwm.voxels import pack, unpack
@@ -148,3 +152,26 @@ class BlockFiles:
     def clear(self, kind: str) -> None:
         for path in (self.directory / kind).glob("*.npz"):
             path.unlink()
+
+
+def build_blocks(store: BlockFiles, paths: Sequence[Path], *, voxel_km: float, taper_fraction: float, cells: int,
+                 workers: int) -> dict[int, int]:
+    """Each block's sums made on its own (on `workers` processes) from the maplet files
+    (`write_maplet`) whose band reaches it, in their order, BATCH at a time: no process holds
+    more than a block's sums and a batch. The maplets each block was made from, by block."""
+    touching: dict[int, list[Path]] = {}
+    for path in paths:
+        for block in maplet_blocks(read_maplet(path), voxel_km=voxel_km, cells=cells):
+            touching.setdefault(int(block), []).append(path)
+    make = partial(_build_block, store, voxel_km=voxel_km, taper_fraction=taper_fraction, cells=cells)
+    list(map_processes(make, sorted(touching.items()), workers=workers))
+    return {block: len(found) for block, found in touching.items()}
+
+
+def _build_block(store: BlockFiles, job: tuple[int, list[Path]], *, voxel_km: float, taper_fraction: float,
+                 cells: int) -> None:
+    block, paths = job
+    sums = BlockedSums(store, voxel_km, taper_fraction, cells, only={block})
+    for start in range(0, len(paths), BATCH):
+        sums.add_batch(read_maplet(p) for p in paths[start:start + BATCH])
+    sums.save()
