@@ -39,6 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pwm.config import BLOCKS, DEFAULTS  # noqa: E402
+from pwm.mesh import Mesh  # noqa: E402
 
 CHECK_MAX_FACES = 10_000_000
 BENNU_FINE_M = 0.05
@@ -46,30 +47,38 @@ CLOSED = {True: "yes", False: "no", None: "not checked"}
 SHAPE = Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
 
 
-def fuse_once(maplets: int, nodes: int) -> dict:
-    """Tile, store and fuse about `maplets` maplets over the whole shape; figures as a dict."""
-    from pwm.evaluate.closure import closure
-    from pwm.io.fusion_state import read_maplet, write_levels, write_maplet
+def _tiled(scratch: Path, maplets: int, nodes: int) -> tuple[Mesh, float, list[Path], float]:
+    """The shape, the spacing (km) that tiles it with about `maplets` maplets, their files under
+    `scratch` (1 cm of noise on the heights) and the seconds the tiling took."""
+    from pwm.io.fusion_state import write_maplet
     from pwm.io.meshio import read_obj
-    from pwm.levels import LevelGrids
-    from pwm.tiling import level_of, tile
-    from pwm.volume import DistanceGrid
+    from pwm.tiling import tile
 
     shape = read_obj(SHAPE)
-    area = shape.face_areas().sum()
-    spacing = np.sqrt(area / maplets) / ((1 - DEFAULTS.overlap) * (nodes - 1))
+    spacing = np.sqrt(shape.face_areas().sum() / maplets) / ((1 - DEFAULTS.overlap) * (nodes - 1))
     clock = time.perf_counter()
     tiled = tile(shape, spacing_km=spacing, nodes=nodes, overlap=DEFAULTS.overlap)
     tiling_s = time.perf_counter() - clock
     rng = np.random.default_rng(0)
+    paths = []
+    for k, m in enumerate(tiled):
+        m.heights = m.heights + 1e-5 * rng.standard_normal(m.heights.shape)
+        paths.append(scratch / f"{k}.npz")
+        write_maplet(paths[-1], m)
+    return shape, spacing, paths, tiling_s
+
+
+def fuse_once(maplets: int, nodes: int) -> dict:
+    """Tile, store and fuse about `maplets` maplets over the whole shape; figures as a dict."""
+    from pwm.evaluate.closure import closure
+    from pwm.io.fusion_state import read_maplet, write_levels
+    from pwm.levels import LevelGrids
+    from pwm.tiling import level_of
+    from pwm.volume import DistanceGrid
+
     with tempfile.TemporaryDirectory() as scratch:
-        paths = []
-        for k, m in enumerate(tiled):
-            m.heights = m.heights + 1e-5 * rng.standard_normal(m.heights.shape)
-            paths.append(Path(scratch) / f"{k}.npz")
-            write_maplet(paths[-1], m)
-        count = len(tiled)
-        del tiled
+        shape, spacing, paths, tiling_s = _tiled(Path(scratch), maplets, nodes)
+        count = len(paths)
         clock = time.perf_counter()
         grid = DistanceGrid(voxel_km=spacing, taper_fraction=DEFAULTS.overlap)
         grid.add_all(read_maplet(p) for p in paths)
@@ -99,24 +108,13 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
     from pwm.config import FusionBlocks
     from pwm.evaluate.closure import closure
     from pwm.evaluate.distance import ClosestPoint
-    from pwm.io.fusion_state import BlockFiles, build_blocks, read_maplet, write_maplet
-    from pwm.io.meshio import read_obj
-    from pwm.tiling import tile
+    from pwm.io.fusion_state import BlockFiles, build_blocks, read_maplet
     from pwm.volume import DistanceGrid
 
-    shape = read_obj(SHAPE)
-    spacing = np.sqrt(shape.face_areas().sum() / maplets) / ((1 - DEFAULTS.overlap) * (nodes - 1))
-    tiled = tile(shape, spacing_km=spacing, nodes=nodes, overlap=DEFAULTS.overlap)
-    rng = np.random.default_rng(0)
     blocks = FusionBlocks(cells=cells, workers=workers)
     with tempfile.TemporaryDirectory() as scratch:
-        paths = []
-        for k, m in enumerate(tiled):
-            m.heights = m.heights + 1e-5 * rng.standard_normal(m.heights.shape)
-            paths.append(Path(scratch) / f"{k}.npz")
-            write_maplet(paths[-1], m)
-        count = len(tiled)
-        del tiled
+        shape, spacing, paths, _ = _tiled(Path(scratch), maplets, nodes)
+        count = len(paths)
         store = BlockFiles(Path(scratch) / "blocks")
         clock = time.perf_counter()
         build_blocks(store, paths, voxel_km=spacing, taper_fraction=DEFAULTS.overlap, cells=cells, workers=workers)
