@@ -1,17 +1,21 @@
 """Volumetric fusion (pwm.volume) in blocks of the lattice, each on its own with bounded memory,
-stitched into one closed mesh that is the one the whole lattice would give.
+stitched into one closed mesh: that of the whole lattice but where the base's samples about a
+block's edge differ from the whole body's (a thousandth of a voxel RMS in tests/test_blocks.py;
+bench/RESULTS.md for Bennu).
 
 A block is the cube of `cells` lattice steps a side whose points have index // cells equal to
 its own index (named by that index packed as a lattice key, pwm.voxels.pack); it keeps the sums
 of its own points, so that a maplet changes only the blocks its band reaches (`BlockedSums`).
-Fusing takes two passes over the blocks, each block a job of its own (`fuse_in_blocks`):
+Fusing takes three passes over the blocks, each block a job of its own (`fuse_in_blocks`):
 
-1. closing: a block reads its own sums and its neighbours' within `margin` lattice steps, adds
+1. the reach of the base's band from the block's own samples (the base's distances are
+   clipped at the body's widest, the largest of the blocks');
+2. closing: a block reads its own sums and its neighbours' within `margin` lattice steps, adds
    the base's distances where no maplet reached (pwm.volume.DistanceGrid.closed, from the base's
    faces about it) and keeps the result at its own points only: every lattice point's value is
-   made once, by its own block, and the margin gives it what the whole body would (the base's
-   bend and band reach no further, see FusionBlocks.margin);
-2. marching cubes over the cells whose lowest corner is the block's own, from its closed values
+   made once, by its own block, and the margin gives it nearly what the whole body would (the
+   base's bend reaches FADE_VOXELS and its band the maplets' disagreement: FusionBlocks.margin);
+3. marching cubes over the cells whose lowest corner is the block's own, from its closed values
    and the first layer of its upper neighbours'. Two blocks sharing a face see the same values on
    it, so they make the same vertices there; the pieces are welded by the lattice edge each
    vertex lies on (`stitch`), which leaves no crack and no vertex twice.
@@ -68,15 +72,14 @@ def block_of(keys: np.ndarray, cells: int) -> np.ndarray:
     return pack(np.floor_divide(unpack(keys), cells))
 
 
-def split(grid: SparseSums, cells: int) -> dict[int, DistanceGrid]:
+def split(grid: DistanceGrid, cells: int) -> dict[int, DistanceGrid]:
     """The sums of each block (by key) that the grid's points fall in, each still sorted."""
     blocks = block_of(grid.keys, cells)
     order = np.argsort(blocks, kind="stable")
     names, starts = np.unique(blocks[order], return_index=True)
     ends = np.r_[starts[1:], len(order)]
-    taper = grid.taper_fraction if isinstance(grid, DistanceGrid) else 0.25
     return {int(b): DistanceGrid(grid.voxel_km, grid.keys[order[a:z]], grid.sums[order[a:z]],
-                                 grid.count[order[a:z]], taper_fraction=taper)
+                                 grid.count[order[a:z]], taper_fraction=grid.taper_fraction)
             for b, a, z in zip(names, starts, ends, strict=True)}
 
 
@@ -142,7 +145,7 @@ class BlockedSums:
         self._merge(*shape._contribution(maplet), sign=-1, name=f"maplet {maplet.name}")
 
     def _merge(self, keys: np.ndarray, sums: np.ndarray, count: np.ndarray, *, sign: int, name: str) -> None:
-        part = SparseSums(self.voxel_km, keys, sums, count)
+        part = DistanceGrid(self.voxel_km, keys, sums, count, taper_fraction=self.taper_fraction)
         for block, piece in split(part, self.cells).items():
             if self.only is not None and block not in self.only:
                 continue
