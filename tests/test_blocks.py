@@ -21,7 +21,7 @@ from pwm.tiling import sample_surface, tile
 from pwm.volume import DistanceGrid
 from pwm.voxels import unpack
 
-VOXEL, NODES, CELLS, MARGIN = 0.006, 11, 16, 16
+VOXEL, NODES, CELLS, MARGIN = 0.006, 11, 32, 16
 AXES = np.array([0.10, 0.075, 0.06])
 
 
