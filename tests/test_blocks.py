@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pwm.blocks import BlockedSums, Shape, context, fuse_in_blocks, maplet_blocks, split
+from pwm.blocks import BlockedSums, Shape, context, fuse_in_blocks, maplet_blocks, mesh_in_blocks, split
 from pwm.config import FusionBlocks
 from pwm.evaluate.closure import closure
 from pwm.evaluate.distance import ClosestPoint
@@ -65,6 +65,11 @@ def test_blocks_make_the_one_process_surface_with_exact_seams(body, tmp_path):
     whole = DistanceGrid(VOXEL, taper_fraction=0.25)
     whole.add_all(maplets)
     one = whole.mesh(base)
+    # a lattice that a block spans is fused whole, as before: the same mesh, bit for bit
+    small = mesh_in_blocks(whole, base, store=BlockFiles(tmp_path / "whole"), blocks=FusionBlocks(cells=64))
+    assert np.array_equal(small.vertices, one.vertices) and np.array_equal(small.faces, one.faces)
+    assert small.albedo is not None and np.array_equal(small.albedo, one.albedo)
+    assert not (tmp_path / "whole").exists()
     store = _store(tmp_path, maplets)
     # the blocks hold the whole grid's sums, bit for bit
     parts = split(whole, CELLS)
