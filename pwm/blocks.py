@@ -303,13 +303,13 @@ def stitch(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], *, voxel_km:
     vertices = np.vstack([p[0] for p in pieces])
     faces = np.vstack([p[1] + o for p, o in zip(pieces, offsets, strict=False)])
     albedo = np.concatenate([p[2] for p in pieces])
-    _, first, inverse = np.unique(edge_keys(vertices), axis=0, return_index=True, return_inverse=True)
+    _, first, inverse = np.unique(lattice_edges(vertices), axis=0, return_index=True, return_inverse=True)
     faces = inverse.ravel()[faces]
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
     return body_surface(vertices[first], faces, albedo[first], voxel_km=voxel_km)
 
 
-def edge_keys(vertices: np.ndarray) -> np.ndarray:
+def lattice_edges(vertices: np.ndarray) -> np.ndarray:
     """(N, 2) the lattice edge each marching-cubes vertex (in lattice steps) lies on: the key of
     its lower end and its axis (0-2), or the key of the lattice point it is at and 3."""
     nearest = np.round(vertices)
