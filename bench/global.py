@@ -2,6 +2,7 @@
 of 100 x 100 nodes over the whole of Bennu, on the cores given (issue 15.5).
 
     .venv/bin/python bench/global.py [--maplets 100 400 1300] [--survey SIM] [--sample 8] [--workers 2]
+    .venv/bin/python bench/global.py --maplets 100 400 --blocks 1 2 [--cells 256] [--compare]
 
 Fusion, per size: the whole shape (pwm's Bennu radar model) is tiled at the spacing that gives
 about N maplets, each maplet's heights get 1 cm of noise (so that fusion has disagreements to
@@ -14,6 +15,11 @@ images' pixel scale, are refined from its images against its start model on `--w
 processes; a maplet's cost depends on its nodes and images, not on how many others there are,
 so maplets per hour carry over to every size. The table gives the hours for each size and for
 the PWM paper's 1300-maplet Bennu model.
+
+With --blocks, the fusion runs in blocks (pwm.blocks) on each process count given: each
+block's sums made from the maplet files that reach it, then closed, meshed and stitched; the
+peak memory of the parent and of the largest worker, and with --compare the distance of the
+blocks' vertices to the one-process surface; then the extrapolation to Bennu at 5 cm.
 """
 
 from __future__ import annotations
@@ -32,37 +38,47 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pwm.config import DEFAULTS  # noqa: E402
+from pwm.config import BLOCKS, DEFAULTS  # noqa: E402
+from pwm.mesh import Mesh  # noqa: E402
 
 CHECK_MAX_FACES = 10_000_000
+BENNU_FINE_M = 0.05
 CLOSED = {True: "yes", False: "no", None: "not checked"}
 SHAPE = Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
+
+
+def _tiled(scratch: Path, maplets: int, nodes: int) -> tuple[Mesh, float, list[Path], float]:
+    """The shape, the spacing (km) that tiles it with about `maplets` maplets, their files under
+    `scratch` (1 cm of noise on the heights) and the seconds the tiling took."""
+    from pwm.io.fusion_state import write_maplet
+    from pwm.io.meshio import read_obj
+    from pwm.tiling import tile
+
+    shape = read_obj(SHAPE)
+    spacing = np.sqrt(shape.face_areas().sum() / maplets) / ((1 - DEFAULTS.overlap) * (nodes - 1))
+    clock = time.perf_counter()
+    tiled = tile(shape, spacing_km=spacing, nodes=nodes, overlap=DEFAULTS.overlap)
+    tiling_s = time.perf_counter() - clock
+    rng = np.random.default_rng(0)
+    paths = []
+    for k, m in enumerate(tiled):
+        m.heights = m.heights + 1e-5 * rng.standard_normal(m.heights.shape)
+        paths.append(scratch / f"{k}.npz")
+        write_maplet(paths[-1], m)
+    return shape, spacing, paths, tiling_s
 
 
 def fuse_once(maplets: int, nodes: int) -> dict:
     """Tile, store and fuse about `maplets` maplets over the whole shape; figures as a dict."""
     from pwm.evaluate.closure import closure
-    from pwm.io.fusion_state import read_maplet, write_levels, write_maplet
-    from pwm.io.meshio import read_obj
+    from pwm.io.fusion_state import read_maplet, write_levels
     from pwm.levels import LevelGrids
-    from pwm.tiling import level_of, tile
+    from pwm.tiling import level_of
     from pwm.volume import DistanceGrid
 
-    shape = read_obj(SHAPE)
-    area = shape.face_areas().sum()
-    spacing = np.sqrt(area / maplets) / ((1 - DEFAULTS.overlap) * (nodes - 1))
-    clock = time.perf_counter()
-    tiled = tile(shape, spacing_km=spacing, nodes=nodes, overlap=DEFAULTS.overlap)
-    tiling_s = time.perf_counter() - clock
-    rng = np.random.default_rng(0)
     with tempfile.TemporaryDirectory() as scratch:
-        paths = []
-        for k, m in enumerate(tiled):
-            m.heights = m.heights + 1e-5 * rng.standard_normal(m.heights.shape)
-            paths.append(Path(scratch) / f"{k}.npz")
-            write_maplet(paths[-1], m)
-        count = len(tiled)
-        del tiled
+        shape, spacing, paths, tiling_s = _tiled(Path(scratch), maplets, nodes)
+        count = len(paths)
         clock = time.perf_counter()
         grid = DistanceGrid(voxel_km=spacing, taper_fraction=DEFAULTS.overlap)
         grid.add_all(read_maplet(p) for p in paths)
@@ -80,6 +96,47 @@ def fuse_once(maplets: int, nodes: int) -> dict:
     return {"maplets": count, "spacing_m": spacing * 1e3, "tiling_s": tiling_s, "add_s": add_s, "mesh_s": mesh_s,
             "lattice_points": len(grid.keys), "grid_mib": grid_mib, "faces": len(mesh.faces),
             "closed": closed, "check_s": time.perf_counter() - clock, "peak_gib": peak_gib}
+
+
+def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare: bool) -> dict:
+    """As `fuse_once`, in blocks of `cells` lattice steps (pwm.blocks) on `workers` processes:
+    each block's sums made from the maplet files that reach it, then closed, meshed and
+    stitched; the peak resident memory of this process and of the largest worker (with one
+    worker the blocks run here), and with `compare` the RMS and largest distance of the
+    blocks' vertices to the one-process surface (made after the peaks are read)."""
+    from pwm.blocks import fuse_in_blocks
+    from pwm.config import FusionBlocks
+    from pwm.evaluate.closure import closure
+    from pwm.evaluate.distance import ClosestPoint
+    from pwm.io.fusion_state import BlockFiles, build_blocks, read_maplet
+    from pwm.volume import DistanceGrid
+
+    blocks = FusionBlocks(cells=cells, workers=workers)
+    with tempfile.TemporaryDirectory() as scratch:
+        shape, spacing, paths, _ = _tiled(Path(scratch), maplets, nodes)
+        count = len(paths)
+        store = BlockFiles(Path(scratch) / "blocks")
+        clock = time.perf_counter()
+        build_blocks(store, paths, voxel_km=spacing, taper_fraction=DEFAULTS.overlap, cells=cells, workers=workers)
+        add_s = time.perf_counter() - clock
+        points = [len(g.keys) for b in store.blocks("sums") if (g := store.read("sums", b)) is not None]
+        clock = time.perf_counter()
+        mesh = fuse_in_blocks(store, base=shape, blocks=blocks)
+        mesh_s = time.perf_counter() - clock
+        peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+        worker_gib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
+        sums_mib = sum(store.path("sums", b).stat().st_size for b in store.blocks("sums")) / 2**20
+        rms_mm = max_mm = None
+        if compare:
+            grid = DistanceGrid(voxel_km=spacing, taper_fraction=DEFAULTS.overlap)
+            grid.add_all(read_maplet(p) for p in paths)
+            off = ClosestPoint(grid.mesh(shape)).query(mesh.vertices)[0]
+            rms_mm, max_mm = float(np.sqrt(np.mean(off ** 2)) * 1e6), float(off.max() * 1e6)
+    closed = closure(mesh).closed if len(mesh.faces) <= CHECK_MAX_FACES else None
+    return {"maplets": count, "spacing_m": spacing * 1e3, "workers": workers, "blocks": len(points),
+            "lattice_points": sum(points), "largest_block_points": max(points), "add_s": add_s, "mesh_s": mesh_s,
+            "peak_gib": peak_gib, "worker_gib": worker_gib, "sums_mib": sums_mib, "faces": len(mesh.faces),
+            "closed": closed, "rms_mm": rms_mm, "max_mm": max_mm}
 
 
 def refine_sample(sim: Path, sample: int, nodes: int, workers: int) -> dict:
@@ -112,10 +169,19 @@ def main() -> None:
     parser.add_argument("--survey", type=Path, help="a survey simulation (with --with-start-model) to refine")
     parser.add_argument("--sample", type=int, default=8)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--blocks", type=int, nargs="*", metavar="WORKERS",
+                        help="fuse in blocks (pwm.blocks) instead, on each of these process counts")
+    parser.add_argument("--cells", type=int, default=BLOCKS.cells, help="lattice steps a side of a block")
+    parser.add_argument("--compare", action="store_true", help="with --blocks: also fuse in one process, compare")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a size in a process of its own
+    parser.add_argument("--workers-one", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(fuse_once(args.one, args.nodes)))
+        print(json.dumps(fuse_once(args.one, args.nodes) if args.workers_one is None else
+                         fuse_blocks_once(args.one, args.nodes, args.workers_one, args.cells, args.compare)))
+        return
+    if args.blocks:
+        blocks_table(args)
         return
 
     refined = refine_sample(args.survey, args.sample, args.nodes, args.workers) if args.survey else None
@@ -127,16 +193,53 @@ def main() -> None:
           "| sums MiB | faces | closed (check s) | refinement h (at the rate above) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for n in args.maplets:
-        out = subprocess.run([sys.executable, __file__, "--one", str(n), "--nodes", str(args.nodes)],
-                             capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
-        if out.returncode:
-            print(f"| {n} | failed: {out.stderr.strip().splitlines()[-1] if out.stderr.strip() else out.returncode} |")
+        r = _run_one([sys.executable, __file__, "--one", str(n), "--nodes", str(args.nodes)], n)
+        if r is None:
             continue
-        r = json.loads(out.stdout.strip().splitlines()[-1])
         hours = f"{r['maplets'] / refined['per_hour']:.1f}" if refined else "-"
         print(f"| {r['maplets']} | {r['spacing_m']:.2f} | {r['tiling_s']:.0f} | {r['add_s']:.0f} | {r['mesh_s']:.0f} "
               f"| {r['peak_gib']:.2f} | {r['lattice_points']:,} | {r['grid_mib']:.0f} | {r['faces']:,} "
               f"| {CLOSED[r['closed']]} ({r['check_s']:.0f}) | {hours} |")
+
+
+def _run_one(command: list[str], maplets: int) -> dict | None:
+    """The figures a size's own process prints, or None after printing a row that says why not."""
+    out = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    if out.returncode:
+        why = out.stderr.strip().splitlines()[-1] if out.stderr.strip() else out.returncode
+        print(f"| {maplets} | failed: {why} |")
+        return None
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def blocks_table(args: argparse.Namespace) -> None:
+    """The table of fusion in blocks, a size and process count in a process of its own each, and
+    the extrapolation of the largest size to Bennu at 5 cm (50,000 maplets of 100 x 100 nodes)."""
+    print("\n| maplets | spacing m | processes | blocks | lattice points | largest block's points | sums s "
+          "| mesh s | peak GiB (this, largest worker) | sums MiB | faces | closed | to one process: RMS, max mm |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    last = None
+    for n in args.maplets:
+        for workers in args.blocks:
+            command = [sys.executable, __file__, "--one", str(n), "--nodes", str(args.nodes), "--workers-one",
+                       str(workers), "--cells", str(args.cells)] + (["--compare"] if args.compare else [])
+            r = _run_one(command, n)
+            if r is None:
+                continue
+            last = r
+            compared = "-" if r["rms_mm"] is None else f"{r['rms_mm']:.3f}, {r['max_mm']:.1f}"
+            print(f"| {r['maplets']} | {r['spacing_m']:.2f} | {workers} | {r['blocks']} | {r['lattice_points']:,} "
+                  f"| {r['largest_block_points']:,} | {r['add_s']:.0f} | {r['mesh_s']:.0f} "
+                  f"| {r['peak_gib']:.2f}, {r['worker_gib']:.2f} | {r['sums_mib']:.0f} | {r['faces']:,} "
+                  f"| {CLOSED[r['closed']]} | {compared} |")
+    if last is not None:
+        # the lattice grows with the area over the spacing squared; a block's points do not
+        scale = (last["spacing_m"] / BENNU_FINE_M) ** 2
+        seconds = (last["add_s"] + last["mesh_s"]) * last["workers"] * scale
+        print(f"\nBennu at {BENNU_FINE_M * 100:.0f} cm from {last['maplets']} maplets at {last['spacing_m']:.2f} m: "
+              f"{last['lattice_points'] * scale:,.0f} lattice points in about {last['blocks'] * scale:,.0f} blocks, "
+              f"{seconds / 3600:.1f} process-hours ({seconds / 3600 / 16:.1f} h on 16 processes), "
+              f"sums {last['sums_mib'] * scale / 1024:.0f} GiB on disk, a block's peak as here")
 
 
 if __name__ == "__main__":

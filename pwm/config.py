@@ -170,3 +170,30 @@ class RefinementConfig:
 
 
 DEFAULTS = RefinementConfig()
+
+
+@dataclass(frozen=True)
+class FusionBlocks:
+    """How a closed surface's fusion (pwm.volume) is split into blocks of its lattice, each fused
+    on its own (pwm.blocks), so that no process holds more than a block and its margin.
+
+    cells: lattice steps along each side of a block; a lattice that spans no more than this on
+    every axis is fused whole, as one process always did. margin: lattice steps about a block
+    whose sums it reads to close its own points as the whole body would (the base's bend and
+    band reach that far, pwm.volume). workers: processes the blocks are fused on.
+    """
+
+    cells: int = 256
+    margin: int = 48
+    workers: int = 1
+
+    def __post_init__(self) -> None:
+        if self.cells < 8:
+            raise ValueError(f"blocks of {self.cells} lattice steps: at least 8")
+        if not 0 <= self.margin <= self.cells:
+            raise ValueError(f"a margin of {self.margin} lattice steps: from 0 to the block's {self.cells}")
+        if self.workers < 1:
+            raise ValueError(f"{self.workers} fusion workers: at least 1")
+
+
+BLOCKS = FusionBlocks()

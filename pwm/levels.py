@@ -29,7 +29,7 @@ would make. Lengths in km.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -150,13 +150,15 @@ class LevelGrids:
         module docstring)."""
         return self.compose(base)[0]
 
-    def compose(self, base: Mesh, *, previous: tuple[Mesh, Composition] | None = None
-                ) -> tuple[Mesh, Composition, Laid]:
+    def compose(self, base: Mesh, *, previous: tuple[Mesh, Composition] | None = None,
+                close: Callable[[DistanceGrid, Mesh], Mesh] | None = None) -> tuple[Mesh, Composition, Laid]:
         """The fused surface over `base` (as `mesh`), what the next composition needs of it, and
         how it was made. previous: the surface composed from these sums before the changes
         since (`changed`) and its composition; the regions the changes do not touch are carried
         over from it while the surface below the laid levels is the same. A base of a body and
-        patches beside it is made one closed surface first (`sealed`)."""
+        patches beside it is made one closed surface first (`sealed`). close: makes a closed
+        level's surface over the one below (DistanceGrid.mesh by default; pwm.blocks
+        .mesh_in_blocks fuses a large one in blocks)."""
         base = sealed(base)
         order = [k for k in sorted(self.grids, reverse=True) if len(self.grids[k].keys)]
         closed = [i for i, k in enumerate(order) if isinstance(self.grids[k], DistanceGrid)]
@@ -165,7 +167,7 @@ class LevelGrids:
         if previous is not None and previous[1].digest == digest:
             below, carried = previous[1].below, previous
         else:
-            below, carried = self._below(base, made), None
+            below, carried = self._below(base, made, close), None
         laid = order[len(made):]
         reach = {k: REACH_VOXELS * self.grids[coarser].voxel_km for coarser, k in zip(order, order[1:], strict=False)}
         identity = np.arange(len(below.vertices)), np.arange(len(below.faces))
@@ -188,14 +190,15 @@ class LevelGrids:
         return mesh, Composition(below, digest, vertex_origin, face_origin, face_region), Laid(
             int(dirty.sum()), int((~dirty).sum()), carried is None)
 
-    def _below(self, base: Mesh, made: list[int]) -> Mesh:
+    def _below(self, base: Mesh, made: list[int], close: Callable[[DistanceGrid, Mesh], Mesh] | None) -> Mesh:
         """The surface of the levels `made` (coarsest first) over `base`: a DistanceGrid closes
-        its own; a VoxelGrid is laid onto the surface below it, the base for the first."""
+        its own (with `close`, as `compose`); a VoxelGrid is laid onto the surface below it, the
+        base for the first."""
         surface = base
         for i, k in enumerate(made):
             grid = self.grids[k]
             if isinstance(grid, DistanceGrid):
-                surface = grid.mesh(surface)
+                surface = grid.mesh(surface) if close is None else close(grid, surface)
             else:
                 # the first level laid onto the base, as a finer level onto a coarser one, keeps the
                 # base's surface one piece; how far off the base may be, its faces' size tells

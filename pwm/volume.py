@@ -70,6 +70,10 @@ class DistanceGrid(SparseSums):
 
     taper_fraction: float = 0.25
 
+    def __post_init__(self) -> None:
+        if not len(self.keys):
+            self.sums = np.empty((0, _COLUMNS))
+
     @property
     def truncation_km(self) -> float:
         return TRUNCATION_VOXELS * self.voxel_km
@@ -113,9 +117,12 @@ class DistanceGrid(SparseSums):
             keys.append(np.unique(pack((cell[:, None, :] + _CORNERS[None]).reshape(-1, 3))))
         return np.unique(np.concatenate(keys))
 
-    def _base_sums(self, base: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _base_sums(self, base: Mesh, faces: np.ndarray | None = None,
+                   clip_km: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The base's signed distances, bent to meet the maplets, at the lattice points about it
-        that no maplet touched.
+        that no maplet touched; faces: a mask of the base's faces to sample (all by default: a
+        block of pwm.blocks takes those about it), the sign comes from the whole base; clip_km:
+        the largest distance kept (by default the widest band's reach, `base_reach`).
 
         Distances to the base come from the nearest of samples at most a lattice step apart on
         its faces. Where the base and the maplets disagree (by delta at a maplet's point near its
@@ -125,18 +132,13 @@ class DistanceGrid(SparseSums):
         layer). Its band is widened by the largest delta so that it reaches the maplets' band,
         and left out where the base runs within a lattice step of the maplets' surface.
         """
-        points, normals, albedo = _surface_samples(base, self.voxel_km)
+        points, normals, albedo = _surface_samples(base, self.voxel_km, faces)
         distance_to_base = _MeshDistance(base, points, normals, self.voxel_km)
         maplet_sums = self.sums[:, _W] > 0
         maplet_distance = self.sums[maplet_sums, _WD] / self.sums[maplet_sums, _W]
-        surface = np.abs(maplet_distance) <= 0.5 * self.truncation_km
-        at = unpack(self.keys[maplet_sums][surface]) * self.voxel_km
-        delta = distance_to_base(at)[0] - maplet_distance[surface]
+        at, delta, local_reach = self._disagreement(points, distance_to_base)
         fade = FADE_VOXELS * self.voxel_km
-        # each base sample's band is widened by the disagreement of the maplets about it, not the
-        # body's largest: one far-off maplet would otherwise widen the band everywhere
-        local_reach = self.truncation_km + _largest_near(points, at, np.abs(delta), fade + self.truncation_km)
-        reach = float(local_reach.max(initial=self.truncation_km))
+        reach = float(local_reach.max(initial=self.truncation_km)) if clip_km is None else clip_km
         maplet_surface = cKDTree(at) if len(at) else None
         # where the base runs within a lattice step of the maplets' surface, and is not near
         # where it does not (a border), the maplets hold the surface alone
@@ -199,16 +201,53 @@ class DistanceGrid(SparseSums):
         the base's (see the module docstring). Without one, the maplets must enclose the body."""
         if not len(self.keys):
             raise ValueError("nothing fused")
+        return body_surface(*extract(self.closed(base)), voxel_km=self.voxel_km)
+
+    def _disagreement(self, points: np.ndarray,
+                      distance_to_base: _MeshDistance) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The maplets' points near their surface (km), the base's distance there less theirs
+        (delta), and how far each base sample at `points` reaches: the truncation widened by
+        the largest delta about it."""
+        maplet_sums = self.sums[:, _W] > 0
+        maplet_distance = self.sums[maplet_sums, _WD] / self.sums[maplet_sums, _W]
+        surface = np.abs(maplet_distance) <= 0.5 * self.truncation_km
+        at = unpack(self.keys[maplet_sums][surface]) * self.voxel_km
+        delta = distance_to_base(at)[0] - maplet_distance[surface]
+        # each base sample's band is widened by the disagreement of the maplets about it, not the
+        # body's largest: one far-off maplet would otherwise widen the band everywhere
+        fade = FADE_VOXELS * self.voxel_km
+        return at, delta, self.truncation_km + _largest_near(points, at, np.abs(delta), fade + self.truncation_km)
+
+    def base_reach(self, base: Mesh, faces: np.ndarray | None = None,
+                   within: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+        """How far (km) the base's widest band reaches: what `_base_sums` clips its distances at.
+        faces: as there; within: the lattice box (lowest, highest index) whose samples count."""
+        points, normals, _ = _surface_samples(base, self.voxel_km, faces)
+        if not len(points):
+            return self.truncation_km
+        distance_to_base = _MeshDistance(base, points, normals, self.voxel_km)
+        if within is not None:
+            cell = np.floor(points / self.voxel_km)
+            points = points[((cell >= within[0]) & (cell <= within[1])).all(axis=1)]
+        return float(self._disagreement(points, distance_to_base)[2].max(initial=self.truncation_km))
+
+    def closed(self, base: Mesh | None, faces: np.ndarray | None = None, clip_km: float | None = None) -> SparseSums:
+        """A copy of the sums with the base's (see `_base_sums`) where no maplet reached; without
+        a base, the sums alone."""
         sums = SparseSums(self.voxel_km, self.keys.copy(), self.sums.copy(), self.count.copy())
         if base is not None:
-            sums.merge(*self._base_sums(base), sign=+1, name="the base")
-        vertices, faces, albedo = _extract(sums)
-        if not len(faces):
-            raise ValueError("the fused distances have no zero crossing")
-        used, faces = compact(len(vertices), faces[largest_piece(len(vertices), faces)])
-        vertices, albedo = vertices[used], albedo[used]
-        return Mesh(vertices * self.voxel_km, faces,
-                    None if np.isnan(albedo).all() else fill_gaps(albedo, vertices))
+            sums.merge(*self._base_sums(base, faces, clip_km), sign=+1, name="the base")
+        return sums
+
+
+def body_surface(vertices: np.ndarray, faces: np.ndarray, albedo: np.ndarray, *, voxel_km: float) -> Mesh:
+    """The largest piece of what marching cubes made (vertices in lattice steps, faces, albedo
+    per vertex, nan without) as a mesh in km, each vertex without albedo given its nearest's."""
+    if not len(faces):
+        raise ValueError("the fused distances have no zero crossing")
+    used, faces = compact(len(vertices), faces[largest_piece(len(vertices), faces)])
+    vertices, albedo = vertices[used], albedo[used]
+    return Mesh(vertices * voxel_km, faces, None if np.isnan(albedo).all() else fill_gaps(albedo, vertices))
 
 
 def grid_for(base: Mesh, *, voxel_km: float, taper_fraction: float) -> VoxelGrid | DistanceGrid:
@@ -261,11 +300,15 @@ def _largest_near(points: np.ndarray, at: np.ndarray, values: np.ndarray, radius
     return found
 
 
-def _surface_samples(mesh: Mesh, spacing_km: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Points on every face of `mesh` at most spacing_km apart (a barycentric grid per face),
-    their face's unit normal, and the mesh's albedo interpolated there (None without one)."""
+def _surface_samples(mesh: Mesh, spacing_km: float,
+                     chosen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Points on every face of `mesh` (of the `chosen` mask's, if given) at most spacing_km apart
+    (a barycentric grid per face), their face's unit normal, and the mesh's albedo interpolated
+    there (None without one)."""
     tri = mesh.vertices[mesh.faces]
     normals = mesh.face_normals()
+    if chosen is not None:
+        tri, normals, mesh = tri[chosen], normals[chosen], Mesh(mesh.vertices, mesh.faces[chosen], mesh.albedo)
     longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1)
     splits = np.maximum(1, np.ceil(longest / spacing_km)).astype(np.int64)
     points, point_normals, albedo = [], [], []
@@ -282,7 +325,7 @@ def _surface_samples(mesh: Mesh, spacing_km: float) -> tuple[np.ndarray, np.ndar
             np.concatenate(albedo) if mesh.albedo is not None else None)
 
 
-def _extract(sums: SparseSums) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def extract(sums: SparseSums) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Marching cubes over the lattice points with weight, block by block: vertices (in lattice
     steps) merged across blocks, faces wound outwards, albedo per vertex (nan without)."""
     index = unpack(sums.keys)

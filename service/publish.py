@@ -27,16 +27,19 @@ track's residuals on it.
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
-from pwm.config import DEFAULTS, RefinementConfig
-from pwm.io.fusion_state import read_composition, read_levels, write_composition, write_levels
+from pwm.blocks import mesh_in_blocks
+from pwm.config import BLOCKS, DEFAULTS, FusionBlocks, RefinementConfig
+from pwm.io.fusion_state import BlockFiles, read_composition, read_levels, write_composition, write_levels
 from pwm.io.lidar import read_shots
 from pwm.levels import LevelGrids
 from pwm.lidar.model import residual_summary, sample_shots, spot_normals, usable
@@ -66,12 +69,14 @@ log = logging.getLogger(__name__)
 
 
 def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlink_ids: Sequence[int] = (),
-                     config: RefinementConfig = DEFAULTS) -> int | None:
+                     config: RefinementConfig = DEFAULTS, blocks: FusionBlocks = BLOCKS) -> int | None:
     """Fuse the maplets' current revisions into the latest version and publish the result as a
     new version (kind refined); its number, or None when no maplet's current revision differs
     from the latest version's (nothing is published then).
 
-    config.overlap: the maplets' overlap, over which fusion tapers their weights.
+    config.overlap: the maplets' overlap, over which fusion tapers their weights. blocks: how a
+    closed level too large for one block is fused in blocks (pwm.blocks); a smaller one is fused
+    whole, as before.
     Lineage: the parent, the maplet revisions fused, the parent's downlinks plus downlink_ids
     and the downlinks whose refine jobs made the revisions changed (service.jobs
     .refined_downlinks).
@@ -115,7 +120,10 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
         level = {maplet_id: k for maplet_id, k in session.execute(select(Maplet.id, Maplet.level))}
         added = sorted(added, key=lambda r: (-level[r.maplet_id], r.maplet_id))
         fusion.add_all((load_revision_maplet(data_dir, r) for r in added), base=base_mesh)
-        mesh, composition, laid = fusion.compose(base_mesh, previous=previous)
+        with tempfile.TemporaryDirectory(prefix="pwm-blocks-") as blocks_dir:
+            # a closed level whose lattice spans more than a block is fused in blocks
+            close = partial(mesh_in_blocks, store=BlockFiles(Path(blocks_dir)), blocks=blocks)
+            mesh, composition, laid = fusion.compose(base_mesh, previous=previous, close=close)
         scratch = {"grid": scratch_path(data_dir, ".npz"), "composition": scratch_path(data_dir, ".npz")}
         write_levels(scratch["grid"], fusion)
         write_composition(scratch["composition"], composition)

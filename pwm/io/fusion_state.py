@@ -1,7 +1,8 @@
 """What incremental fusion keeps between model versions, as numpy .npz files: a refined maplet
 (frame, spacing, heights, albedo, region weight), the sums of a fusion, level by level
 (pwm.levels.LevelGrids of pwm.fusion.VoxelGrid and pwm.volume.DistanceGrid), and how its surface
-was composed (pwm.levels.Composition).
+was composed (pwm.levels.Composition), and the sums of a fusion in blocks, a file per block
+(`BlockFiles`, pwm.blocks).
 
 Arrays are stored exactly (float64, int64), so a maplet read back subtracts from a grid exactly
 what it added. Lengths in km, body-fixed frame.
@@ -9,18 +10,24 @@ what it added. Lengths in km, body-fixed frame.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pwm.blocks import BlockedSums, maplet_blocks
 from pwm.frames import LocalFrame
 from pwm.fusion import VoxelGrid
-from pwm.levels import Composition, LevelGrids
+from pwm.levels import BATCH, Composition, LevelGrids
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
+from pwm.parallel import map_processes
 from pwm.tiling import level_of
 from pwm.volume import DistanceGrid
+from pwm.voxels import pack, unpack
 
 _KINDS: dict[str, type[VoxelGrid] | type[DistanceGrid]] = {"points": VoxelGrid, "distances": DistanceGrid}
 
@@ -101,3 +108,70 @@ def _grid(data: Any, prefix: str) -> VoxelGrid | DistanceGrid:
     cls = _KINDS[str(data[prefix + "kind"])] if prefix + "kind" in data else VoxelGrid
     return cls(voxel_km=float(data[prefix + "voxel_km"]), taper_fraction=float(data[prefix + "taper_fraction"]),
                keys=data[prefix + "keys"], sums=data[prefix + "sums"], count=data[prefix + "count"])
+
+
+@dataclass(frozen=True)
+class BlockFiles:
+    """The blocks' sums of pwm.blocks (a pwm.blocks.BlockStore), as one file per block and kind
+    under `directory`: `<kind>/<i>_<j>_<k>.npz` for the block of index (i, j, k), holding its
+    grid's arrays (as `write_levels` holds a level's). A block's file is written only when its
+    sums change, so the others stay as they were, byte for byte."""
+
+    directory: Path
+
+    def path(self, kind: str, block: int) -> Path:
+        """The file of a block's sums of this kind."""
+        i, j, k = (int(v) for v in unpack(np.array([block]))[0])
+        return self.directory / kind / f"{i}_{j}_{k}.npz"
+
+    def blocks(self, kind: str) -> list[int]:
+        index = [[int(v) for v in p.stem.split("_")] for p in sorted((self.directory / kind).glob("*.npz"))]
+        return sorted(int(b) for b in pack(np.array(index, dtype=np.int64).reshape(-1, 3)))
+
+    def read(self, kind: str, block: int) -> DistanceGrid | None:
+        path = self.path(kind, block)
+        if not path.exists():
+            return None
+        with np.load(path, allow_pickle=False) as data:
+            grid = _grid(data, "")
+        if not isinstance(grid, DistanceGrid):
+            raise ValueError(f"{path} holds no signed distances")
+        return grid
+
+    def write(self, kind: str, block: int, grid: DistanceGrid) -> None:
+        path = self.path(kind, block)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not len(grid.keys):
+            path.unlink(missing_ok=True)
+            return
+        scratch = path.with_suffix(".part")
+        with open(scratch, "wb") as stream:
+            np.savez(stream, **_grid_arrays(grid))  # type: ignore[arg-type]  # as in write_maplet
+        scratch.replace(path)
+
+    def clear(self, kind: str) -> None:
+        for path in (self.directory / kind).glob("*.npz"):
+            path.unlink()
+
+
+def build_blocks(store: BlockFiles, paths: Sequence[Path], *, voxel_km: float, taper_fraction: float, cells: int,
+                 workers: int) -> dict[int, int]:
+    """Each block's sums made on its own (on `workers` processes) from the maplet files
+    (`write_maplet`) whose band reaches it, in their order, BATCH at a time: no process holds
+    more than a block's sums and a batch. The maplets each block was made from, by block."""
+    touching: dict[int, list[Path]] = {}
+    for path in paths:
+        for block in maplet_blocks(read_maplet(path), voxel_km=voxel_km, cells=cells):
+            touching.setdefault(int(block), []).append(path)
+    make = partial(_build_block, store, voxel_km=voxel_km, taper_fraction=taper_fraction, cells=cells)
+    list(map_processes(make, sorted(touching.items()), workers=workers))
+    return {block: len(found) for block, found in touching.items()}
+
+
+def _build_block(store: BlockFiles, job: tuple[int, list[Path]], *, voxel_km: float, taper_fraction: float,
+                 cells: int) -> None:
+    block, paths = job
+    sums = BlockedSums(store, voxel_km, taper_fraction, cells, only={block})
+    for start in range(0, len(paths), BATCH):
+        sums.add_batch(read_maplet(p) for p in paths[start:start + BATCH])
+    sums.save()

@@ -1,0 +1,320 @@
+"""Volumetric fusion (pwm.volume) in blocks of the lattice, each on its own with bounded memory,
+stitched into one closed mesh: that of the whole lattice but where the base's samples about a
+block's edge differ from the whole body's (a thousandth of a voxel RMS in tests/test_blocks.py;
+bench/RESULTS.md for Bennu).
+
+A block is the cube of `cells` lattice steps a side whose points have index // cells equal to
+its own index (named by that index packed as a lattice key, pwm.voxels.pack); it keeps the sums
+of its own points, so that a maplet changes only the blocks its band reaches (`BlockedSums`).
+Fusing takes three passes over the blocks, each block a job of its own (`fuse_in_blocks`):
+
+1. the reach of the base's band from the block's own samples (the base's distances are
+   clipped at the body's widest, the largest of the blocks');
+2. closing: a block reads its own sums and its neighbours' within `margin` lattice steps, adds
+   the base's distances where no maplet reached (pwm.volume.DistanceGrid.closed, from the base's
+   faces about it) and keeps the result at its own points only: every lattice point's value is
+   made once, by its own block, and the margin gives it nearly what the whole body would (the
+   base's bend reaches FADE_VOXELS and its band the maplets' disagreement: FusionBlocks.margin);
+3. marching cubes over the cells whose lowest corner is the block's own, from its closed values
+   and the first layer of its upper neighbours'. Two blocks sharing a face see the same values on
+   it, so they make the same vertices there; the pieces are welded by the lattice edge each
+   vertex lies on (`stitch`), which leaves no crack and no vertex twice.
+
+The blocks' files are kept by a `BlockStore` (pwm.io.fusion_state.BlockFiles); jobs run on
+pwm.parallel.map_processes. Lengths in km, lattice indices along the body axes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Protocol
+
+import numpy as np
+
+from pwm.config import FusionBlocks
+from pwm.maplets import MapletGrid
+from pwm.mesh import Mesh
+from pwm.parallel import map_processes
+from pwm.volume import FADE_VOXELS, TRUNCATION_VOXELS, DistanceGrid, body_surface, extract
+from pwm.voxels import SparseSums, pack, sum_by_key, unpack
+
+_UPPER = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
+_AROUND = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64)
+# a vertex this close (in lattice steps) to a lattice point is at it: both blocks about it agree
+_AT_POINT = 1e-9
+
+
+class BlockStore(Protocol):
+    """Where the blocks' sums ("sums") and closed values ("closed") are kept; picklable, so that
+    each job opens it itself."""
+
+    def blocks(self, kind: str) -> list[int]:
+        """The blocks of this kind held, by key."""
+        ...
+
+    def read(self, kind: str, block: int) -> DistanceGrid | None:
+        """A block's sums of this kind, None where it has none."""
+        ...
+
+    def write(self, kind: str, block: int, grid: DistanceGrid) -> None:
+        """Keep a block's sums of this kind."""
+        ...
+
+    def clear(self, kind: str) -> None:
+        """Drop every block's sums of this kind."""
+        ...
+
+
+def block_of(keys: np.ndarray, cells: int) -> np.ndarray:
+    """The block key of each lattice key."""
+    return pack(np.floor_divide(unpack(keys), cells))
+
+
+def split(grid: DistanceGrid, cells: int) -> dict[int, DistanceGrid]:
+    """The sums of each block (by key) that the grid's points fall in, each still sorted."""
+    blocks = block_of(grid.keys, cells)
+    order = np.argsort(blocks, kind="stable")
+    names, starts = np.unique(blocks[order], return_index=True)
+    ends = np.r_[starts[1:], len(order)]
+    return {int(b): DistanceGrid(grid.voxel_km, grid.keys[order[a:z]], grid.sums[order[a:z]],
+                                 grid.count[order[a:z]], taper_fraction=grid.taper_fraction)
+            for b, a, z in zip(names, starts, ends, strict=True)}
+
+
+def spanned(lo: np.ndarray, hi: np.ndarray, cells: int) -> np.ndarray:
+    """Keys of the blocks that the box of lattice indices lo..hi (inclusive) meets."""
+    first, last = np.floor_divide(lo, cells), np.floor_divide(hi, cells)
+    axes = [np.arange(a, b + 1) for a, b in zip(first, last, strict=True)]
+    return pack(np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3))
+
+
+def maplet_blocks(maplet: MapletGrid, *, voxel_km: float, cells: int) -> np.ndarray:
+    """Keys of the blocks a maplet's band of lattice points may reach (its nodes' box widened by
+    the truncation and a cell's corners)."""
+    nodes = maplet.nodes_body().reshape(-1, 3) / voxel_km
+    reach = TRUNCATION_VOXELS + 2.0
+    return spanned(np.floor(nodes.min(axis=0) - reach).astype(np.int64),
+                   np.ceil(nodes.max(axis=0) + reach).astype(np.int64), cells)
+
+
+def base_blocks(base: Mesh, *, voxel_km: float, cells: int, margin: int) -> np.ndarray:
+    """Keys of the blocks within `margin` lattice steps of the base's faces' boxes."""
+    tri = base.vertices[base.faces] / voxel_km
+    lo = np.floor(tri.min(axis=1)).astype(np.int64) - margin
+    hi = np.ceil(tri.max(axis=1)).astype(np.int64) + margin
+    return np.unique(np.concatenate([spanned(a, b, cells) for a, b in zip(lo, hi, strict=True)]))
+
+
+def span(grid: SparseSums) -> int:
+    """The most lattice steps the grid's points span along an axis (0 without points)."""
+    if not len(grid.keys):
+        return 0
+    index = unpack(grid.keys)
+    return int((index.max(axis=0) - index.min(axis=0)).max())
+
+
+@dataclass
+class BlockedSums:
+    """The sums of a DistanceGrid kept per block: a maplet added or subtracted changes only the
+    blocks its band reaches (`touched`), each read from `store` when first needed. The sums are
+    those the whole grid would hold, bit for bit: each maplet's contribution is made whole
+    (pwm.volume.DistanceGrid) and split, and a batch is summed as SparseSums.add_all sums it.
+    only: the blocks kept (None: all), for a job that makes one block's sums."""
+
+    store: BlockStore
+    voxel_km: float
+    taper_fraction: float
+    cells: int
+    only: set[int] | None = None
+    grids: dict[int, DistanceGrid] = field(default_factory=dict)
+    touched: set[int] = field(default_factory=set)
+
+    def add_batch(self, maplets: Iterable[MapletGrid]) -> None:
+        """Add maplets as one batch (as SparseSums.add_all does a batch)."""
+        shape = DistanceGrid(self.voxel_km, taper_fraction=self.taper_fraction)
+        parts = [shape._contribution(m) for m in maplets]
+        if parts:
+            self._merge(*sum_by_key(np.concatenate([p[0] for p in parts]), np.vstack([p[1] for p in parts]),
+                                    np.concatenate([p[2] for p in parts])), sign=+1, name="a batch of maplets")
+
+    def subtract(self, maplet: MapletGrid) -> None:
+        """Take a maplet's revision out, exactly as it was added."""
+        shape = DistanceGrid(self.voxel_km, taper_fraction=self.taper_fraction)
+        self._merge(*shape._contribution(maplet), sign=-1, name=f"maplet {maplet.name}")
+
+    def _merge(self, keys: np.ndarray, sums: np.ndarray, count: np.ndarray, *, sign: int, name: str) -> None:
+        part = DistanceGrid(self.voxel_km, keys, sums, count, taper_fraction=self.taper_fraction)
+        for block, piece in split(part, self.cells).items():
+            if self.only is not None and block not in self.only:
+                continue
+            if block not in self.grids:
+                stored = self.store.read("sums", block)
+                self.grids[block] = stored if stored is not None else DistanceGrid(
+                    self.voxel_km, taper_fraction=self.taper_fraction)
+            self.grids[block].merge(piece.keys, piece.sums, piece.count, sign=sign, name=name)
+            self.touched.add(block)
+
+    def save(self) -> list[int]:
+        """Write the touched blocks to the store; their keys."""
+        for block in sorted(self.touched):
+            self.store.write("sums", block, self.grids[block])
+        return sorted(self.touched)
+
+
+def mesh_in_blocks(grid: DistanceGrid, base: Mesh | None, *, store: BlockStore, blocks: FusionBlocks) -> Mesh:
+    """grid.mesh(base), in blocks (kept by an empty `store`) when its lattice spans more than a
+    block: a smaller one is fused whole, as it always was."""
+    if span(grid) <= blocks.cells:
+        return grid.mesh(base)
+    for block, part in split(grid, blocks.cells).items():
+        store.write("sums", block, part)
+    return fuse_in_blocks(store, base=base, blocks=blocks)
+
+
+def fuse_in_blocks(store: BlockStore, *, base: Mesh | None, blocks: FusionBlocks) -> Mesh:
+    """The closed surface of the sums the store holds per block (with `base` closing where no
+    maplet reached, as pwm.volume.DistanceGrid.mesh), fused block by block on blocks.workers
+    processes (see the module docstring)."""
+    held = store.blocks("sums")
+    if not held:
+        raise ValueError("nothing fused")
+    sample = store.read("sums", held[0])
+    assert sample is not None  # listed by the store
+    names = np.asarray(held, dtype=np.int64)
+    store.clear("closed")
+    shape = Shape(cells=blocks.cells, margin=blocks.margin, voxel_km=sample.voxel_km,
+                  taper_fraction=sample.taper_fraction)
+    clip_km = None
+    if base is not None:
+        # the base's distances are clipped at its widest band's reach over the whole body: the
+        # largest of the blocks that hold its samples
+        sampled = base_blocks(base, voxel_km=sample.voxel_km, cells=blocks.cells, margin=1)
+        clip_km = max(map_processes(partial(block_reach, store, base=base, shape=shape), sampled.tolist(),
+                                    workers=blocks.workers))
+        # its band reaches that far from its faces (and the rings about its bend follow the
+        # surface, which its bend moves no further)
+        names = np.union1d(names, base_blocks(base, voxel_km=sample.voxel_km, cells=blocks.cells,
+                                              margin=int(np.ceil(clip_km / sample.voxel_km)) + 2))
+    list(map_processes(partial(close_block, store, base=base, clip_km=clip_km, shape=shape), names.tolist(),
+                       workers=blocks.workers))
+    meshing = partial(mesh_block, store, cells=blocks.cells)
+    return stitch(list(map_processes(meshing, store.blocks("closed"), workers=blocks.workers)),
+                  voxel_km=sample.voxel_km)
+
+
+@dataclass(frozen=True)
+class Shape:
+    """The blocks' layout (pwm.config.FusionBlocks' cells and margin) and the lattice's voxel
+    and taper."""
+
+    cells: int
+    margin: int
+    voxel_km: float
+    taper_fraction: float
+
+
+def context(store: BlockStore, block: int, *, shape: Shape) -> DistanceGrid:
+    """The sums of a block and of its neighbours' points within `margin` lattice steps of it."""
+    origin = unpack(np.array([block]))[0] * shape.cells
+    lo, hi = origin - shape.margin, origin + shape.cells + shape.margin
+    keys, sums, count = [], [], []
+    for step in _AROUND:
+        grid = store.read("sums", int(pack((unpack(np.array([block]))[0] + step)[None])[0]))
+        if grid is None:
+            continue
+        index = unpack(grid.keys)
+        inside = ((index >= lo) & (index < hi)).all(axis=1)
+        keys.append(grid.keys[inside])
+        sums.append(grid.sums[inside])
+        count.append(grid.count[inside])
+    out = DistanceGrid(shape.voxel_km, taper_fraction=shape.taper_fraction)
+    if keys:
+        all_keys = np.concatenate(keys)
+        order = np.argsort(all_keys)
+        out.keys, out.sums, out.count = all_keys[order], np.vstack(sums)[order], np.concatenate(count)[order]
+    return out
+
+
+def block_reach(store: BlockStore, block: int, *, base: Mesh, shape: Shape) -> float:
+    """How far the base's band reaches from the block's own samples (pwm.volume
+    .DistanceGrid.base_reach): the body's widest is the largest of its blocks'."""
+    origin = unpack(np.array([block]))[0] * shape.cells
+    return context(store, block, shape=shape).base_reach(base, _faces_about(base, block, shape=shape),
+                                                         within=(origin, origin + shape.cells - 1))
+
+
+def close_block(store: BlockStore, block: int, *, base: Mesh | None, clip_km: float | None, shape: Shape) -> int:
+    """Close a block's own points (step 1 of the module docstring), the base's distances clipped
+    at clip_km, and keep them as its "closed" sums; the lattice points its context held then
+    (the most one job holds at a time)."""
+    grid = context(store, block, shape=shape)
+    faces = None if base is None else _faces_about(base, block, shape=shape)
+    if not len(grid.keys) and (faces is None or not faces.any()):
+        return 0
+    closed = grid.closed(base, faces, clip_km)
+    own = block_of(closed.keys, shape.cells) == block
+    if own.any():
+        store.write("closed", block, DistanceGrid(shape.voxel_km, closed.keys[own], closed.sums[own],
+                                                  closed.count[own], taper_fraction=shape.taper_fraction))
+    return len(closed.keys)
+
+
+def _faces_about(base: Mesh, block: int, *, shape: Shape) -> np.ndarray:
+    """Mask of the base's faces about a block's context: the samples its points are nearest to,
+    and those whose band reaches it."""
+    origin = unpack(np.array([block]))[0] * shape.cells
+    tri = base.vertices[base.faces] / shape.voxel_km
+    # the context's points' nearest samples, and the bands that reach them, lie within this
+    reach = shape.margin + int(TRUNCATION_VOXELS + FADE_VOXELS)
+    lo, hi = origin - reach, origin + shape.cells + reach
+    return ((tri.max(axis=1) >= lo) & (tri.min(axis=1) <= hi)).all(axis=1)
+
+
+def mesh_block(store: BlockStore, block: int, *, cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marching cubes over the cells whose lowest corner is the block's (step 2 of the module
+    docstring): vertices in lattice steps, faces, albedo per vertex (nan without)."""
+    index = unpack(np.array([block]))[0]
+    origin = index * cells
+    parts = []
+    for step in _UPPER:
+        grid = store.read("closed", int(pack((index + step)[None])[0]))
+        if grid is None:
+            continue
+        rel = unpack(grid.keys) - origin
+        # the first layer of an upper neighbour closes the block's last cells
+        keep = (rel <= cells).all(axis=1)
+        parts.append((grid.keys[keep], grid.sums[keep], grid.count[keep]))
+    keys = np.concatenate([p[0] for p in parts])
+    order = np.argsort(keys)
+    voxel_km = 1.0  # marching cubes work in lattice steps
+    return extract(SparseSums(voxel_km, keys[order], np.vstack([p[1] for p in parts])[order],
+                              np.concatenate([p[2] for p in parts])[order]))
+
+
+def stitch(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], *, voxel_km: float) -> Mesh:
+    """The blocks' pieces (vertices in lattice steps, faces, albedo) welded into one mesh by the
+    lattice edge (or point) each vertex lies on, its largest piece kept (pwm.volume.body_surface)."""
+    pieces = [p for p in pieces if len(p[1])]
+    if not pieces:
+        raise ValueError("the fused distances have no zero crossing")
+    offsets = np.cumsum([0] + [len(p[0]) for p in pieces])
+    vertices = np.vstack([p[0] for p in pieces])
+    faces = np.vstack([p[1] + o for p, o in zip(pieces, offsets, strict=False)])
+    albedo = np.concatenate([p[2] for p in pieces])
+    _, first, inverse = np.unique(lattice_edges(vertices), axis=0, return_index=True, return_inverse=True)
+    faces = inverse.ravel()[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
+    return body_surface(vertices[first], faces, albedo[first], voxel_km=voxel_km)
+
+
+def lattice_edges(vertices: np.ndarray) -> np.ndarray:
+    """(N, 2) the lattice edge each marching-cubes vertex (in lattice steps) lies on: the key of
+    its lower end and its axis (0-2), or the key of the lattice point it is at and 3."""
+    nearest = np.round(vertices)
+    at_point = (np.abs(vertices - nearest) <= _AT_POINT).all(axis=1)
+    lower = np.floor(vertices)
+    axis = np.argmax(vertices - lower, axis=1)
+    lower = np.where(at_point[:, None], nearest, lower).astype(np.int64)
+    return np.column_stack([pack(lower), np.where(at_point, 3, axis)])

@@ -1,0 +1,137 @@
+"""Fusion in blocks (pwm.blocks): the same closed surface as one process, exact seams, per-block
+sums that a revision changes only where it reaches, and jobs that hold a block, not the body."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from pwm.blocks import BlockedSums, Shape, context, fuse_in_blocks, maplet_blocks, mesh_in_blocks, split
+from pwm.config import FusionBlocks
+from pwm.evaluate.closure import closure
+from pwm.evaluate.distance import ClosestPoint
+from pwm.io.fusion_state import BlockFiles
+from pwm.maplets import MapletGrid
+from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
+from pwm.tiling import sample_surface, tile
+from pwm.volume import DistanceGrid
+from pwm.voxels import unpack
+
+VOXEL, NODES, CELLS, MARGIN = 0.006, 11, 32, 16
+AXES = np.array([0.10, 0.075, 0.06])
+
+
+def _ellipsoid(subdivisions: int, grow_km: float = 0.0) -> Mesh:
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    v = np.asarray(s.vertices) * (AXES + grow_km)
+    # a bump, so that the maplets and the base disagree by more than a voxel in places
+    v *= 1.0 + 0.08 * np.exp(-np.sum((np.asarray(s.vertices) - [0, 1, 0]) ** 2, axis=1) / 0.1)[:, None]
+    return Mesh(v, np.asarray(s.faces))
+
+
+@pytest.fixture(scope="module")
+def body() -> tuple[Mesh, list[MapletGrid]]:
+    """The base (a coarse ellipsoid without the bump, 3 m larger) and maplets over the truth
+    (with the bump) everywhere but a cap at +x, which the base closes, each with albedo."""
+    truth = _ellipsoid(4)
+    tracer = RayTracer(truth)
+    maplets = []
+    for m in tile(truth, spacing_km=VOXEL, nodes=NODES, overlap=0.25):
+        if m.frame.origin[0] > 0.07:
+            continue
+        m.heights, _ = sample_surface(tracer, m)
+        m.albedo = np.full_like(m.heights, 0.05 + 0.2 * m.frame.origin[1])
+        maplets.append(m)
+    base = Mesh(np.asarray(trimesh.creation.icosphere(subdivisions=3, radius=1.0).vertices) * (AXES + 0.003),
+                np.asarray(trimesh.creation.icosphere(subdivisions=3, radius=1.0).faces))
+    return base, maplets
+
+
+def _store(path: Path, maplets: list[MapletGrid]) -> BlockFiles:
+    store = BlockFiles(path)
+    sums = BlockedSums(store, VOXEL, 0.25, CELLS)
+    for start in range(0, len(maplets), 64):
+        sums.add_batch(maplets[start:start + 64])
+    sums.save()
+    return store
+
+
+def test_blocks_make_the_one_process_surface_with_exact_seams(body, tmp_path):
+    base, maplets = body
+    whole = DistanceGrid(VOXEL, taper_fraction=0.25)
+    whole.add_all(maplets)
+    one = whole.mesh(base)
+    # a lattice that a block spans is fused whole, as before: the same mesh, bit for bit
+    small = mesh_in_blocks(whole, base, store=BlockFiles(tmp_path / "whole"), blocks=FusionBlocks(cells=64))
+    assert np.array_equal(small.vertices, one.vertices) and np.array_equal(small.faces, one.faces)
+    assert small.albedo is not None and np.array_equal(small.albedo, one.albedo)
+    assert not (tmp_path / "whole").exists()
+    store = _store(tmp_path, maplets)
+    # the blocks hold the whole grid's sums, bit for bit
+    parts = split(whole, CELLS)
+    assert store.blocks("sums") == sorted(parts) and len(parts) >= 8
+    for block, part in parts.items():
+        held = store.read("sums", block)
+        assert held is not None
+        assert np.array_equal(held.keys, part.keys) and np.array_equal(held.sums, part.sums)
+    blocked = fuse_in_blocks(store, base=base, blocks=FusionBlocks(cells=CELLS, margin=MARGIN))
+    checks = closure(blocked)
+    assert checks.closed and checks.components == 1, checks
+    # welded: no two vertices at one place
+    assert len(np.unique(blocked.vertices, axis=0)) == len(blocked.vertices)
+    assert abs(len(blocked.faces) - len(one.faces)) <= 0.001 * len(one.faces)
+    off = ClosestPoint(one).query(blocked.vertices)[0]
+    assert np.sqrt(np.mean(off ** 2)) < 1e-3 * VOXEL and off.max() < 0.1 * VOXEL
+    assert blocked.albedo is not None and one.albedo is not None
+    assert abs(blocked.albedo.mean() - one.albedo.mean()) < 1e-3
+
+
+def test_a_revision_changes_only_the_blocks_it_reaches(body, tmp_path):
+    base, maplets = body
+    store = _store(tmp_path, maplets)
+    before = {b: store.path("sums", b).read_bytes() for b in store.blocks("sums")}
+    old = maplets[len(maplets) // 2]
+    new = MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km, heights=old.heights + 0.002,
+                     albedo=old.albedo)
+    sums = BlockedSums(store, VOXEL, 0.25, CELLS)
+    sums.subtract(old)
+    sums.add_batch([new])
+    touched = set(sums.save())
+    reach = set(maplet_blocks(old, voxel_km=VOXEL, cells=CELLS).tolist())
+    assert touched and touched <= reach and len(touched) < len(before)
+    for block, content in before.items():
+        if block not in touched:
+            assert store.path("sums", block).read_bytes() == content
+    # the touched blocks hold what fusing the new revision from the start would
+    whole = DistanceGrid(VOXEL, taper_fraction=0.25)
+    whole.add_all([new if m is old else m for m in maplets])
+    for block in touched:
+        held, part = store.read("sums", block), split(whole, CELLS)[block]
+        assert held is not None and np.array_equal(held.keys, part.keys)
+        assert np.allclose(held.sums, part.sums, rtol=0, atol=1e-12)
+
+
+def test_a_block_holds_its_own_points_and_its_margin_not_the_body(body, tmp_path):
+    _, maplets = body
+    store = _store(tmp_path, maplets)
+    whole = DistanceGrid(VOXEL, taper_fraction=0.25)
+    whole.add_all(maplets)
+    index = unpack(whole.keys)
+    shape = Shape(cells=CELLS, margin=MARGIN // 2, voxel_km=VOXEL, taper_fraction=0.25)
+    counts = []
+    for block in store.blocks("sums"):
+        origin = unpack(np.array([block]))[0] * CELLS
+        held = store.read("sums", block)
+        assert held is not None
+        own = unpack(held.keys) - origin
+        assert own.min() >= 0 and own.max() < CELLS
+        # a job reads its block's points and its neighbours' within the margin, no others
+        counts.append(len(context(store, block, shape=shape).keys))
+        about = ((index >= origin - shape.margin) & (index < origin + CELLS + shape.margin)).all(axis=1).sum()
+        assert counts[-1] == about
+    assert sum(len(store.read("sums", b).keys) for b in store.blocks("sums")) == len(whole.keys)
+    assert max(counts) < 0.8 * len(whole.keys)
