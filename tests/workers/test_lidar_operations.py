@@ -28,9 +28,11 @@ REVISIT_PX, REVISIT_FIRST_PX, REVISIT_IMAGES = 128, (96, 96), 4
 
 @pytest.fixture
 def settings(broker_url: str, postgres_url: str, tmp_path: Path) -> WorkerSettings:
-    # the survey's places: 16-node maplets within 60 m of each centre (as the survey test)
+    # the survey's places: 16-node maplets within 60 m of each centre (as the survey test); the
+    # images' poses known to a centimetre and a microradian (they are exact): no feedback round,
+    # which the knowledge a start from nothing assumes would bring (tests/service/test_start_from_images.py)
     return end_to_end_settings(broker_url=broker_url, database_url=postgres_url, data_dir=tmp_path / "data",
-                               maplet_nodes=16, tile_radius_km=0.06)
+                               maplet_nodes=16, tile_radius_km=0.06, pose_knowledge="0.01,1e-6")
 
 
 def _part(source: Path, out: Path, *parts: str) -> Path:
