@@ -32,7 +32,7 @@ from pwm.lidar.strips import Correction, adjust
 from pwm.lidar.tracks import NO_TRACK
 from service.artifacts import artifact_path
 from service.db import session_scope
-from service.publish import lidar_statistics
+from service.publish import lidar_statistics, usable_lidar_products
 from service.rows import Acceptance, Downlink, LidarProduct, LidarTrack, ModelKind, utcnow
 from service.versions import get_version, latest_version, publication_lock, publish_version, version_mesh
 
@@ -68,11 +68,7 @@ def adjust_tracks(sessions: sessionmaker[Session], *, data_dir: Path, version: i
     the rows). None where there is no track to adjust."""
     clock = time.perf_counter()
     with session_scope(sessions) as session:
-        query = select(LidarProduct).where(LidarProduct.status == Acceptance.ACCEPTED,
-                                           LidarProduct.shots_artifact.is_not(None))
-        if product_ids is not None:
-            query = query.where(LidarProduct.id.in_(list(product_ids)))
-        products = session.scalars(query.order_by(LidarProduct.id)).all()
+        products = usable_lidar_products(session, None if product_ids is None else list(product_ids))
         if not products:  # a catalog without lidar reads no mesh
             return None
         mesh = version_mesh(data_dir, get_version(session, version))
@@ -123,9 +119,7 @@ def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlin
         publication_lock(session)
         if latest_version(session) is not None:
             return None
-        products = session.scalars(select(LidarProduct).where(
-            LidarProduct.status == Acceptance.ACCEPTED, LidarProduct.valid_shots > 0,
-            LidarProduct.shots_artifact.is_not(None)).order_by(LidarProduct.id)).all()
+        products = usable_lidar_products(session)
         parts = [read_shots(artifact_path(data_dir, p.shots_artifact, verify=True)) for p in products
                  if p.shots_artifact is not None]  # all, by the query
         if not parts:

@@ -159,6 +159,15 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
         return version.version
 
 
+def usable_lidar_products(session: Session, product_ids: Sequence[int] | None = None) -> Sequence[LidarProduct]:
+    """The accepted lidar products (of product_ids, or all) with valid shots stored, by id."""
+    query = select(LidarProduct).where(LidarProduct.status == Acceptance.ACCEPTED, LidarProduct.valid_shots > 0,
+                                       LidarProduct.shots_artifact.is_not(None))
+    if product_ids is not None:
+        query = query.where(LidarProduct.id.in_(list(product_ids)))
+    return session.scalars(query.order_by(LidarProduct.id)).all()
+
+
 def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: int,
                      at_most: int | None = None) -> dict | None:
     """The lidar statistics of `mesh`, about to be published as `version`: at most `at_most`
@@ -169,9 +178,7 @@ def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: i
     RMS); each track's figures stored on its row with the version. None where the catalog has no usable
     shot (or none is to be checked)."""
     at_most = get_settings().lidar_residual_shots if at_most is None else at_most
-    products = session.scalars(select(LidarProduct).where(
-        LidarProduct.status == Acceptance.ACCEPTED, LidarProduct.valid_shots > 0,
-        LidarProduct.shots_artifact.is_not(None)).order_by(LidarProduct.id)).all()
+    products = usable_lidar_products(session)
     total = sum(p.valid_shots for p in products)
     if not total or not at_most:
         return None
