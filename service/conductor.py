@@ -2,8 +2,8 @@
 
 1. catalogue: kernels and products, each image's geometry (service.ingest.ingest_directory);
 2. adjust the poses on the current model (service.spg.adjust_downlink), or with no model make
-   one from the images (service.spg.start_from_images), else from the lidar
-   (service.lidar.start_from_lidar);
+   one from the images (service.spg.start_from_images) and one from the lidar
+   (service.lidar.start_from_lidar), started from whichever is the better founded;
 3. weigh the images against the model (`weigh`, service.coverage.update_coverage): once per
    downlink and pass, after its poses are final;
 4. plan: the maplets whose input changed (service.refinement.stale_maplets);
@@ -74,9 +74,10 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
 
     The current model is the latest version; a catalog without one first imports `start` (or
     DIRECTORY/start_model.obj when present) as a version of kind start, and with neither makes
-    one from the catalogued images after the ingest (service.spg.start_from_images), else from
-    its lidar spots (service.lidar.start_from_lidar); when neither can yet, nothing is weighed
-    nor refined (Plan.base_version None). config: the pose
+    one from the catalogued images after the ingest (service.spg.start_from_images) and one from
+    its lidar spots (service.lidar.start_from_lidar), published after the images' where it is
+    the better founded (service.lidar.finer_start) and then started from; when neither can yet,
+    nothing is weighed nor refined (Plan.base_version None). config: the pose
     knowledge where the kernels state none, how maplets are tiled where the images look and none
     is catalogued, and how they are refined. refine_on_config_change: also the maplets whose
     current revision was made with another configuration (service.refinement.stale_maplets).
@@ -91,8 +92,8 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     else:
         base_version = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id,
                                          configured=config.knowledge)
-        if base_version is None:  # the images cannot make one (yet): the lidar may
-            base_version = start_from_lidar(sessions, data_dir=data_dir, downlink_id=downlink_id)
+        from_lidar = start_from_lidar(sessions, data_dir=data_dir, downlink_id=downlink_id, over=base_version)
+        base_version = from_lidar if from_lidar is not None else base_version
         if base_version is None:
             return Plan(downlink_id=downlink_id, ingest=report, coverage=None, work=[], base_version=None)
         with sessions() as session:

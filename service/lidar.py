@@ -6,10 +6,11 @@ tracks' residuals on that version measured with the corrections applied
 shots file); a track's spots are re-placed by its stored correction wherever they are read.
 
 When it runs is the conductor's rule (service.conductor.adjust_lidar). And where the catalog
-has no model and the images cannot make one yet, the lidar may (`start_from_lidar`): a closed
-model of the catalogued spots (pwm.lidar.model.model_from_spots), strip-adjusted to itself
-(pwm.lidar.strips.adjust, the model rebuilt each round), published as version 1 of kind
-`lidar`. Lengths in km, angles in radians, body-fixed frame.
+has no model, the lidar may start one (`start_from_lidar`): a closed model of the catalogued
+spots (pwm.lidar.model.model_from_spots), strip-adjusted to itself (pwm.lidar.strips.adjust, the
+model rebuilt each round), published as a version of kind `lidar`: the first where the images
+cannot make one, or the one after the images' own start where it is the better founded of the
+two (`finer_start`). Lengths in km, angles in radians, body-fixed frame.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from pwm.lidar.model import usable
 from pwm.lidar.shots import Shots
 from pwm.lidar.strips import Correction, adjust
 from pwm.lidar.tracks import NO_TRACK
+from pwm.mesh import Mesh
 from service.artifacts import artifact_path
 from service.db import session_scope
 from service.publish import lidar_statistics, usable_lidar_products
@@ -109,15 +111,21 @@ def _store(row: LidarTrack, correction: Correction | None) -> float | None:
 
 
 def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlink_id: int,
-                     config: LidarConfig = LIDAR) -> int | None:
-    """When the catalog has no model version and its images cannot make one: a closed model of
-    every accepted lidar product's spots (one body-fixed frame), strip-adjusted to itself, its
-    tracks' corrections stored, published as the first version (the module's docstring); its
-    number, or None where the catalog has no lidar or its spots do not enclose the body (the
-    downlink's model_note then adds why)."""
+                     over: int | None = None, config: LidarConfig = LIDAR) -> int | None:
+    """A start from the lidar (the module's docstring): a closed model of every accepted lidar
+    product's spots (one body-fixed frame), strip-adjusted to itself, its tracks' corrections
+    stored, published as the next version (kind lidar). Made where the catalog has no model
+    version (over None), or where its only one is the photogrammetric start the images just made
+    from nothing (over: its number), and then published, and started from, only where it is the
+    better founded (`finer_start`); the choice goes into the downlink's model_note and the
+    version's statistics either way. Its number, or None where it is not made, not chosen, or the
+    catalog has no lidar or its spots do not enclose the body (the model_note then adds why)."""
     with session_scope(sessions) as session:
         publication_lock(session)
-        if latest_version(session) is not None:
+        latest = latest_version(session)
+        # only over this downlink's own start from its images (not over one another ingest made meanwhile)
+        if latest is not None and (latest.version != over or latest.kind is not ModelKind.PHOTOGRAMMETRIC
+                                   or downlink_id not in {d.id for d in latest.downlinks}):
             return None
         products = usable_lidar_products(session)
         parts = [read_shots(artifact_path(data_dir, p.shots_artifact, verify=True)) for p in products
@@ -129,10 +137,17 @@ def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlin
             shots = Shots.joined([part for part, _ in parts])
             adjustment = adjust(shots, config=config)
         except ValueError as exc:
-            note = f"no model from the lidar either: {exc}"
-            downlink.model_note = f"{downlink.model_note}; {note}" if downlink.model_note else note
-            log.info("downlink %d: %s", downlink_id, note)
+            _note(downlink, f"no model from the lidar: {exc}")
             return None
+        spots = int(usable(shots).sum())
+        choice = None
+        if latest is not None:
+            choice = finer_start(images=version_mesh(data_dir, latest), points=int(latest.statistics.get("points", 0)),
+                                 lidar=adjustment.model, spots=spots)
+            if choice["chosen"] != "lidar":
+                _note(downlink, f"the start stays version {latest.version}: {choice['why']}")
+                latest.statistics = {**latest.statistics, "start_choice": choice}
+                return None
         tracks = corrected = 0
         start = 0
         for product, (_, track) in zip(products, parts, strict=True):
@@ -146,19 +161,51 @@ def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlin
                 correction = adjustment.corrections.get(int(ids[np.argmax(counts)])) if len(ids) else None
                 corrected += _store(row, correction) is not None
         session.flush()
-        # the first version (none before, under the lock), checked against the adjusted spots
-        figures = lidar_statistics(session, data_dir=data_dir, mesh=adjustment.model, version=1)
+        # checked against the adjusted spots as the version it is about to be (none after it, under the lock)
+        number = 1 if latest is None else latest.version + 1
+        figures = lidar_statistics(session, data_dir=data_dir, mesh=adjustment.model, version=number)
         version = publish_version(session, data_dir=data_dir, mesh=adjustment.model, kind=ModelKind.LIDAR,
-                                  statistics={"products": len(products),
-                                              "shots": int(usable(shots).sum()), "tracks": tracks,
+                                  parent=latest,
+                                  statistics={"products": len(products), "shots": spots, "tracks": tracks,
                                               "tracks_corrected": corrected, "loop_changes_km": adjustment.changes,
                                               "converged": adjustment.converged,
+                                              **({"start_choice": choice} if choice is not None else {}),
                                               **({"lidar": figures} if figures is not None else {})},
                                   downlinks=[downlink])
-        note = f"version {version.version} (lidar) made from the lidar, with no model before and none from the images"
-        downlink.model_note = note
+        if choice is None:
+            note = (f"version {version.version} (lidar) made from the lidar, with no model before and none from "
+                    "the images")
+            downlink.model_note = note
+        else:
+            note = f"version {version.version} (lidar) made from the lidar is the start: {choice['why']}"
+            _note(downlink, note)
         log.info("downlink %d: %s", downlink_id, note)
         return version.version
+
+
+def finer_start(*, images: Mesh, points: int, lidar: Mesh, spots: int) -> dict:
+    """Which of two starts from nothing is the better founded: the one whose measurements sample
+    the body more finely (the square root of its model's area over their count), the images'
+    stereo points or the lidar's spots. Both are closed models of the whole body; what holds a
+    start's shape between its samples is only interpolation, which the refinement must then
+    undo, and a start's placement is as good as its samples' (the lidar's by range, the images'
+    by their poses). {"chosen": "lidar" | "images", "images_spacing_m", "lidar_spacing_m", "why"}."""
+    def spacing_m(mesh: Mesh, count: int) -> float:
+        return float(np.sqrt(mesh.face_areas().sum() / count) * 1e3) if count > 0 else float("inf")
+
+    image_spacing, lidar_spacing = spacing_m(images, points), spacing_m(lidar, spots)
+    chosen = "lidar" if lidar_spacing < image_spacing else "images"
+    finer, coarser = ("the lidar's", "the images'") if chosen == "lidar" else ("the images'", "the lidar's")
+    why = (f"{finer} measurements sample the body more finely than {coarser} ({spots} spots every "
+           f"{lidar_spacing:.1f} m, {points} stereo points every {image_spacing:.1f} m)")
+    return {"chosen": chosen, "why": why, **{key: value if np.isfinite(value) else None for key, value in
+                                            (("images_spacing_m", image_spacing), ("lidar_spacing_m", lidar_spacing))}}
+
+
+def _note(downlink: Downlink, note: str) -> None:
+    """Add to a downlink's model_note."""
+    downlink.model_note = f"{downlink.model_note}; {note}" if downlink.model_note else note
+    log.info("downlink %d: %s", downlink.id, note)
 
 
 def products_of(session: Session, downlink_id: int) -> list[int]:

@@ -182,13 +182,36 @@ def apply_corrections(shots: Shots, track: np.ndarray, corrections: dict[int, Co
     return replace(shots, origin_km=origin, direction=direction)
 
 
+def datum_kept(shots: Shots, track: np.ndarray, corrections: dict[int, Correction]) -> dict[int, Correction]:
+    """The corrections with the block's net rigid motion taken out: each composed with the one
+    rigid motion (Kabsch, over every usable spot of a track) that brings the corrected spots back
+    onto the spots as given. A model the tracks make of themselves has no datum of its own: a
+    turn or shift of every track at once fits it as well, and round after round of registering
+    to the model and rebuilding it lets the block wander (a milliradian in five rounds, on the
+    campaign's survey). Held where the tracks as given put it on average, the model is placed by
+    the kernels' many independent errors rather than by none."""
+    use = usable(shots) & (track != NO_TRACK)
+    if use.sum() < 3:
+        return corrections
+    given = shots.spots_km()[use]
+    moved = apply_corrections(shots, track, corrections).spots_km()[use]
+    given_centre, moved_centre = given.mean(axis=0), moved.mean(axis=0)
+    turn, _ = Rotation.align_vectors(given - given_centre, moved - moved_centre)
+    back = turn.as_matrix()
+    # x -> back (C(x) - moved_centre) + given_centre, written as a correction about C's own centre
+    return {t: replace(c, rotation_rad=(turn * Rotation.from_rotvec(c.rotation_rad)).as_rotvec(),
+                       translation_km=back @ (c.about_km + c.translation_km - moved_centre) + given_centre - c.about_km)
+            for t, c in corrections.items()}
+
+
 def adjust(shots: Shots, model: Mesh | None = None, *, config: LidarConfig = LIDAR,
            rebuild: bool | None = None) -> Adjustment:
     """The model -> tracks -> model loop: every track registered to the model, the model rebuilt
     from the adjusted spots (pwm.lidar.model.model_from_spots), until no correction changes by
     more than LidarConfig.loop_tolerance_km or after LidarConfig.loop_rounds rounds. Without a
-    model the first is made from the spots as given; `rebuild` (default: only then) says whether
-    the model is rebuilt between rounds, or kept (a model from the images, say)."""
+    model the first is made from the spots as given, and the block's datum is kept where they
+    put it (`datum_kept`); `rebuild` (default: only then) says whether the model is rebuilt
+    between rounds, or kept (a model from the images, say, which is the datum)."""
     rebuild = model is None if rebuild is None else rebuild
     track = track_ids(shots, config)
     current = model_from_spots(shots, config) if model is None else model
@@ -204,6 +227,8 @@ def adjust(shots: Shots, model: Mesh | None = None, *, config: LidarConfig = LID
             after = register_track(own, tracer, track=t, config=config, start=corrections.get(t))
             change = max(change, after.change_km(corrections.get(t)))
             corrections[t] = after
+        if model is None:
+            corrections = datum_kept(shots, track, corrections)
         changes.append(change)
         adjusted = apply_corrections(shots, track, corrections)
         if rebuild:

@@ -3,7 +3,8 @@ downlink that brings lidar to a catalog with a model and publishes nothing has i
 strip-adjusted to the current version, each correction and sigma stored, and its residuals on
 that version measured with them; a downlink without lidar adjusts nothing. And a catalog with no
 model, given lidar alone, takes its first version from the spots (service.lidar.start_from_lidar)
-through `pwm run`."""
+through `pwm run`; given images and lidar, the start whose measurements sample the body more
+finely (service.lidar.finer_start; the whole run: tests/service/test_start_from_images.py)."""
 
 from __future__ import annotations
 
@@ -11,17 +12,23 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 from sqlalchemy import select
 
+from pwm.config import RefinementConfig
 from pwm.evaluate.closure import closure
+from pwm.geometry import Ellipsoid
 from pwm.io.lidar import read_shots
 from pwm.io.meshio import write_ply
+from pwm.knowledge import IndependentErrors
 from pwm.lidar.model import lidar_residuals, model_from_spots
 from pwm.lidar.shots import Shots
 from pwm.mesh import Mesh
+from pwm.simulate.windows import window_downlink
 from service.artifacts import artifact_path
 from service.conductor import adjust_lidar
 from service.ingest import ingest_directory
+from service.lidar import finer_start
 from service.rows import Downlink, LidarProduct, ModelKind
 from service.run import run_directory
 from service.versions import get_version, import_model, version_mesh
@@ -91,3 +98,54 @@ def test_a_catalog_with_no_model_takes_its_first_from_the_lidar(
         against_truth = lidar_residuals(true_spots, model)
         assert abs(against_truth.mean_km) < 0.0005 and against_truth.rms_km < 0.0008, against_truth.rms_km
         assert first.statistics["lidar"]["rms_km"] < 0.0008
+
+
+def test_the_start_whose_measurements_sample_the_body_more_finely_is_chosen() -> None:
+    body = Ellipsoid(radii=(0.25, 0.25, 0.25)).mesh()
+    area_m2 = body.face_areas().sum() * 1e6  # about 0.79 km2
+    # 1,000 spots every 28 m against 100 stereo points every 89 m: the lidar's
+    choice = finer_start(images=body, points=100, lidar=body, spots=1000)
+    assert choice["chosen"] == "lidar"
+    assert choice["lidar_spacing_m"] == pytest.approx(np.sqrt(area_m2 / 1000))
+    assert choice["images_spacing_m"] == pytest.approx(np.sqrt(area_m2 / 100))
+    assert "1000 spots every 28.0 m, 100 stereo points every 88.6 m" in choice["why"]
+    # a lidar that ranged a few dozen times leaves the images' start
+    assert finer_start(images=body, points=100, lidar=body, spots=40)["chosen"] == "images"
+    # a start with no measurement at all is never the finer one (and its spacing is not a number to store)
+    nothing = finer_start(images=body, points=0, lidar=body, spots=40)
+    assert (nothing["chosen"], nothing["images_spacing_m"]) == ("lidar", None)
+
+
+def test_images_then_lidar_then_images_through_pwm_run(
+        open_catalog_at, sqlite_url: str, global_tiny_sim: Path, tmp_path: Path) -> None:
+    """The sequence a mission gives, in one process (the same through the Celery workers:
+    tests/workers/test_lidar_operations.py): every version published once the lidar is
+    catalogued carries its residuals, and the tracks follow the latest version."""
+    catalog, data = open_catalog_at(sqlite_url), tmp_path / "data"
+    # the survey's places, 16-node maplets within 100 m; its exact poses known to a centimetre and a microradian
+    config = RefinementConfig(nodes=16, tile_radius_km=0.1, knowledge=IndependentErrors(position_m=0.01,
+                                                                                        pointing_rad=1e-6))
+    source = global_tiny_sim / "downlink"
+    images = tmp_path / "images"
+    for part in ("images", "kernels"):
+        shutil.copytree(source / part, images / part)
+    first = run_directory(catalog, images, data_dir=data, config=config)
+    assert first.plan.base_version == 1 and first.versions and first.lidar is None
+    lidar_only = tmp_path / "lidar"
+    for part in ("lidar", "kernels"):
+        shutil.copytree(source / part, lidar_only / part)
+    second = run_directory(catalog, lidar_only, data_dir=data, config=config)
+    assert second.versions == [] and second.lidar is not None and second.lidar.version == first.versions[-1]
+    again = tmp_path / "again"
+    window_downlink(source, again, size_px=128, first_px=(96, 96), count=4, tag="again")
+    third = run_directory(catalog, again, data_dir=data, config=config)
+    assert third.versions and third.lidar is not None and third.lidar.version == third.versions[-1]
+    with catalog() as session:
+        for number in first.versions:  # made before the catalog had lidar
+            assert "lidar" not in get_version(session, number).statistics
+        for number in third.versions:
+            figures = get_version(session, number).statistics["lidar"]
+            # the survey's 4 m GSD model: within 3 GSD of the spots, which cross one another
+            assert figures["measured"] > 1000 and figures["rms_km"] < 0.012 and figures["crossovers"] > 0
+        tracks = session.scalars(select(LidarProduct)).one().tracks
+        assert len(tracks) > 1 and {t.residual_version for t in tracks} == {third.versions[-1]}

@@ -64,19 +64,26 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
     downlink = global_tiny_sim / "downlink"
     assert not (downlink / START_MODEL_NAME).exists()
     run = run_directory(catalog, downlink, data_dir=data, config=SURVEY)
-    # version 4: the kernels state no knowledge, so the start assumed one, corrected the poses
-    # under it and fed the maplets' registrations back under it too
-    assert (run.plan.base_version, run.versions) == (1, [2, 3, 4]) and run.plan.work
+    # version 1 from the images' 12 views and version 2 from the lidar's 4,800 shots: the lidar's
+    # spots sample the body far more finely than the images' few dozen stereo points, so the
+    # refinement starts from version 2; and version 5: the kernels state no knowledge, so the
+    # images' start assumed one, corrected the poses under it and fed the maplets' registrations
+    # back under it too
+    assert (run.plan.base_version, run.versions) == (2, [3, 4, 5]) and run.plan.work
     with catalog() as session:
         adjustment = session.scalars(select(Downlink.pose_adjustment)).one()
         assert adjustment["source"] == ASSUMED and adjustment["feedback"]["note"] == "adjusted"
-        first = get_version(session, 1)
+        first, start = get_version(session, 1), get_version(session, 2)
         assert (first.kind, first.parent) == (ModelKind.PHOTOGRAMMETRIC, None)
         assert [d.name for d in first.downlinks] == ["downlink"]
         assert first.statistics["images"] == 12 and first.statistics["base_version"] is None
-        assert get_version(session, 2).parent.version == 1
+        assert (start.kind, start.parent.version) == (ModelKind.LIDAR, 1)
+        choice = start.statistics["start_choice"]
+        assert choice["chosen"] == "lidar" and choice["lidar_spacing_m"] < choice["images_spacing_m"] / 2
+        assert get_version(session, 3).parent.version == 2
         assert session.scalars(select(Downlink.model_note)).one() == (
-            "version 1 (photogrammetric) made from the images, with no model before")
+            "version 1 (photogrammetric) made from the images, with no model before; version 2 (lidar) made from "
+            f"the lidar is the start: {choice['why']}")
         images = session.scalars(select(Image)).all()
         # the survey's lidar product is catalogued with its tracks, none of its files left unused
         lidar = session.scalars(select(LidarProduct)).one()
@@ -100,25 +107,25 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, catalog, tmp_
         # (from the ellipsoid, with a few dozen points, no figure is halved: the rule says so)
         assert shown.determined == [k for k in before if after[k] < DETERMINED * before[k]]
         photogrammetric = version_mesh(data, first)
-        # the refined survey is one closed surface: the maplets where they reach, version 1 elsewhere
-        refined = get_version(session, 4)
+        # the refined survey is one closed surface: the maplets where they reach, version 2 elsewhere
+        refined = get_version(session, 5)
         assert refined.statistics["surface"] == "closed"
         # checked against the survey's lidar: its spots within a few GSD (4 m) of the refined model
         checked = refined.statistics["lidar"]
         assert checked["shots"] == lidar.valid_shots and checked["rms_km"] < 0.012
         # then each track strip-adjusted to it (exact kernels: the corrections follow the model's own
-        # error, within its 3 GSD), its corrected spots no further from version 4 than ingest placed them
-        assert run.lidar is not None and run.lidar.version == 4 and run.lidar.tracks == len(lidar.tracks)
+        # error, within its 3 GSD), its corrected spots no further from version 5 than ingest placed them
+        assert run.lidar is not None and run.lidar.version == 5 and run.lidar.tracks == len(lidar.tracks)
         assert run.lidar.largest_km < 0.012 and run.lidar.rms_km <= checked["rms_km"]
-        assert all(t.adjusted_at is not None and t.residual_version == 4 and all(s is not None and 0 < s < 1e-2
+        assert all(t.adjusted_at is not None and t.residual_version == 5 and all(s is not None and 0 < s < 1e-2
                    for s in t.correction_sigma) for t in lidar.tracks)
         checks = closure(version_mesh(data, refined))
         assert checks.closed, checks
         if catalog.kw["bind"].dialect.name == "sqlite":  # once: the exports do not depend on the catalog
             # every export of a body made from nothing is one closed surface, decimated too
-            for number, fmt, faces in [(1, ExportFormat.OBJ, None), (4, ExportFormat.PLY, None),
-                                       (4, ExportFormat.DSK, None), (4, ExportFormat.ICQ, None),
-                                       (4, ExportFormat.OBJ, 20_000)]:
+            for number, fmt, faces in [(1, ExportFormat.OBJ, None), (5, ExportFormat.PLY, None),
+                                       (5, ExportFormat.DSK, None), (5, ExportFormat.ICQ, None),
+                                       (5, ExportFormat.OBJ, 20_000)]:
                 plan = plan_export(session, data_dir=data, version=get_version(session, number), fmt=fmt,
                                    faces=faces)
                 made = make_export(plan, cache_bytes=None)
@@ -213,7 +220,7 @@ def test_the_start_from_nothing_reports_what_it_did_to_the_poses(global_tiny_sim
     config = dataclasses.replace(SURVEY, knowledge=NavigationErrors(along_m=3, cross_m=1, misalign_urad=50,
                                                                      drift_urad=20))
     plan = ingest_and_plan(catalog, global_tiny_sim / "downlink", data_dir=tmp_path, config=config)
-    assert plan.base_version == 1
+    assert plan.base_version == 2  # the lidar's start, over the images' (version 1)
     with catalog() as session:
         report = session.get_one(Downlink, plan.downlink_id).pose_adjustment
         assert (report["knowledge"], report["source"]) == ("nav:3,1,50,20", "configured")

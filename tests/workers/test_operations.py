@@ -351,14 +351,17 @@ def test_a_first_survey_with_no_model_becomes_a_closed_global_model(
     worker = start_worker(lambda name: pwm_worker_command(name, 2))
     downlink = global_tiny_sim / "downlink"
     client.send_task(ingest_downlink.name, args=[str(downlink)], kwargs={"key": ingest_key(downlink)})
-    _wait_for_version(catalog, 2, [worker])
-    photogrammetric, refined = _versions(catalog)[:2]
-    # version 1 made from the images, with no model before; version 2 refined from it
+    _wait_for_version(catalog, 3, [worker])
+    photogrammetric, start, refined = _versions(catalog)[:3]
+    # version 1 made from the images, with no model before, version 2 from the lidar, whose spots
+    # sample the body more finely than the images' stereo points: version 3 refined from it
     assert (photogrammetric.kind, photogrammetric.parent) == (ModelKind.PHOTOGRAMMETRIC, None)
-    assert (refined.kind, refined.parent.version) == (ModelKind.REFINED, photogrammetric.version)
+    assert (start.kind, start.parent.version) == (ModelKind.LIDAR, photogrammetric.version)
+    assert (refined.kind, refined.parent.version) == (ModelKind.REFINED, start.version)
     with catalog() as session:
-        assert session.scalars(select(Downlink.model_note)).one() == (
-            "version 1 (photogrammetric) made from the images, with no model before")
+        assert session.scalars(select(Downlink.model_note)).one().startswith(
+            "version 1 (photogrammetric) made from the images, with no model before; version 2 (lidar) made from "
+            "the lidar is the start: the lidar's measurements sample the body more finely")
         assert session.scalar(select(func.count()).select_from(Image).where(
             Image.pose_corrected_at.is_(None))) == 0
     # the survey's places round the body were tiled and refined, and fused into one closed surface

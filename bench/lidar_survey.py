@@ -1,0 +1,119 @@
+"""Strip adjustment and the lidar model from nothing on a simulated downlink's lidar (issue 46's
+acceptance: `campaign`'s survey under `nav:` knowledge errors), judged against what the proving
+ground drew: the shots read through the downlink's kernels as the catalog-free commands read them
+(pwm.io.lidar.read_lidar_directory), the truth surface, and each view's drawn pose error (the
+simulated lidar's frame is fixed to the camera's, so a track through a view's kernel window carries
+that view's error: a turn b about the spacecraft and a shift dp).
+
+Three adjustments, each as one table row: to the truth surface (what strip adjustment can do with
+a perfect model), from nothing (the loop model -> tracks -> model, no model given) and, for that
+model, the global evaluation of `pwm evaluate --scope global` (RMS after ICP, coverage within 2
+GSD, the mean offset that ICP removed, closure). Per track, the correction to the truth against
+the one that undoes the drawn error: the share of its six parameters within 3 sigma.
+
+    .venv/bin/python bench/lidar_survey.py SIM/downlinks/1-campaign-survey SIM/truth/1-campaign-survey
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from pwm.evaluate.closure import closure
+from pwm.evaluate.distance import ClosestPoint
+from pwm.evaluate.report import evaluate
+from pwm.io.lidar import read_lidar_directory
+from pwm.io.meshio import read_shape_model, write_ply
+from pwm.lidar.model import lidar_residuals
+from pwm.lidar.shots import Shots
+from pwm.lidar.strips import Correction, adjust
+from pwm.lidar.tracks import NO_TRACK
+
+
+def drawn(correction: Correction, shots: Shots, track: np.ndarray, views: list[dict]) -> np.ndarray:
+    """The (rotation, translation about the track's centroid) that undoes the drawn error of the
+    view whose kernel window the track lies in: x -> Rot(b) (x - s') + s' - dp, with s' the
+    spacecraft's position as the kernels give it, b the view's pointing error in body axes and dp
+    its position error (pwm.simulate.knowledge)."""
+    mine = track == correction.track
+    et = float(np.median(shots.et[mine]))
+    view = min(views, key=lambda v: abs(v["et"] - et))
+    error = view["knowledge_error"]
+    b = np.asarray(error["pointing_body_urad"], float) * 1e-6
+    dp = np.asarray(error["position_m"], float) * 1e-3
+    s = shots.origin_km[mine].mean(axis=0)
+    turn = Rotation.from_rotvec(b).as_matrix()
+    return np.r_[b, (turn - np.eye(3)) @ (correction.about_km - s) - dp]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("downlink", type=Path, help="a simulated downlink with lidar/ and kernels/")
+    parser.add_argument("truth", type=Path, help="its truth/ directory")
+    args = parser.parse_args()
+    manifest = json.loads((args.truth / "manifest.json").read_text())
+    gsd_m = manifest["gsd_m"]
+    noise_m = manifest["lidar"]["range_noise_m"]
+    products, skipped = read_lidar_directory(args.downlink)
+    if skipped:
+        raise SystemExit(f"products not read: {skipped}")
+    shots = Shots.joined([p.shots for p in products])
+    truth = read_shape_model(args.truth / "mesh.ply")
+    knowledge = {k: v for k, v in manifest["knowledge_error"].items() if k != "arcs"}
+    print(f"{args.downlink.name}: {len(shots)} shots, {int(shots.valid.sum())} valid; knowledge {knowledge}; "
+          f"range noise {noise_m} m; GSD {gsd_m:.2f} m")
+
+    clock = time.perf_counter()
+    to_truth = adjust(shots, truth)
+    seconds_truth = time.perf_counter() - clock
+    before = lidar_residuals(shots, truth, to_truth.track)
+    after = lidar_residuals(to_truth.shots, truth, to_truth.track)
+    clock = time.perf_counter()
+    alone = adjust(shots)
+    seconds_alone = time.perf_counter() - clock
+    from_nothing = lidar_residuals(alone.shots, truth, alone.track)
+
+    print(f"{'spots to the truth surface':<34}{'mean m':>9}{'RMS m':>9}{'p95 m':>9}{'cut':>8}{'time s':>9}")
+    for name, r, seconds in (("as read (unadjusted)", before, 0.0), ("adjusted to the truth", after, seconds_truth),
+                             ("adjusted from nothing", from_nothing, seconds_alone)):
+        cut = 1 - r.rms_km / before.rms_km
+        print(f"{name:<34}{r.mean_km * 1e3:>9.3f}{r.rms_km * 1e3:>9.3f}{r.p95_km * 1e3:>9.3f}{cut:>8.1%}"
+              f"{seconds:>9.1f}")
+
+    z = []
+    for t, c in to_truth.corrections.items():
+        if t == NO_TRACK or not np.isfinite(c.sigma).all():
+            continue
+        truth_params = drawn(c, shots, to_truth.track, manifest["images"])
+        z.append((np.r_[c.rotation_rad, c.translation_km] - truth_params) / c.sigma)
+    zs = np.abs(np.array(z))
+    print(f"tracks corrected to the truth: {len(zs)} of {len(to_truth.corrections)}; parameters within 3 sigma of "
+          f"the drawn error: {np.mean(zs <= 3):.1%} (rotation {np.mean(zs[:, :3] <= 3):.1%}, translation "
+          f"{np.mean(zs[:, 3:] <= 3):.1%}); tracks with all six: {np.mean((zs <= 3).all(axis=1)):.1%}; largest |z| "
+          f"{zs.max():.2f}; RMS z {np.sqrt(np.mean(zs ** 2)):.2f}")
+
+    # placed as made, before any ICP: the model's vertices' signed distances to the truth
+    placed = ClosestPoint(truth).signed_distance(alone.model.vertices) * 1e3
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "lidar_model.ply"
+        write_ply(path, alone.model)
+        figures = evaluate(path, truth_dir=args.truth, scope="global")
+    print(f"lidar model from nothing: {len(alone.model.faces)} faces, closed {closure(alone.model).closed}, "
+          f"{len(alone.changes)} rounds (changes m: {' '.join(f'{c * 1e3:.2f}' for c in alone.changes)}), "
+          f"converged {alone.converged}")
+    print(f"  RMS after ICP {figures['rms_gsd']:.3f} GSD ({figures['rms_m']:.3f} m), median "
+          f"{figures['median_gsd']:.3f} GSD, coverage (2 GSD) {figures['completeness']:.4f}, mean offset ICP removed "
+          f"{figures['icp']['shift_m'] / gsd_m:.3f} GSD ({figures['icp']['shift_m']:.3f} m), ICP turn "
+          f"{figures['icp']['rotation_rad'] * 1e6:.1f} urad")
+    print(f"  before ICP: the model's vertices {placed.mean():+.3f} m mean ({placed.mean() / gsd_m:+.3f} GSD), "
+          f"{np.sqrt(np.mean(placed ** 2)):.3f} m RMS ({np.sqrt(np.mean(placed ** 2)) / gsd_m:.3f} GSD) from the truth")
+
+
+if __name__ == "__main__":
+    main()
