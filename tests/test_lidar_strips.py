@@ -17,7 +17,7 @@ from pwm.io.meshio import read_shape_model
 from pwm.lidar.config import LidarConfig
 from pwm.lidar.model import lidar_residuals, model_from_spots, spot_normals
 from pwm.lidar.shots import Invalid, Shots
-from pwm.lidar.strips import Correction, adjust, register_track
+from pwm.lidar.strips import Correction, adjust, datum_motion, register_track
 from pwm.lidar.tracks import NO_TRACK, crossovers, track_ids
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
@@ -207,6 +207,41 @@ def test_model_from_nothing_is_closed_and_near_the_truth() -> None:
     assert on_model.missed < 0.005 * len(true)
     assert abs(on_model.mean_km) < 1.5 * NOISE_KM
     assert on_model.rms_km < 3 * NOISE_KM and on_model.p95_km < 5 * NOISE_KM
+
+
+def test_from_nothing_the_block_stays_where_its_tracks_put_it() -> None:
+    _, shots, _ = survey()
+    result = adjust(shots)
+    # no rigid motion of the whole is left to take out (the tracks and the model were moved back
+    # together) ...
+    left = datum_motion(shots, result.track, result.corrections)
+    assert left is not None
+    assert np.linalg.norm(left.rotation_rad) < 1e-9 and np.linalg.norm(left.translation_km) < 1e-9
+    # ... and the tracks still lie on their model, moved with them
+    on_model = lidar_residuals(result.shots, result.model, result.track)
+    assert abs(on_model.mean_km) < NOISE_KM and on_model.rms_km < 2 * NOISE_KM
+
+
+def test_an_error_shared_by_neighbouring_shots_widens_the_sigma() -> None:
+    rng = np.random.default_rng(11)
+    shots, _, _ = raster(np.array([0.3, 1.0, 0.2]), t0=0.0, side=40, half_angle=0.17, sweep_rad=np.radians(5.0),
+                         rng=rng)
+    tracer = RayTracer(truth())
+    white = register_track(shots, tracer)
+    # each tenth of the track (its consecutive shots) ranges 10 noise sigmas long or short, as a
+    # model's error or a footprint's would, shared by neighbours; the noise is what it was
+    runs = np.array_split(np.arange(len(shots)), 10)
+    shared = np.zeros(len(shots))
+    for run, offset in zip(runs, rng.normal(0.0, 10 * NOISE_KM, len(runs)), strict=True):
+        shared[run] = offset
+    biased = register_track(Shots(frame=shots.frame, et=shots.et, origin_km=shots.origin_km,
+                                  direction=shots.direction, range_km=shots.range_km + shared,
+                                  sigma_km=shots.sigma_km, invalid=shots.invalid), tracer)
+    # with white noise the sigmas are the formal ones (the residuals say no more); with the
+    # shared error they widen, several fold, and cover what it did to the correction
+    assert np.all(biased.sigma[3:] > 3 * white.sigma[3:]), (biased.sigma, white.sigma)
+    error = np.r_[biased.rotation_rad, biased.translation_km] / biased.sigma
+    assert np.all(np.abs(error) < 3.0), error
 
 
 def test_hostile_inputs() -> None:

@@ -35,6 +35,12 @@ class LidarConfig:
     condition: a direction of the normal equations (with the prior) whose eigenvalue is below
         this fraction of the largest is left uncorrected with an infinite sigma (a profile's
         slide along a flat surface); 1e-6 is far below any well-observed direction's share.
+    sigma_segments: a correction's sigma is widened to what the residuals themselves say where
+        they say more (pwm.lidar.strips: the sandwich covariance with the shots' scores summed
+        over this many runs of consecutive shots): errors shared by neighbouring shots (the
+        model's, or the ground a footprint averages) do not shrink with the shots' number. Ten
+        runs: enough for the sum over runs to be a variance, few enough that each run holds
+        many shots whose shared error it sees.
     prior_rotation_rad, prior_translation_km: the 1 sigma of the knowledge errors a correction
         undoes, held as a prior, so that a direction the shots barely see (a straight profile's
         turn about itself) stays near zero with the prior's sigma instead of wandering by its
@@ -89,6 +95,7 @@ class LidarConfig:
     icp_tolerance_km: float = 1e-6
     huber_k: float = 1.345
     condition: float = 1e-6
+    sigma_segments: int = 10
     prior_rotation_rad: float = 1e-3
     prior_translation_km: float = 0.1
     intercept_km: float = 0.1
@@ -120,6 +127,8 @@ class LidarConfig:
             raise ValueError(f"max_sweep_deg must be in (0, 180], not {self.max_sweep_deg}")
         if not self.condition < 1:
             raise ValueError(f"condition must be below 1, not {self.condition}")
+        if self.sigma_segments < 1:
+            raise ValueError(f"sigma_segments must be at least 1, not {self.sigma_segments}")
         if self.min_shots < 6:
             raise ValueError(f"min_shots must be at least 6 (the correction's unknowns), not {self.min_shots}")
         if not 0 <= self.kernel_widenings <= 10:

@@ -23,8 +23,9 @@ barely see (a profile's turn about itself) stays near zero with about the prior'
 whose eigenvalue is below LidarConfig.condition of the largest (a profile sliding along a flat
 surface, without a prior) keeps no correction and an infinite sigma. A track of fewer than
 LidarConfig.min_shots shots that meet the model is not corrected at all (every sigma infinite).
-Sigmas are the inverse of those normal equations. Lengths in km, angles in radians, body-fixed
-frame.
+Sigmas are the inverse of those normal equations, widened per parameter to the cluster-robust
+(sandwich) covariance over runs of consecutive shots where that is wider (`_robust`:
+LidarConfig.sigma_segments). Lengths in km, angles in radians, body-fixed frame.
 """
 
 from __future__ import annotations
@@ -102,6 +103,25 @@ def _huber(r: np.ndarray, k: float) -> np.ndarray:
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
 
 
+def _robust(inverse: np.ndarray, scores: np.ndarray, et: np.ndarray, prior: np.ndarray, *,
+            segments: int) -> np.ndarray:
+    """The covariance `inverse` of the normal equations, widened where the residuals say it is
+    too narrow: the cluster-robust (sandwich) covariance inverse @ meat @ inverse, with each
+    shot's score (design row times weighted residual) summed over `segments` runs of
+    consecutive shots and the prior's information added, is taken per parameter where it is the
+    larger (the matrix scaled accordingly). The formal one trusts each shot as independent, but
+    a model's error, or what a footprint averages over, is shared by neighbouring shots and does
+    not shrink with their number."""
+    order = np.argsort(et, kind="stable")
+    runs = np.array_split(order, min(segments, len(order)))
+    sums = np.array([scores[run].sum(axis=0) for run in runs])
+    robust = inverse @ (sums.T @ sums + np.diag(prior)) @ inverse
+    formal_var, robust_var = np.diag(inverse), np.diag(robust)
+    widen = np.sqrt(np.where(formal_var > 0, np.maximum(robust_var, formal_var) / np.where(formal_var > 0, formal_var,
+                                                                                           1.0), 1.0))
+    return inverse * np.outer(widen, widen)
+
+
 def register_track(shots: Shots, tracer: RayTracer, *, track: int = 0, config: LidarConfig = LIDAR,
                    start: Correction | None = None) -> Correction:
     """The rigid correction that brings one track's valid spots onto the tracer's mesh (module
@@ -145,7 +165,8 @@ def register_track(shots: Shots, tracer: RayTracer, *, track: int = 0, config: L
         rotation = increment * Rotation.from_rotvec(current.rotation_rad)
         translation = increment.apply(current.translation_km) + step[3:]
         after = r + design @ (step * scale)
-        inverse = (basis / values[constrained]) @ basis.T / np.outer(scale, scale)
+        inverse = _robust((basis / values[constrained]) @ basis.T, design * (w * after / variance)[:, None],
+                          own.et[met], prior, segments=config.sigma_segments) / np.outer(scale, scale)
         sigma = np.sqrt(np.diag(inverse))
         # a parameter that an unconstrained direction moves is not measured
         free = (np.abs(vectors[:, ~constrained]) > np.sqrt(config.condition)).any(axis=1)
@@ -182,26 +203,31 @@ def apply_corrections(shots: Shots, track: np.ndarray, corrections: dict[int, Co
     return replace(shots, origin_km=origin, direction=direction)
 
 
-def datum_kept(shots: Shots, track: np.ndarray, corrections: dict[int, Correction]) -> dict[int, Correction]:
-    """The corrections with the block's net rigid motion taken out: each composed with the one
-    rigid motion (Kabsch, over every usable spot of a track) that brings the corrected spots back
-    onto the spots as given. A model the tracks make of themselves has no datum of its own: a
-    turn or shift of every track at once fits it as well, and round after round of registering
-    to the model and rebuilding it lets the block wander (a milliradian in five rounds, on the
-    campaign's survey). Held where the tracks as given put it on average, the model is placed by
-    the kernels' many independent errors rather than by none."""
+def datum_motion(shots: Shots, track: np.ndarray, corrections: dict[int, Correction]) -> Correction | None:
+    """The one rigid motion (Kabsch, over every usable spot of a track) that brings the corrected
+    spots back onto the spots as given: the block's net motion, undone (None with under three
+    spots). A model the tracks make of themselves has no datum of its own: a turn or shift of
+    every track at once fits it as well, and the loop's rounds of registering to the model and
+    rebuilding it let the block wander (a milliradian in five rounds, on the campaign's survey).
+    Undone, the model stays where the tracks as given put it on average: placed by the kernels'
+    many independent errors rather than by none."""
     use = usable(shots) & (track != NO_TRACK)
     if use.sum() < 3:
-        return corrections
+        return None
     given = shots.spots_km()[use]
     moved = apply_corrections(shots, track, corrections).spots_km()[use]
     given_centre, moved_centre = given.mean(axis=0), moved.mean(axis=0)
     turn, _ = Rotation.align_vectors(given - given_centre, moved - moved_centre)
-    back = turn.as_matrix()
-    # x -> back (C(x) - moved_centre) + given_centre, written as a correction about C's own centre
-    return {t: replace(c, rotation_rad=(turn * Rotation.from_rotvec(c.rotation_rad)).as_rotvec(),
-                       translation_km=back @ (c.about_km + c.translation_km - moved_centre) + given_centre - c.about_km)
-            for t, c in corrections.items()}
+    return replace(identity(NO_TRACK, moved_centre), rotation_rad=turn.as_rotvec(),
+                   translation_km=given_centre - moved_centre)
+
+
+def then(first: Correction, second: Correction) -> Correction:
+    """`first` followed by the rigid motion `second`, as a correction about first's own centre
+    (its sigma kept: `second` is the block's, not the track's)."""
+    turn = Rotation.from_rotvec(second.rotation_rad) * Rotation.from_rotvec(first.rotation_rad)
+    moved_about = second.apply((first.about_km + first.translation_km)[None])[0]
+    return replace(first, rotation_rad=turn.as_rotvec(), translation_km=moved_about - first.about_km)
 
 
 def adjust(shots: Shots, model: Mesh | None = None, *, config: LidarConfig = LIDAR,
@@ -209,9 +235,9 @@ def adjust(shots: Shots, model: Mesh | None = None, *, config: LidarConfig = LID
     """The model -> tracks -> model loop: every track registered to the model, the model rebuilt
     from the adjusted spots (pwm.lidar.model.model_from_spots), until no correction changes by
     more than LidarConfig.loop_tolerance_km or after LidarConfig.loop_rounds rounds. Without a
-    model the first is made from the spots as given, and the block's datum is kept where they
-    put it (`datum_kept`); `rebuild` (default: only then) says whether the model is rebuilt
-    between rounds, or kept (a model from the images, say, which is the datum)."""
+    model the first is made from the spots as given, and in the end the block (tracks and model)
+    is moved back where they put it (`datum_motion`); `rebuild` (default: only then) says whether
+    the model is rebuilt between rounds, or kept (a model from the images, say, which is the datum)."""
     rebuild = model is None if rebuild is None else rebuild
     track = track_ids(shots, config)
     current = model_from_spots(shots, config) if model is None else model
@@ -227,8 +253,6 @@ def adjust(shots: Shots, model: Mesh | None = None, *, config: LidarConfig = LID
             after = register_track(own, tracer, track=t, config=config, start=corrections.get(t))
             change = max(change, after.change_km(corrections.get(t)))
             corrections[t] = after
-        if model is None:
-            corrections = datum_kept(shots, track, corrections)
         changes.append(change)
         adjusted = apply_corrections(shots, track, corrections)
         if rebuild:
@@ -236,4 +260,9 @@ def adjust(shots: Shots, model: Mesh | None = None, *, config: LidarConfig = LID
         converged = change < config.loop_tolerance_km
         if converged or not rebuild:
             break
+    motion = datum_motion(shots, track, corrections) if model is None else None
+    if motion is not None:  # the tracks and their model, moved back together
+        corrections = {t: then(c, motion) for t, c in corrections.items()}
+        adjusted = apply_corrections(shots, track, corrections)
+        current = Mesh(motion.apply(current.vertices), current.faces, current.albedo)
     return Adjustment(adjusted, track, corrections, current, changes, converged or not rebuild)
