@@ -10,8 +10,8 @@ model, the global evaluation of `pwm evaluate --scope global` (RMS after ICP, co
 GSD, the mean offset that ICP removed, closure), with the model's distances to the truth as it was
 placed, before any ICP (on a body nearly round about an axis, ICP's turn about it is barely
 determined, and the shift it reports with it says little of the placement). Per track, the
-correction to the truth against the rigid motion that undoes the drawn error: the share of its
-six parameters within 3 sigma.
+correction to the truth against the rigid motion that undoes the drawn error (`drawn`): the share
+of its six parameters within 3 sigma.
 
     .venv/bin/python bench/lidar_survey.py SIM/downlinks/1-campaign-survey SIM/truth/1-campaign-survey
 """
@@ -36,22 +36,37 @@ from pwm.lidar.model import lidar_residuals
 from pwm.lidar.shots import Shots
 from pwm.lidar.strips import Correction, adjust
 from pwm.lidar.tracks import NO_TRACK
+from pwm.raytrace import RayTracer
+
+DRAWN_ITERATIONS = 3  # Gauss-Newton steps of `drawn`: a few for errors of metres and tens of microradians
 
 
-def drawn(correction: Correction, shots: Shots, track: np.ndarray, true: dict[str, np.ndarray]) -> np.ndarray:
-    """(rotation, translation about the correction's centre) of the rigid motion that best undoes
-    the drawn error of the track's shots (least squares, Kabsch): it maps each valid spot as the
-    kernels place it onto the same range along the true origin and direction (truth/lidar_spots.npz).
-    Not the view's error itself: a turn b of the pointing turns each shot about its own origin, and
-    the spacecraft moves hundreds of metres through a window, so no one rigid motion is exactly it."""
+def drawn(correction: Correction, shots: Shots, track: np.ndarray, true: dict[str, np.ndarray],
+          tracer: RayTracer) -> np.ndarray:
+    """(rotation, translation about the correction's centre) of the drawn error as a track's rigid
+    correction: the rigid motion that best maps each valid spot as the kernels place it onto the
+    same range along the true origin and direction (truth/lidar_spots.npz), in the metric of a
+    registration to a surface (point-to-plane, the truth's normals; Gauss-Newton from none).
+    The view's error itself is not one rigid motion (a turn of the pointing turns each shot about
+    its own origin, and the spacecraft moves hundreds of metres through a window); what of it
+    slides along the surface no registration to a surface can see."""
     mine = (track == correction.track) & shots.valid
     at = np.searchsorted(true["et"], shots.et[mine])
-    read = shots.spots_km()[mine]
-    undone = true["origin_km"][at] + shots.range_km[mine, None] * true["direction"][at]
-    read_centre, undone_centre = read.mean(axis=0), undone.mean(axis=0)
-    turn, _ = Rotation.align_vectors(undone - undone_centre, read - read_centre)
+    origin, direction = true["origin_km"][at], true["direction"][at]
+    hits = tracer.intersect(origin, direction)
+    normal = np.asarray(tracer.face_normals)[hits.face[hits.hit]]
+    read = shots.spots_km()[mine][hits.hit]
+    undone = (origin + shots.range_km[mine, None] * direction)[hits.hit]
     about = correction.about_km
-    return np.r_[turn.as_rotvec(), undone_centre - about - turn.apply(read_centre - about)]
+    turn, shift = Rotation.identity(), np.zeros(3)
+    for _ in range(DRAWN_ITERATIONS):
+        moved = turn.apply(read - about) + about + shift
+        residual = np.einsum("ij,ij->i", moved - undone, normal)
+        design = np.hstack([np.cross(moved - about, normal), normal])
+        step = np.linalg.lstsq(design, -residual, rcond=None)[0]
+        increment = Rotation.from_rotvec(step[:3])
+        turn, shift = increment * turn, increment.apply(shift) + step[3:]
+    return np.r_[turn.as_rotvec(), shift]
 
 
 def main() -> None:
@@ -68,6 +83,7 @@ def main() -> None:
     shots = Shots.joined([p.shots for p in products])
     truth = read_shape_model(args.truth / "mesh.ply")
     true = dict(np.load(args.truth / "lidar_spots.npz"))
+    tracer = RayTracer(truth)
     knowledge = {k: v for k, v in manifest["knowledge_error"].items() if k != "arcs"}
     print(f"{args.downlink.name}: {len(shots)} shots, {int(shots.valid.sum())} valid; knowledge {knowledge}; "
           f"range noise {noise_m} m; GSD {gsd_m:.2f} m")
@@ -93,7 +109,7 @@ def main() -> None:
     for t, c in to_truth.corrections.items():
         if t == NO_TRACK or not np.isfinite(c.sigma).all():
             continue
-        truth_params = drawn(c, shots, to_truth.track, true)
+        truth_params = drawn(c, shots, to_truth.track, true, tracer)
         z.append((np.r_[c.rotation_rad, c.translation_km] - truth_params) / c.sigma)
     zs = np.abs(np.array(z))
     print(f"tracks corrected to the truth: {len(zs)} of {len(to_truth.corrections)}; parameters within 3 sigma of "
