@@ -173,13 +173,11 @@ def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlin
                                               **({"lidar": figures} if figures is not None else {})},
                                   downlinks=[downlink])
         if choice is None:
-            note = (f"version {version.version} (lidar) made from the lidar, with no model before and none from "
-                    "the images")
-            downlink.model_note = note
+            downlink.model_note = None
+            _note(downlink, f"version {version.version} (lidar) made from the lidar, with no model before and none "
+                            "from the images")
         else:
-            note = f"version {version.version} (lidar) made from the lidar is the start: {choice['why']}"
-            _note(downlink, note)
-        log.info("downlink %d: %s", downlink_id, note)
+            _note(downlink, f"version {version.version} (lidar) made from the lidar is the start: {choice['why']}")
         return version.version
 
 
