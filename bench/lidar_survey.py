@@ -13,7 +13,7 @@ determined, and the shift it reports with it says little of the placement). Per 
 correction to the truth against the rigid motion that undoes the drawn error (`drawn`): the share
 of its six parameters within 3 sigma.
 
-    .venv/bin/python bench/lidar_survey.py SIM/downlinks/1-campaign-survey SIM/truth/1-campaign-survey
+    .venv/bin/python bench/lidar_survey.py SIM/downlinks/1-campaign-survey SIM/truth/1-campaign-survey [--exact]
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import argparse
 import json
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +74,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("downlink", type=Path, help="a simulated downlink with lidar/ and kernels/")
     parser.add_argument("truth", type=Path, help="its truth/ directory")
+    parser.add_argument("--exact", action="store_true",
+                        help="the shots as exact kernels place them (the truth's origins and directions): the same "
+                             "downlink simulated without knowledge errors")
     args = parser.parse_args()
     manifest = json.loads((args.truth / "manifest.json").read_text())
     gsd_m = manifest["gsd_m"]
@@ -85,6 +89,11 @@ def main() -> None:
     true = dict(np.load(args.truth / "lidar_spots.npz"))
     tracer = RayTracer(truth)
     knowledge = {k: v for k, v in manifest["knowledge_error"].items() if k != "arcs"}
+    if args.exact:  # a seed's shots are the same whatever the errors (pwm.simulate.campaign)
+        at = np.searchsorted(true["et"], shots.et)
+        shots = replace(shots, origin_km=np.where(shots.valid[:, None], true["origin_km"][at], shots.origin_km),
+                        direction=np.where(shots.valid[:, None], true["direction"][at], shots.direction))
+        knowledge = {"mode": "exact"}
     print(f"{args.downlink.name}: {len(shots)} shots, {int(shots.valid.sum())} valid; knowledge {knowledge}; "
           f"range noise {noise_m} m; GSD {gsd_m:.2f} m")
 
