@@ -35,7 +35,7 @@ from pwm.mesh import Mesh
 from service.artifacts import artifact_path
 from service.db import session_scope
 from service.publish import lidar_statistics, usable_lidar_products
-from service.rows import Acceptance, Downlink, LidarProduct, LidarTrack, ModelKind, utcnow
+from service.rows import Acceptance, Downlink, LidarProduct, LidarTrack, ModelKind
 from service.versions import get_version, latest_version, publication_lock, publish_version, version_mesh
 
 log = logging.getLogger(__name__)
@@ -98,15 +98,11 @@ def adjust_tracks(sessions: sessionmaker[Session], *, data_dir: Path, version: i
 
 
 def _store(row: LidarTrack, correction: Correction | None) -> float | None:
-    """Store a track's correction and sigma (unconstrained parts null) on its row; how far it
-    moves the track (km), or None (and nothing stored) where too few shots met the model."""
+    """Store a track's correction and sigma on its row; how far it moves the track (km), or None
+    (and nothing stored) where too few shots met the model."""
     if correction is None or not np.isfinite(correction.sigma).any():
         return None
-    row.rotation_x_rad, row.rotation_y_rad, row.rotation_z_rad = map(float, correction.rotation_rad)
-    row.translation_x_km, row.translation_y_km, row.translation_z_km = map(float, correction.translation_km)
-    row.about_x_km, row.about_y_km, row.about_z_km = map(float, correction.about_km)
-    row.correction_sigma = [float(s) if np.isfinite(s) else None for s in correction.sigma]
-    row.adjusted_at = utcnow()
+    row.store_strip_correction(correction)
     return correction.change_km(None)
 
 

@@ -44,7 +44,7 @@ from pwm.io.lidar import read_shots
 from pwm.levels import LevelGrids
 from pwm.lidar.model import residual_summary, sample_shots, spot_normals, usable
 from pwm.lidar.shots import Shots
-from pwm.lidar.strips import Correction, apply_corrections
+from pwm.lidar.strips import apply_corrections
 from pwm.lidar.tracks import NO_TRACK, crossovers
 from pwm.mesh import Mesh
 from service.artifacts import artifact_path, scratch_path
@@ -55,7 +55,6 @@ from service.rows import (
     Acceptance,
     Downlink,
     LidarProduct,
-    LidarTrack,
     Maplet,
     MapletRevision,
     ModelKind,
@@ -189,7 +188,7 @@ def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: i
         shots, track = read_shots(artifact_path(data_dir, product.shots_artifact, verify=True))
         mine = {t.track: t for t in product.tracks}
         shots = apply_corrections(shots, track, {t: c for t, row in mine.items()
-                                                 if (c := _correction(row)) is not None})
+                                                 if (c := row.strip_correction()) is not None})
         pick = sample_shots(usable(shots), round(at_most * product.valid_shots / total), seed=product.id)
         parts.append(shots.take(pick))
         ids.append(np.array([mine[t].id if t in mine else NO_TRACK for t in track[pick]], dtype=np.int64))
@@ -221,20 +220,6 @@ def _crossovers(shots: Shots, track: np.ndarray) -> dict[int, tuple[int, float |
     heights = np.concatenate([found.height_km, found.height_km])
     return {int(t): (int((ends == t).sum()), float(np.sqrt(np.mean(heights[ends == t] ** 2))))
             for t in np.unique(ends)}
-
-
-def _correction(row: LidarTrack) -> Correction | None:
-    """A track's stored strip correction, None where it was not adjusted."""
-    if row.adjusted_at is None:
-        return None
-    about = np.array([row.about_x_km, row.about_y_km, row.about_z_km], dtype=float)
-    sigma = np.array([np.inf if s is None else s for s in row.correction_sigma or [None] * 6], dtype=float)
-    return Correction(track=row.track, rotation_rad=np.array([row.rotation_x_rad, row.rotation_y_rad,
-                                                              row.rotation_z_rad], dtype=float),
-                      translation_km=np.array([row.translation_x_km, row.translation_y_km, row.translation_z_km],
-                                              dtype=float),
-                      about_km=about, sigma=sigma, covariance=np.zeros((6, 6)), shots=row.shots,
-                      rms_km=float("nan"), extent_km=0.0)
 
 
 def first_version_with(session: Session, *, downlink_id: int) -> int | None:

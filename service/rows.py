@@ -14,6 +14,7 @@ import math
 from datetime import UTC, datetime
 from typing import Any
 
+import numpy as np
 from sqlalchemy import (
     JSON,
     BigInteger,
@@ -39,6 +40,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, rela
 
 from pwm.camera import PoseCorrection
 from pwm.frames import LocalFrame, stored_frame, unit_to_latlon
+from pwm.lidar.strips import Correction
 from pwm.maplets import MapletGrid, flat_grid
 from pwm.spg.uncertainty import PoseSigma
 from pwm.tiling import level_of
@@ -566,6 +568,29 @@ class LidarTrack(Base):
     crossover_rms_km: Mapped[float | None]
 
     product: Mapped[LidarProduct] = relationship(back_populates="tracks")
+
+    def strip_correction(self) -> Correction | None:
+        """The stored strip correction (an unconstrained part's sigma infinite; no covariance,
+        residual or extent kept), None where the track was not adjusted."""
+        if self.adjusted_at is None:
+            return None
+        sigma = np.array([np.inf if s is None else s for s in self.correction_sigma or [None] * 6], dtype=float)
+        return Correction(track=self.track,
+                          rotation_rad=np.array([self.rotation_x_rad, self.rotation_y_rad, self.rotation_z_rad],
+                                                dtype=float),
+                          translation_km=np.array([self.translation_x_km, self.translation_y_km,
+                                                   self.translation_z_km], dtype=float),
+                          about_km=np.array([self.about_x_km, self.about_y_km, self.about_z_km], dtype=float),
+                          sigma=sigma, covariance=np.zeros((6, 6)), shots=self.shots, rms_km=float("nan"),
+                          extent_km=0.0)
+
+    def store_strip_correction(self, correction: Correction) -> None:
+        """Store a strip correction and its sigma (an unconstrained part's null), adjusted now."""
+        self.rotation_x_rad, self.rotation_y_rad, self.rotation_z_rad = map(float, correction.rotation_rad)
+        self.translation_x_km, self.translation_y_km, self.translation_z_km = map(float, correction.translation_km)
+        self.about_x_km, self.about_y_km, self.about_z_km = map(float, correction.about_km)
+        self.correction_sigma = [float(s) if np.isfinite(s) else None for s in correction.sigma]
+        self.adjusted_at = utcnow()
 
     __table_args__ = (
         UniqueConstraint("product_id", "track"),

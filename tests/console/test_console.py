@@ -27,7 +27,7 @@ LOAD_TIMEOUT_S = 90
 # page, and the body attribute it sets once it has shown what it loads
 PAGES = [("/", "ready"), ("/console/view.html", "drawnMs"), ("/console/view.html?v=1&colour=height", "drawnMs"),
          ("/console/coverage.html", "ready"), ("/console/diff.html", "ready"),
-         ("/console/site.html", "ready"), ("/console/jobs.html", "ready")]
+         ("/console/site.html", "ready"), ("/console/jobs.html", "ready"), ("/console/lidar.html", "ready")]
 
 
 def open_page(browser, console, path: str, ready: str = "ready") -> None:

@@ -5,7 +5,7 @@
 // radius) and a north arrow. The table holds each track's strip correction, its 1 sigma and its
 // RMS on this version, and its crossovers with other tracks (count, height RMS) as last measured.
 // Everything comes from GET /versions/{v}, /versions/{v}/lidar and /lidar/tracks.
-import { ApiError, fmt, getJSON, header, params, showError, tableRow, viridis } from "/console/common.js";
+import { fmt, getJSON, header, params, showError, tableRow, viridis } from "/console/common.js";
 import { axes, colourBar, northArrow, scaleBar, svg } from "/console/maps.js";
 
 header();
@@ -97,17 +97,17 @@ function fillTable(residuals, tracks) {
 async function show(number) {
   const version = await getJSON(`/versions/${number}`);
   document.body.dataset.version = version.version;
-  let residuals;
-  try {
-    residuals = await getJSON(`/versions/${number}/lidar`);
-  } catch (error) {
-    if (!(error instanceof ApiError) || error.status !== 404) throw error;
-    document.getElementById("summary").textContent = error.detail;
+  // a version published before the catalog had lidar carries no figures: asked for, they would be
+  // a 404, which the browser logs as an error of the page
+  if (!version.statistics.lidar) {
+    document.getElementById("summary").textContent = `version ${version.version} was not checked against ` +
+      "the lidar: the catalog had no usable shot when it was published";
     document.getElementById("map-holder").replaceChildren();
     document.getElementById("colour-bar").replaceChildren();
     document.querySelector("#tracks tbody").replaceChildren();
     return;
   }
+  const residuals = await getJSON(`/versions/${number}/lidar`);
   const tracks = await allTracks();
   document.getElementById("summary").textContent = `version ${version.version} (${version.kind}): ` +
     `${residuals.measured} of ${residuals.shots} sampled spots measured (${residuals.usable_shots} usable in ` +
