@@ -70,7 +70,7 @@ def adjust_tracks(sessions: sessionmaker[Session], *, data_dir: Path, version: i
     the rows). None where there is no track to adjust."""
     clock = time.perf_counter()
     with session_scope(sessions) as session:
-        products = usable_lidar_products(session, None if product_ids is None else list(product_ids))
+        products = usable_lidar_products(session, product_ids)
         if not products:  # a catalog without lidar reads no mesh
             return None
         mesh = version_mesh(data_dir, get_version(session, version))

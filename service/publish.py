@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from functools import partial
 from pathlib import Path
 
@@ -158,7 +158,7 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
         return version.version
 
 
-def usable_lidar_products(session: Session, product_ids: Sequence[int] | None = None) -> Sequence[LidarProduct]:
+def usable_lidar_products(session: Session, product_ids: Collection[int] | None = None) -> Sequence[LidarProduct]:
     """The accepted lidar products (of product_ids, or all) with valid shots stored, by id."""
     query = select(LidarProduct).where(LidarProduct.status == Acceptance.ACCEPTED, LidarProduct.valid_shots > 0,
                                        LidarProduct.shots_artifact.is_not(None))

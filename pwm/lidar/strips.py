@@ -116,9 +116,9 @@ def _robust(inverse: np.ndarray, scores: np.ndarray, et: np.ndarray, prior: np.n
     runs = np.array_split(order, min(segments, len(order)))
     sums = np.array([scores[run].sum(axis=0) for run in runs])
     robust = inverse @ (sums.T @ sums + np.diag(prior)) @ inverse
-    formal_var, robust_var = np.diag(inverse), np.diag(robust)
-    widen = np.sqrt(np.where(formal_var > 0, np.maximum(robust_var, formal_var) / np.where(formal_var > 0, formal_var,
-                                                                                           1.0), 1.0))
+    formal_var = np.diag(inverse)
+    # a parameter without variance (none measured it) has none in the sandwich either: kept as it is
+    widen = np.sqrt(np.maximum(np.diag(robust) / np.where(formal_var > 0, formal_var, 1.0), 1.0))
     return inverse * np.outer(widen, widen)
 
 
