@@ -12,7 +12,8 @@ images) with the kernels' poses and with the corrected ones, and how much of it 
 shares in its own frame (what a camera misalignment does); per navigation arc, the position
 error along-track, cross-track and radial (RMS, m) before and after; the misalignment and drift
 (microradians) drawn and recovered, with the posterior sigma the adjustment gives each (the
-feedback's, where the maplets' registrations adjusted the poses again); the refined model's
+feedback's, where the maplets' registrations adjusted the poses again); where the catalog's
+lidar spots tied the points, how many and how far the images moved the spots' frame; the refined model's
 RMS (GSD), NCC and SSIM on held-out views, and the run's time.
 """
 
@@ -150,6 +151,11 @@ def main() -> None:
             print(f"  registrations fed back: {feedback['note']}; {feedback['landmarks']} landmarks, "
                   f"{feedback.get('feature_tracks', 0)} feature tracks, {feedback.get('seconds', 0):.0f} s")
         final = feedback if feedback.get("note") == "adjusted" else report  # the corrections stored
+        if final.get("ties"):
+            print(f"  tied to {report.get('lidar_spots')} lidar spots: {final['ties']} points, RMS "
+                  f"{final['tie_rms_m']:.3f} m from their planes; the spots' frame moved by "
+                  f"{'/'.join(f'{v:.2f}' for v in final.get('tie_frame_shift_m', []))} m, "
+                  f"{'/'.join(f'{v:.0f}' for v in final.get('tie_frame_turn_urad', []))} urad")
         print(f"  line of sight RMS (px, against the truth): {table['los_before_px']:.2f} -> "
               f"{table['los_after_px']:.2f} ({1 - table['los_after_px'] / table['los_before_px']:.0%} cut); "
               f"posterior 1 sigma {final.get('los_posterior_px', float('nan')):.2f}")

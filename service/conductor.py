@@ -1,9 +1,11 @@
 """The conductor: the order of one downlink's stages, and the rules for what follows each.
 
 1. catalogue: kernels and products, each image's geometry (service.ingest.ingest_directory);
-2. adjust the poses on the current model (service.spg.adjust_downlink), or with no model make
-   one from the images (service.spg.start_from_images) and one from the lidar
-   (service.lidar.start_from_lidar), started from whichever is the better founded;
+2. adjust the poses on the current model (service.spg.adjust_downlink, the points tied to the
+   catalog's strip-adjusted lidar spots), or with no model make one from the images
+   (service.spg.start_from_images) and one from the lidar (service.lidar.start_from_lidar),
+   started from whichever is the better founded: from the lidar's, the images' poses adjusted
+   again on it, tied to its spots;
 3. weigh the images against the model (`weigh`, service.coverage.update_coverage): once per
    downlink and pass, after its poses are final;
 4. plan: the maplets whose input changed (service.refinement.stale_maplets);
@@ -88,16 +90,21 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     with sessions() as session:
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
     if shape is not None:
-        adjust_downlink(sessions, shape=shape, downlink_id=downlink_id, configured=config.knowledge)
+        adjust_downlink(sessions, shape=shape, downlink_id=downlink_id, data_dir=data_dir,
+                        configured=config.knowledge)
     else:
-        base_version = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id,
-                                         configured=config.knowledge)
-        from_lidar = start_from_lidar(sessions, data_dir=data_dir, downlink_id=downlink_id, over=base_version)
-        base_version = from_lidar if from_lidar is not None else base_version
+        from_images = start_from_images(sessions, data_dir=data_dir, downlink_id=downlink_id,
+                                        configured=config.knowledge)
+        base_version = start_from_lidar(sessions, data_dir=data_dir, downlink_id=downlink_id, over=from_images)
+        if base_version is None:
+            base_version = from_images
         if base_version is None:
             return Plan(downlink_id=downlink_id, ingest=report, coverage=None, work=[], base_version=None)
         with sessions() as session:
             shape = version_mesh(data_dir, get_version(session, base_version))
+        if base_version != from_images:  # the lidar's start: the images placed on it, tied to its spots
+            adjust_downlink(sessions, shape=shape, downlink_id=downlink_id, data_dir=data_dir,
+                            configured=config.knowledge)
     coverage = weigh(sessions, shape, config=config)
     with sessions() as session:
         work = stale_maplets(session, config=config, refine_on_config_change=refine_on_config_change)

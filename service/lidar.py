@@ -34,7 +34,7 @@ from pwm.lidar.tracks import NO_TRACK
 from pwm.mesh import Mesh
 from service.artifacts import artifact_path
 from service.db import session_scope
-from service.publish import lidar_statistics, usable_lidar_products
+from service.publish import adjusted_shots, lidar_statistics, usable_lidar_products
 from service.rows import Acceptance, Downlink, LidarProduct, LidarTrack, ModelKind
 from service.versions import get_version, latest_version, publication_lock, publish_version, version_mesh
 
@@ -200,6 +200,19 @@ def _note(downlink: Downlink, note: str) -> None:
     """Add to a downlink's model_note."""
     downlink.model_note = f"{downlink.model_note}; {note}" if downlink.model_note else note
     log.info("downlink %d: %s", downlink.id, note)
+
+
+def catalog_spots(session: Session, *, data_dir: Path) -> np.ndarray | None:
+    """The usable spots (km, body-fixed) of the catalogued tracks that a strip adjustment placed
+    (their stored corrections applied): the surface the lidar measured, which the images'
+    adjustment ties its points to (service.spg, pwm.spg.ties). None where there is none."""
+    parts = []
+    for product in usable_lidar_products(session):
+        shots, track = adjusted_shots(data_dir, product)
+        placed = np.isin(track, [row.track for row in product.tracks if row.strip_correction() is not None])
+        parts.append(shots.spots_km()[usable(shots) & placed])
+    spots = np.concatenate(parts) if parts else np.zeros((0, 3))
+    return spots if len(spots) else None
 
 
 def products_of(session: Session, downlink_id: int) -> list[int]:

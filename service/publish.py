@@ -42,7 +42,8 @@ from pwm.config import BLOCKS, DEFAULTS, FusionBlocks, RefinementConfig
 from pwm.io.fusion_state import BlockFiles, read_composition, read_levels, write_composition, write_levels
 from pwm.io.lidar import read_shots
 from pwm.levels import LevelGrids
-from pwm.lidar.model import residual_summary, sample_shots, spot_normals, usable
+from pwm.lidar.config import LIDAR, LidarConfig
+from pwm.lidar.model import disagreement, residual_summary, sample_shots, spot_normals, usable
 from pwm.lidar.shots import Shots
 from pwm.lidar.strips import apply_corrections
 from pwm.lidar.tracks import NO_TRACK, crossovers
@@ -167,15 +168,27 @@ def usable_lidar_products(session: Session, product_ids: Collection[int] | None 
     return session.scalars(query.order_by(LidarProduct.id)).all()
 
 
+def adjusted_shots(data_dir: Path, product: LidarProduct) -> tuple[Shots, np.ndarray]:
+    """A lidar product's shots as ingest stored them, each track's stored strip correction
+    applied (service.rows.LidarTrack.strip_correction), and each shot's track number."""
+    if product.shots_artifact is None:
+        raise ValueError(f"lidar product {product.id} has no shots stored")
+    shots, track = read_shots(artifact_path(data_dir, product.shots_artifact, verify=True))
+    return apply_corrections(shots, track, {row.track: c for row in product.tracks
+                                            if (c := row.strip_correction()) is not None}), track
+
+
 def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: int,
-                     at_most: int | None = None) -> dict | None:
+                     at_most: int | None = None, config: LidarConfig = LIDAR) -> dict | None:
     """The lidar statistics of `mesh`, about to be published as `version`: at most `at_most`
     (default PWM_LIDAR_RESIDUAL_SHOTS) of the catalog's usable shots, sampled uniformly over
     its accepted lidar products, each track's correction applied where adjusted, measured
     against the mesh (pwm.lidar.model.residual_summary; tracks by their catalog id), and the
     crossovers between the tracks (`_crossovers`: in all, and per track their count and height
-    RMS); each track's figures stored on its row with the version. None where the catalog has no usable
-    shot (or none is to be checked)."""
+    RMS), and how far each track disagrees with the mesh in its own sigmas
+    (pwm.lidar.model.disagreement), those beyond config.disagree_sigmas listed as disagreeing
+    rather than averaged in silently; each track's figures stored on its row with the version.
+    None where the catalog has no usable shot (or none is to be checked)."""
     at_most = get_settings().lidar_residual_shots if at_most is None else at_most
     products = usable_lidar_products(session)
     total = sum(p.valid_shots for p in products)
@@ -185,10 +198,8 @@ def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: i
     for product in products:
         if product.shots_artifact is None:  # none, by the query
             continue
-        shots, track = read_shots(artifact_path(data_dir, product.shots_artifact, verify=True))
+        shots, track = adjusted_shots(data_dir, product)
         mine = {t.track: t for t in product.tracks}
-        shots = apply_corrections(shots, track, {t: c for t, row in mine.items()
-                                                 if (c := row.strip_correction()) is not None})
         pick = sample_shots(usable(shots), round(at_most * product.valid_shots / total), seed=product.id)
         parts.append(shots.take(pick))
         ids.append(np.array([mine[t].id if t in mine else NO_TRACK for t in track[pick]], dtype=np.int64))
@@ -197,15 +208,22 @@ def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: i
     track_ids = np.concatenate(ids)
     summary = residual_summary(sample, mesh, track_ids)
     crossing = _crossovers(sample, track_ids)
+    flagged = []
     for key, figures in summary["tracks"].items():
         row = rows[int(key)]
         row.residual_mean_km, row.residual_rms_km = figures["mean_km"], figures["rms_km"]
         row.residual_p95_km, row.residual_version = figures["p95_km"], version
         figures["crossovers"], figures["crossover_rms_km"] = crossing.get(int(key), (0, None))
+        correction = row.strip_correction()
+        figures["disagreement_sigmas"] = disagreement(figures, None if correction is None
+                                                      else correction.placement_km)
+        if (figures["disagreement_sigmas"] or 0.0) > config.disagree_sigmas:
+            flagged.append(row.id)
     for row in rows.values():  # a track with no measured spot may still cross others
         row.crossovers, row.crossover_rms_km = crossing.get(row.id, (0, None))
     return summary | {"products": len(products), "usable_shots": total,
-                      "crossovers": sum(n for n, _ in crossing.values()) // 2}
+                      "crossovers": sum(n for n, _ in crossing.values()) // 2,
+                      "disagree_sigmas": config.disagree_sigmas, "disagreeing_tracks": sorted(flagged)}
 
 
 def _crossovers(shots: Shots, track: np.ndarray) -> dict[int, tuple[int, float | None]]:

@@ -27,17 +27,25 @@ from pwm.config import DEFAULTS as REFINEMENT_DEFAULTS
 from pwm.io.labels import target_frame
 from pwm.io.spice_geometry import ellipsoid_of
 from pwm.io.spice_kernels import KernelError, kernel_pool, spice_message, stated_knowledge
-from pwm.knowledge import IndependentErrors, KnowledgeErrors, NavigationErrors, format_knowledge_errors
+from pwm.knowledge import (
+    IndependentErrors,
+    KnowledgeErrors,
+    NavigationErrors,
+    format_knowledge_errors,
+    shared_frame_sigma,
+)
 from pwm.mesh import Mesh
 from pwm.spg import stereo_photogrammetry
 from pwm.spg.config import SPG_DEFAULTS, SpgConfig
 from pwm.spg.photogrammetry import adjust_poses
 from pwm.spg.pose_models import PoseModel, free_poses, navigation_poses
+from pwm.spg.ties import MeasuredSurface
 from pwm.spg.triangulation import Tracks
 from pwm.spg.uncertainty import prior_sigmas
 from pwm.views import View
 from service.db import session_scope
 from service.kernels import accepted_kernels
+from service.lidar import catalog_spots
 from service.rows import (
     Acceptance,
     Coverage,
@@ -185,6 +193,9 @@ def _start_report(session: Session, downlink_id: int, version: int, knowledge: K
                if key in stats}}
 
 
+TIE_FIGURES = ("ties", "tie_rms_m", "tie_frame_shift_m", "tie_frame_turn_urad")
+"""What an adjustment with the lidar's spots reports of its ties (pwm.spg.photogrammetry.adjust_poses)."""
+
 ASSUMED = "assumed by the photogrammetry from nothing (none stated or configured)"
 """The source of the pose knowledge a start from nothing assumes where none is stated."""
 
@@ -217,34 +228,48 @@ def downlink_knowledge(session: Session, downlink_id: int,
     return configured, "configured" if configured is not None else "none stated"
 
 
-def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id: int,
+def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id: int, data_dir: Path,
                     configured: KnowledgeErrors | None, config: SpgConfig = SPG_DEFAULTS) -> list[int]:
     """Adjust the poses of a downlink's images on `shape` under their pose knowledge
     (`downlink_knowledge`): a navigation-like knowledge is modelled per arc with one shared
     misalignment and drift, an independent one per image (pwm.spg.pose_models), and the block is
-    tied to `shape` (pwm.spg.photogrammetry.adjust_poses' anchor). The images'
-    corrections are composed onto their stored ones, each image keeps its prior and posterior
-    sigmas (which size its registration search, Image.los_sigma_px) and loses its coverage
-    weighing; the downlink keeps what was done (Downlink.pose_adjustment). Nothing is adjusted
-    when no knowledge is stated, or when the knowledge already keeps every image's line of
-    sight within a pixel (three sigma), or when the same images were adjusted before (a
-    downlink ingested again). config: the photogrammetry's settings (pwm.spg.config). The ids of
+    tied to `shape` (pwm.spg.photogrammetry.adjust_poses' anchor) and, where the catalog holds
+    strip-adjusted lidar, its points to the lidar's spots (service.lidar.catalog_spots), which
+    place it absolutely. The images' corrections are composed onto their stored ones, each image
+    keeps its prior and posterior sigmas (which size its registration search,
+    Image.los_sigma_px) and loses its coverage weighing; the downlink keeps what was done
+    (Downlink.pose_adjustment, an earlier report under "before"). Nothing is adjusted when no
+    knowledge is stated, or when the knowledge already keeps every image's line of sight within
+    a pixel (three sigma), or when the same images were adjusted before with as many spots (a
+    downlink ingested again; new lidar adjusts them again, from their kernels' poses, the new
+    corrections replacing the stored ones). config: the photogrammetry's
+    settings (pwm.spg.config). The ids of
     the images corrected.
     """
     with sessions() as session:
         knowledge, source = downlink_knowledge(session, downlink_id, configured)
+        done = session.get_one(Downlink, downlink_id).pose_adjustment
+        if knowledge is None and done is not None and done.get("source") == ASSUMED:  # a start from nothing's
+            knowledge, source = assumed_knowledge(config), ASSUMED
         if knowledge is None:
             return []
         ids = list(session.scalars(select(Image.id).where(
             Image.downlink_id == downlink_id, Image.status == ImageStatus.ACCEPTED,
             Image.geometry_status == GeometryStatus.COMPUTED)))
-        done = session.get_one(Downlink, downlink_id).pose_adjustment
-        if done is not None and done.get("images") == len(ids) and done.get("knowledge") == format_knowledge_errors(
-                knowledge):
+        spots = catalog_spots(session, data_dir=data_dir)
+        lidar = 0 if spots is None else len(spots)
+        if (done is not None and done.get("images") == len(ids) and done.get("lidar_spots", 0) == lidar
+                and done.get("knowledge") == format_knowledge_errors(knowledge)):
             return []
-        views = catalog_views(session, image_ids=ids)  # geometry only, until an adjustment needs pixels
+        # adjusted again (new lidar): from the kernels' poses, one adjustment with all the data, not a
+        # second on top of the first, which would count the same images twice
+        again = done is not None
+        views = catalog_views(session, image_ids=ids, kernel_poses=again)  # geometry only, until pixels are needed
     ids = list(views)
-    report: dict = {"knowledge": format_knowledge_errors(knowledge), "source": source, "images": len(ids)}
+    report: dict = {"knowledge": format_knowledge_errors(knowledge), "source": source, "images": len(ids),
+                    "lidar_spots": lidar}
+    if done:
+        report["before"] = {key: value for key, value in done.items() if key != "before"}
     view_list = [views[i] for i in ids]
     pose_model = _pose_model(knowledge, view_list)
     ranges = np.array([_range(v, shape) for v in view_list])
@@ -259,10 +284,12 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
         report["note"] = "not adjusted: the knowledge keeps every line of sight within a pixel"
     else:
         with sessions() as session:
-            views = catalog_views(session, image_ids=ids, pixels=True)
+            views = catalog_views(session, image_ids=ids, pixels=True, kernel_poses=again)
         view_list = [views[i] for i in ids]
         try:
-            result = adjust_poses(view_list, shape, pose_model=pose_model, anchor=True, config=config)
+            result = adjust_poses(view_list, shape, pose_model=pose_model, anchor=True,
+                                  surface=None if spots is None else _surface(spots, knowledge, view_list, shape),
+                                  config=config)
         except ValueError as exc:
             report["note"] = f"not adjusted: {exc}"
         else:
@@ -273,13 +300,14 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
                           residual_rms_px=stats["residual_rms_px"], tracks=stats["tracks"],
                           observations=stats["observations"], seconds=stats["seconds"],
                           anchor_shift_m=stats["anchor_shift_m"], anchor_measured_m=stats["anchor_measured_m"],
-                          unknowns=stats.get("unknowns", []))
+                          unknowns=stats.get("unknowns", []),
+                          **{key: stats[key] for key in TIE_FIGURES if key in stats})
     with session_scope(sessions) as session:
         now = utcnow()
         for image in session.scalars(select(Image).where(Image.id.in_(ids))):
             if corrected:
                 name = views[image.id].name
-                _store_correction(image, result.corrections[name])
+                _store_correction(image, result.corrections[name], replace=again)
                 prior, posterior_sigma = result.sigmas[name]
                 image.pose_sigma = {"prior": prior.as_dict(), "posterior": posterior_sigma.as_dict(),
                                     "knowledge": report["knowledge"]}
@@ -309,7 +337,8 @@ def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, 
     tracks with, as observations, where each image saw each maplet's landmark once registered to
     it (the revisions' `registrations`, pwm.pipeline.landmark_pixels), from the kernels' poses
     under the same knowledge as `adjust_downlink` (or the one a start from nothing assumed,
-    `assumed_knowledge`), tied to version `version` (the refined model). The
+    `assumed_knowledge`), tied to version `version` (the refined model) and to the catalog's
+    lidar spots as `adjust_downlink` ties them. The
     maplets' registration works across lighting where features do not match, so it determines
     what the features could not; its new corrections replace the stored ones, and the maplets
     that the images weigh into are due again (their input changed).
@@ -338,10 +367,12 @@ def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, 
         landmarks = landmark_tracks(session, {image.lidvid: k for k, image in enumerate(images)})
         views: list[View] = []
         shape: Mesh | None = None
+        spots = None
         if landmarks.n_points:  # pixels and the model only when there is something to adjust with
             by_id = catalog_views(session, image_ids=ids, pixels=True, kernel_poses=True)
             views = [by_id[i] for i in ids]
             shape = version_mesh(data_dir, get_version(session, version))
+            spots = catalog_spots(session, data_dir=data_dir)
     feedback: dict = {"landmarks": landmarks.n_points, "observations": len(landmarks.image),
                       "los_before_px": float(np.median(los))}
     result = None
@@ -350,7 +381,9 @@ def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, 
     else:
         try:
             result = adjust_poses(views, shape, pose_model=_pose_model(knowledge, views), anchor=True,
-                                  landmarks=landmarks, config=config)
+                                  landmarks=landmarks,
+                                  surface=None if spots is None else _surface(spots, knowledge, views, shape),
+                                  config=config)
         except ValueError as exc:
             feedback["note"] = f"not adjusted: {exc}"
         else:
@@ -359,7 +392,8 @@ def feed_back_registrations(sessions: sessionmaker[Session], *, data_dir: Path, 
                             los_posterior_px=float(np.median([result.sigmas[v.name][1].los_px for v in views])),
                             feature_tracks=stats["feature_tracks"], residual_rms_px=stats["residual_rms_px"],
                             seconds=stats["seconds"], anchor_shift_m=stats["anchor_shift_m"],
-                            unknowns=stats.get("unknowns", []))
+                            unknowns=stats.get("unknowns", []),
+                            **{key: stats[key] for key in TIE_FIGURES if key in stats})
     with session_scope(sessions) as session:
         if result is not None:
             now = utcnow()
@@ -417,6 +451,15 @@ def _pose_model(knowledge: KnowledgeErrors, views: list[View]) -> PoseModel:
         return navigation_poses(np.array([v.et for v in views]), [v.pose for v in views], knowledge)
     return free_poses(len(views), sigma_position_km=knowledge.position_m * 1e-3,
                       sigma_pointing_rad=knowledge.pointing_rad)
+
+
+def _surface(spots_km: np.ndarray, knowledge: KnowledgeErrors, views: list[View], shape: Mesh) -> MeasuredSurface:
+    """The lidar's spots as a surface to tie the images' points to, its frame placed as well as
+    the same knowledge places the spacecraft (pwm.knowledge.shared_frame_sigma, at the views'
+    median range and the shape's mean radius)."""
+    frame_km, frame_rad = shared_frame_sigma(knowledge, range_km=float(np.median([_range(v, shape) for v in views])),
+                                             radius_km=float(np.linalg.norm(shape.vertices, axis=1).mean()))
+    return MeasuredSurface(spots_km=spots_km, frame_km=frame_km, frame_rad=frame_rad)
 
 
 def _range(view: View, shape: Mesh) -> float:

@@ -29,6 +29,7 @@ from pwm.spg.features import fundamental
 from pwm.spg.photogrammetry import adjust_poses, anchor_shift
 from pwm.spg.pose_models import navigation_poses
 from pwm.spg.surface import fit_figure, fit_surface, point_spacing, subdivide
+from pwm.spg.ties import MeasuredSurface, surface_ties
 from pwm.spg.triangulation import Tracks, build_tracks, triangulate
 from pwm.spg.uncertainty import DETERMINED, determined, image_sigmas, pose_uncertainty
 from pwm.trajectory import track_frames
@@ -334,6 +335,81 @@ def test_landmarks_adjust_views_that_no_feature_joins():
     assert los_px(kernels) > 20.0
     assert los_px(fixed) < 0.3 * los_px(kernels)
 
+
+
+WIDE = Camera(width=1024, height=1024, fx=2000.0, fy=2000.0, cx=511.5, cy=511.5)
+
+
+def _cap(n: int, rng: np.random.Generator) -> np.ndarray:
+    """n points uniform on the cap of a 250 m sphere above z = 0.1 km."""
+    z = rng.uniform(0.1, 0.25, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    rho = np.sqrt(0.25**2 - z**2)
+    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
+
+
+def test_ties_to_a_measured_surface_place_the_block_and_the_posterior_says_what_is_left():
+    """A shift or turn of the whole block of cameras and points is, to the images, no change: the
+    adjustment leaves it to the priors. Points tied to spots on the surface (pwm.spg.ties)
+    cannot move with the block: the images' line of sight against the true frame and the points'
+    places come out several times better, and what the ties cannot split (here the camera's
+    misalignment from the arcs' smooth position errors, which move the images alike) is left
+    where its posterior sigma says."""
+    rng = np.random.default_rng(11)
+    times, truth, _ = _orbit_passes(rng)
+    errors, drawn, kernels = _navigated(times, truth, rng)
+    points = _cap(400, rng)
+    n = len(truth)
+    cameras = [WIDE] * n
+    seen = [(i, k) for i, p in enumerate(truth) for k in np.flatnonzero(
+        np.einsum("ij,ij->i", p.position - points, points) > 0)]  # in front of the sphere
+    image, point = (np.array(v, np.int64) for v in zip(*seen, strict=True))
+    xy = np.concatenate([project(points[point[image == i]], WIDE, truth[i]) for i in range(n)])
+    assert np.all(np.abs(xy - 511.5) < 512)
+    tracks = Tracks(point=point, image=image, xy=xy + 0.2 * rng.standard_normal(xy.shape))
+    model = navigation_poses(times, kernels, errors)
+    target = np.concatenate([np.r_[-drawn.position_error_m[i] * 1e-3, drawn.pointing_error_body_rad[i]]
+                             for i in range(n)])
+    true_theta = np.linalg.lstsq(model.design.toarray(), target, rcond=None)[0]
+    start = triangulate(tracks, cameras, kernels)[0]
+    ties = surface_ties(start, MeasuredSurface(_cap(30000, rng)))
+    assert len(ties) > 0.9 * len(points)
+    assert ties.sigma_km.max() < 5e-5  # a 250 m sphere is within centimetres of a plane at the spots' scale
+
+    def los_px(adjusted):
+        fixed = [corrected_pose(p, adjusted.position_corrections[i], adjusted.rotation_corrections[i])
+                 for i, p in enumerate(kernels)]
+        d = np.concatenate([project(points, WIDE, p) - project(points, WIDE, t)
+                            for p, t in zip(fixed, truth, strict=True)])
+        return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
+
+    def placed_m(adjusted):
+        return float(np.sqrt(np.mean(np.sum((adjusted.points - points) ** 2, axis=1)))) * 1e3
+
+    alone = bundle_adjust(start, tracks, cameras, kernels, model=model)
+    tied = bundle_adjust(start, tracks, cameras, kernels, model=model, ties=ties)
+    assert los_px(tied) < 0.2 * los_px(alone)
+    assert placed_m(tied) < 0.3 * placed_m(alone)
+    assert np.sqrt(np.mean(tied.tie_distances_km**2)) < 2e-5  # the points on the surface, within 2 cm
+    z = (tied.parameters - true_theta) / np.sqrt(np.diag(tied.parameter_covariance(0.2)))
+    assert np.sqrt(np.mean(z**2)) < 1.5 and np.abs(z).max() < 4.0  # 30 unknowns: the largest near 3
+    # the posterior knows what the ties fixed: the block's place, no longer the priors'
+    assert np.trace(tied.parameter_covariance(0.2)) < np.trace(alone.parameter_covariance(0.2))
+
+    # spots placed half a metre and 2 mrad off (their instrument's own trajectory and attitude
+    # errors): taken as exact, they drag the block with them and the posterior claims what is
+    # false; with their frame's motion as unknowns under its prior (1 m, 4 mrad), it stays honest
+    moved = Rotation.from_rotvec([0.0, 0.002, 0.0]).apply(_cap(30000, rng)) + np.array([5e-4, 0.0, 5e-4])
+
+    def z_scores(frame_km: float, frame_rad: float) -> np.ndarray:
+        adjusted = bundle_adjust(start, tracks, cameras, kernels, model=model, ties=surface_ties(
+            start, MeasuredSurface(moved, frame_km=frame_km, frame_rad=frame_rad)))
+        assert len(adjusted.frame) == (6 if frame_km else 0)
+        return (adjusted.parameters - true_theta) / np.sqrt(np.diag(adjusted.parameter_covariance(0.2)))
+
+    assert np.abs(z_scores(0.0, 0.0)).max() > 6.0
+    z = z_scores(1e-3, 4e-3)
+    assert np.sqrt(np.mean(z**2)) < 1.5 and np.abs(z).max() < 4.0
 
 SPG_SOURCES = sorted(Path(pwm_spg.__file__).parent.glob("*.py")) + [
     Path(service_spg.__file__), Path(service_cli_spg.__file__)]

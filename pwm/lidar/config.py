@@ -48,6 +48,10 @@ class LidarConfig:
         pointing's (tens of microradians) and 100 m beyond a survey's navigation error (metres
         to tens of metres): loose enough never to hold back an error the shots do see. inf: none.
 
+    disagree_sigmas: a track whose spots lie off a version, on the mean, by more than this many
+        of its own sigmas (its placement's, from its strip correction, and its spots' scatter over
+        their number) disagrees with that version: it is flagged in the version's lidar figures
+        rather than averaged in. Three: a track in agreement is flagged once in 370.
     intercept_km: a spot whose shot's ray meets the model further than this from it has no
         intercept near the model (other ground: a grazing shot's ray past a limb); it is left
         out of the registration and of the residuals. 100 m: beyond any knowledge error the
@@ -99,6 +103,7 @@ class LidarConfig:
     prior_rotation_rad: float = 1e-3
     prior_translation_km: float = 0.1
     intercept_km: float = 0.1
+    disagree_sigmas: float = 3.0
 
     loop_tolerance_km: float = 1e-4
     loop_rounds: int = 5
@@ -114,7 +119,7 @@ class LidarConfig:
     def __post_init__(self) -> None:
         positive = {name: getattr(self, name) for name in (
             "max_gap_s", "max_sweep_deg", "crossover_km", "intercept_km", "icp_tolerance_km", "huber_k", "condition",
-            "loop_tolerance_km", "voxel_spacings", "kernel_spacings", "reach_voxels")}
+            "disagree_sigmas", "loop_tolerance_km", "voxel_spacings", "kernel_spacings", "reach_voxels")}
         for name, value in positive.items():
             if not value > 0 or value == float("inf"):
                 raise ValueError(f"{name} must be a positive finite number, not {value}")

@@ -293,5 +293,17 @@ def residual_summary(shots: Shots, mesh: Mesh, track: np.ndarray, *, config: Lid
                     "rms_km": residual_map(shots.spots_km(), residuals.distance_km, cells)}}
 
 
+def disagreement(figures: dict, placement_km: float | None) -> float | None:
+    """How far a track's spots lie off a model on the mean, in its own sigmas: |mean| over the
+    root sum of squares of its placement's sigma (placement_km, from its strip correction) and
+    its spots' scatter over their number (figures: one track's of `residual_summary`). None
+    where the track is not placed (never corrected, or free in some direction) or not measured."""
+    mean, rms, shots = figures.get("mean_km"), figures.get("rms_km"), figures.get("shots", 0)
+    if placement_km is None or not np.isfinite(placement_km) or mean is None or rms is None or not shots:
+        return None
+    sigma = float(np.hypot(placement_km, rms / np.sqrt(shots)))
+    return abs(mean) / sigma if sigma > 0 else None
+
+
 def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None

@@ -70,6 +70,12 @@ class Correction:
     def matrix(self) -> np.ndarray:
         return Rotation.from_rotvec(self.rotation_rad).as_matrix()
 
+    @property
+    def placement_km(self) -> float:
+        """1 sigma of the track's place per axis: the RMS of its translation's three sigmas (inf
+        where one is unconstrained)."""
+        return float(np.sqrt(np.mean(self.sigma[3:] ** 2)))
+
     def apply(self, points: np.ndarray) -> np.ndarray:
         """(N, 3) points corrected."""
         return (points - self.about_km) @ self.matrix.T + self.about_km + self.translation_km

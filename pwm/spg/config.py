@@ -89,6 +89,12 @@ class SpgConfig:
     anchor_min_angle_deg: float = 2.0
     # point-to-plane steps at most in shifting the points onto the model to tie the block to it
     anchor_iterations: int = 20
+    # a point is tied to the lidar's surface by the plane of this many nearest spots (pwm.spg.ties)
+    tie_spots: int = 8
+    # ... all lying within this many times the reach of a spot's own as many nearest (among the spots, not beside them)
+    tie_reach: float = 2.0
+    # a tie's sigma is never taken below this (km): the spots' placement between their tracks
+    tie_floor_km: float = 1e-5
     # the bundle adjustment's Huber threshold (px): larger residuals are damped
     huber_px: float = 2.0
     # the bundle adjustment's iterations at most
@@ -111,6 +117,10 @@ class SpgConfig:
             raise ValueError(f"a footprint lattice of {self.footprint_grid} pixels a side: at least 2")
         if self.per_image < 1:
             raise ValueError(f"{self.per_image} partners per image: at least one")
+        if self.tie_spots < 4:
+            raise ValueError(f"a plane of {self.tie_spots} spots: at least four, to measure their scatter")
+        if self.tie_reach <= 0 or self.tie_floor_km <= 0:
+            raise ValueError("a tie's reach and sigma floor must be positive")
         if self.threads < 1:
             raise ValueError(f"{self.threads} threads: at least one")
 

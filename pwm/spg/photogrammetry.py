@@ -25,6 +25,7 @@ from pwm.spg.hull import Hull, clip_to, visual_hull
 from pwm.spg.pairs import Pair, choose_pairs, footprints
 from pwm.spg.pose_models import PoseModel, free_poses
 from pwm.spg.surface import at_resolution, fit_figure, fit_surface, point_spacing
+from pwm.spg.ties import NO_TIES, MeasuredSurface, surface_ties
 from pwm.spg.triangulation import Tracks, build_tracks, rays, reprojection_errors, triangulate
 from pwm.spg.uncertainty import PoseSigma, image_sigmas, pose_uncertainty, prior_sigmas
 from pwm.views import View
@@ -115,7 +116,8 @@ class PoseAdjustment:
 
 
 def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None = None, anchor: bool = False,
-                 landmarks: Tracks | None = None, config: SpgConfig = SPG_DEFAULTS) -> PoseAdjustment:
+                 landmarks: Tracks | None = None, surface: MeasuredSurface | None = None,
+                 config: SpgConfig = SPG_DEFAULTS) -> PoseAdjustment:
     """Match `views` on `model` and adjust their poses (pwm.spg.adjustment.bundle_adjust).
 
     pose_model: what the adjustment may change (pwm.spg.pose_models; default: every image free,
@@ -136,6 +138,11 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
     landmarks: observations of points no feature needs to find, such as the maplets' landmarks
     (pwm.pipeline.landmark_pixels; image indices into `views`), adjusted with the feature tracks;
     with landmarks, views that no feature pair joins are still adjusted.
+
+    surface: the spots of the surface another instrument measured (the lidar's): the points
+    among them are tied to their planes (pwm.spg.ties), which places the block, as well as that
+    instrument's own frame is placed, where the images alone leave it to the priors; tied again
+    where the first adjustment put them (the kernels' poses can put a point metres off its ground).
     """
     clock = time.perf_counter()
     if pose_model is None:
@@ -168,13 +175,24 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
     if tracks.n_points == 0:
         raise ValueError("no feature track is consistent with the model and the pose knowledge")
     points, _ = triangulate(tracks, cameras, poses)
-    adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model, config=config)
+    ties = NO_TIES if surface is None else surface_ties(points, surface, config=config)
+    adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model, ties=ties, config=config)
     keep = adjusted.residuals_px <= config.max_residual_px
-    if not keep.all():
+    if not keep.all() or surface is not None:
         # once more without the mismatches, which the Huber weights only damped
+        first = [corrected_pose(p, adjusted.position_corrections[i], adjusted.rotation_corrections[i])
+                 for i, p in enumerate(poses)]
         tracks = tracks.subset(keep)
+        if surface is not None:
+            ties = surface_ties(triangulate(tracks, cameras, first)[0], surface, config=config)
         points, _ = triangulate(tracks, cameras, poses)
-        adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model, config=config)
+        adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model, ties=ties, config=config)
+    if surface is not None:
+        stats.update(ties=len(ties), tie_rms_m=float(np.sqrt(np.mean(adjusted.tie_distances_km**2))) * 1e3
+                     if len(ties) else None)
+        if len(adjusted.frame) == 6:  # how far the images moved the ties' frame (the frame_motion's order)
+            stats.update(tie_frame_shift_m=[float(v) * ties.frame_km * 1e3 for v in adjusted.frame[:3]],
+                         tie_frame_turn_urad=[float(v) * ties.frame_rad * 1e6 for v in adjusted.frame[3:]])
     positions, rotations = adjusted.position_corrections, adjusted.rotation_corrections
     final = [corrected_pose(p, positions[i], rotations[i]) for i, p in enumerate(poses)]
     points, angles = triangulate(tracks, cameras, final)

@@ -94,10 +94,11 @@ def pose_uncertainty(adjusted: Adjustment, cameras: list[Camera], poses: list[Po
         out[k] = []
     jac = [_los_jacobian(cam, pose, float(r)) for cam, pose, r in zip(cameras, poses, ranges_km, strict=True)]
     prior = adjusted.model.prior_blocks()
+    information = adjusted.information(noise_px)
     for i, pose in enumerate(poses):
         own = slice(6 * i, 6 * i + 6)
         prior_information = np.linalg.pinv(prior[i])
-        block = adjusted.information[own, own] / noise_px**2 + prior_information
+        block = information[own, own] + prior_information
         one_body = np.linalg.pinv(block)
         one = _to_camera(one_body, pose)
         out["los_one_image_px"].append(float(np.sqrt(np.trace(jac[i] @ one_body @ jac[i].T))))

@@ -261,6 +261,9 @@ class LidarFiguresOut(_Out):
     crossovers: int | None = Field(None, description="crossovers with other tracks (per track; in all: the "
                                    "version's figure)")
     crossover_rms_km: float | None = Field(None, description="RMS of their height differences")
+    disagreement_sigmas: float | None = Field(
+        None, description="per track: |mean| in the track's own sigmas (its placement's and its spots' scatter over "
+                          "their number); null where the track is not placed")
 
 
 class LidarMapOut(_Out):
@@ -288,6 +291,10 @@ class LidarResidualsOut(_Out):
     crossovers: int | None = Field(None, description="crossovers between the sampled spots of different tracks")
     tracks: dict[int, LidarFiguresOut] = Field(description="per track, by its catalog id (GET /lidar/tracks)")
     map: LidarMapOut
+    disagree_sigmas: float | None = Field(None, description="how many of its sigmas a track's mean may lie off")
+    disagreeing_tracks: list[int] = Field(
+        default_factory=list, description="tracks (catalog ids) whose mean lies further off the version than "
+                                          "`disagree_sigmas`: flagged, not averaged in")
 
 
 class LidarCorrectionOut(_Out):

@@ -176,10 +176,15 @@ def lidar_lines(figures: dict) -> list[str]:
     lines = [f"{figures['shots']} shots, {figures['measured']} measured, {figures['missed']} without a surface "
              f"near their spot; mean {metres(figures['mean_km'])} m, RMS {metres(figures['rms_km'])} m, "
              f"95th percentile {metres(figures['p95_km'])} m"]
+    flagged = {str(t) for t in figures.get("disagreeing_tracks", [])}
     lines += [f"  track {track:>6}: {t['shots']:>7} shots, mean {metres(t['mean_km'])} m, "
               f"RMS {metres(t['rms_km'])} m, 95th percentile {metres(t['p95_km'])} m"
               + (f"; {t['crossovers']} crossovers, RMS {metres(t['crossover_rms_km'])} m" if "crossovers" in t else "")
+              + (f"; DISAGREES by {t['disagreement_sigmas']:.1f} sigma" if track in flagged else "")
               for track, t in figures["tracks"].items()]
+    if flagged:
+        lines.append(f"{len(flagged)} track(s) disagree with this version by more than {figures['disagree_sigmas']:g} "
+                     f"of their sigmas: {', '.join(sorted(flagged, key=int))}")
     grid = figures.get("map")
     cells = [c for row in grid["rms_km"] for c in row if c is not None] if grid else []
     if not grid or not cells:

@@ -17,6 +17,7 @@ from sqlalchemy import select
 from pwm.geometry import Ellipsoid
 from pwm.io.meshio import write_ply
 from service.cli import app
+from service.cli.versions import lidar_lines
 from service.ingest import ingest_directory
 from service.publish import lidar_statistics
 from service.rows import LidarProduct, LidarTrack
@@ -79,6 +80,18 @@ def test_a_version_is_checked_against_the_catalogued_lidar(open_catalog_at, sqli
                    for k, v in whole["tracks"].items() if k != str(moved.id))
         # and its crossovers with the others open by about those 3 m (the spots' normals lean off the axis)
         assert moved.crossovers and moved.crossover_rms_km > 0.001 > crossing[moved.id]
+        # placed to a millimetre, it lies metres off this model: flagged, not averaged in; the
+        # others are placed by nothing, so nothing says they disagree
+        assert whole["disagreeing_tracks"] == [] and whole["disagree_sigmas"] == 3.0
+        assert adjusted["disagreeing_tracks"] == [moved.id]
+        assert adjusted["tracks"][str(moved.id)]["disagreement_sigmas"] > 10  # its spots scatter by metres here
+        assert all(v["disagreement_sigmas"] is None for k, v in adjusted["tracks"].items() if k != str(moved.id))
+        # placed only to 100 m, the same metres are within its sigmas
+        moved.correction_sigma = [1e-6] * 3 + [0.1] * 3
+        loose = lidar_statistics(session, data_dir=data, mesh=truth, version=9)
+        assert loose is not None and loose["disagreeing_tracks"] == []
+        assert loose["tracks"][str(moved.id)]["disagreement_sigmas"] < 1.0
+        assert "DISAGREES" in "\n".join(lidar_lines(adjusted)) and "DISAGREES" not in "\n".join(lidar_lines(loose))
     # the same figures without the catalog
     out = tmp_path / "lidar.json"
     result = pwm.invoke(app, ["evaluate", str(tmp_path / "ellipsoid.ply"), "--lidar",

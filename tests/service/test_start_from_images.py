@@ -216,18 +216,26 @@ def test_a_version_made_meanwhile_is_started_from(tiny_sim, catalog, tmp_path):
 
 def test_the_start_from_nothing_reports_what_it_did_to_the_poses(global_tiny_sim, catalog, tmp_path):
     """Under a pose knowledge, the start from nothing is the downlink's pose adjustment: its record
-    says so as `adjust_downlink`'s does (issue 18.4), with the unknowns of the pose model."""
+    says so as `adjust_downlink`'s does (issue 18.4), with the unknowns of the pose model. Where
+    the lidar's start is taken, the images are adjusted again on it, their points tied to its
+    spots, and the start's record is kept under "before"."""
     config = dataclasses.replace(SURVEY, knowledge=NavigationErrors(along_m=3, cross_m=1, misalign_urad=50,
                                                                      drift_urad=20))
     plan = ingest_and_plan(catalog, global_tiny_sim / "downlink", data_dir=tmp_path, config=config)
     assert plan.base_version == 2  # the lidar's start, over the images' (version 1)
     with catalog() as session:
         report = session.get_one(Downlink, plan.downlink_id).pose_adjustment
-        assert (report["knowledge"], report["source"]) == ("nav:3,1,50,20", "configured")
-        assert report["note"] == "adjusted by the stereo photogrammetry of version 1, from nothing"
+        start = report["before"]
+        assert (start["knowledge"], start["source"]) == ("nav:3,1,50,20", "configured")
+        assert start["note"] == "adjusted by the stereo photogrammetry of version 1, from nothing"
+        assert start["images"] == 12 and 0 < start["los_posterior_px"] <= start["los_prior_px"]
+        assert start["tracks"] == get_version(session, 1).statistics["tracks"] > 0
+        assert (report["knowledge"], report["source"], report["note"]) == ("nav:3,1,50,20", "configured", "adjusted")
+        assert 0 < report["lidar_spots"] <= get_version(session, 2).statistics["shots"]
+        assert report["ties"] > 0 and report["tie_rms_m"] < 5.0
         assert report["images"] == 12 and 0 < report["los_posterior_px"] <= report["los_prior_px"]
-        assert report["tracks"] == get_version(session, 1).statistics["tracks"] > 0
-        assert {"misalignment x", "drift z"} <= {u["name"] for u in report["unknowns"]}
+        for done in (start, report):
+            assert {"misalignment x", "drift z"} <= {u["name"] for u in done["unknowns"]}
 
 
 def test_a_body_whose_label_names_it_by_number_starts_from_nothing(castalia_tiny_sim, sqlite_url, open_catalog_at,

@@ -86,10 +86,14 @@ function fillTable(residuals, tracks) {
     const c = t.correction;
     const shift = c ? Math.hypot(...c.translation_km) * 1000 : NaN;
     const sigma = c && c.sigma.slice(3).every((v) => v !== null) ? Math.hypot(...c.sigma.slice(3)) * 1000 : NaN;
+    const off = residuals.tracks[t.id]?.disagreement_sigmas;
     const row = tableRow([t.id, `${t.product} #${t.track}`, t.shots, c ? fmt(shift) : "—", fmt(sigma),
-      fmt(metres(residuals.tracks[t.id]?.rms_km)), t.crossovers ?? "—", fmt(metres(t.crossover_rms_km))],
-    [0, 2, 3, 4, 5, 6, 7]);
+      fmt(metres(residuals.tracks[t.id]?.rms_km)), t.crossovers ?? "—", fmt(metres(t.crossover_rms_km)),
+      off == null ? "—" : off.toFixed(1)],
+    [0, 2, 3, 4, 5, 6, 7, 8]);
     row.dataset.track = t.id;
+    // a track that disagrees with the version beyond its sigmas is flagged, not averaged in
+    if ((residuals.disagreeing_tracks ?? []).includes(t.id)) row.classList.add("disagrees");
     body.append(row);
   }
 }
