@@ -64,8 +64,10 @@ def downlinks(
         if d.pose_adjustment:
             a = d.pose_adjustment
             after = f" -> {a['los_posterior_px']:.2f}" if "los_posterior_px" in a else ""
+            tied = (f"; {a['ties']} points tied to {a['lidar_spots']} lidar spots, {a['tie_rms_m']:.2f} m RMS off them"
+                    if a.get("ties") else "")
             typer.echo(f"      poses: {a['knowledge']} ({a['source']}): {a['note']}; line of sight "
-                       f"{a['los_prior_px']:.2f}{after} px (1 sigma)")
+                       f"{a['los_prior_px']:.2f}{after} px (1 sigma){tied}")
         for path, code, reason in unused.get(d.id, []) if files else []:
             typer.echo(f"      unused {path}: {code}: {reason}")
     if note is not None:
