@@ -28,6 +28,23 @@ def arcs(times: np.ndarray, *, gap_s: float = ARC_GAP_S) -> list[np.ndarray]:
     return [np.asarray(a) for a in np.split(order, breaks)]
 
 
+def along_arcs(times: np.ndarray, sample_times: np.ndarray, values: np.ndarray, *,
+               gap_s: float = ARC_GAP_S) -> np.ndarray:
+    """`values` (n, k) known at `sample_times` (n,), interpolated linearly in time to `times`
+    within the arcs the samples make (`arcs`): a time within gap_s of an arc's span takes that
+    arc's values (its end values beyond its ends), any other time zeros; (len(times), k)."""
+    times = np.asarray(times, float)
+    sample_times = np.asarray(sample_times, float)
+    values = np.asarray(values, float).reshape(len(sample_times), -1)
+    out = np.zeros((len(times), values.shape[1]))
+    for arc in arcs(sample_times, gap_s=gap_s):
+        t = sample_times[arc]
+        inside = (times >= t.min() - gap_s) & (times <= t.max() + gap_s)
+        for k in range(values.shape[1]):
+            out[inside, k] = np.interp(times[inside], t, values[arc, k])
+    return out
+
+
 def arc_period(times: np.ndarray, orbit_period_s: float | None = None) -> float | None:
     """The once-per-orbit period of an arc's basis: the stated orbit period, or else the arc's
     duration (one slow cycle per arc); None for an arc of no duration."""

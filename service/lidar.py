@@ -3,7 +3,9 @@
 convergence), its correction and 1 sigma stored on its row (service.rows.LidarTrack), and the
 tracks' residuals on that version measured with the corrections applied
 (service.publish.lidar_statistics). The shots stay as ingest placed them (the artifact store's
-shots file); a track's spots are re-placed by its stored correction wherever they are read.
+shots file); wherever they are read, they are placed again with the spacecraft positions the
+images of their time were corrected to (service.publish.placed_shots), and a track's spots by its
+stored correction.
 
 When it runs is the conductor's rule (service.conductor.adjust_lidar). And where the catalog
 has no model, the lidar may start one (`start_from_lidar`): a closed model of the catalogued
@@ -25,16 +27,14 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from pwm.io.lidar import read_shots
 from pwm.lidar.config import LIDAR, LidarConfig
 from pwm.lidar.model import usable
 from pwm.lidar.shots import Shots
 from pwm.lidar.strips import Correction, adjust
 from pwm.lidar.tracks import NO_TRACK
 from pwm.mesh import Mesh
-from service.artifacts import artifact_path
 from service.db import session_scope
-from service.publish import adjusted_shots, lidar_statistics, usable_lidar_products
+from service.publish import adjusted_shots, lidar_statistics, placed_shots, usable_lidar_products
 from service.rows import Acceptance, Downlink, LidarProduct, LidarTrack, ModelKind
 from service.versions import get_version, latest_version, publication_lock, publish_version, version_mesh
 
@@ -79,7 +79,7 @@ def adjust_tracks(sessions: sessionmaker[Session], *, data_dir: Path, version: i
         for product in products:
             if product.shots_artifact is None or not product.tracks:  # none, by the query; no valid shot
                 continue
-            shots, _ = read_shots(artifact_path(data_dir, product.shots_artifact, verify=True))
+            shots, _ = placed_shots(session, data_dir, product)
             adjustment = adjust(shots, mesh, config=config, rebuild=False)
             for row in product.tracks:
                 change = _store(row, adjustment.corrections.get(row.track))
@@ -124,8 +124,7 @@ def start_from_lidar(sessions: sessionmaker[Session], *, data_dir: Path, downlin
                                    or downlink_id not in {d.id for d in latest.downlinks}):
             return None
         products = usable_lidar_products(session)
-        parts = [read_shots(artifact_path(data_dir, p.shots_artifact, verify=True)) for p in products
-                 if p.shots_artifact is not None]  # all, by the query
+        parts = [placed_shots(session, data_dir, p) for p in products]
         if not parts:
             return None
         downlink = session.get_one(Downlink, downlink_id)
@@ -208,7 +207,7 @@ def catalog_spots(session: Session, *, data_dir: Path) -> np.ndarray | None:
     adjustment ties its points to (service.spg, pwm.spg.ties). None where there is none."""
     parts = []
     for product in usable_lidar_products(session):
-        shots, track = adjusted_shots(data_dir, product)
+        shots, track = adjusted_shots(session, data_dir, product)
         placed = np.isin(track, [row.track for row in product.tracks if row.strip_correction() is not None])
         parts.append(shots.spots_km()[usable(shots) & placed])
     spots = np.concatenate(parts) if parts else np.zeros((0, 3))

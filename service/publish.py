@@ -26,6 +26,7 @@ track's residuals on it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import tempfile
 import time
@@ -48,6 +49,7 @@ from pwm.lidar.shots import Shots
 from pwm.lidar.strips import apply_corrections
 from pwm.lidar.tracks import NO_TRACK, crossovers
 from pwm.mesh import Mesh
+from pwm.trajectory import ARC_GAP_S, along_arcs
 from service.artifacts import artifact_path, scratch_path
 from service.db import session_scope
 from service.jobs import refined_downlinks
@@ -55,6 +57,8 @@ from service.refinement import load_revision_maplet
 from service.rows import (
     Acceptance,
     Downlink,
+    Image,
+    ImageStatus,
     LidarProduct,
     Maplet,
     MapletRevision,
@@ -168,12 +172,36 @@ def usable_lidar_products(session: Session, product_ids: Collection[int] | None 
     return session.scalars(query.order_by(LidarProduct.id)).all()
 
 
-def adjusted_shots(data_dir: Path, product: LidarProduct) -> tuple[Shots, np.ndarray]:
-    """A lidar product's shots as ingest stored them, each track's stored strip correction
-    applied (service.rows.LidarTrack.strip_correction), and each shot's track number."""
+def placed_shots(session: Session, data_dir: Path, product: LidarProduct) -> tuple[Shots, np.ndarray]:
+    """A lidar product's shots placed with the spacecraft's corrected trajectory, and each shot's
+    track number: as ingest stored them (through the kernels), each origin moved by the position
+    corrections the catalog's images of that time carry (their stored pose corrections,
+    interpolated in time within the images' navigation arcs, pwm.trajectory.along_arcs), since
+    the spacecraft that carries the lidar is the one the images' positions were corrected for.
+    Only the position: a camera's pointing correction holds its own misalignment, which the
+    lidar does not share. Read again whenever the images' poses change, the spots follow."""
     if product.shots_artifact is None:
         raise ValueError(f"lidar product {product.id} has no shots stored")
     shots, track = read_shots(artifact_path(data_dir, product.shots_artifact, verify=True))
+    if not len(shots) or product.start_et is None or product.stop_et is None:
+        return shots, track
+    images = session.execute(select(Image.start_et, Image.stop_et, Image.pose_dx_km, Image.pose_dy_km,
+                                    Image.pose_dz_km).where(
+        Image.status == ImageStatus.ACCEPTED, Image.pose_corrected_at.is_not(None),
+        Image.start_et.is_not(None), Image.stop_et.is_not(None),
+        Image.start_et <= product.stop_et + ARC_GAP_S, Image.stop_et >= product.start_et - ARC_GAP_S)).all()
+    if not images:
+        return shots, track
+    times = np.array([(start + stop) / 2 for start, stop, *_ in images if start is not None and stop is not None])
+    moves = np.array([[dx or 0.0, dy or 0.0, dz or 0.0] for *_, dx, dy, dz in images])
+    shift = along_arcs(shots.et, times, moves)
+    return dataclasses.replace(shots, origin_km=shots.origin_km + shift), track
+
+
+def adjusted_shots(session: Session, data_dir: Path, product: LidarProduct) -> tuple[Shots, np.ndarray]:
+    """A lidar product's shots placed (`placed_shots`), each track's stored strip correction
+    applied (service.rows.LidarTrack.strip_correction), and each shot's track number."""
+    shots, track = placed_shots(session, data_dir, product)
     return apply_corrections(shots, track, {row.track: c for row in product.tracks
                                             if (c := row.strip_correction()) is not None}), track
 
@@ -198,7 +226,7 @@ def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: i
     for product in products:
         if product.shots_artifact is None:  # none, by the query
             continue
-        shots, track = adjusted_shots(data_dir, product)
+        shots, track = adjusted_shots(session, data_dir, product)
         mine = {t.track: t for t in product.tracks}
         pick = sample_shots(usable(shots), round(at_most * product.valid_shots / total), seed=product.id)
         parts.append(shots.take(pick))

@@ -22,7 +22,7 @@ from pwm.knowledge import (
     shared_frame_sigma,
 )
 from pwm.simulate.knowledge import perturb
-from pwm.trajectory import ARC_GAP_S, arcs, track_frames
+from pwm.trajectory import ARC_GAP_S, along_arcs, arcs, track_frames
 from service.settings import Settings
 
 DAY = 86400.0
@@ -237,3 +237,12 @@ def test_a_shared_frame_is_placed_as_well_as_one_pose():
     assert shared_frame_sigma(IndependentErrors(position_m=2.0, pointing_rad=0.0), range_km=5.0,
                               radius_km=1.0) == pytest.approx((2e-3, 2e-3))
     assert shared_frame_sigma(EXACT, range_km=5.0, radius_km=1.0) == (0.0, 0.0)
+
+
+def test_values_are_interpolated_along_their_arcs_only():
+    """pwm.trajectory.along_arcs: linear in time within an arc, its end values up to a gap beyond
+    its ends, nothing between arcs further apart than that."""
+    times = np.array([0.0, 100.0, 10 * ARC_GAP_S, 10 * ARC_GAP_S + 100.0])
+    values = np.array([[0.0], [1.0], [5.0], [7.0]])
+    at = np.array([50.0, -10.0, 100.0 + ARC_GAP_S / 2, 5 * ARC_GAP_S, 10 * ARC_GAP_S + 50.0])
+    np.testing.assert_allclose(along_arcs(at, times, values)[:, 0], [0.5, 0.0, 1.0, 0.0, 6.0])

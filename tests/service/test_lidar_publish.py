@@ -15,12 +15,14 @@ import pytest
 from sqlalchemy import select
 
 from pwm.geometry import Ellipsoid
+from pwm.io.lidar import read_shots
 from pwm.io.meshio import write_ply
+from service.artifacts import artifact_path
 from service.cli import app
 from service.cli.versions import lidar_lines
 from service.ingest import ingest_directory
-from service.publish import lidar_statistics
-from service.rows import LidarProduct, LidarTrack
+from service.publish import lidar_statistics, placed_shots
+from service.rows import Image, LidarProduct, LidarTrack
 
 
 def test_a_version_is_checked_against_the_catalogued_lidar(open_catalog_at, sqlite_url: str, global_tiny_sim: Path,
@@ -100,3 +102,31 @@ def test_a_version_is_checked_against_the_catalogued_lidar(open_catalog_at, sqli
     assert "lidar: 1 products:\n4800 shots, " in result.output
     free = json.loads(out.read_text())["lidar"]
     assert free["measured"] == whole["measured"] and free["rms_km"] == pytest.approx(whole["rms_km"], rel=1e-9)
+
+
+def test_the_spots_follow_the_corrected_trajectory(open_catalog_at, sqlite_url: str, global_tiny_sim: Path,
+                                                  tmp_path: Path) -> None:
+    """A lidar's spots are placed again whenever the images of their time are corrected
+    (service.publish.placed_shots): each shot's origin moves by the images' position
+    corrections, interpolated in time within their arcs; the pointing's are not the lidar's."""
+    catalog, data = open_catalog_at(sqlite_url), tmp_path / "data"
+    ingest_directory(catalog, global_tiny_sim / "downlink", data_dir=data)
+    with catalog() as session:
+        product = session.scalars(select(LidarProduct)).one()
+        stored, _ = read_shots(artifact_path(data, product.shots_artifact, verify=True))
+        as_stored, _ = placed_shots(session, data, product)  # no image corrected yet
+        np.testing.assert_array_equal(as_stored.origin_km, stored.origin_km)
+        images = session.scalars(select(Image).order_by(Image.start_et)).all()
+        for k, image in enumerate(images):  # 1 m east to 1 m + k cm, and a turn the lidar must not take
+            image.pose_dx_km, image.pose_dy_km, image.pose_dz_km = 1e-3 + 1e-5 * k, 0.0, 0.0
+            image.pose_rx_rad, image.pose_ry_rad, image.pose_rz_rad = 1e-3, 0.0, 0.0
+            image.pose_corrected_at = datetime.now(UTC)
+        session.flush()
+        placed, _ = placed_shots(session, data, product)
+        moved = (placed.origin_km - stored.origin_km) * 1e3
+        np.testing.assert_allclose(moved[:, 1:], 0.0, atol=1e-12)
+        assert 1.0 - 1e-9 <= moved[:, 0].min() and moved[:, 0].max() <= 1.0 + 0.01 * (len(images) - 1) + 1e-9
+        mid = np.array([(i.start_et + i.stop_et) / 2 for i in images])
+        expected = np.interp(stored.et, mid, 1.0 + 0.01 * np.arange(len(images)))
+        np.testing.assert_allclose(moved[:, 0], expected, atol=1e-9)
+        np.testing.assert_array_equal(placed.direction, stored.direction)
