@@ -4,7 +4,7 @@ convergence), its correction and 1 sigma stored on its row (service.rows.LidarTr
 tracks' residuals on that version measured with the corrections applied
 (service.publish.lidar_statistics). The shots stay as ingest placed them (the artifact store's
 shots file); wherever they are read, they are placed again with the spacecraft positions the
-images of their time were corrected to (service.publish.placed_shots), and a track's spots by its
+images of their time were corrected to (service.lidar_shots.placed_shots), and a track's spots by its
 stored correction.
 
 When it runs is the conductor's rule (service.conductor.adjust_lidar). And where the catalog
@@ -34,7 +34,8 @@ from pwm.lidar.strips import Correction, adjust
 from pwm.lidar.tracks import NO_TRACK
 from pwm.mesh import Mesh
 from service.db import session_scope
-from service.publish import adjusted_shots, lidar_statistics, placed_shots, usable_lidar_products
+from service.lidar_shots import placed_shots, usable_lidar_products
+from service.publish import lidar_statistics
 from service.rows import Acceptance, Downlink, LidarProduct, LidarTrack, ModelKind
 from service.versions import get_version, latest_version, publication_lock, publish_version, version_mesh
 
@@ -199,19 +200,6 @@ def _note(downlink: Downlink, note: str) -> None:
     """Add to a downlink's model_note."""
     downlink.model_note = f"{downlink.model_note}; {note}" if downlink.model_note else note
     log.info("downlink %d: %s", downlink.id, note)
-
-
-def catalog_spots(session: Session, *, data_dir: Path) -> np.ndarray | None:
-    """The usable spots (km, body-fixed) of the catalogued tracks that a strip adjustment placed
-    (their stored corrections applied): the surface the lidar measured, which the images'
-    adjustment ties its points to (service.spg, pwm.spg.ties). None where there is none."""
-    parts = []
-    for product in usable_lidar_products(session):
-        shots, track = adjusted_shots(session, data_dir, product)
-        placed = np.isin(track, [row.track for row in product.tracks if row.strip_correction() is not None])
-        parts.append(shots.spots_km()[usable(shots) & placed])
-    spots = np.concatenate(parts) if parts else np.zeros((0, 3))
-    return spots if len(spots) else None
 
 
 def products_of(session: Session, downlink_id: int) -> list[int]:

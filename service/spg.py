@@ -45,7 +45,7 @@ from pwm.spg.uncertainty import prior_sigmas
 from pwm.views import View
 from service.db import session_scope
 from service.kernels import accepted_kernels
-from service.lidar import catalog_spots
+from service.lidar_shots import catalog_spots
 from service.rows import (
     Acceptance,
     Coverage,
@@ -234,7 +234,7 @@ def adjust_downlink(sessions: sessionmaker[Session], *, shape: Mesh, downlink_id
     (`downlink_knowledge`): a navigation-like knowledge is modelled per arc with one shared
     misalignment and drift, an independent one per image (pwm.spg.pose_models), and the block is
     tied to `shape` (pwm.spg.photogrammetry.adjust_poses' anchor) and, where the catalog holds
-    strip-adjusted lidar, its points to the lidar's spots (service.lidar.catalog_spots), which
+    strip-adjusted lidar, its points to the lidar's spots (service.lidar_shots.catalog_spots), which
     place it absolutely. The images' corrections are composed onto their stored ones, each image
     keeps its prior and posterior sigmas (which size its registration search,
     Image.los_sigma_px) and loses its coverage weighing; the downlink keeps what was done

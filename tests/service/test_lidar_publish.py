@@ -21,7 +21,8 @@ from service.artifacts import artifact_path
 from service.cli import app
 from service.cli.versions import lidar_lines
 from service.ingest import ingest_directory
-from service.publish import lidar_statistics, placed_shots
+from service.lidar_shots import placed_shots
+from service.publish import lidar_statistics
 from service.rows import Image, LidarProduct, LidarTrack
 
 
@@ -107,7 +108,7 @@ def test_a_version_is_checked_against_the_catalogued_lidar(open_catalog_at, sqli
 def test_the_spots_follow_the_corrected_trajectory(open_catalog_at, sqlite_url: str, global_tiny_sim: Path,
                                                   tmp_path: Path) -> None:
     """A lidar's spots are placed again whenever the images of their time are corrected
-    (service.publish.placed_shots): each shot's origin moves by the images' position
+    (service.lidar_shots.placed_shots): each shot's origin moves by the images' position
     corrections, interpolated in time within their arcs; the pointing's are not the lidar's."""
     catalog, data = open_catalog_at(sqlite_url), tmp_path / "data"
     ingest_directory(catalog, global_tiny_sim / "downlink", data_dir=data)
