@@ -54,9 +54,9 @@ def placed_shots(session: Session, data_dir: Path, product: LidarProduct) -> tup
         Image.start_et <= product.stop_et + ARC_GAP_S, Image.stop_et >= product.start_et - ARC_GAP_S)).all()
     if not images:
         return shots, track
-    times = np.array([(start + stop) / 2 for start, stop, *_ in images if start is not None and stop is not None])
-    moves = np.array([[dx or 0.0, dy or 0.0, dz or 0.0] for *_, dx, dy, dz in images])
-    shift = along_arcs(shots.et, times, moves)
+    # start, stop (none null, by the query) and the position correction (a component not set is 0)
+    table = np.array([[start, stop, dx or 0.0, dy or 0.0, dz or 0.0] for start, stop, dx, dy, dz in images], float)
+    shift = along_arcs(shots.et, table[:, :2].mean(axis=1), table[:, 2:])
     return dataclasses.replace(shots, origin_km=shots.origin_km + shift), track
 
 
