@@ -180,10 +180,10 @@ def adjust_poses(views: list[View], model: Mesh, *, pose_model: PoseModel | None
     keep = adjusted.residuals_px <= config.max_residual_px
     if not keep.all() or surface is not None:
         # once more without the mismatches, which the Huber weights only damped
-        first = [corrected_pose(p, adjusted.position_corrections[i], adjusted.rotation_corrections[i])
-                 for i, p in enumerate(poses)]
         tracks = tracks.subset(keep)
         if surface is not None:
+            first = [corrected_pose(p, adjusted.position_corrections[i], adjusted.rotation_corrections[i])
+                     for i, p in enumerate(poses)]
             ties = surface_ties(triangulate(tracks, cameras, first)[0], surface, config=config)
         points, _ = triangulate(tracks, cameras, poses)
         adjusted = bundle_adjust(points, tracks, cameras, poses, model=pose_model, ties=ties, config=config)
