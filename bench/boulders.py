@@ -65,11 +65,10 @@ def main() -> None:
     from pwm.frames import unit_to_latlon
     from pwm.io.downlink import read_downlink
     from pwm.io.meshio import read_mesh
-    from pwm.mesh import Mesh, grid_faces
     from pwm.pipeline import imaged_region, refine_maplet
     from pwm.raytrace import RayTracer
     from pwm.sampling import drop_rays
-    from pwm.simulate.truth import _grid_vertices, load
+    from pwm.simulate.truth import load
     from pwm.tiling import tile
 
     config = dataclasses.replace(configured(args.changes), nodes=args.nodes)
@@ -89,19 +88,14 @@ def main() -> None:
     for b in largest:
         cx, cy = b.x_km + args.shift_m[0] * 1e-3, b.y_km + args.shift_m[1] * 1e-3
         # the truth about the maplet, as a small mesh to drop the maplet's rays on
-        cols = np.flatnonzero(np.abs(truth.x_km - cx) <= TRUTH_CROP_KM)
-        rows = np.flatnonzero(np.abs(truth.y_km - cy) <= TRUTH_CROP_KM)
-        crop = Mesh(_grid_vertices(truth.site_frame, truth.x_km[cols], truth.y_km[rows],
-                                   truth.height_km[np.ix_(rows, cols)]), grid_faces(len(rows), len(cols)))
-        truth_tracer = RayTracer(crop)
-        ground = truth.height_km[rows[len(rows) // 2], cols[len(cols) // 2]]
-        lat, lon = unit_to_latlon(truth.site_frame.to_body(np.array([[cx, cy, ground]]))[0])
+        truth_tracer = RayTracer(truth.patch(cx, cy, TRUTH_CROP_KM))
+        lat, lon = unit_to_latlon(truth.site_point(cx, cy))
         maplet = tile(start, spacing_km=spacing, nodes=config.nodes, centre_lat_deg=float(lat),
                       centre_lon_deg=float(lon), radius_km=0.1 * spacing)[0]
         gx, gy = np.meshgrid(maplet.axis_km, maplet.axis_km)
         top = float(np.nanmax(maplet.heights)) + 0.01
         truth_h = drop_rays(truth_tracer, maplet.frame, gx.ravel(), gy.ravel(), top_km=top)[1].reshape(gx.shape)
-        centre = maplet.frame.to_local(truth.site_frame.to_body(np.array([[b.x_km, b.y_km, ground]])))[0, :2]
+        centre = maplet.frame.to_local(truth.site_point(b.x_km, b.y_km)[None])[0, :2]
         clock = time.perf_counter()
         refined = refine_maplet(maplet, views, tracer, config=config).maplet.heights
         seconds = time.perf_counter() - clock

@@ -61,6 +61,12 @@ class Placement:
     first (pwm.pipeline._coarse_first). resweep_px: a swept maplet is swept again from its
     refined heights over this much parallax (pwm.pipeline._swept_again): the first sweep, from
     the coarser start's relief, was up to 0.37 m (4.6 px) off on the campaign's site A.
+
+    lidar_spots: a maplet with at least this many laser altimeter spots over it is placed on them
+    (pwm.pipeline.placed_on_spots) instead of by its images' parallax: moved by the plane through
+    the spots' height residuals, tilted along the directions in which the spots spread over at
+    least lidar_spread of the maplet's half side (RMS about their centre; a profile spreads along
+    itself only).
     """
 
     registration_px: float = 0.1  # 1 sigma (px) of an image's registration with exact poses
@@ -72,6 +78,8 @@ class Placement:
     sweep_many_images: int = 12  # usable images from which sweep_start_many applies (and the sweep follows)
     coarse_factors: tuple[int, ...] = (8, 4, 2)  # coarser grids a swept maplet is solved on first
     resweep_px: float = 8.0  # parallax (px) a swept maplet is swept again over from its refined heights
+    lidar_spots: int = 10  # fewest laser altimeter spots that place a maplet
+    lidar_spread: float = 0.2  # share of a maplet's half side the spots spread over to tilt it that way
 
     def __post_init__(self) -> None:
         if self.registration_px < 0:
@@ -80,6 +88,10 @@ class Placement:
             raise ValueError(f"{self.parallax_rounds} parallax rounds: must be non-negative")
         if any(f < 1 for f in self.coarse_factors):
             raise ValueError(f"coarse factors {self.coarse_factors}: each at least 1")
+        if self.lidar_spots < 3:
+            raise ValueError(f"{self.lidar_spots} lidar spots: at least 3 place a maplet")
+        if not self.lidar_spread > 0:
+            raise ValueError(f"lidar spread {self.lidar_spread}: must be positive")
 
 
 PLACEMENT = Placement()

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 
 from pwm.frames import LocalFrame
 
@@ -59,3 +60,56 @@ def flat_grid(name: str, frame: LocalFrame, *, size_km: float, nodes: int) -> Ma
     """A maplet of nodes x nodes over the square of side size_km of `frame`, its heights zero
     (to be sampled from a shape, pwm.tiling.sample_surface): a catalogued maplet's grid."""
     return MapletGrid(name=name, frame=frame, spacing_km=size_km / (nodes - 1), heights=np.zeros((nodes, nodes)))
+
+
+@dataclass(frozen=True)
+class MapletSpots:
+    """Laser altimeter spots over one maplet, in its local frame: (M, 3) km, x and y where each
+    spot lies and z the height it measured; sigma_km (M,): each height's 1 sigma."""
+
+    local_km: np.ndarray
+    sigma_km: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.sigma_km)
+
+
+NO_SPOTS = MapletSpots(local_km=np.zeros((0, 3)), sigma_km=np.zeros(0))
+
+
+def spots_over(maplet: MapletGrid, spots_km: np.ndarray, sigma_km: np.ndarray) -> MapletSpots:
+    """The spots (body-fixed, km; their heights' 1 sigma, km) that lie over the maplet's node grid
+    within its side of its heights: farther off along its z they measured another surface (the
+    body's far side, a wall facing it), not a start a side's length wrong."""
+    spots = np.asarray(spots_km, float).reshape(-1, 3)
+    sigma = np.asarray(sigma_km, float).reshape(-1)
+    if not len(spots):
+        return NO_SPOTS
+    local = maplet.frame.to_local(spots)
+    half = (maplet.n - 1) / 2 * maplet.spacing_km
+    over = (np.abs(local[:, 0]) <= half) & (np.abs(local[:, 1]) <= half) & np.isfinite(local).all(axis=1)
+    over &= np.isfinite(sigma) & (sigma > 0)
+    side = 2 * half
+    near = np.abs(local[over, 2] - grid_heights(maplet, local[over, :2])) <= side
+    keep = np.flatnonzero(over)[near]
+    return MapletSpots(local_km=local[keep], sigma_km=sigma[keep])
+
+
+def grid_heights(maplet: MapletGrid, xy_km: np.ndarray, heights: np.ndarray | None = None) -> np.ndarray:
+    """(M,) the maplet's heights (km) at local points (M, 2) over its grid, bilinear between nodes."""
+    return (interpolation_matrix(maplet, xy_km) @ (maplet.heights if heights is None else heights).ravel())
+
+
+def interpolation_matrix(maplet: MapletGrid, xy_km: np.ndarray) -> sp.csr_matrix:
+    """(M, n*n) sparse bilinear interpolation from the row-major node grid to local points (M, 2)
+    over it (clamped onto the grid's border)."""
+    n = maplet.n
+    at = np.clip(np.asarray(xy_km, float).reshape(-1, 2) / maplet.spacing_km + (n - 1) / 2, 0.0, n - 1)
+    j0 = np.minimum(np.floor(at[:, 0]).astype(np.intp), n - 2)
+    i0 = np.minimum(np.floor(at[:, 1]).astype(np.intp), n - 2)
+    fj, fi = at[:, 0] - j0, at[:, 1] - i0
+    rows = np.repeat(np.arange(len(at)), 4)
+    cols = np.stack([i0 * n + j0, i0 * n + j0 + 1, (i0 + 1) * n + j0, (i0 + 1) * n + j0 + 1], axis=1).ravel()
+    values = np.stack([(1 - fi) * (1 - fj), (1 - fi) * fj, fi * (1 - fj), fi * fj], axis=1).ravel()
+    return sp.csr_matrix((values, (rows, cols)), shape=(len(at), n * n))

@@ -12,6 +12,7 @@ objective (METHOD.md section 5), with reflectance normalised by the mean data br
       + (height_weight / w_PWM) sum_nodes ((z - z0) / spacing)^2
       + albedo_weight sum_nodes ((A - A_ref) / A_ref)^2 + offset_weight sum_k |o_k - o_k,start|^2
       + shadow_weight sum_k sum_nodes h_k(z)^2
+      + lidar_weight sum_spots ((z(x_l, y_l) - z_l) / sigma_l)^2
 
 rho(d) = 2 c^2 (sqrt(1 + (d / c)^2) - 1) with c = slope_scale: the pseudo-Huber function, d^2 for
 slope changes well below c and growing only linearly beyond, so that the relief the start lacks
@@ -33,6 +34,11 @@ geometric mean of 1 (the data fix only s_k * A); the offsets never move as a sid
 the whole maplet would move them (photometry cannot see that shift); and the mean height stays
 the start's (the offsets can absorb a common rise's parallax, so the data see it only by
 perspective, and a direction that weak took many steps to drift along, to no gain).
+The lidar term: each laser altimeter spot over the maplet (`pwm.maplets.MapletSpots`) measured
+the height z_l at its x_l, y_l with the range's sigma; z(x, y) is bilinear between the nodes. It
+weighs the spots against the images (lidar_weight: a spot one sigma off costs what one image node
+off by sqrt(lidar_weight) of the mean brightness does). The spots see the mean height and the
+tilts that brightness barely sees, so with spots the mean height is no longer held at the start's.
 Gauss-Newton with backtracking on the objective re-projected at the trial heights, until the RMS
 height change of a step, or the relative decrease of the objective, is below its tolerance. The
 Jacobian includes each node's parallax: as a node rises it moves in every image, and its sample
@@ -55,7 +61,7 @@ from scipy.linalg import block_diag
 from scipy.sparse.linalg import splu
 
 from pwm.camera import Camera, Pose, project
-from pwm.maplets import MapletGrid
+from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, interpolation_matrix
 from pwm.photometry import lunar_lambert, mcewen_l
 
 Mode = Literal["pwm", "standard"]
@@ -119,7 +125,8 @@ class Refinement:
     image (geometric mean 1); offsets: (K, 2) pointing corrections (sample, line), px; rms: (K,)
     RMS of I - s A G over the nodes each image weighs (reflectance units; NaN if none);
     iterations: Gauss-Newton steps taken; converged: the last step's RMS height change, or the
-    objective's relative decrease, was below its tolerance."""
+    objective's relative decrease, was below its tolerance. lidar_rms: RMS of the spots' height
+    residuals in their sigmas (NaN without spots)."""
 
     heights: np.ndarray
     albedo: np.ndarray
@@ -128,6 +135,7 @@ class Refinement:
     rms: np.ndarray
     iterations: int
     converged: bool
+    lidar_rms: float = float("nan")
 
 
 def node_pixels(maplet: MapletGrid, data: MapletImages, *, heights: np.ndarray | None = None,
@@ -471,7 +479,8 @@ class _Problem:
 
     def __init__(self, maplet: MapletGrid, data: MapletImages, *, weights: np.ndarray, region: float,
                  offsets: np.ndarray, solve_offsets: bool, slope_weight: float, slope_scale: float,
-                 height_weight: float, albedo_weight: float, offset_weight: float, shadow_weight: float) -> None:
+                 height_weight: float, albedo_weight: float, offset_weight: float, shadow_weight: float,
+                 spots: MapletSpots, lidar_weight: float) -> None:
         n = maplet.n
         self.maplet, self.data = maplet, data
         self.weights = weights.reshape(data.count, -1)
@@ -496,6 +505,16 @@ class _Problem:
         self.sun_local = data.sun_directions @ maplet.frame.rotation.T
         azimuths, self.rises = _sun_paths(self.sun_local)
         self.exit_steps = _exit_steps(n, azimuths)
+        # the spots' heights and the interpolation onto them, in node spacings like u
+        self.spot_matrix = interpolation_matrix(maplet, spots.local_km[:, :2])
+        self.spot_u = spots.local_km[:, 2] / maplet.spacing_km
+        self.spot_weights = lidar_weight * (maplet.spacing_km / spots.sigma_km) ** 2
+        # without spots nothing but the start places the maplet's mean height (module docstring)
+        self.holds_mean = spots.count == 0
+
+    def spot_residuals(self, u: np.ndarray) -> np.ndarray:
+        """(M,) the maplet's heights at the spots less the spots', in node spacings."""
+        return self.spot_matrix @ u - self.spot_u
 
     def start(self) -> tuple[_State, _Evaluation]:
         """Starting state (albedo and scales estimated at the starting shape) and its evaluation."""
@@ -543,8 +562,10 @@ class _Problem:
         du = state.u - self.u0
         da = (state.albedo - self.albedo_prior) / self.albedo_prior
         do = state.offsets - self.offsets0
+        spots = self.spot_residuals(state.u)
         return float((residuals**2).sum() + self._tie_cost(du) + self.albedo_weight * (da @ da)
-                     + self.offset_weight * (do * do).sum() + self.shadow_weight * (shadow @ shadow))
+                     + self.offset_weight * (do * do).sum() + self.shadow_weight * (shadow @ shadow)
+                     + self.spot_weights @ (spots * spots))
 
     def _shadows(self, u: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
         """The shadow term's residuals (node spacings) and their Jacobian (M, N): one row per node
@@ -640,14 +661,17 @@ class _Problem:
         ops = self.operators
         tie = self._tie_matrix(state.u - self.u0)
         shadow, shadow_jac = ev.shadow, ev.shadow_jac
+        spots, weighed = self.spot_matrix, sp.diags(self.spot_weights)
         huu = (ops.T @ sp.bmat([[sp.diags(mij) for mij in row] for row in m], format="csr") @ ops + tie
-               + self.shadow_weight * (shadow_jac.T @ shadow_jac))
-        gu = ops.T @ np.concatenate(g) + tie @ (state.u - self.u0) + self.shadow_weight * (shadow_jac.T @ shadow)
+               + self.shadow_weight * (shadow_jac.T @ shadow_jac) + spots.T @ weighed @ spots)
+        gu = (ops.T @ np.concatenate(g) + tie @ (state.u - self.u0) + self.shadow_weight * (shadow_jac.T @ shadow)
+              + spots.T @ (weighed @ self.spot_residuals(state.u)))
         hut = ops.T @ np.vstack([x.T for x in xt])
-        # The mean height stays the start's: a Lagrange multiplier joins the per-image unknowns.
-        hut = np.column_stack([hut, np.ones(len(gu))])
-        htt = np.block([[htt, np.zeros((len(htt), 1))], [np.zeros((1, len(htt) + 1))]])
-        gt = np.append(gt, (state.u - self.u0).sum())
+        if self.holds_mean:
+            # The mean height stays the start's: a Lagrange multiplier joins the per-image unknowns.
+            hut = np.column_stack([hut, np.ones(len(gu))])
+            htt = np.block([[htt, np.zeros((len(htt), 1))], [np.zeros((1, len(htt) + 1))]])
+            gt = np.append(gt, (state.u - self.u0).sum())
         # huu is symmetric positive definite: symmetric mode with diagonal pivots skips
         # SuperLU's row pivoting, which it never needs here
         lu = splu(huu.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -655,7 +679,8 @@ class _Problem:
         yg, yt = solved[:, 0], solved[:, 1:]
         dt = np.linalg.solve(htt - hut.T @ yt, -gt + hut.T @ yg)
         du = -(yg + yt @ dt)
-        dt = dt[:-1]  # the multiplier's part is done
+        if self.holds_mean:
+            dt = dt[:-1]  # the multiplier's part is done
         da = -(ga + (np.concatenate(pa) * (ops @ du)).reshape(3, -1).sum(axis=0) + xta.T @ dt) * inv
         if self.solve_offsets:
             dt = self.image_basis @ dt
@@ -722,7 +747,9 @@ class Solver:
     derivatives), tied to the given ones by offset_weight per px^2. shadow_weight: of the shadow
     term, per image and node, on the shapes of maplets whose images carry their shadows
     (MapletImages.shade); higher pulls the shadows' casters up harder than the photometry holds
-    them (bench/RESULTS.md).
+    them (bench/RESULTS.md). lidar_weight: of each laser altimeter spot's squared height
+    residual in its sigmas, against the images' (module docstring; bench/maplet_lidar.py
+    measures what it costs and gains).
     """
 
     max_iterations: int = 30
@@ -735,6 +762,7 @@ class Solver:
     offset_weight: float = 1e-3
     solve_offsets: bool = True
     shadow_weight: float = 0.05
+    lidar_weight: float = 1e-2
 
 
 SOLVER = Solver()
@@ -747,13 +775,15 @@ def refine(
     mode: Mode = "pwm",
     offsets: np.ndarray | None = None,
     solver: Solver = SOLVER,
+    spots: MapletSpots = NO_SPOTS,
 ) -> Refinement:
     """Refine the maplet's heights and albedo and the images' brightness scales (module docstring).
 
     mode: 'pwm' (pixel weights and region weight of `data`) or 'standard' (every visible node
     weighs 1, shadows included, w_PWM = 1). offsets: (K, 2) pointing corrections (sample, line),
     px, e.g. from `pwm.alignment.align`, the start of the joint solution. solver: the iteration's
-    settings (`Solver`). Nodes without data keep the starting shape.
+    settings (`Solver`). spots: the laser altimeter's over the maplet, in its frame. Nodes without
+    data keep the starting shape.
     """
     k_images = data.count
     weights, region = data.data_weights(mode)
@@ -761,7 +791,8 @@ def refine(
     problem = _Problem(maplet, data, weights=weights, region=region, offsets=start, solve_offsets=solver.solve_offsets,
                        slope_weight=solver.slope_weight, slope_scale=solver.slope_scale,
                        height_weight=solver.height_weight, albedo_weight=solver.albedo_weight,
-                       offset_weight=solver.offset_weight, shadow_weight=solver.shadow_weight)
+                       offset_weight=solver.offset_weight, shadow_weight=solver.shadow_weight,
+                       spots=spots, lidar_weight=solver.lidar_weight)
     state, ev = problem.start()
     converged = not ev.rows.any()
     iterations = 0
@@ -780,6 +811,8 @@ def refine(
     misfit = np.where(used, ev.residuals / np.where(used, ev.rows, 1.0), 0.0)
     count = used.sum(axis=1)
     rms = np.where(count > 0, np.sqrt((misfit**2).sum(axis=1) / np.maximum(count, 1)), np.nan)
+    in_sigmas = problem.spot_residuals(state.u) * maplet.spacing_km / spots.sigma_km
     return Refinement(heights=(state.u * maplet.spacing_km).reshape(n, n), albedo=state.albedo.reshape(n, n),
                       scales=state.scales, offsets=state.offsets, rms=rms, iterations=iterations,
-                      converged=converged)
+                      converged=converged,
+                      lidar_rms=float(np.sqrt(np.mean(in_sigmas**2))) if spots.count else float("nan"))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,9 +20,9 @@ from scipy.interpolate import RegularGridInterpolator
 
 from pwm.alignment import parallax_height, register, rise_motion, sweep_height, window_rises
 from pwm.camera import project
-from pwm.config import DEFAULTS, RefinementConfig
+from pwm.config import DEFAULTS, Placement, RefinementConfig
 from pwm.levels import LevelGrids
-from pwm.maplets import MapletGrid
+from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, grid_heights
 from pwm.mesh import Mesh
 from pwm.parallel import Progress, map_processes
 from pwm.photoclinometry import MapletImages, Refinement, coarsened, extract, refine
@@ -44,8 +45,9 @@ log = logging.getLogger(__name__)
 @dataclass
 class MapletResult:
     """A refined maplet and how it was made: the images used (names), weights, solver outcome,
-    where each image that weighed into it sees its landmark (`landmark_pixels`), and how far
-    (km) the images' parallax raised it from its start."""
+    where each image that weighed into it sees its landmark (`landmark_pixels`), how far (km) the
+    images' parallax or the lidar's spots raised it from its start, how many spots it was refined
+    with and their height residuals' RMS in their sigmas (NaN without)."""
 
     maplet: MapletGrid
     images: list[str]
@@ -58,6 +60,8 @@ class MapletResult:
     seconds: float
     registrations: dict[str, tuple[float, float]]
     raised_km: float
+    lidar_spots: int = 0
+    lidar_rms: float = float("nan")
 
 
 def maplet_images(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
@@ -79,9 +83,14 @@ def maplet_images(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
 
 
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
-                  config: RefinementConfig = DEFAULTS) -> MapletResult:
+                  config: RefinementConfig = DEFAULTS, spots: MapletSpots = NO_SPOTS) -> MapletResult:
     """Weigh and refine one maplet; with fewer than config.min_images usable images it keeps its
     start.
+
+    spots: the laser altimeter's over the maplet (pwm.maplets.spots_over). Every solution weighs
+    them (pwm.photoclinometry.refine), and config.placement.lidar_spots of them or more place the
+    maplet (`placed_on_spots`) instead of its images' parallax: the sweeps and parallax rises
+    below are for maplets without.
 
     config.search_px: how far (px) the images may be off the maplet, from the pose knowledge (about
     3 sigma of position error / range plus pointing error, times the focal length), or three of
@@ -92,7 +101,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     and first, where the start is much coarser (config.placement.sweep_start, or sweep_start_many
     under many images), to where its images agree best (`pwm.alignment.sweep_height`, over
     config.height_sweep_px of parallax), then solved on coarser grids (`_coarse_first`), and last,
-    swept again from its refined relief (`_swept_again`)."""
+    swept again from its refined relief (`_swept_again`). Within a pixel, with or without spots,
+    the maplet is bent last by the parallax of its parts (`_reshaped`)."""
     clock = time.perf_counter()
     mode = config.mode
     data, weights, keep = maplet_images(maplet, views, tracer, rules=config.rules)
@@ -103,9 +113,12 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                          heights=maplet.heights.copy(),
                          albedo=None if maplet.albedo is None else maplet.albedo.copy(),
                          weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
-    iterations, converged, rms, raised = 0, False, [], 0.0
+    iterations, converged, rms, raised, lidar_rms = 0, False, [], 0.0, float("nan")
     registrations: dict[str, tuple[float, float]] = {}
     if data.count >= config.min_images:
+        on_spots = spots.count >= config.placement.lidar_spots
+        if on_spots:
+            maplet, raised = placed_on_spots(maplet, spots, placement=config.placement)
         # navigation knowledge errors move images by many pixels: register them before the joint
         # solution, which only corrects offsets within its linear reach (about a pixel); within
         # that, registering against the start's shading, itself off by its height errors, only
@@ -118,7 +131,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
         # long, and a rise beyond that (small parallax between the images, a repeating texture)
         # is a misplacement.
         start_edge_km = _start_edge_km(maplet, tracer)
-        placed = search_px <= 1.0
+        known = search_px <= 1.0
+        placed = known and not on_spots
         coarse = start_edge_km / maplet.spacing_km
         placement = config.placement
         many = data.count >= placement.sweep_many_images
@@ -133,26 +147,29 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
             values = extract(maplet, data, offsets=offsets)
             data.shade = shade(values, data.weights, data.visible, config.rules)
             data.weights = np.where(dark_nodes(values, data.weights, config.rules), 0.0, data.weights)
-        result = refine(maplet, data, mode=mode, offsets=offsets, solver=config.solver)
-        if placed:
+        result = refine(maplet, data, mode=mode, offsets=offsets, solver=config.solver, spots=spots)
+        if known:
             # an image that no node weighed kept its start offset: it says nothing
             sigma = np.where(np.isfinite(result.rms),
                              np.hypot([views[k].los_sigma_px for k in keep], placement.registration_px), np.inf)
-            result, raised = _settled(maplet, data, result, sigma_px=sigma, config=config, raised_km=raised,
-                                      max_rise_km=start_edge_km)
-            result = _reshaped(maplet, data, result, sigma_px=sigma, config=config, max_rise_km=start_edge_km)
+            if placed:
+                result, raised = _settled(maplet, data, result, sigma_px=sigma, config=config, raised_km=raised,
+                                          max_rise_km=start_edge_km)
+            result = _reshaped(maplet, data, result, sigma_px=sigma, config=config, max_rise_km=start_edge_km,
+                               spots=spots)
         if swept:
             result, raised = _swept_again(maplet, data, result, offsets=offsets, config=config, raised_km=raised,
                                           max_rise_km=start_edge_km, follow=many)
         refined.heights, refined.albedo = result.heights, result.albedo
         iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
+        lidar_rms = result.lidar_rms
         seen = np.isfinite(result.rms)  # an image no node weighed kept its start: it observed nothing
         registrations = {views[k].name: (float(s), float(line)) for k, (s, line), ok in
                          zip(keep, landmark_pixels(refined, data, result.offsets), seen, strict=True) if ok}
     return MapletResult(maplet=refined, images=[views[k].name for k in keep], region_weight=weights.region,
                         five_views=views_found, dropped=dropped, iterations=iterations, converged=converged,
                         residual_rms=rms, seconds=time.perf_counter() - clock, registrations=registrations,
-                        raised_km=raised)
+                        raised_km=raised, lidar_spots=spots.count, lidar_rms=lidar_rms)
 
 
 def _coarse_first(maplet: MapletGrid, data: MapletImages, *, offsets: np.ndarray,
@@ -222,7 +239,7 @@ def _settled(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sigm
 
 
 def _reshaped(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sigma_px: np.ndarray,
-              config: RefinementConfig, max_rise_km: float) -> Refinement:
+              config: RefinementConfig, max_rise_km: float, spots: MapletSpots = NO_SPOTS) -> Refinement:
     """The refinement solved again from its heights bent by the rises that the parallax of its
     images' offsets shows in square parts of about config.shape_window_nodes a side
     (`pwm.alignment.window_rises`; those beyond three sigma, interpolated linearly between the
@@ -247,7 +264,44 @@ def _reshaped(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sig
     if np.max(np.abs(bend)) > max_rise_km:
         return result
     return refine(dataclasses.replace(maplet, heights=result.heights + bend), data, mode=config.mode,
-                  solver=config.solver, offsets=result.offsets)
+                  solver=config.solver, offsets=result.offsets, spots=spots)
+
+
+def placed_on_spots(maplet: MapletGrid, spots: MapletSpots, *, placement: Placement) -> tuple[MapletGrid, float]:
+    """The maplet moved by the plane through its spots' height residuals, weighed by their sigmas
+    and tilted only along the directions in which the spots spread over placement.lidar_spread of
+    its half side or more (a profile's spots say nothing across it), fitted again without the
+    spots beyond three robust sigmas of the first fit (a spot on a boulder the start lacks); and
+    the mean rise (km). The lidar places a start that is metres off as its images' parallax
+    could, without their sweeps' false optima, and photoclinometry's ties then hold it there."""
+    xy = spots.local_km[:, :2]
+    residual = spots.local_km[:, 2] - grid_heights(maplet, xy)
+    weight = spots.sigma_km ** -2.0
+    half = (maplet.n - 1) / 2 * maplet.spacing_km
+    keep = np.ones(spots.count, bool)
+    for _ in range(2):
+        plane = _plane(xy[keep], residual[keep], weight[keep], min_spread_km=placement.lidar_spread * half)
+        misfit = residual - plane(xy)
+        scale = max(1.4826 * float(np.median(np.abs(misfit[keep]))), float(np.median(spots.sigma_km)))
+        keep = np.abs(misfit) <= 3 * scale
+    nodes = maplet.nodes_local()[..., :2].reshape(-1, 2)
+    rise = plane(nodes).reshape(maplet.n, maplet.n)
+    return dataclasses.replace(maplet, heights=maplet.heights + rise), float(rise.mean())
+
+
+def _plane(xy: np.ndarray, values: np.ndarray, weight: np.ndarray, *, min_spread_km: float
+           ) -> Callable[[np.ndarray], np.ndarray]:
+    """The weighted least-squares plane through values at points xy (M, 2), as a function of
+    points, about the points' weighted centre and tilted only along the principal directions in
+    which they spread (RMS) over min_spread_km."""
+    w = weight / weight.sum()
+    centre = w @ xy
+    spread, axes = np.linalg.eigh(((xy - centre) * w[:, None]).T @ (xy - centre))
+    along = axes[:, np.sqrt(np.maximum(spread, 0.0)) >= min_spread_km]
+    design = np.column_stack([np.ones(len(xy)), (xy - centre) @ along])
+    root = np.sqrt(w)
+    coefficients = np.linalg.lstsq(design * root[:, None], values * root, rcond=None)[0]
+    return lambda points: coefficients[0] + ((points - centre) @ along) @ coefficients[1:]
 
 
 def landmark_pixels(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray) -> np.ndarray:

@@ -20,9 +20,9 @@ from scipy.spatial.transform import Rotation
 
 from pwm.alignment import _every, align, parallax_height, register, sweep_height, window_rises
 from pwm.camera import Camera, Pose, look_at, project
-from pwm.config import RefinementConfig
+from pwm.config import PLACEMENT, RefinementConfig
 from pwm.frames import latlon_to_unit, local_frame
-from pwm.maplets import MapletGrid
+from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, grid_heights, spots_over
 from pwm.mesh import Mesh, grid_faces
 from pwm.photoclinometry import (
     MapletImages,
@@ -38,7 +38,7 @@ from pwm.photoclinometry import (
     refine,
     slopes,
 )
-from pwm.pipeline import _coarse_first, _reshaped, _swept_again
+from pwm.pipeline import _coarse_first, _reshaped, _swept_again, placed_on_spots
 from pwm.raytrace import RayTracer
 from pwm.render import render
 from pwm.weights import shade
@@ -250,7 +250,7 @@ def test_parallax_is_the_change_of_the_samples_as_the_nodes_rise(scene: Scene) -
     problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0,
                        offsets=np.zeros((scene.data.count, 2)),
                        solve_offsets=True, slope_weight=0.02, slope_scale=0.17, height_weight=1e-3, albedo_weight=1e-3,
-                       offset_weight=1e-3, shadow_weight=0.0)
+                       offset_weight=1e-3, shadow_weight=0.0, spots=NO_SPOTS, lidar_weight=0.0)
     state, ev = problem.start()
     h = 1e-3  # spacings: a uniform rise leaves the slopes, so only the samples change
     risen, values = problem._evaluate(dataclasses.replace(state, u=state.u + h))
@@ -384,7 +384,7 @@ def test_the_slope_tie_holds_relief_the_start_lacks_less_than_noise(scene: Scene
     problem = _Problem(scene.start, scene.data, weights=scene.data.weights, region=1.0,
                        offsets=np.zeros((scene.data.count, 2)),
                        solve_offsets=False, slope_weight=0.02, slope_scale=0.1, height_weight=1e-3, albedo_weight=1e-3,
-                       offset_weight=1e-3, shadow_weight=0.0)
+                       offset_weight=1e-3, shadow_weight=0.0, spots=NO_SPOTS, lidar_weight=0.0)
     du = (robust.heights - scene.start.heights).ravel() / SPACING_KM
     step = np.random.default_rng(5).normal(size=du.size)
     h = 1e-6
@@ -561,3 +561,85 @@ def test_relief_a_coarser_start_lacks_is_found_on_coarser_grids_first(scene: Sce
     first = _coarse_first(start, scene.data, offsets=zero, config=RefinementConfig())
     assert _shape_error(first.heights, scene.truth.heights) < 0.15 * SPACING_KM
     assert _shape_error(refine(first, scene.data, offsets=zero).heights, scene.truth.heights) < 0.1 * SPACING_KM
+
+
+def _profiles(maplet: MapletGrid, rows: tuple[float, ...], *, sigma_km: float, seed: int = 3) -> MapletSpots:
+    """Laser altimeter profiles along x at the rows y (shares of the half side), 40 spots each,
+    measuring the true heights with noise of sigma_km."""
+    rng = np.random.default_rng(seed)
+    half = maplet.axis_km[-1]
+    xy = np.concatenate([np.column_stack([np.linspace(-half, half, 40), np.full(40, y * half)]) for y in rows])
+    z = _heights(xy[:, 0], xy[:, 1]) + rng.normal(0.0, sigma_km, len(xy))
+    return MapletSpots(local_km=np.column_stack([xy, z]), sigma_km=np.full(len(xy), sigma_km))
+
+
+def _images(data: MapletImages, count: int) -> MapletImages:
+    return dataclasses.replace(data, images=data.images[:count], cameras=data.cameras[:count],
+                               poses=data.poses[:count], sun_directions=data.sun_directions[:count],
+                               visible=data.visible[:count], lit=data.lit[:count], weights=data.weights[:count])
+
+
+def test_lidar_spots_place_a_maplet_its_few_images_cannot(scene: Scene) -> None:
+    # A start 2 spacings high and tilted +-8 spacings, seen by three images: brightness cannot
+    # see the mean height or a uniform tilt, and the solution keeps them (3.5 spacings RMS off);
+    # three profiles of 1 cm spots place the maplet on them, and the solution keeps it there
+    # while the images shape the bump between the profiles.
+    start = _tilted(scene, 8.0)
+    start = dataclasses.replace(start, heights=start.heights + 2 * SPACING_KM)
+    three = _images(scene.data, 3)
+    spots = _profiles(start, (-0.7, 0.0, 0.7), sigma_km=1e-5)
+    alone = refine(start, three)
+    placed, rise = placed_on_spots(start, spots, placement=PLACEMENT)
+    joined = refine(placed, three, spots=spots)
+
+    def rms(heights: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((heights - scene.truth.heights) ** 2))) / SPACING_KM
+
+    assert rms(alone.heights) > 3.0 and np.isnan(alone.lidar_rms)
+    assert rise == pytest.approx(float(np.mean(scene.truth.heights)) - 2 * SPACING_KM, abs=0.3 * SPACING_KM)
+    assert rms(joined.heights) < 0.15
+    assert _bump_height(joined.heights) == pytest.approx(BUMP_KM, rel=0.1)
+    # the spots fit within their noise, and the term is what brought the mean the last way
+    assert 0.5 < joined.lidar_rms < 1.5
+    unweighed = refine(placed, three)
+    assert abs(float(np.mean(joined.heights - scene.truth.heights))) < 0.5 * abs(
+        float(np.mean(unweighed.heights - scene.truth.heights)))
+
+
+def test_a_profile_tilts_a_maplet_along_itself_only(scene: Scene) -> None:
+    # one profile along x says nothing of a tilt along y: the start's tilt across it stays
+    x, y = np.meshgrid(scene.start.axis_km, scene.start.axis_km)
+    tilt = 4 * SPACING_KM * (x + y) / x.max()
+    start = dataclasses.replace(scene.start, heights=scene.start.heights + tilt)
+    placed, _ = placed_on_spots(start, _profiles(start, (0.0,), sigma_km=1e-5), placement=PLACEMENT)
+    change = placed.heights - start.heights
+    along, across = np.gradient(change, SPACING_KM, axis=1), np.gradient(change, SPACING_KM, axis=0)
+    assert float(np.mean(along)) == pytest.approx(-4 * SPACING_KM / x.max(), rel=0.1)
+    assert np.allclose(across, 0.0, atol=1e-9)
+
+
+def test_a_spot_off_the_start_is_left_out_of_the_placement(scene: Scene) -> None:
+    spots = _profiles(scene.start, (-0.5, 0.5), sigma_km=1e-5)
+    wild = spots.local_km.copy()
+    wild[::10, 2] += 40 * SPACING_KM  # a misplaced track's spots, far beyond the rest's scatter
+    placed, _ = placed_on_spots(scene.start, MapletSpots(local_km=wild, sigma_km=spots.sigma_km), placement=PLACEMENT)
+    clean, _ = placed_on_spots(scene.start, spots, placement=PLACEMENT)
+    np.testing.assert_allclose(placed.heights, clean.heights, atol=0.05 * SPACING_KM)
+
+
+def test_spots_over_a_maplet_are_those_over_its_grid_near_its_heights(scene: Scene) -> None:
+    maplet = scene.truth
+    frame, half = maplet.frame, maplet.axis_km[-1]
+    local = np.array([[0.0, 0.0, 0.0], [0.9 * half, -0.9 * half, 0.0], [1.1 * half, 0.0, 0.0],
+                      [0.0, 0.0, -0.5], [0.2 * half, 0.1 * half, 0.0]])
+    local[:, 2] += grid_heights(maplet, local[:, :2])
+    local[3, 2] = -0.5  # half a kilometre below: the body's far side, not this surface
+    sigma = np.array([1e-5, 1e-5, 1e-5, 1e-5, np.nan])
+    over = spots_over(maplet, frame.to_body(local), sigma)
+    np.testing.assert_allclose(over.local_km, local[:2], atol=1e-9)
+    assert over.count == 2 and spots_over(maplet, np.zeros((0, 3)), np.zeros(0)) is NO_SPOTS
+    # the grid's heights are bilinear between the nodes: exact on a plane
+    x = np.broadcast_to(maplet.axis_km, maplet.heights.shape)
+    plane = dataclasses.replace(maplet, heights=0.3 * x + 2e-4)
+    at = np.array([[0.37 * half, -0.81 * half], [-half, half]])
+    np.testing.assert_allclose(grid_heights(plane, at), 0.3 * at[:, 0] + 2e-4, atol=1e-12)

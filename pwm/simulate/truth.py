@@ -110,6 +110,19 @@ class Truth:
         """Weight of the detail per grid node: 0 in the zero band, 1 in the site square."""
         return _blend_weight(self.x_km, self.y_km, self.zero_band_km, self.site_size_km)
 
+    def patch(self, x_km: float, y_km: float, half_km: float) -> Mesh:
+        """The site's grid within half_km of the site point (x_km, y_km) along each axis, as a
+        small mesh (body-fixed, km) to drop rays on (pwm.sampling.drop_rays)."""
+        cols = np.flatnonzero(np.abs(self.x_km - x_km) <= half_km)
+        rows = np.flatnonzero(np.abs(self.y_km - y_km) <= half_km)
+        return Mesh(_grid_vertices(self.site_frame, self.x_km[cols], self.y_km[rows],
+                                   self.height_km[np.ix_(rows, cols)]), grid_faces(len(rows), len(cols)))
+
+    def site_point(self, x_km: float, y_km: float) -> np.ndarray:
+        """The body-fixed point (km) of the site's surface nearest the grid node at (x_km, y_km)."""
+        i, j = int(np.abs(self.y_km - y_km).argmin()), int(np.abs(self.x_km - x_km).argmin())
+        return self.site_frame.to_body(np.array([[x_km, y_km, self.height_km[i, j]]]))[0]
+
     def base_mesh(self) -> Mesh:
         """The base body with the hole under the patch (km, with albedo)."""
         return Mesh(self.mesh.vertices[: self.n_base_vertices], self.mesh.faces[: self.n_base_faces],
