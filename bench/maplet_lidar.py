@@ -49,7 +49,7 @@ def main() -> None:
     from pwm.io.meshio import read_mesh
     from pwm.lidar.model import usable
     from pwm.lidar.shots import Shots
-    from pwm.maplets import NO_SPOTS, spots_over
+    from pwm.maplets import NO_SPOTS, Spots, spots_over
     from pwm.pipeline import imaged_region, maplet_images, refine_maplet
     from pwm.raytrace import RayTracer
     from pwm.sampling import drop_rays
@@ -63,12 +63,13 @@ def main() -> None:
     products, skipped = read_lidar_directory(args.sim / "downlink")
     shots = Shots.joined([p.shots for p in products])
     good = usable(shots)
-    spots_km, sigma_km = shots.spots_km()[good], shots.sigma_km[good]
+    measured = Spots(body_km=shots.spots_km()[good], sigma_km=shots.sigma_km[good])
     config = dataclasses.replace(DEFAULTS, nodes=args.nodes)
     spacing = imaged_region(views, start).spacing_km * config.spacing_gsd
     side = (config.nodes - 1) * spacing
-    print(f"{len(spots_km)} spots of {len(products)} products ({len(skipped)} skipped); {config.nodes} nodes at "
-          f"{spacing * 1e3:.3f} m, maplets {side * 1e3:.1f} m; long wavelengths: beyond {args.long_m:g} m")
+    print(f"{len(measured.sigma_km)} spots of {len(products)} products ({len(skipped)} skipped); "
+          f"{config.nodes} nodes at {spacing * 1e3:.3f} m, maplets {side * 1e3:.1f} m; "
+          f"long wavelengths: beyond {args.long_m:g} m")
     # maplet centres on a ring inside the evaluated disc, where the profiles cross the site
     angles = np.linspace(0, 2 * np.pi, args.maplets, endpoint=False)
     ring = max(truth.eval_radius_km - 0.75 * side, 0.0) * 0.6
@@ -93,7 +94,7 @@ def main() -> None:
             if args.images:
                 keep = maplet_images(maplet, views, tracer, rules=config.rules)[2][: args.images]
                 chosen = [views[k] for k in keep]
-            spots = NO_SPOTS if weight == "none" else spots_over(maplet, spots_km, sigma_km)
+            spots = NO_SPOTS if weight == "none" else spots_over(maplet, measured)
             clock = time.perf_counter()
             result = refine_maplet(maplet, chosen, tracer, config=weighed, spots=spots)
             seconds += time.perf_counter() - clock

@@ -78,20 +78,27 @@ class MapletSpots:
 NO_SPOTS = MapletSpots(local_km=np.zeros((0, 3)), sigma_km=np.zeros(0))
 
 
-def spots_over(maplet: MapletGrid, spots_km: np.ndarray, sigma_km: np.ndarray) -> MapletSpots:
-    """The spots (body-fixed, km; their heights' 1 sigma, km) that lie over the maplet's node grid
-    within its side of its heights: farther off along its z they measured another surface (the
-    body's far side, a wall facing it), not a start a side's length wrong."""
-    spots = np.asarray(spots_km, float).reshape(-1, 3)
-    sigma = np.asarray(sigma_km, float).reshape(-1)
-    if not len(spots):
+@dataclass(frozen=True)
+class Spots:
+    """Laser altimeter spots anywhere: body-fixed (N, 3) km, and each height's 1 sigma (N,) km."""
+
+    body_km: np.ndarray
+    sigma_km: np.ndarray
+
+
+def spots_over(maplet: MapletGrid, spots: Spots) -> MapletSpots:
+    """The spots that lie over the maplet's node grid within its side of its heights: farther
+    off along its z they measured another surface (the body's far side, a wall facing it), not a
+    start a side's length wrong. Spots with no finite positive sigma are left out."""
+    body = np.asarray(spots.body_km, float).reshape(-1, 3)
+    sigma = np.asarray(spots.sigma_km, float).reshape(-1)
+    if not len(body):
         return NO_SPOTS
-    local = maplet.frame.to_local(spots)
+    local = maplet.frame.to_local(body)
     half = (maplet.n - 1) / 2 * maplet.spacing_km
     over = (np.abs(local[:, 0]) <= half) & (np.abs(local[:, 1]) <= half) & np.isfinite(local).all(axis=1)
     over &= np.isfinite(sigma) & (sigma > 0)
-    side = 2 * half
-    near = np.abs(local[over, 2] - grid_heights(maplet, local[over, :2])) <= side
+    near = np.abs(local[over, 2] - grid_heights(maplet, local[over, :2])) <= 2 * half
     keep = np.flatnonzero(over)[near]
     return MapletSpots(local_km=local[keep], sigma_km=sigma[keep])
 

@@ -17,12 +17,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 from scipy.interpolate import RegularGridInterpolator
+from scipy.spatial import cKDTree
 
 from pwm.alignment import parallax_height, register, rise_motion, sweep_height, window_rises
 from pwm.camera import project
 from pwm.config import DEFAULTS, Placement, RefinementConfig
 from pwm.levels import LevelGrids
-from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, grid_heights
+from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, Spots, grid_heights, spots_over
 from pwm.mesh import Mesh
 from pwm.parallel import Progress, map_processes
 from pwm.photoclinometry import MapletImages, Refinement, coarsened, extract, refine
@@ -85,7 +86,7 @@ def maplet_images(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
 def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                   config: RefinementConfig = DEFAULTS, spots: MapletSpots = NO_SPOTS) -> MapletResult:
     """Weigh and refine one maplet; with fewer than config.min_images usable images it keeps its
-    start.
+    start's shape, placed on its lidar spots where it has enough (`placed_on_spots`).
 
     spots: the laser altimeter's over the maplet (pwm.maplets.spots_over). Every solution weighs
     them (pwm.photoclinometry.refine), and config.placement.lidar_spots of them or more place the
@@ -115,8 +116,12 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
                          weight=weights.region if mode == "pwm" else 1.0, meta=dict(maplet.meta))
     iterations, converged, rms, raised, lidar_rms = 0, False, [], 0.0, float("nan")
     registrations: dict[str, tuple[float, float]] = {}
+    on_spots = spots.count >= config.placement.lidar_spots
+    if on_spots and data.count < config.min_images:
+        # too few images to refine it, enough spots to place it
+        placed_maplet, raised = placed_on_spots(maplet, spots, placement=config.placement)
+        refined.heights = placed_maplet.heights
     if data.count >= config.min_images:
-        on_spots = spots.count >= config.placement.lidar_spots
         if on_spots:
             maplet, raised = placed_on_spots(maplet, spots, placement=config.placement)
         # navigation knowledge errors move images by many pixels: register them before the joint
@@ -270,20 +275,15 @@ def _reshaped(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sig
 def placed_on_spots(maplet: MapletGrid, spots: MapletSpots, *, placement: Placement) -> tuple[MapletGrid, float]:
     """The maplet moved by the plane through its spots' height residuals, weighed by their sigmas
     and tilted only along the directions in which the spots spread over placement.lidar_spread of
-    its half side or more (a profile's spots say nothing across it), fitted again without the
-    spots beyond three robust sigmas of the first fit (a spot on a boulder the start lacks); and
-    the mean rise (km). The lidar places a start that is metres off as its images' parallax
-    could, without their sweeps' false optima, and photoclinometry's ties then hold it there."""
+    its half side or more (a profile's spots say nothing across it); and the mean rise (km). The
+    lidar places a start that is metres off as its images' parallax could, without their sweeps'
+    false optima, and photoclinometry's ties then hold it there. No spot is left out as an
+    outlier: those far above the rest are mostly on boulders the start lacks, which belong in the
+    maplet's mean height (a track placed wrong is flagged by pwm.lidar.model.disagreement)."""
     xy = spots.local_km[:, :2]
-    residual = spots.local_km[:, 2] - grid_heights(maplet, xy)
-    weight = spots.sigma_km ** -2.0
     half = (maplet.n - 1) / 2 * maplet.spacing_km
-    keep = np.ones(spots.count, bool)
-    for _ in range(2):
-        plane = _plane(xy[keep], residual[keep], weight[keep], min_spread_km=placement.lidar_spread * half)
-        misfit = residual - plane(xy)
-        scale = max(1.4826 * float(np.median(np.abs(misfit[keep]))), float(np.median(spots.sigma_km)))
-        keep = np.abs(misfit) <= 3 * scale
+    plane = _plane(xy, spots.local_km[:, 2] - grid_heights(maplet, xy), spots.sigma_km ** -2.0,
+                   min_spread_km=placement.lidar_spread * half)
     nodes = maplet.nodes_local()[..., :2].reshape(-1, 2)
     rise = plane(nodes).reshape(maplet.n, maplet.n)
     return dataclasses.replace(maplet, heights=maplet.heights + rise), float(rise.mean())
@@ -341,26 +341,38 @@ def search_levels(search_px: float) -> tuple[tuple[int, float], ...]:
 _WORKER: dict = {}
 
 
-def _init_worker(start: Mesh, views: list[View], config: RefinementConfig) -> None:
+def _init_worker(start: Mesh, views: list[View], config: RefinementConfig, spots: Spots | None) -> None:
     # An Embree scene cannot cross processes: each process builds its own from the start model.
-    _WORKER.update(tracer=RayTracer(start), views=views, config=config)
+    _WORKER.update(tracer=RayTracer(start), views=views, config=config, spots=spots,
+                   spot_tree=None if spots is None else cKDTree(spots.body_km))
 
 
 def _refine_in_worker(maplet: MapletGrid) -> MapletResult:
-    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], config=_WORKER["config"])
+    return refine_maplet(maplet, _WORKER["views"], _WORKER["tracer"], config=_WORKER["config"],
+                         spots=_spots_near(maplet, _WORKER["spots"], _WORKER["spot_tree"]))
+
+
+def _spots_near(maplet: MapletGrid, spots: Spots | None, tree: cKDTree | None) -> MapletSpots:
+    """The spots over the maplet (pwm.maplets.spots_over), looked for within one and a half of its
+    sides of its origin: its corners and a side above or below them."""
+    if spots is None or tree is None:
+        return NO_SPOTS
+    near = tree.query_ball_point(maplet.frame.origin, 1.5 * (maplet.n - 1) * maplet.spacing_km)
+    return spots_over(maplet, Spots(body_km=spots.body_km[near], sigma_km=spots.sigma_km[near]))
 
 
 def refine_maplets(maplets: list[MapletGrid], views: list[View], start: Mesh, *, config: RefinementConfig = DEFAULTS,
-                   workers: int = 1, progress: Progress | None = None, stage: str = "refine") -> list[MapletResult]:
+                   workers: int = 1, progress: Progress | None = None, stage: str = "refine",
+                   spots: Spots | None = None) -> list[MapletResult]:
     """Refine every maplet against `start` (in `workers` processes, pwm.parallel.map_processes),
-    telling `progress` (as `stage`) after each and logging each at DEBUG; results in input
-    order."""
+    each with the lidar's spots over it (none without `spots`), telling `progress` (as `stage`)
+    after each and logging each at DEBUG; results in input order."""
     results: list[MapletResult] = []
     clock = time.perf_counter()
     if progress is not None:
         progress(stage, 0, len(maplets))
     for k, result in enumerate(map_processes(_refine_in_worker, maplets, workers=workers, initializer=_init_worker,
-                                             initargs=(start, views, config)), 1):
+                                             initargs=(start, views, config, spots)), 1):
         results.append(result)
         log.debug("maplet %d/%d %s: %d images, w_PWM %.2f, %d iterations (%.1f s; %.0f s elapsed)", k, len(maplets),
                   result.maplet.name, len(result.images), result.region_weight, result.iterations, result.seconds,
@@ -401,13 +413,15 @@ def imaged_region(views: list[View], start: Mesh, *, radius_fraction: float = 0.
 
 
 def refine_region(start: Mesh, views: list[View], region: Region, *, config: RefinementConfig = DEFAULTS,
-                  workers: int = 1, progress: Progress | None = None) -> tuple[Mesh, list[MapletResult]]:
+                  workers: int = 1, progress: Progress | None = None,
+                  spots: Spots | None = None) -> tuple[Mesh, list[MapletResult]]:
     """Tile `region` of `start`, refine every maplet and fuse them, config.passes times: each later
     pass tiles the previous one's fused model afresh, so that a maplet starts from what its
     neighbours made of its edges, and its visibility and shadows come from a shape that has the
     relief (the start's lacks most of what casts shadows). Each pass takes the shape only: the
     albedo comes from the images. Returns the last fused model and the last pass's results.
-    progress: told how far each pass's refinement has come (stage "refine pass P/N")."""
+    progress: told how far each pass's refinement has come (stage "refine pass P/N"). spots: the
+    lidar's, which every pass's maplets are refined with (`refine_maplets`)."""
     model, results = start, []
     for done in range(config.passes):
         shape = Mesh(model.vertices, model.faces)
@@ -416,7 +430,7 @@ def refine_region(start: Mesh, views: list[View], region: Region, *, config: Ref
         log.info("pass %d/%d: %d maplets of %d nodes at %.3f m", done + 1, config.passes, len(maplets), config.nodes,
                  region.spacing_km * 1e3)
         results = refine_maplets(maplets, views, shape, config=config, workers=workers, progress=progress,
-                                 stage=f"refine pass {done + 1}/{config.passes}")
+                                 stage=f"refine pass {done + 1}/{config.passes}", spots=spots)
         model, _ = fuse([r.maplet for r in results], shape, overlap=config.overlap)
     return model, results
 

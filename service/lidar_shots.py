@@ -19,7 +19,8 @@ from sqlalchemy.orm import Session
 from pwm.io.lidar import read_shots
 from pwm.lidar.model import usable
 from pwm.lidar.shots import Shots
-from pwm.lidar.strips import apply_corrections
+from pwm.lidar.strips import Correction, apply_corrections, corrected_spots
+from pwm.maplets import Spots
 from pwm.trajectory import ARC_GAP_S, along_arcs
 from service.artifacts import artifact_path
 from service.rows import Acceptance, Image, ImageStatus, LidarProduct, LidarTrack
@@ -107,21 +108,18 @@ def track_key(track: LidarTrack) -> str:
     return f"{track.product.sha256}:{track.track}"
 
 
-def track_spots(session: Session, data_dir: Path, tracks: Sequence[LidarTrack]) -> tuple[np.ndarray, np.ndarray]:
-    """The usable spots (N, 3; km, body-fixed) of these strip-corrected tracks as placed now
-    (`adjusted_shots`), and each spot's height sigma (N,; km): its range's and its track's
-    placement (pwm.lidar.strips.Correction.placement_km) together, infinite where the
-    placement is unconstrained."""
-    wanted: dict[int, dict[int, float]] = {}
+def track_spots(session: Session, data_dir: Path, tracks: Sequence[LidarTrack]) -> Spots:
+    """The usable spots of these strip-corrected tracks as placed now (`placed_shots`, their
+    stored corrections applied), with their sigmas (pwm.lidar.strips.corrected_spots)."""
+    wanted: dict[int, dict[int, Correction]] = {}
     for row in tracks:
         correction = row.strip_correction()
         if correction is not None:
-            wanted.setdefault(row.product_id, {})[row.track] = correction.placement_km
+            wanted.setdefault(row.product_id, {})[row.track] = correction
     spots, sigmas = [np.zeros((0, 3))], [np.zeros(0)]
     for product in usable_lidar_products(session, list(wanted)):
-        shots, track = adjusted_shots(session, data_dir, product)
-        placement = wanted[product.id]
-        take = usable(shots) & np.isin(track, list(placement))
-        spots.append(shots.spots_km()[take])
-        sigmas.append(np.hypot(shots.sigma_km[take], np.array([placement[t] for t in track[take]], float)))
-    return np.concatenate(spots), np.concatenate(sigmas)
+        shots, track = placed_shots(session, data_dir, product)
+        own, sigma = corrected_spots(shots, track, wanted[product.id])
+        spots.append(own)
+        sigmas.append(sigma)
+    return Spots(body_km=np.concatenate(spots), sigma_km=np.concatenate(sigmas))

@@ -241,14 +241,13 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
         say(0.05, f"reading {len(current.image_ids)} images and {len(current.track_ids)} lidar tracks")
         views = catalog_views(session, image_ids=current.image_ids, pixels=True)
         ordered = [views[i] for i in current.image_ids if i in views]
-        spots_km, sigma_km = track_spots(session, data_dir, [session.get_one(LidarTrack, t)
-                                                              for t in current.track_ids])
+        spots = track_spots(session, data_dir, [session.get_one(LidarTrack, t) for t in current.track_ids])
         grid = row.grid()
         model_version, model_ply = model.version, model.artifacts["ply"]
     say(0.2, f"refining (pass {pass_number}) against version {model_version}")
     tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
     grid.heights, grid.albedo = sample_surface(tracer, grid)
-    result = refine_maplet(grid, ordered, tracer, config=config, spots=spots_over(grid, spots_km, sigma_km))
+    result = refine_maplet(grid, ordered, tracer, config=config, spots=spots_over(grid, spots))
     say(0.9, "storing the revision")
     with scratch_file(data_dir, ".npz") as scratch:
         write_maplet(scratch, result.maplet)

@@ -22,7 +22,7 @@ from pwm.alignment import _every, align, parallax_height, register, sweep_height
 from pwm.camera import Camera, Pose, look_at, project
 from pwm.config import PLACEMENT, RefinementConfig
 from pwm.frames import latlon_to_unit, local_frame
-from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, grid_heights, spots_over
+from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, Spots, grid_heights, spots_over
 from pwm.mesh import Mesh, grid_faces
 from pwm.photoclinometry import (
     MapletImages,
@@ -618,15 +618,6 @@ def test_a_profile_tilts_a_maplet_along_itself_only(scene: Scene) -> None:
     assert np.allclose(across, 0.0, atol=1e-9)
 
 
-def test_a_spot_off_the_start_is_left_out_of_the_placement(scene: Scene) -> None:
-    spots = _profiles(scene.start, (-0.5, 0.5), sigma_km=1e-5)
-    wild = spots.local_km.copy()
-    wild[::10, 2] += 40 * SPACING_KM  # a misplaced track's spots, far beyond the rest's scatter
-    placed, _ = placed_on_spots(scene.start, MapletSpots(local_km=wild, sigma_km=spots.sigma_km), placement=PLACEMENT)
-    clean, _ = placed_on_spots(scene.start, spots, placement=PLACEMENT)
-    np.testing.assert_allclose(placed.heights, clean.heights, atol=0.05 * SPACING_KM)
-
-
 def test_spots_over_a_maplet_are_those_over_its_grid_near_its_heights(scene: Scene) -> None:
     maplet = scene.truth
     frame, half = maplet.frame, maplet.axis_km[-1]
@@ -635,9 +626,9 @@ def test_spots_over_a_maplet_are_those_over_its_grid_near_its_heights(scene: Sce
     local[:, 2] += grid_heights(maplet, local[:, :2])
     local[3, 2] = -0.5  # half a kilometre below: the body's far side, not this surface
     sigma = np.array([1e-5, 1e-5, 1e-5, 1e-5, np.nan])
-    over = spots_over(maplet, frame.to_body(local), sigma)
+    over = spots_over(maplet, Spots(body_km=frame.to_body(local), sigma_km=sigma))
     np.testing.assert_allclose(over.local_km, local[:2], atol=1e-9)
-    assert over.count == 2 and spots_over(maplet, np.zeros((0, 3)), np.zeros(0)) is NO_SPOTS
+    assert over.count == 2 and spots_over(maplet, Spots(body_km=np.zeros((0, 3)), sigma_km=np.zeros(0))) is NO_SPOTS
     # the grid's heights are bilinear between the nodes: exact on a plane
     x = np.broadcast_to(maplet.axis_km, maplet.heights.shape)
     plane = dataclasses.replace(maplet, heights=0.3 * x + 2e-4)

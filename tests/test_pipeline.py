@@ -12,6 +12,7 @@ from pwm.config import RefinementConfig
 from pwm.decimate import decimate
 from pwm.io.downlink import read_downlink
 from pwm.io.meshio import read_mesh
+from pwm.maplets import Spots
 from pwm.mesh import Mesh
 from pwm.pipeline import fuse, imaged_region, refine_maplets, refine_region
 from pwm.raytrace import RayTracer
@@ -71,6 +72,36 @@ def test_a_maplet_nested_under_a_coarse_model_is_placed_by_its_images_parallax(t
     # most are brought within a few centimetres (six images: a sweep may also pick a wrong rise)
     assert np.median(np.abs(after)) < 0.3 * np.median(np.abs(before)), (before, after)
     assert np.sqrt(np.mean(np.square(after))) < 0.75 * np.sqrt(np.mean(np.square(before)))
+
+
+def test_a_maplet_over_lidar_spots_is_placed_on_them(tiny_sim):
+    """The same start 25 cm too high, and the truth measured by lidar spots (every 16th node of the
+    site's grid, 20 cm apart, 2 cm noise): the spots, found for each maplet in the worker
+    processes, place every refined maplet within a few centimetres, most within one, which its
+    images' parallax does only for most (the test before)."""
+    views = read_downlink(tiny_sim / "downlink").views
+    start = read_mesh(tiny_sim / "downlink" / "start_model.obj")
+    coarse = decimate(start, len(start.faces) // 6)
+    coarse = Mesh(coarse.vertices * (1 + 2.5e-4 / np.linalg.norm(coarse.vertices, axis=1, keepdims=True)), coarse.faces)
+    truth = load_truth(tiny_sim / "truth")
+    truth_tracer = RayTracer(truth.mesh)
+    grid = truth.mesh.vertices[truth.n_base_vertices:].reshape(*truth.height_km.shape, 3)[::16, ::16].reshape(-1, 3)
+    rng = np.random.default_rng(7)
+    sigma_km = 2e-5
+    measured = grid + rng.normal(0.0, sigma_km, (len(grid), 1)) * truth.site_frame.normal
+    maplets = tile(coarse, spacing_km=5e-5, nodes=48, overlap=0.25, centre_lat_deg=10.0, centre_lon_deg=40.0,
+                   radius_km=0.0015)
+    results = refine_maplets(maplets, views, coarse, workers=2,
+                             spots=Spots(body_km=measured, sigma_km=np.full(len(grid), sigma_km)))
+    after = [float(np.mean(r.maplet.heights - sample_heights(truth_tracer, m))) for m, r in
+             zip(maplets, results, strict=True)]
+    before = [float(np.mean(m.heights - sample_heights(truth_tracer, m))) for m in maplets]
+    refined = np.array([len(r.images) >= 3 for r in results])
+    assert all(r.lidar_spots >= 100 for r in results)
+    assert np.median(np.abs(after)) < 1.5e-5 and np.max(np.abs(np.array(after)[refined])) < 5e-5, after
+    # a maplet too few images see keeps its start's shape, placed nearer its spots all the same
+    # (its spots cover only part of it: the site's grid ends under it)
+    assert not refined.all() and np.all(np.abs(np.array(after)[~refined]) < 0.6 * np.abs(np.array(before)[~refined]))
 
 
 def test_a_second_pass_refines_the_first_pass_model(tiny_sim):

@@ -209,6 +209,18 @@ def apply_corrections(shots: Shots, track: np.ndarray, corrections: dict[int, Co
     return replace(shots, origin_km=origin, direction=direction)
 
 
+def corrected_spots(shots: Shots, track: np.ndarray, corrections: dict[int, Correction]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The usable spots (N, 3; km) of the tracks a correction placed, corrected, and each spot's
+    height sigma (N,; km): its range's and its track's placement (`Correction.placement_km`)
+    together; infinite where the placement is unconstrained. Spots of tracks without a correction
+    are left out: only a strip adjustment puts a track where the model is."""
+    placement = {t: c.placement_km for t, c in corrections.items()}
+    take = usable(shots) & np.isin(track, list(placement))
+    spots = apply_corrections(shots, track, corrections).spots_km()[take]
+    return spots, np.hypot(shots.sigma_km[take], np.array([placement[int(t)] for t in track[take]], float))
+
+
 def datum_motion(shots: Shots, track: np.ndarray, corrections: dict[int, Correction]) -> Correction | None:
     """The one rigid motion (Kabsch, over every usable spot of a track) that brings the corrected
     spots back onto the spots as given: the block's net motion, undone (None with under three

@@ -25,7 +25,12 @@ from service.cli.app import (
 )
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from pwm.knowledge import KnowledgeErrors
+    from pwm.lidar.shots import Shots
+    from pwm.maplets import Spots
+    from pwm.mesh import Mesh
 
 
 def _knowledge_error(value: str | None) -> KnowledgeErrors:
@@ -184,14 +189,27 @@ def evaluate(
 
 def _lidar_figures(model: Path, directory: Path) -> dict:
     """The lidar statistics of a mesh against a directory's lidar products (printed as well)."""
+    from pwm.io.meshio import read_mesh
+    from pwm.lidar.model import residual_summary
+    from service.cli.versions import lidar_lines
+
+    shots, tracks, products = _lidar_shots(directory)
+    figures = residual_summary(shots, read_mesh(model), tracks)
+    typer.echo(f"lidar: {products} products:")
+    for line in lidar_lines(figures):
+        typer.echo(line)
+    return figures
+
+
+def _lidar_shots(directory: Path) -> tuple[Shots, np.ndarray, int]:
+    """The shots of a directory's lidar products placed through its kernels, joined, each shot's
+    track (each product's numbered after the previous one's) and how many products; those it
+    skipped are said on stderr. A bad directory or product set is a bad --lidar."""
     import numpy as np
 
     from pwm.io.lidar import read_lidar_directory
-    from pwm.io.meshio import read_mesh
-    from pwm.lidar.model import residual_summary
     from pwm.lidar.shots import Shots
     from pwm.lidar.tracks import NO_TRACK, track_ids
-    from service.cli.versions import lidar_lines
 
     try:
         products, skipped = read_lidar_directory(directory)
@@ -208,11 +226,22 @@ def _lidar_figures(model: Path, directory: Path) -> dict:
         shots = Shots.joined([p.shots for p in products])
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--lidar") from None
-    figures = residual_summary(shots, read_mesh(model), np.concatenate(tracks))
-    typer.echo(f"lidar: {len(products)} products:")
-    for line in lidar_lines(figures):
-        typer.echo(line)
-    return figures
+    return shots, np.concatenate(tracks), len(products)
+
+
+def _strip_adjusted_spots(directory: Path, start: Mesh) -> Spots:
+    """A directory's lidar spots with each track strip-adjusted to the start model, as the
+    catalog's lidar stage adjusts a downlink's (pwm.lidar.strips.adjust, the model kept), with
+    their sigmas (pwm.lidar.strips.corrected_spots)."""
+    from pwm.lidar.strips import adjust, corrected_spots
+    from pwm.maplets import Spots
+
+    shots, _, products = _lidar_shots(directory)
+    adjustment = adjust(shots, start, rebuild=False)
+    body, sigma = corrected_spots(shots, adjustment.track, adjustment.corrections)
+    logging.getLogger("pwm").info("lidar: %d products, %d tracks strip-adjusted to the start model, %d spots",
+                                  products, len(adjustment.corrections), len(sigma))
+    return Spots(body_km=body, sigma_km=sigma)
 
 
 @app.command()
@@ -240,12 +269,17 @@ def refine(
                                     help="how far images may be off the maplets (px), from the pose knowledge"),
     corrections: Path | None = typer.Option(None, exists=True, dir_okay=False,
                                             help="pose corrections to apply (corrections.json of pwm spg)"),
+    lidar: Path | None = typer.Option(None, exists=True, file_okay=False,
+                                      help="a directory of lidar products with its kernels (one meta-kernel): their "
+                                           "tracks strip-adjusted to the start model, their spots place and refine "
+                                           "the maplets they fall on"),
     instrument: str | None = INSTRUMENT,
     target: str | None = TARGET,
     body_frame: str | None = BODY_FRAME,
     verbose: bool = typer.Option(False, "--verbose", "-v"),
 ) -> None:
-    """Refine a start model with a downlink's images: tile, weigh, photoclinometry, fuse."""
+    """Refine a start model with a downlink's images, and a lidar's ranges where given: tile, weigh,
+    photoclinometry, fuse."""
     import dataclasses
     import time
 
@@ -270,8 +304,10 @@ def refine(
     region = dataclasses.replace(region, spacing_km=config.spacing_gsd * region.spacing_km)
     logging.getLogger("pwm").info("%d images, maplets at %.3f m around (%.3f, %.3f) within %.1f m", len(views),
                                   region.spacing_km * 1e3, region.lat_deg, region.lon_deg, region.radius_km * 1e3)
+    spots = None if lidar is None else _strip_adjusted_spots(lidar, start_model)
     with progress_bar() as progress:
-        model, results = refine_region(start_model, views, region, config=config, workers=workers, progress=progress)
+        model, results = refine_region(start_model, views, region, config=config, workers=workers, progress=progress,
+                                       spots=spots)
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "refined.ply", model)
     write_obj(out / "refined.obj", model)
@@ -282,6 +318,7 @@ def refine(
                            "images": r.images, "region_weight": r.region_weight,
                            "five_views": r.five_views,
                            "dropped": r.dropped, "iterations": r.iterations, "converged": r.converged,
-                           "residual_rms": r.residual_rms, "seconds": r.seconds} for r in results]}
+                           "residual_rms": r.residual_rms, "seconds": r.seconds, "lidar_spots": r.lidar_spots,
+                           "lidar_rms_sigmas": r.lidar_rms if r.lidar_spots else None} for r in results]}
     (out / "maplets.json").write_text(json.dumps(report, indent=1))
     typer.echo(f"{len(results)} maplets refined from {len(views)} images in {report['seconds']:.1f} s -> {out}")
