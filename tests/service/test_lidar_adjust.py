@@ -21,11 +21,12 @@ from pwm.geometry import Ellipsoid
 from pwm.io.lidar import read_shots
 from pwm.io.meshio import write_ply
 from pwm.knowledge import IndependentErrors
-from pwm.lidar.model import lidar_residuals, model_from_spots
+from pwm.lidar.model import lidar_residuals, model_from_spots, usable
 from pwm.lidar.shots import Shots
 from pwm.mesh import Mesh
 from pwm.simulate.windows import window_downlink
 from service.artifacts import artifact_path
+from service.cli.science import _lidar_shots, _strip_adjusted_spots
 from service.conductor import adjust_lidar
 from service.ingest import ingest_directory
 from service.lidar import finer_start
@@ -158,3 +159,19 @@ def test_images_then_lidar_then_images_through_pwm_run(
             assert figures["measured"] > 1000 and figures["rms_km"] < 0.012 and figures["crossovers"] > 0
         tracks = session.scalars(select(LidarProduct)).one().tracks
         assert len(tracks) > 1 and {t.residual_version for t in tracks} == {third.versions[-1]}
+
+
+def test_pwm_refine_places_the_lidar_spots_on_its_start_model(global_tiny_sim: Path, tmp_path: Path) -> None:
+    """`pwm refine --lidar`: the tracks strip-adjusted to the start model as the catalog's lidar
+    stage adjusts them, their spots moved with them, each with its sigma."""
+    lidar_only = tmp_path / "lidar-only"
+    for part in ("kernels", "lidar"):
+        shutil.copytree(global_tiny_sim / "downlink" / part, lidar_only / part)
+    shots, _, products = _lidar_shots(lidar_only)
+    model = model_from_spots(shots)
+    spots = _strip_adjusted_spots(lidar_only, Mesh(model.vertices + SHIFT_KM, model.faces))
+    given = shots.spots_km()[usable(shots)]
+    assert products == 1 and len(spots.sigma_km) > 0.9 * len(given)
+    assert np.isfinite(spots.sigma_km).all() and (spots.sigma_km > 0).all()
+    # the spots follow the model: the shift recovered to within a metre
+    assert np.linalg.norm(spots.body_km.mean(axis=0) - given.mean(axis=0) - SHIFT_KM) < 0.001
