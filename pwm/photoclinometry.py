@@ -37,8 +37,9 @@ perspective, and a direction that weak took many steps to drift along, to no gai
 The lidar term: each laser altimeter spot over the maplet (`pwm.maplets.MapletSpots`) measured
 the height z_l at its x_l, y_l with the range's sigma; z(x, y) is bilinear between the nodes. It
 weighs the spots against the images (lidar_weight: a spot one sigma off costs what one image node
-off by sqrt(lidar_weight) of the mean brightness does). The spots see the mean height and the
-tilts that brightness barely sees, so with spots the mean height is no longer held at the start's.
+off by sqrt(lidar_weight) of the mean brightness does). They hold the tilts and the bends that
+brightness barely sees; the mean height stays the start's even so, since freed it drifts with the
+offsets (bench/RESULTS.md), and the spots place the start first (pwm.pipeline.placed_on_spots).
 Gauss-Newton with backtracking on the objective re-projected at the trial heights, until the RMS
 height change of a step, or the relative decrease of the objective, is below its tolerance. The
 Jacobian includes each node's parallax: as a node rises it moves in every image, and its sample
@@ -509,8 +510,6 @@ class _Problem:
         self.spot_matrix = interpolation_matrix(maplet, spots.local_km[:, :2])
         self.spot_u = spots.local_km[:, 2] / maplet.spacing_km
         self.spot_weights = lidar_weight * (maplet.spacing_km / spots.sigma_km) ** 2
-        # without spots nothing but the start places the maplet's mean height (module docstring)
-        self.holds_mean = spots.count == 0
 
     def spot_residuals(self, u: np.ndarray) -> np.ndarray:
         """(M,) the maplet's heights at the spots less the spots', in node spacings."""
@@ -667,11 +666,10 @@ class _Problem:
         gu = (ops.T @ np.concatenate(g) + tie @ (state.u - self.u0) + self.shadow_weight * (shadow_jac.T @ shadow)
               + spots.T @ (weighed @ self.spot_residuals(state.u)))
         hut = ops.T @ np.vstack([x.T for x in xt])
-        if self.holds_mean:
-            # The mean height stays the start's: a Lagrange multiplier joins the per-image unknowns.
-            hut = np.column_stack([hut, np.ones(len(gu))])
-            htt = np.block([[htt, np.zeros((len(htt), 1))], [np.zeros((1, len(htt) + 1))]])
-            gt = np.append(gt, (state.u - self.u0).sum())
+        # The mean height stays the start's: a Lagrange multiplier joins the per-image unknowns.
+        hut = np.column_stack([hut, np.ones(len(gu))])
+        htt = np.block([[htt, np.zeros((len(htt), 1))], [np.zeros((1, len(htt) + 1))]])
+        gt = np.append(gt, (state.u - self.u0).sum())
         # huu is symmetric positive definite: symmetric mode with diagonal pivots skips
         # SuperLU's row pivoting, which it never needs here
         lu = splu(huu.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -679,8 +677,7 @@ class _Problem:
         yg, yt = solved[:, 0], solved[:, 1:]
         dt = np.linalg.solve(htt - hut.T @ yt, -gt + hut.T @ yg)
         du = -(yg + yt @ dt)
-        if self.holds_mean:
-            dt = dt[:-1]  # the multiplier's part is done
+        dt = dt[:-1]  # the multiplier's part is done
         da = -(ga + (np.concatenate(pa) * (ops @ du)).reshape(3, -1).sum(axis=0) + xta.T @ dt) * inv
         if self.solve_offsets:
             dt = self.image_basis @ dt

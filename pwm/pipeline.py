@@ -153,6 +153,8 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
             data.shade = shade(values, data.weights, data.visible, config.rules)
             data.weights = np.where(dark_nodes(values, data.weights, config.rules), 0.0, data.weights)
         result = refine(maplet, data, mode=mode, offsets=offsets, solver=config.solver, spots=spots)
+        if on_spots:
+            result, raised = _settled_on_spots(maplet, data, result, spots=spots, config=config, raised_km=raised)
         if known:
             # an image that no node weighed kept its start offset: it says nothing
             sigma = np.where(np.isfinite(result.rms),
@@ -270,6 +272,22 @@ def _reshaped(maplet: MapletGrid, data: MapletImages, result: Refinement, *, sig
         return result
     return refine(dataclasses.replace(maplet, heights=result.heights + bend), data, mode=config.mode,
                   solver=config.solver, offsets=result.offsets, spots=spots)
+
+
+def _settled_on_spots(maplet: MapletGrid, data: MapletImages, result: Refinement, *, spots: MapletSpots,
+                      config: RefinementConfig, raised_km: float) -> tuple[Refinement, float]:
+    """The refinement solved again from the maplet raised by the spots' mean residual from its
+    refined heights, where that is more than three of its sigmas; and the whole rise (km). The
+    placement measured the spots against a start without the relief they fall on (a profile over
+    a boulder's top lifts it), and the solution holds the mean height it was given."""
+    xy = spots.local_km[:, :2]
+    weight = spots.sigma_km ** -2.0
+    rise = float(weight @ (spots.local_km[:, 2] - grid_heights(maplet, xy, result.heights)) / weight.sum())
+    if abs(rise) <= 3 / np.sqrt(weight.sum()):
+        return result, raised_km
+    again = refine(_raised(maplet, rise), data, mode=config.mode, solver=config.solver, spots=spots,
+                   offsets=result.offsets - rise * rise_motion(maplet, data))
+    return again, raised_km + rise
 
 
 def placed_on_spots(maplet: MapletGrid, spots: MapletSpots, *, placement: Placement) -> tuple[MapletGrid, float]:
