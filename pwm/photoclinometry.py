@@ -759,7 +759,7 @@ class Solver:
     offset_weight: float = 1e-3
     solve_offsets: bool = True
     shadow_weight: float = 0.05
-    lidar_weight: float = 1e-2
+    lidar_weight: float = 1e-3
 
 
 SOLVER = Solver()
