@@ -1,8 +1,6 @@
 """The conductor: the order of one downlink's stages, and the rules for what follows each.
 
 1. catalogue: kernels and products, each image's geometry (service.ingest.ingest_directory);
-   where the catalog has a model, the downlink's lidar tracks strip-adjusted to it
-   (service.lidar.adjust_tracks), so that its spots tie its images and refine its maplets;
 2. adjust the poses on the current model (service.spg.adjust_downlink, the points tied to the
    catalog's strip-adjusted lidar spots), or with no model make one from the images
    (service.spg.start_from_images) and one from the lidar (service.lidar.start_from_lidar),
@@ -92,10 +90,6 @@ def ingest_and_plan(sessions: sessionmaker[Session], directory: Path, *, data_di
     with sessions() as session:
         downlink_id = session.scalars(select(Downlink.id).filter_by(name=report.downlink)).one()
     if shape is not None:
-        with sessions() as session:
-            brought = products_of(session, downlink_id)
-        if brought and base_version is not None:
-            adjust_tracks(sessions, data_dir=data_dir, version=base_version, product_ids=brought)
         adjust_downlink(sessions, shape=shape, downlink_id=downlink_id, data_dir=data_dir,
                         configured=config.knowledge)
     else:

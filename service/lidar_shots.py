@@ -19,11 +19,10 @@ from sqlalchemy.orm import Session
 from pwm.io.lidar import read_shots
 from pwm.lidar.model import usable
 from pwm.lidar.shots import Shots
-from pwm.lidar.strips import Correction, apply_corrections, corrected_spots
-from pwm.maplets import Spots
+from pwm.lidar.strips import apply_corrections
 from pwm.trajectory import ARC_GAP_S, along_arcs
 from service.artifacts import artifact_path
-from service.rows import Acceptance, Image, ImageStatus, LidarProduct, LidarTrack
+from service.rows import Acceptance, Image, ImageStatus, LidarProduct
 
 
 def usable_lidar_products(session: Session, product_ids: Collection[int] | None = None) -> Sequence[LidarProduct]:
@@ -80,46 +79,3 @@ def catalog_spots(session: Session, *, data_dir: Path) -> np.ndarray | None:
         parts.append(shots.spots_km()[usable(shots) & placed])
     spots = np.concatenate(parts) if parts else np.zeros((0, 3))
     return spots if len(spots) else None
-
-
-def tracks_over(session: Session, maplets: Sequence[tuple[int, np.ndarray, float]]) -> dict[int, list[LidarTrack]]:
-    """Per maplet (id, body-fixed origin km, side km), the strip-corrected tracks of the usable
-    products whose cone of spots about the body's centre (service.rows.LidarTrack) reaches its
-    square, by product and track: a superset of the tracks with spots over it, as
-    service.queries.maplets_crossed finds them. Maplets no track reaches are left out."""
-    tracks = [row for product in usable_lidar_products(session) for row in product.tracks
-              if row.adjusted_at is not None]
-    if not tracks or not maplets:
-        return {}
-    axes = np.array([[t.cone_axis_x, t.cone_axis_y, t.cone_axis_z] for t in tracks], float)
-    half_angle = np.array([t.cone_half_angle_rad for t in tracks], float)
-    origin = np.array([m[1] for m in maplets], float).reshape(-1, 3)
-    distance = np.maximum(np.linalg.norm(origin, axis=1), 1e-300)
-    reach = np.arcsin(np.clip(np.array([m[2] for m in maplets], float) / np.sqrt(2.0) / distance, 0.0, 1.0))
-    angle = np.arccos(np.clip((origin / distance[:, None]) @ axes.T, -1.0, 1.0))
-    within = angle <= half_angle[None, :] + reach[:, None]
-    return {maplets[i][0]: [tracks[t] for t in np.flatnonzero(row)] for i, row in enumerate(within) if row.any()}
-
-
-def track_key(track: LidarTrack) -> str:
-    """A track's name in a maplet's input (service.refinement): its product's content and its
-    number. Its strip correction is not in it: a later adjustment moves its spots within their
-    sigma, and re-refining every maplet under a survey's rasters for that is not worth it."""
-    return f"{track.product.sha256}:{track.track}"
-
-
-def track_spots(session: Session, data_dir: Path, tracks: Sequence[LidarTrack]) -> Spots:
-    """The usable spots of these strip-corrected tracks as placed now (`placed_shots`, their
-    stored corrections applied), with their sigmas (pwm.lidar.strips.corrected_spots)."""
-    wanted: dict[int, dict[int, Correction]] = {}
-    for row in tracks:
-        correction = row.strip_correction()
-        if correction is not None:
-            wanted.setdefault(row.product_id, {})[row.track] = correction
-    spots, sigmas = [np.zeros((0, 3))], [np.zeros(0)]
-    for product in usable_lidar_products(session, list(wanted)):
-        shots, track = placed_shots(session, data_dir, product)
-        own, sigma = corrected_spots(shots, track, wanted[product.id])
-        spots.append(own)
-        sigmas.append(sigma)
-    return Spots(body_km=np.concatenate(spots), sigma_km=np.concatenate(sigmas))

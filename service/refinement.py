@@ -1,9 +1,7 @@
 """Refinement driven by the catalog: which maplets need refining, and the refinement of one.
 
 A maplet's input is the set of images its coverage rows weigh above zero (the refinement's own
-rules, service.coverage), each with its pose correction, and the strip-corrected lidar tracks
-that may reach it (service.lidar_shots.tracks_over; their spots over it refine it with the
-images, pwm.pipeline.refine_maplet), plus the refinement settings
+rules, service.coverage), each with its pose correction, plus the refinement settings
 (pwm.config.RefinementConfig.digest), the maplet's grid and the pass. Its input hash names that
 input: a maplet whose current revision was made from other images is stale. Refining a maplet
 stores a new revision, keyed by the input hash and recording the configuration's digest, so the
@@ -41,19 +39,17 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.fusion_state import read_maplet, write_maplet
-from pwm.maplets import MapletGrid, spots_over
+from pwm.maplets import MapletGrid
 from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface
 from service.artifacts import artifact_mesh, artifact_path, scratch_file, store_artifact
 from service.db import session_scope
-from service.lidar_shots import track_key, track_spots, tracks_over
 from service.rows import (
     Coverage,
     GeometryStatus,
     Image,
     ImageStatus,
-    LidarTrack,
     Maplet,
     MapletRevision,
     model_version_maplet_revisions,
@@ -81,15 +77,12 @@ class MapletWork:
 @dataclass(frozen=True)
 class _Input:
     """A maplet's images (ids, and keys as input_hash takes them), its grid (nodes per side,
-    side in km), its lidar tracks (ids, and keys: service.lidar_shots.track_key) and the input
-    hash of each pass (pass 1 first) under one configuration."""
+    side in km) and the input hash of each pass (pass 1 first) under one configuration."""
 
     image_ids: tuple[int, ...]
     image_keys: tuple[str, ...]
     grid: tuple[int, float]
     hashes: tuple[str, ...]
-    track_ids: tuple[int, ...] = ()
-    track_keys: tuple[str, ...] = ()
 
     def pass_of(self, input_hash: str | None) -> int | None:
         """The pass of this input that `input_hash` names, or None when it names another input."""
@@ -98,29 +91,25 @@ class _Input:
     def under(self, digest: str) -> _Input:
         """The same images and grid under the configuration whose digest is `digest`, as many
         passes."""
-        return replace(self, hashes=_pass_hashes(self.image_keys, self.grid, digest, len(self.hashes),
-                                                 self.track_keys))
+        return replace(self, hashes=_pass_hashes(self.image_keys, self.grid, digest, len(self.hashes)))
 
 
 def input_hash(image_keys: Collection[str], *, digest: str, nodes_per_side: int, size_km: float,
-               pass_number: int = 1, track_keys: Collection[str] = ()) -> str:
+               pass_number: int = 1) -> str:
     """sha256 naming a refinement's input: the images' keys (sha256 of the product, with its
     pose correction), the refinement settings (`digest`, pwm.config.RefinementConfig.digest),
-    the maplet's grid (nodes per side, side in km), after the first the pass, and the lidar
-    tracks' keys where there are any (a maplet without keeps the hash it had before lidar)."""
+    the maplet's grid (nodes per side, side in km) and, after the first, the pass."""
     payload: dict[str, object] = {"images": sorted(image_keys), "config": digest,
                                   "nodes_per_side": nodes_per_side, "size_km": repr(float(size_km))}
     if pass_number > 1:
         payload["pass"] = pass_number
-    if track_keys:
-        payload["lidar"] = sorted(track_keys)
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
 
-def _pass_hashes(image_keys: Collection[str], grid: tuple[int, float], digest: str, passes: int,
-                 track_keys: Collection[str] = ()) -> tuple[str, ...]:
+def _pass_hashes(image_keys: Collection[str], grid: tuple[int, float], digest: str, passes: int
+                 ) -> tuple[str, ...]:
     return tuple(input_hash(image_keys, digest=digest, nodes_per_side=grid[0], size_km=grid[1],
-                            pass_number=p, track_keys=track_keys) for p in range(1, passes + 1))
+                            pass_number=p) for p in range(1, passes + 1))
 
 
 def _inputs(session: Session, config: RefinementConfig, maplet_ids: Collection[int] | None
@@ -141,21 +130,15 @@ def _inputs(session: Session, config: RefinementConfig, maplet_ids: Collection[i
         key = sha256 + (f"@{','.join(repr(v) for v in pose)}"
                         if any(v is not None for v in pose) else "")
         images.setdefault(maplet_id, []).append((image_id, key))
-    places = session.execute(select(Maplet.id, Maplet.nodes_per_side, Maplet.size_km, Maplet.origin_x_km,
-                                    Maplet.origin_y_km, Maplet.origin_z_km).where(
-        Maplet.id.in_(list(images)))).all()
-    grids = {row.id: (row.nodes_per_side, row.size_km) for row in places}
-    tracks = tracks_over(session, [(row.id, np.array([row.origin_x_km, row.origin_y_km, row.origin_z_km]),
-                                    row.size_km) for row in places])
+    grids = dict((i, (n, s)) for i, n, s in session.execute(
+        select(Maplet.id, Maplet.nodes_per_side, Maplet.size_km).where(
+            Maplet.id.in_(list(images)))))
     digest = config.digest()
     inputs = {}
     for m, rows in images.items():
         keys = tuple(k for _, k in rows)
-        lidar = tracks.get(m, [])
-        track_keys = tuple(track_key(t) for t in lidar)
         inputs[m] = _Input(tuple(i for i, _ in rows), keys, grids[m],
-                           _pass_hashes(keys, grids[m], digest, config.passes, track_keys),
-                           track_ids=tuple(t.id for t in lidar), track_keys=track_keys)
+                           _pass_hashes(keys, grids[m], digest, config.passes))
     return inputs
 
 
@@ -238,16 +221,15 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
         model = latest_version(session)
         if model is None:
             raise LookupError("the catalog has no model version to refine against")
-        say(0.05, f"reading {len(current.image_ids)} images and {len(current.track_ids)} lidar tracks")
+        say(0.05, f"reading {len(current.image_ids)} images")
         views = catalog_views(session, image_ids=current.image_ids, pixels=True)
         ordered = [views[i] for i in current.image_ids if i in views]
-        spots = track_spots(session, data_dir, [session.get_one(LidarTrack, t) for t in current.track_ids])
         grid = row.grid()
         model_version, model_ply = model.version, model.artifacts["ply"]
     say(0.2, f"refining (pass {pass_number}) against version {model_version}")
     tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
     grid.heights, grid.albedo = sample_surface(tracer, grid)
-    result = refine_maplet(grid, ordered, tracer, config=config, spots=spots_over(grid, spots))
+    result = refine_maplet(grid, ordered, tracer, config=config)
     say(0.9, "storing the revision")
     with scratch_file(data_dir, ".npz") as scratch:
         write_maplet(scratch, result.maplet)
@@ -260,8 +242,6 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
                   # observations of the images' poses for the next adjustment (service.spg)
                   "registrations": {name: list(xy) for name, xy in result.registrations.items()},
                   "raised_m": result.raised_km * 1e3,
-                  "lidar_spots": result.lidar_spots,
-                  "lidar_rms_sigmas": result.lidar_rms if np.isfinite(result.lidar_rms) else None,
                   "height_change_rms_m": float(np.sqrt(np.mean(
                       (result.maplet.heights - grid.heights) ** 2)) * 1e3)}
     revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=input_hash,
