@@ -3,7 +3,7 @@ maplets across a site refined as `pwm.pipeline.refine_maplet` refines them, with
 with the spots of the downlink's lidar over them at each weight (pwm.photoclinometry.Solver.
 lidar_weight), against the truth.
 
-    .venv/bin/python bench/maplet_lidar.py SIM [--weights 0 1e-4 1e-3 1e-2 1e-1 1] [--maplets 6]
+    .venv/bin/python bench/maplet_lidar.py SIM [--weights none 0 1e-4 1e-3 1e-2 1e-1 1] [--maplets 6]
                                                [--nodes 100] [--images 0] [--long-m 5]
 
 SIM: a site simulation with lidar (SIM/downlink with lidar/ and kernels/, SIM/truth), e.g.
@@ -75,10 +75,9 @@ def main() -> None:
     ring = max(truth.eval_radius_km - 0.75 * side, 0.0) * 0.6
     rows = []
     for weight in args.weights:
-        solver = config.solver if weight in ("none", "0") else dataclasses.replace(config.solver,
-                                                                                  lidar_weight=float(weight))
-        weighed = dataclasses.replace(config, solver=dataclasses.replace(solver, lidar_weight=0.0)
-                                      if weight == "0" else solver)
+        # "none" refines without spots, so its weight is moot
+        weighed = dataclasses.replace(config, solver=dataclasses.replace(
+            config.solver, lidar_weight=0.0 if weight == "none" else float(weight)))
         errors, longs, shorts, fits, seconds = [], [], [], [], 0.0
         for angle in angles:
             cx, cy = ring * np.cos(angle), ring * np.sin(angle)

@@ -117,13 +117,11 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
     iterations, converged, rms, raised, lidar_rms = 0, False, [], 0.0, float("nan")
     registrations: dict[str, tuple[float, float]] = {}
     on_spots = spots.count >= config.placement.lidar_spots
-    if on_spots and data.count < config.min_images:
-        # too few images to refine it, enough spots to place it
-        placed_maplet, raised = placed_on_spots(maplet, spots, placement=config.placement)
-        refined.heights = placed_maplet.heights
+    if on_spots:
+        # placed even where too few images see it to refine it
+        maplet, raised = placed_on_spots(maplet, spots, placement=config.placement)
+        refined.heights = maplet.heights.copy()
     if data.count >= config.min_images:
-        if on_spots:
-            maplet, raised = placed_on_spots(maplet, spots, placement=config.placement)
         # navigation knowledge errors move images by many pixels: register them before the joint
         # solution, which only corrects offsets within its linear reach (about a pixel); within
         # that, registering against the start's shading, itself off by its height errors, only
