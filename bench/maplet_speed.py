@@ -1,5 +1,6 @@
 """Speed of refining one maplet: visibility, weights and photoclinometry of one 100 x 100-node
-maplet with 10 images, on one core (the issue's target: at most 2 s).
+maplet with 10 images, on one core (issue 50's target: at most 1.0 s on `site` and `site-hard`, best of
+5, nothing else running).
 
     .venv/bin/python bench/maplet_speed.py DOWNLINK [--nodes 100] [--images 10] [--repeat 3]
 

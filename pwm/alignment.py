@@ -28,6 +28,7 @@ from pwm.photoclinometry import (
     MapletImages,
     bilinear,
     bilinear_gradient,
+    bilinear_shifts,
     datum_complement,
     image_motion,
     node_pixels,
@@ -86,80 +87,115 @@ def align(
     pixels = node_pixels(maplet, data, heights=heights, offsets=start)
     model = predict(maplet, data, heights=heights, albedo=albedo)
     return _align_at(data, pixels, model, start, search_px=search_px, min_nodes=registration.align_min_nodes,
-                     max_iterations=registration.align_max_iterations)
+                     max_iterations=registration.align_max_iterations)[0]
 
 
 def _align_at(data: MapletImages, pixels: np.ndarray, model: np.ndarray, start: np.ndarray, *, search_px: int,
-              min_nodes: int, max_iterations: int) -> Alignment:
+              min_nodes: int, max_iterations: int, parts: np.ndarray | None = None) -> list[Alignment]:
     """`align` over the nodes that data.weights keep, from the node pixels (K, n, n, 2) at the
-    start offsets (K, 2) and the predicted brightness (K, n, n): parts of one maplet registered in
-    turn share both."""
-    out = start.copy()
-    correlation = np.full(data.count, np.nan)
+    start offsets (K, 2) and the predicted brightness (K, n, n); with parts, an (n, n) label per
+    node (0..P-1; -1: none), each part is registered on its own nodes alone, all at once: one
+    Alignment per part (one in all without parts)."""
+    labels = np.zeros(pixels.shape[1:3], np.intp) if parts is None else np.asarray(parts, np.intp)
+    count = int(labels.max(initial=-1)) + 1
+    out = np.repeat(start[None].astype(float), count, axis=0)
+    correlation = np.full((count, data.count), np.nan)
     for k, image in enumerate(data.images):
-        use = (data.weights[k] > 0) & np.isfinite(pixels[k, ..., 0]) & (model[k] > 0)
-        if use.sum() < min_nodes:
-            continue
-        found = _track(image, pixels[k][use], model[k][use], search_px=search_px, min_nodes=min_nodes,
-                       max_iterations=max_iterations)
-        if found is not None:
-            out[k] = start[k] + found[0]
-            correlation[k] = found[1]
-    return Alignment(offsets=out, correlation=correlation)
+        use = (data.weights[k] > 0) & np.isfinite(pixels[k, ..., 0]) & (model[k] > 0) & (labels >= 0)
+        found, offsets, ncc = _track(image, pixels[k][use], model[k][use], labels[use], count, search_px=search_px,
+                                     min_nodes=min_nodes, max_iterations=max_iterations)
+        out[found, k] = start[k] + offsets[found]
+        correlation[found, k] = ncc[found]
+    return [Alignment(offsets=o, correlation=c) for o, c in zip(out, correlation, strict=True)]
 
 
-def _ncc(values: np.ndarray, model: np.ndarray, *, min_nodes: int) -> np.ndarray:
+def _part_sums(x: np.ndarray, labels: np.ndarray, parts: int) -> np.ndarray:
+    """Sums (..., parts) of x (..., N) over each part's nodes (labels (N,), ascending in
+    0..parts-1); 0 for a part without nodes."""
+    present, starts = np.unique(labels, return_index=True)
+    out = np.zeros(x.shape[:-1] + (parts,))
+    if len(present):
+        out[..., present] = np.add.reduceat(x, starts, axis=-1)
+    return out
+
+
+def _ncc(values: np.ndarray, model: np.ndarray, *, min_nodes: int, labels: np.ndarray | None = None,
+         parts: int = 1) -> np.ndarray:
     """Zero-mean normalised cross-correlation of values (..., N) with model (N,) over the nodes
-    where each row of values is finite; -inf where fewer than min_nodes are, or where either side
-    is constant."""
+    where each row of values is finite; with labels (N,), ascending in 0..parts-1, over each part's
+    nodes apart (..., parts). -inf where fewer than min_nodes are, or where either side is
+    constant."""
     ok = np.isfinite(values)
-    count = ok.sum(axis=-1)
     a = np.where(ok, values, 0.0)
     b = np.where(ok, model, 0.0)
-    a = np.where(ok, a - a.sum(axis=-1, keepdims=True) / np.maximum(count, 1)[..., None], 0.0)
-    b = np.where(ok, b - b.sum(axis=-1, keepdims=True) / np.maximum(count, 1)[..., None], 0.0)
-    den = np.sqrt((a * a).sum(axis=-1) * (b * b).sum(axis=-1))
+
+    def total(x: np.ndarray) -> np.ndarray:
+        return x.sum(axis=-1) if labels is None else _part_sums(x, labels, parts)
+    count = total(ok.astype(float))
+    n = np.maximum(count, 1.0)
+    sa, sb, saa, sbb = total(a), total(b), total(a * a), total(b * b)
+    cov = total(a * b) - sa * sb / n
+    var = np.maximum(saa - sa * sa / n, 0.0) * np.maximum(sbb - sb * sb / n, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ncc = (a * b).sum(axis=-1) / den
-    return np.where((count >= min_nodes) & (den > 0), ncc, -np.inf)
+        ncc = cov / np.sqrt(var)
+    # the sums' rounding leaves a constant side a variance of about 1e-16 of its square
+    return np.where((count >= min_nodes) & (var > 1e-24 * saa * sbb) & (var > 0), ncc, -np.inf)
 
 
-def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, *, search_px: int, min_nodes: int,
-           max_iterations: int) -> tuple[np.ndarray, float] | None:
-    """Offset (sample, line) of `image` that best matches `model` at `pixels`, and its NCC."""
+def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, labels: np.ndarray, parts: int, *,
+           search_px: int, min_nodes: int, max_iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Offset (sample, line) of `image` that best matches `model` at `pixels` (N, 2), for each
+    part of the nodes (labels (N,) in 0..parts-1) on its own: whether found (parts,), the offsets
+    (parts, 2) and their NCC (parts,). Whole shifts by NCC, a parabola through the peak's
+    neighbours, then Gauss-Newton on I(x + offset) ~ gain * model + bias."""
+    order = np.argsort(labels, kind="stable")
+    pixels, model, labels = pixels[order], model[order], labels[order]
     shifts = np.arange(-search_px, search_px + 1)
-    # every whole shift at once: [line shift i, sample shift j, node]
-    grid = np.stack(np.meshgrid(shifts, shifts), axis=-1).astype(float)
-    score = _ncc(bilinear(image, pixels + grid[:, :, None, :]), model, min_nodes=min_nodes)
-    if not np.isfinite(score).any():
-        return None
-    i, j = map(int, np.unravel_index(np.argmax(score), score.shape))
-    coarse = np.array([shifts[j], shifts[i]], float) + _peak(score, i, j)
+    # every whole shift at once: [line shift i, sample shift j, part]
+    score = _ncc(bilinear_shifts(image, pixels, search_px), model, min_nodes=min_nodes, labels=labels, parts=parts)
+    found = np.isfinite(score).any(axis=(0, 1))
+    coarse = np.zeros((parts, 2))
+    for p in np.flatnonzero(found):
+        i, j = map(int, np.unravel_index(np.argmax(score[..., p]), score.shape[:2]))
+        coarse[p] = np.array([shifts[j], shifts[i]], float) + _peak(score[..., p], i, j)
 
     offset = coarse.copy()
-    values = bilinear(image, pixels + offset)
+    values = bilinear(image, pixels + offset[labels])
     ok = np.isfinite(values)
-    gain, bias = np.polyfit(model[ok], values[ok], 1)
+    # the straight line values ~ gain * model + bias through each part's nodes
+    m, v = np.where(ok, model, 0.0), np.where(ok, values, 0.0)
+    n, sm, sv, smv, smm = _part_sums(np.stack([ok, m, v, m * v, m * m]), labels, parts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gain = (n * smv - sm * sv) / (n * smm - sm * sm)
+        bias = (sv - gain * sm) / n
+    active = found.copy()
     for _ in range(max_iterations):
-        at = pixels + offset
-        values, grad = bilinear_gradient(image, at)
-        ok = np.isfinite(values) & np.isfinite(grad).all(axis=1)
-        if ok.sum() < min_nodes:
-            return None
-        # Unknowns: offset (sample, line), gain and bias of I(x + offset) ~ gain * model + bias
-        jac = np.column_stack([grad[ok], -model[ok], -np.ones(ok.sum())])
-        resid = values[ok] - gain * model[ok] - bias
-        step = np.linalg.lstsq(jac, -resid, rcond=None)[0]
-        offset += step[:2]
-        gain += step[2]
-        bias += step[3]
-        if np.hypot(*step[:2]) < 1e-4:
+        if not active.any():
             break
-    if np.hypot(*(offset - coarse)) > 1.0:
-        # Gauss-Newton left the correlation peak it started on: trust the peak.
-        offset = coarse
-    final = float(_ncc(bilinear(image, pixels + offset), model, min_nodes=2))
-    return offset, final if np.isfinite(final) else float("nan")
+        nodes = np.flatnonzero(active[labels])
+        at = labels[nodes]
+        values, grad = bilinear_gradient(image, pixels[nodes] + offset[at])
+        ok = np.isfinite(values) & np.isfinite(grad).all(axis=1)
+        # Unknowns: offset (sample, line), gain and bias of I(x + offset) ~ gain * model + bias
+        jac = np.where(ok[:, None], np.column_stack([grad, -model[nodes], -np.ones(len(nodes))]), 0.0)
+        resid = np.where(ok, values - gain[at] * model[nodes] - bias[at], 0.0)
+        totals = _part_sums(np.vstack([ok, (jac[:, :, None] * jac[:, None, :]).reshape(-1, 16).T,
+                                       (jac * resid[:, None]).T]), at, parts)
+        short = active & (totals[0] < min_nodes)
+        found &= ~short
+        active &= ~short
+        normal, right = totals[1:17].T.reshape(parts, 4, 4), totals[17:].T
+        step = np.zeros((parts, 4))
+        step[active] = -np.einsum("pij,pj->pi", np.linalg.pinv(normal[active]), right[active])
+        offset += step[:, :2]
+        gain += step[:, 2]
+        bias += step[:, 3]
+        active &= np.hypot(step[:, 0], step[:, 1]) >= 1e-4
+    # where Gauss-Newton left the correlation peak it started on, trust the peak
+    far = np.hypot(*(offset - coarse).T) > 1.0
+    offset[far] = coarse[far]
+    final = _ncc(bilinear(image, pixels + offset[labels]), model, min_nodes=2, labels=labels, parts=parts)
+    return found, offset, np.where(np.isfinite(final), final, np.nan)
 
 
 def _vertex(lo: float, mid: float, hi: float) -> float:
@@ -369,22 +405,19 @@ def window_rises(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray, *,
     """
     n = maplet.n
     edges = np.linspace(0, n, windows + 1).round().astype(int)
-    rises = np.zeros((windows, windows))
-    sigmas = np.full((windows, windows), np.inf)
+    # node (row, col) belongs to part i * windows + j of rows edges[i]:edges[i+1], cols edges[j]:...
+    band = np.searchsorted(edges, np.arange(n), side="right") - 1
     start = np.asarray(offsets, float)
     pixels = node_pixels(maplet, data, offsets=start)
     model = predict(maplet, data, albedo=albedo)
-    for i in range(windows):
-        for j in range(windows):
-            inside = np.zeros((n, n), bool)
-            inside[edges[i]:edges[i + 1], edges[j]:edges[j + 1]] = True
-            part = dataclasses.replace(data, weights=np.where(inside, data.weights, 0.0))
-            found = _align_at(part, pixels, model, start, search_px=search_px,
-                              min_nodes=registration.align_min_nodes,
-                              max_iterations=registration.align_max_iterations)
-            said = np.where(np.isfinite(found.correlation), sigma_px, np.inf)
-            centre = ((edges[i] + edges[i + 1]) // 2, (edges[j] + edges[j + 1]) // 2)
-            rises[i, j], sigmas[i, j] = parallax_height(maplet, data, found.offsets, sigma_px=said, node=centre)
+    found = _align_at(data, pixels, model, start, search_px=search_px, min_nodes=registration.align_min_nodes,
+                      max_iterations=registration.align_max_iterations, parts=band[:, None] * windows + band[None, :])
+    rises = np.zeros((windows, windows))
+    sigmas = np.full((windows, windows), np.inf)
+    for (i, j), part in zip(np.ndindex(windows, windows), found, strict=True):
+        said = np.where(np.isfinite(part.correlation), sigma_px, np.inf)
+        centre = ((edges[i] + edges[i + 1]) // 2, (edges[j] + edges[j + 1]) // 2)
+        rises[i, j], sigmas[i, j] = parallax_height(maplet, data, part.offsets, sigma_px=said, node=centre)
     return 0.5 * (edges[:-1] + edges[1:] - 1), rises, sigmas
 
 

@@ -59,11 +59,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage
 from scipy.linalg import block_diag
-from scipy.sparse.linalg import splu
 
 from pwm.camera import Camera, Pose, project
 from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, interpolation_matrix
 from pwm.photometry import lunar_lambert, mcewen_l
+from pwm.spd import Cholesky
 
 Mode = Literal["pwm", "standard"]
 
@@ -168,11 +168,35 @@ def bilinear(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     fs, fl = s - s0, line - l0
     flat = image.ravel()
     i00 = l0 * width + s0
+    i10 = i00 + (width if height > 1 else 0)
     right = 1 if width > 1 else 0
-    down = width if height > 1 else 0
-    top = flat[i00] + fs * (flat[i00 + right] - flat[i00])
-    bottom = flat[i00 + down] + fs * (flat[i00 + down + right] - flat[i00 + down])
+    p00, p10 = flat[i00], flat[i10]
+    top = p00 + fs * (flat[i00 + right] - p00)
+    bottom = p10 + fs * (flat[i10 + right] - p10)
     return np.where(inside, top + fl * (bottom - top), np.nan)
+
+
+def bilinear_shifts(image: np.ndarray, pixels: np.ndarray, reach: int) -> np.ndarray:
+    """`bilinear` samples (2 reach + 1, 2 reach + 1, N) of an image at pixels (N, 2) moved by every
+    whole shift within +-reach px, [line shift, sample shift, node]: the shifts share each node's
+    fractions, so its (2 reach + 2)^2 neighbourhood is gathered once instead of four pixels a shift."""
+    height, width = image.shape
+    s, line = pixels[:, 0], pixels[:, 1]
+    finite = np.isfinite(s) & np.isfinite(line)
+    s0, l0 = np.floor(np.where(finite, s, 0.0)), np.floor(np.where(finite, line, 0.0))
+    fs, fl = s - s0, line - l0
+    around = np.arange(-reach, reach + 2)[:, None]
+    cols = np.clip(s0.astype(np.intp) + around, 0, width - 1)
+    rows = np.clip(l0.astype(np.intp) + around, 0, height - 1)
+    patch = image[rows[:, None, :], cols[None, :, :]]  # [line, sample, node]
+    # a shift whose last column or row has weight 0 takes it from the frame's edge (clipped): the
+    # frame's last pixel centre is still inside, as in `bilinear`
+    top = patch[:, :-1] + fs * (patch[:, 1:] - patch[:, :-1])
+    values = top[:-1] + fl * (top[1:] - top[:-1])
+    shifted_s, shifted_l = s + around[:-1], line + around[:-1]
+    inside = ((shifted_l >= 0) & (shifted_l <= height - 1))[:, None, :] & (
+        (shifted_s >= 0) & (shifted_s <= width - 1))[None, :, :]
+    return np.where(inside, values, np.nan)
 
 
 def bilinear_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -392,28 +416,35 @@ def horizons(u: np.ndarray, sun_local: np.ndarray) -> tuple[np.ndarray, np.ndarr
     the Sun is stepped one spacing at a time, each step taken at its nearest node, whose height
     is lowered by the Sun's rise over that node's distance along the Sun's azimuth."""
     n = u.shape[0]
-    flat = u.ravel()
-    i, j = np.divmod(np.arange(n * n), n)
-    top = np.full((len(sun_local), n * n), -np.inf)
+    index = np.arange(n)
+    top = np.full((len(sun_local), n, n), -np.inf)
     caster = np.full((len(sun_local), n * n), -1, dtype=np.int64)
-    span = float(flat.max() - flat.min())
+    span = float(u.max() - u.min())
     azimuths, rises = _sun_paths(sun_local)
     for k, ((dx, dy), rise) in enumerate(zip(azimuths, rises, strict=True)):
         if not np.isfinite(rise):
             continue
+        steps = np.zeros((n, n), np.int64)  # the step whose node casts the horizon, 0: none
         # beyond span / rise steps no node stands high enough to shade another
         for step in range(1, min(int(np.ceil(span / rise)) + 1, 2 * n) + 1):
-            ci = np.rint(i + step * dy).astype(np.int64)
-            cj = np.rint(j + step * dx).astype(np.int64)
-            inside = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
-            if not inside.any():
+            # a step's node lies step * dy rows and step * dx columns on: rows and columns apart
+            ci = np.rint(index + step * dy).astype(np.int64)
+            cj = np.rint(index + step * dx).astype(np.int64)
+            rows = np.flatnonzero((ci >= 0) & (ci < n))
+            cols = np.flatnonzero((cj >= 0) & (cj < n))
+            if not (len(rows) and len(cols)):
                 break
-            c = np.where(inside, ci * n + cj, 0)
-            h = np.where(inside, flat[c] - rise * ((cj - j) * dx + (ci - i) * dy), -np.inf)
-            higher = h > top[k]
-            top[k] = np.where(higher, h, top[k])
-            caster[k] = np.where(higher, c, caster[k])
-    return top, caster
+            # rint keeps the order: the rows (columns) whose step stays inside are consecutive
+            at = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+            ri, cj = ci[at[0]], cj[at[1]]
+            h = u[np.ix_(ri, cj)] - rise * ((cj - cols) * dx + (ri - rows)[:, None] * dy)
+            np.copyto(steps[at], step, where=h > top[k][at])
+            np.maximum(top[k][at], h, out=top[k][at])
+        cast = steps.ravel() > 0
+        i, j = np.divmod(np.flatnonzero(cast), n)
+        shadowed = steps.ravel()[cast]
+        caster[k, cast] = np.rint(i + shadowed * dy).astype(np.int64) * n + np.rint(j + shadowed * dx).astype(np.int64)
+    return top.reshape(len(sun_local), -1), caster
 
 
 def _sun_paths(sun_local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -670,13 +701,11 @@ class _Problem:
         hut = np.column_stack([hut, np.ones(len(gu))])
         htt = np.block([[htt, np.zeros((len(htt), 1))], [np.zeros((1, len(htt) + 1))]])
         gt = np.append(gt, (state.u - self.u0).sum())
-        # huu is symmetric positive definite: symmetric mode with diagonal pivots skips
-        # SuperLU's row pivoting, which it never needs here
-        lu = splu(huu.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        solved = lu.solve(np.column_stack([gu, hut]))
-        yg, yt = solved[:, 0], solved[:, 1:]
-        dt = np.linalg.solve(htt - hut.T @ yt, -gt + hut.T @ yg)
-        du = -(yg + yt @ dt)
+        # the per-image unknowns by their Schur complement: hut' huu^-1 [gu, hut] is all it needs
+        factor = Cholesky(huu)
+        form = factor.inverse_form(np.column_stack([gu, hut]))
+        dt = np.linalg.solve(htt - form[1:, 1:], -gt + form[1:, 0])
+        du = -factor.solve(gu + hut @ dt)
         dt = dt[:-1]  # the multiplier's part is done
         da = -(ga + (np.concatenate(pa) * (ops @ du)).reshape(3, -1).sum(axis=0) + xta.T @ dt) * inv
         if self.solve_offsets:

@@ -14,11 +14,13 @@ import threading
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
+from scipy.spatial import cKDTree
 
 from pwm.mesh import Mesh
 
@@ -96,6 +98,11 @@ class RayTracer:
     def __init__(self, mesh: Mesh) -> None:
         self.mesh = mesh
         self._scene = _scene_of(mesh)
+
+    @cached_property
+    def vertex_tree(self) -> cKDTree:
+        """A KD-tree of the mesh's vertices, made on first use: the vertices about a place."""
+        return cKDTree(self.mesh.vertices)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """First hit for each ray. directions need not be unit; t is in units of |direction|."""

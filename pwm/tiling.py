@@ -113,8 +113,7 @@ def sample_surface(model: Mesh | RayTracer, maplet: MapletGrid) -> tuple[np.ndar
     under the maplet's nodes, as in `sample_heights`."""
     tracer = model if isinstance(model, RayTracer) else RayTracer(model)
     half = 0.5 * (maplet.n - 1) * maplet.spacing_km
-    v = tracer.mesh.vertices
-    near = v[np.linalg.norm(v - maplet.frame.origin, axis=1) <= _NEAR * half]
+    near = tracer.mesh.vertices[tracer.vertex_tree.query_ball_point(maplet.frame.origin, _NEAR * half)]
     heights, albedo, _ = _drop(tracer, maplet.frame, maplet.axis_km, near, half)
     return heights, albedo
 
@@ -130,7 +129,6 @@ class _Surface:
         tri = self.mesh.vertices[self.mesh.faces]
         self.area_vectors = 0.5 * np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         self.centroids = cKDTree(tri.mean(axis=1))
-        self.vertices = cKDTree(self.mesh.vertices)
         self.far_km = 2.0 * float(np.linalg.norm(self.mesh.vertices, axis=1).max())
 
     def regional_normals(self, points: np.ndarray, radius_km: float) -> np.ndarray:
@@ -143,7 +141,7 @@ class _Surface:
 
     def near_vertices(self, origin: np.ndarray, half_km: float) -> np.ndarray:
         """The vertices `_span_km` needs for a square of half-side half_km about origin."""
-        return self.mesh.vertices[self.vertices.query_ball_point(origin, _NEAR * half_km)]
+        return self.mesh.vertices[self.tracer.vertex_tree.query_ball_point(origin, _NEAR * half_km)]
 
     def outer_points(self, directions: np.ndarray) -> np.ndarray:
         """Outermost surface point along each unit direction from the body centre, nan on a miss."""

@@ -29,13 +29,13 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from pwm.camera import project
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.footprints import Samples, footprint_samples, judge_samples, places
-from pwm.frames import unit_to_latlon
+from pwm.frames import LocalFrame, unit_to_latlon
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
@@ -114,17 +114,23 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
         table = np.array([row[1:] for row in rows], float)
         # a maplet's square lies within its half-diagonal of its origin, its relief within a side
         balls = table[:, :3], np.sqrt(1.5) * table[:, 3]
-        candidates = np.flatnonzero(Cones.of(new).seeing(*balls).any(axis=0))
+        in_cone = Cones.of(new).seeing(*balls)  # (new images, maplets)
+        candidates = np.flatnonzero(in_cone.any(axis=0))
     else:
-        candidates = np.empty(0, dtype=np.int64)
+        in_cone, candidates = np.zeros((len(new), 0), bool), np.empty(0, dtype=np.int64)
     chosen = session.scalars(select(Maplet).where(Maplet.id.in_([rows[m][0] for m in candidates.tolist()])))
     by_id = {maplet.id: maplet for maplet in chosen}
+    cameras = np.array([v.pose.position for v in new])
     for m in candidates.tolist():
         maplet = by_id[rows[m][0]]
+        # none of the new images sees it: it stays as it was (the images whose cone meets its
+        # ball, on the side it faces, are asked; the frame alone tells both)
+        asked = in_cone[:, m] & _facing(Maplet.frame_of(maplet), cameras)
+        if not asked.any():
+            continue
         grid = _subsample(maplet, tracer, sample_nodes)
         corners = _box(grid.nodes_body().reshape(-1, 3))
-        # none of the new images sees it: it stays as it was
-        if not any(_facing(grid, v.pose.position[None])[0] and _may_see(corners, v) for v in new):
+        if not any(_may_see(corners, v) for v, ask in zip(new, asked, strict=True) if ask):
             continue
         stored = {row.image_id: row for row in session.scalars(
             select(Coverage).where(Coverage.maplet_id == maplet.id))}
@@ -134,7 +140,7 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
         # with the catalog.
         again = wanted | {i for i, row in stored.items() if row.camera_azimuth_deg is None}
         # a cone passes through the body: the cameras on the side the maplet faces
-        near = ids[cones.seeing(balls[0][m], balls[1][m])[:, 0] & _facing(grid, cones.apex)]
+        near = ids[cones.seeing(balls[0][m], balls[1][m])[:, 0] & _facing(grid.frame, cones.apex)]
         if maplet.id not in added:
             near = near[np.isin(near, list(again))]
         traced = {i: v for i, v in views.get(near.tolist()).items() if _may_see(corners, v)}
@@ -182,8 +188,14 @@ def _tile_seen(session: Session, tracer: RayTracer, new: list[View], views: _Vie
     samples = footprint_samples(tracer, new)
     if not len(samples.points):
         return set()
+    # a maplet covers points within sqrt(3)/2 of its side of its origin (`_covered`): those of
+    # the rest of the catalog need not be read
+    reach = np.sqrt(3.0) / 2 * float(session.scalar(select(func.max(Maplet.size_km))) or 0.0)
+    low, high = samples.points.min(axis=0) - reach, samples.points.max(axis=0) + reach
     catalogued = session.execute(select(Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km,
-                                        Maplet.rotation, Maplet.size_km, Maplet.gsd_m)).all()
+                                        Maplet.rotation, Maplet.size_km, Maplet.gsd_m).where(
+        *(column.between(float(a), float(b)) for column, a, b in zip(
+            (Maplet.origin_x_km, Maplet.origin_y_km, Maplet.origin_z_km), low, high, strict=True)))).all()
     # Nothing to tile where maplets as fine as the new images could make cover every sample:
     # spare judging the footprints in the many images of a well-imaged place.
     nearest_km = min(float(np.linalg.norm(samples.points - v.pose.position, axis=1).min()) / v.camera.fx
@@ -246,10 +258,10 @@ def _subsample(maplet: Maplet, tracer: RayTracer, sample_nodes: int) -> MapletGr
     return grid
 
 
-def _facing(grid: MapletGrid, cameras_km: np.ndarray) -> np.ndarray:
-    """Which cameras (N, 3) lie on the side of the body the maplet faces (FACING_COS)."""
-    to_camera = cameras_km - grid.frame.origin
-    return to_camera @ grid.frame.normal > FACING_COS * np.linalg.norm(to_camera, axis=1)
+def _facing(frame: LocalFrame, cameras_km: np.ndarray) -> np.ndarray:
+    """Which cameras (N, 3) lie on the side of the body a maplet in this frame faces (FACING_COS)."""
+    to_camera = cameras_km - frame.origin
+    return to_camera @ frame.normal > FACING_COS * np.linalg.norm(to_camera, axis=1)
 
 
 def _box(points: np.ndarray) -> np.ndarray:
