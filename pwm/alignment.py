@@ -359,7 +359,7 @@ def rise_motion(maplet: MapletGrid, data: MapletImages, axis: np.ndarray | None 
     """(K, 2) how each image's view of a node (default the maplet's centre) moves (sample, line;
     px per km) as the node moves along `axis` (default the maplet's local z: a rise)."""
     row, col = (maplet.n // 2, maplet.n // 2) if node is None else node
-    point = maplet.nodes_body()[row, col]
+    point = maplet.node_body(row, col)
     return image_motion(data, point, maplet.frame.rotation[2] if axis is None else axis, step_km=maplet.spacing_km)
 
 

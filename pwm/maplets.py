@@ -55,6 +55,11 @@ class MapletGrid:
         """(n, n, 3) body-fixed coordinates of the nodes (km)."""
         return self.frame.to_body(self.nodes_local(heights).reshape(-1, 3)).reshape(self.n, self.n, 3)
 
+    def node_body(self, row: int, col: int) -> np.ndarray:
+        """(3,) body-fixed coordinates (km) of the node at [row, col]: one of `nodes_body`."""
+        axis = self.axis_km
+        return self.frame.to_body(np.array([[axis[col], axis[row], self.heights[row, col]]]))[0]
+
 
 def flat_grid(name: str, frame: LocalFrame, *, size_km: float, nodes: int) -> MapletGrid:
     """A maplet of nodes x nodes over the square of side size_km of `frame`, its heights zero

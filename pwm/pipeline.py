@@ -326,7 +326,7 @@ def landmark_pixels(maplet: MapletGrid, data: MapletImages, offsets: np.ndarray)
     maplet. These are observations of the images' poses in the pixels of the images themselves,
     whatever poses they were registered with: a bundle adjustment takes them as a track of one
     point (SPC's landmarks)."""
-    centre = maplet.nodes_body()[maplet.n // 2, maplet.n // 2]
+    centre = maplet.node_body(maplet.n // 2, maplet.n // 2)
     return np.array([project(centre[None], camera, pose)[0] for camera, pose in
                      zip(data.cameras, data.poses, strict=True)]).reshape(-1, 2) + np.asarray(offsets, float)
 

@@ -61,6 +61,7 @@ def test_region_tiles_are_on_the_surface_in_local_frames(sphere):
         assert np.abs(np.linalg.norm(m.nodes_body(), axis=2) - R).max() < sag(sphere)
         assert m.meta["filled_nodes"] == 0 and m.heights.shape == (11, 11)
         assert np.allclose(m.albedo, 0.04 + 0.01 * m.nodes_body()[..., 0] / R, atol=2e-5)
+        assert all(np.array_equal(m.node_body(i, j), m.nodes_body()[i, j]) for i, j in ((0, 0), (5, 5), (2, 9)))
     # neighbours one step of (1 - overlap) * size apart
     origins = np.array([m.frame.origin for m in maplets])
     d = np.linalg.norm(origins[:, None] - origins[None], axis=2)
