@@ -123,9 +123,10 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
     cameras = np.array([v.pose.position for v in new])
     for m in candidates.tolist():
         maplet = by_id[rows[m][0]]
+        frame = Maplet.frame_of(maplet)
         # none of the new images sees it: it stays as it was (the images whose cone meets its
         # ball, on the side it faces, are asked; the frame alone tells both)
-        asked = in_cone[:, m] & _facing(Maplet.frame_of(maplet), cameras)
+        asked = in_cone[:, m] & _facing(frame, cameras)
         if not asked.any():
             continue
         grid = _subsample(maplet, tracer, sample_nodes)
@@ -140,7 +141,7 @@ def update_coverage(session: Session, shape: Mesh, *, downlink_id: int | None = 
         # with the catalog.
         again = wanted | {i for i, row in stored.items() if row.camera_azimuth_deg is None}
         # a cone passes through the body: the cameras on the side the maplet faces
-        near = ids[cones.seeing(balls[0][m], balls[1][m])[:, 0] & _facing(grid.frame, cones.apex)]
+        near = ids[cones.seeing(balls[0][m], balls[1][m])[:, 0] & _facing(frame, cones.apex)]
         if maplet.id not in added:
             near = near[np.isin(near, list(again))]
         traced = {i: v for i, v in views.get(near.tolist()).items() if _may_see(corners, v)}
