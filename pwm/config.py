@@ -22,6 +22,7 @@ from typing import Any, get_args
 from pwm.alignment import REGISTRATION, Registration
 from pwm.knowledge import KnowledgeErrors
 from pwm.photoclinometry import SOLVER, Mode, Solver
+from pwm.uncertainty import UNCERTAINTY, Uncertainty
 from pwm.weights import RULES, Rules
 
 MODES: tuple[str, ...] = get_args(Mode)
@@ -123,6 +124,7 @@ class RefinementConfig:
     (View.los_sigma_px); service.spg.within_a_pixel judges by it whether an adjustment can matter.
     placement: how a maplet whose start is off by pixels of parallax is placed (`Placement`);
     registration: the images' registration to a maplet (pwm.alignment.Registration).
+    uncertainty: how each refined node's 1-sigma height is made (pwm.uncertainty.Uncertainty).
     """
 
     mode: Mode = "pwm"
@@ -141,6 +143,7 @@ class RefinementConfig:
     knowledge_sigmas: float = 3.0  # an image is searched for this many sigmas of its line of sight
     placement: Placement = field(default=PLACEMENT)
     registration: Registration = field(default=REGISTRATION)
+    uncertainty: Uncertainty = field(default=UNCERTAINTY)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -173,12 +176,13 @@ class RefinementConfig:
     def digested(self) -> dict[str, Any]:
         """The settings that change one maplet's refinement, as JSON values: mode, search, knowledge
         sigmas, height sweep, shape windows, image count, placement, registration, weighting rules,
-        solver (not the tiling's, the passes or the pose knowledge: module docstring)."""
+        solver, uncertainty (not the tiling's, the passes or the pose knowledge: module docstring)."""
         return {"mode": self.mode, "search_px": self.search_px, "knowledge_sigmas": self.knowledge_sigmas,
                 "height_sweep_px": self.height_sweep_px, "shape_window_nodes": self.shape_window_nodes,
                 "min_images": self.min_images, "placement": dataclasses.asdict(self.placement),
                 "registration": dataclasses.asdict(self.registration),
-                "rules": dataclasses.asdict(self.rules), "solver": dataclasses.asdict(self.solver)}
+                "rules": dataclasses.asdict(self.rules), "solver": dataclasses.asdict(self.solver),
+                "uncertainty": dataclasses.asdict(self.uncertainty)}
 
 
 DEFAULTS = RefinementConfig()

@@ -18,7 +18,8 @@ from pwm.frames import LocalFrame
 @dataclass
 class MapletGrid:
     """One maplet. heights, albedo: (n, n) arrays indexed [i (y), j (x)]; weight: region weight
-    w_PWM of the latest refinement (1 before any)."""
+    w_PWM of the latest refinement (1 before any); sigma: (n, n) each node's 1-sigma height (km,
+    pwm.uncertainty; NaN where no image weighed it), None before any refinement."""
 
     name: str
     frame: LocalFrame
@@ -26,6 +27,7 @@ class MapletGrid:
     heights: np.ndarray
     albedo: np.ndarray | None = None
     weight: float = 1.0
+    sigma: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
 
     @property

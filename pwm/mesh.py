@@ -17,11 +17,14 @@ class Mesh:
     vertices: (N, 3) float64, body-fixed frame, km.
     faces: (M, 3) int64 vertex indices, counter-clockwise seen from outside.
     albedo: (N,) float64 normal albedo per vertex, or None.
+    sigma: (N,) float64 1-sigma height per vertex, km (NaN where nothing says), or None
+    (pwm.uncertainty).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     albedo: np.ndarray | None = None
+    sigma: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
@@ -30,6 +33,10 @@ class Mesh:
             self.albedo = np.ascontiguousarray(self.albedo, dtype=np.float64)
             if self.albedo.shape != (len(self.vertices),):
                 raise ValueError("albedo must have one value per vertex")
+        if self.sigma is not None:
+            self.sigma = np.ascontiguousarray(self.sigma, dtype=np.float64)
+            if self.sigma.shape != (len(self.vertices),):
+                raise ValueError("sigma must have one value per vertex")
 
     def require_albedo(self) -> np.ndarray:
         """The per-vertex albedo (N,); ValueError for a mesh that has none."""

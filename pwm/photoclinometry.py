@@ -126,8 +126,12 @@ class Refinement:
     image (geometric mean 1); offsets: (K, 2) pointing corrections (sample, line), px; rms: (K,)
     RMS of I - s A G over the nodes each image weighs (reflectance units; NaN if none);
     iterations: Gauss-Newton steps taken; converged: the last step's RMS height change, or the
-    objective's relative decrease, was below its tolerance. lidar_rms: RMS of the spots' height
-    residuals in their sigmas (NaN without spots)."""
+    objective's relative decrease, was below its tolerance. How the images agree with the solved
+    shape, node by node (pwm.uncertainty.node_sigma): weights (K, n, n) each image's weight in
+    the solution; misfit (K, n, n) its brightness I - s A G over the mean brightness (NaN where
+    unweighed); slope_gradients (K, n, n, 2) that relative brightness's derivatives with respect
+    to the slopes p and q. lidar_rms: RMS of the spots' height residuals in their sigmas (NaN
+    without spots)."""
 
     heights: np.ndarray
     albedo: np.ndarray
@@ -136,6 +140,9 @@ class Refinement:
     rms: np.ndarray
     iterations: int
     converged: bool
+    weights: np.ndarray
+    misfit: np.ndarray
+    slope_gradients: np.ndarray
     lidar_rms: float = float("nan")
 
 
@@ -838,7 +845,12 @@ def refine(
     count = used.sum(axis=1)
     rms = np.where(count > 0, np.sqrt((misfit**2).sum(axis=1) / np.maximum(count, 1)), np.nan)
     in_sigmas = problem.spot_residuals(state.u) * maplet.spacing_km / spots.sigma_km
+    # the predicted brightness over the mean is s A G / I_ref: its slope derivatives scale alike
+    gain = state.scales[:, None] * state.albedo[None, :] / problem.i_ref
+    grid = (k_images, n, n)
     return Refinement(heights=(state.u * maplet.spacing_km).reshape(n, n), albedo=state.albedo.reshape(n, n),
                       scales=state.scales, offsets=state.offsets, rms=rms, iterations=iterations,
-                      converged=converged,
+                      converged=converged, weights=(ev.rows * problem.i_ref).reshape(grid),
+                      misfit=np.where(used, misfit / problem.i_ref, np.nan).reshape(grid),
+                      slope_gradients=np.stack([gain * ev.Gp, gain * ev.Gq], axis=-1).reshape(*grid, 2),
                       lidar_rms=float(np.sqrt(np.mean(in_sigmas**2))) if spots.count else float("nan"))

@@ -29,6 +29,7 @@ from pwm.parallel import Progress, map_processes
 from pwm.photoclinometry import MapletImages, Refinement, coarsened, extract, refine
 from pwm.raytrace import RayTracer
 from pwm.tiling import tile
+from pwm.uncertainty import node_sigma, vertex_sigma
 from pwm.views import View
 from pwm.weights import (
     RULES,
@@ -166,6 +167,9 @@ def refine_maplet(maplet: MapletGrid, views: list[View], tracer: RayTracer, *,
             result, raised = _swept_again(maplet, data, result, offsets=offsets, config=config, raised_km=raised,
                                           max_rise_km=start_edge_km, follow=many)
         refined.heights, refined.albedo = result.heights, result.albedo
+        refined.sigma = node_sigma(weights=result.weights, misfit=result.misfit,
+                                   slope_gradients=result.slope_gradients, spacing_km=maplet.spacing_km,
+                                   uncertainty=config.uncertainty)
         iterations, converged, rms = result.iterations, result.converged, [float(r) for r in result.rms]
         lidar_rms = result.lidar_rms
         seen = np.isfinite(result.rms)  # an image no node weighed kept its start: it observed nothing
@@ -452,7 +456,9 @@ def refine_region(start: Mesh, views: list[View], region: Region, *, config: Ref
 
 
 def fuse(maplets: list[MapletGrid], base: Mesh, *, overlap: float) -> tuple[Mesh, LevelGrids]:
-    """Fuse refined maplets, of any levels, with `base` (pwm.levels)."""
+    """Fuse refined maplets, of any levels, with `base` (pwm.levels); the mesh carries each
+    vertex's 1-sigma height from the maplets' (pwm.uncertainty.vertex_sigma)."""
     fusion = LevelGrids(taper_fraction=overlap)
     fusion.add_all(maplets, base=base)
-    return fusion.mesh(base), fusion
+    mesh = fusion.mesh(base)
+    return dataclasses.replace(mesh, sigma=vertex_sigma(mesh.vertices, maplets, taper_fraction=overlap)), fusion

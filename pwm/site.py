@@ -37,13 +37,15 @@ default."""
 @dataclass(frozen=True)
 class SiteGrid:
     """Heights (km, along the frame's z) and albedo on the regular grid x_km, y_km of the site
-    frame; arrays (ny, nx), NaN where the surface is not found or has no albedo."""
+    frame; arrays (ny, nx), NaN where the surface is not found or has no albedo; sigma_km the
+    surface's 1-sigma heights there (pwm.uncertainty), None where the mesh has none."""
 
     frame: LocalFrame
     x_km: np.ndarray
     y_km: np.ndarray
     height_km: np.ndarray
     albedo: np.ndarray
+    sigma_km: np.ndarray | None = None
 
 
 def resample_site(mesh: Mesh, *, lat_deg: float, lon_deg: float, radius_km: float,
@@ -77,8 +79,8 @@ def resample_site(mesh: Mesh, *, lat_deg: float, lon_deg: float, radius_km: floa
 
 
 def sample_grid(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarray) -> SiteGrid:
-    """The heights and albedo of `mesh` at the nodes x_km, y_km of `frame`: where a ray down the
-    frame's z axis first meets the surface (NaN where it misses). ValueError when no vertex lies
+    """The heights, albedo and 1-sigma heights of `mesh` at the nodes x_km, y_km of `frame`: where
+    a ray down the frame's z axis first meets the surface (NaN where it misses). ValueError when no vertex lies
     within the grid's reach of the frame's z axis."""
     tracer = RayTracer(mesh)
     # Rays start above everything within the grid's horizontal reach, so the first hit is the top.
@@ -92,8 +94,10 @@ def sample_grid(mesh: Mesh, frame: LocalFrame, x_km: np.ndarray, y_km: np.ndarra
     hits, height = drop_rays(tracer, frame, xx.ravel(), yy.ravel(), top_km=top, on_facets=True)
     albedo = (np.where(hits.hit, tracer.interpolate(mesh.albedo, hits), np.nan)
               if mesh.albedo is not None else np.full(len(height), np.nan))
+    sigma = None if mesh.sigma is None else np.where(hits.hit, tracer.interpolate(mesh.sigma, hits), np.nan)
     return SiteGrid(frame=frame, x_km=np.asarray(x_km), y_km=np.asarray(y_km),
-                    height_km=height.reshape(xx.shape), albedo=albedo.reshape(xx.shape))
+                    height_km=height.reshape(xx.shape), albedo=albedo.reshape(xx.shape),
+                    sigma_km=None if sigma is None else sigma.reshape(xx.shape))
 
 
 @dataclass(frozen=True)

@@ -380,7 +380,8 @@ def _write_terrain(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
         return " ".join(f"{v:.12g}" for v in values)
 
     write_terrain(path, driver=driver, x_km=grid.x_km, y_km=grid.y_km, projection=projection,
-                  layers=site_layers(grid.height_km, grid.albedo, spacing_m=spacing_m), metadata={
+                  layers=site_layers(grid.height_km, grid.albedo, spacing_m=spacing_m, sigma_km=grid.sigma_km),
+                  metadata={
                       "PWM_VERSION": str(plan.version), "PWM_MODEL_KIND": plan.kind,
                       "BODY": target.name, "BODY_NAIF_ID": str(target.body_id),
                       "BODY_FRAME": target.frame, "BODY_RADII_KM": numbers(radii),
@@ -428,7 +429,7 @@ def _write_site(path: Path, mesh: Mesh, *, plan: ExportPlan) -> None:
     projection = site_projection(grid.frame, body=target.name, radii_km=_radii(plan, target))
     files = write_site_product(
         scratch, name=name, frame=grid.frame, x_km=grid.x_km, y_km=grid.y_km,
-        height_km=grid.height_km, albedo=grid.albedo, projection=projection,
+        height_km=grid.height_km, albedo=grid.albedo, sigma_km=grid.sigma_km, projection=projection,
         lid=f"urn:nasa:pds:pwm:data_site:{name}", version="1.0",
         model_version=str(plan.version),
         source_lidvid=f"urn:nasa:pds:pwm:shape_model:v{plan.version:04d}::1.0",

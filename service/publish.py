@@ -26,6 +26,7 @@ track's residuals on it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import tempfile
 import time
@@ -46,6 +47,7 @@ from pwm.lidar.model import disagreement, residual_summary, sample_shots, spot_n
 from pwm.lidar.shots import Shots
 from pwm.lidar.tracks import NO_TRACK, crossovers
 from pwm.mesh import Mesh
+from pwm.uncertainty import sigma_summary, vertex_sigma
 from service.artifacts import artifact_path, scratch_path
 from service.db import session_scope
 from service.jobs import refined_downlinks
@@ -81,8 +83,9 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
     parent's sums were reused, the base version, the coarsest level's surface ("closed" or
     "laid"), voxels, each level's surface, voxel size and voxels, how the surface was
     composed (regions laid and carried over, whether the closed levels' surface was made again),
-    and seconds; with the mesh's own (service.versions.mesh_statistics: size, closure checks and
-    mass properties).
+    the 1-sigma heights (`pwm.uncertainty.sigma_summary`; each vertex's in the mesh, from every
+    current maplet's, pwm.uncertainty.vertex_sigma), and seconds; with the mesh's own
+    (service.versions.mesh_statistics: size, closure checks and mass properties).
     """
     clock = time.perf_counter()
     with session_scope(sessions) as session:
@@ -121,6 +124,9 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
             # a closed level whose lattice spans more than a block is fused in blocks
             close = partial(mesh_in_blocks, store=BlockFiles(Path(blocks_dir)), blocks=blocks)
             mesh, composition, laid = fusion.compose(base_mesh, previous=previous, close=close)
+        sigma = vertex_sigma(mesh.vertices, (load_revision_maplet(data_dir, r) for r in current.values()),
+                             taper_fraction=config.overlap)
+        mesh = dataclasses.replace(mesh, sigma=sigma)
         scratch = {"grid": scratch_path(data_dir, ".npz"), "composition": scratch_path(data_dir, ".npz")}
         write_levels(scratch["grid"], fusion)
         write_composition(scratch["composition"], composition)
@@ -141,7 +147,7 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
             "surface": next(iter(levels.values()))["surface"], "voxels": fusion.voxels, "levels": levels,
             "composition": {"regions_laid": laid.regions_laid, "regions_carried": laid.regions_carried,
                             "closed_levels_made": laid.below_made},
-            "fusion_seconds": time.perf_counter() - clock}
+            "height_sigma": sigma_summary(sigma), "fusion_seconds": time.perf_counter() - clock}
         lidar = lidar_statistics(session, data_dir=data_dir, mesh=mesh, version=parent.version + 1)
         if lidar is not None:
             statistics["lidar"] = lidar

@@ -398,6 +398,19 @@ def test_site_product_reads_back_with_pds4_tools(tmp_path):
         _site(tmp_path)
 
 
+def test_site_product_carries_the_height_sigma_where_the_model_has_one(tmp_path):
+    sigma = np.full((30, 40), 2e-5)
+    sigma[:, :10] = np.nan  # no refined maplet there
+    files, _ = _site(tmp_path, sigma_km=sigma)
+    label_schema().validate(files.label.read_text())
+    structures = pds4_tools.read(str(files.label), quiet=True)
+    back = _north_up(structures, "height_sigma")
+    assert np.isnan(back[:, :10]).all()
+    np.testing.assert_allclose(back[:, 10:], 0.02, rtol=1e-6)  # m
+    with pytest.raises(ValueError, match="sigma"):
+        _site(tmp_path / "x", sigma_km=sigma[1:])
+
+
 def test_site_product_rejects_irregular_grids(tmp_path):
     x = np.arange(40) * 1e-3
     x[-1] += 1e-4

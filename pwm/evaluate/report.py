@@ -112,6 +112,8 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     result["rms_gsd"] = result["rms_m"] / result["gsd_m"]
     result["median_gsd"] = result["median_m"] / result["gsd_m"]
     result["tail"] = _tail(distance, threshold_km=TAIL_GSD * gsd_km)
+    if model.sigma is not None:
+        result["sigma"] = calibration(distance, model.sigma[region])
 
     plots_dir = Path(plots_dir) if plots_dir is not None else None
     if plots_dir is not None:
@@ -127,6 +129,18 @@ def evaluate(model_path: str | Path, *, truth_dir: str | Path, plots_dir: str | 
     if model.albedo is not None:
         result.update(_views(manifest, truth_dir, tracer, plots_dir=plots_dir, whole_body=whole_body))
     return result
+
+
+def calibration(distance_km: np.ndarray, sigma_km: np.ndarray) -> dict:
+    """How well a model's 1-sigma heights tell its error: of the vertices with a sigma, the share
+    within one and two sigma of the truth (0.68 and 0.95 for a Gaussian error told exactly), the
+    median sigma (m), and the share of the vertices that have one."""
+    told = np.isfinite(sigma_km)
+    if not told.any():
+        return {"vertex_share": 0.0}
+    ratio = distance_km[told] / np.maximum(sigma_km[told], 1e-300)
+    return {"vertex_share": float(np.mean(told)), "within_1": float(np.mean(ratio <= 1.0)),
+            "within_2": float(np.mean(ratio <= 2.0)), "median_m": float(np.median(sigma_km[told]) * 1e3)}
 
 
 def _tail(distance_km: np.ndarray, *, threshold_km: float) -> dict:
@@ -384,6 +398,11 @@ def format_table(result: dict) -> str:
         rows.append((f"beyond {tail['threshold_gsd']:g} GSD",
                      f"{tail['vertex_share']:.3f} of the vertices carry {tail['squared_error_share']:.3f} of the "
                      f"squared error; RMS without them {tail['rms_without_m']:.4f} m"))
+    sigma = result.get("sigma")
+    if sigma is not None and sigma["vertex_share"] > 0:
+        rows.append(("height sigma", f"{sigma['within_1']:.3f} of the vertices within 1 sigma of the truth, "
+                                     f"{sigma['within_2']:.3f} within 2; median sigma {sigma['median_m']:.4f} m over "
+                                     f"{sigma['vertex_share']:.3f} of the vertices"))
     rows += [(f"band {name}", f"{rms:.4f} m") for name, rms in result.get("bands_rms_m", {}).items()]
     rows += [(f"{name}", f"RMS {c['rms']:.4f} m, p95 {c['p95']:.4f} m over {c['nodes']} nodes")
              for name, c in result.get("classes_m", {}).items()]

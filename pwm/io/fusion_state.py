@@ -1,5 +1,5 @@
 """What incremental fusion keeps between model versions, as numpy .npz files: a refined maplet
-(frame, spacing, heights, albedo, region weight), the sums of a fusion, level by level
+(frame, spacing, heights, albedo, region weight, 1-sigma heights), the sums of a fusion, level by level
 (pwm.levels.LevelGrids of pwm.fusion.VoxelGrid and pwm.volume.DistanceGrid), and how its surface
 was composed (pwm.levels.Composition), and the sums of a fusion in blocks, a file per block
 (`BlockFiles`, pwm.blocks).
@@ -39,6 +39,8 @@ def write_maplet(path: str | Path, maplet: MapletGrid) -> None:
               "heights_km": maplet.heights, "weight": np.array(maplet.weight)}
     if maplet.albedo is not None:
         arrays["albedo"] = maplet.albedo
+    if maplet.sigma is not None:
+        arrays["sigma_km"] = maplet.sigma
     with open(path, "wb") as stream:
         np.savez(stream, **arrays)  # type: ignore[arg-type]  # numpy's stub checks **arrays against allow_pickle
 
@@ -50,7 +52,7 @@ def read_maplet(path: str | Path) -> MapletGrid:
                           frame=LocalFrame(origin=data["origin_km"], rotation=data["rotation"]),
                           spacing_km=float(data["spacing_km"]), heights=data["heights_km"],
                           albedo=data["albedo"] if "albedo" in data else None,
-                          weight=float(data["weight"]))
+                          weight=float(data["weight"]), sigma=data["sigma_km"] if "sigma_km" in data else None)
 
 
 def write_levels(path: str | Path, fusion: LevelGrids) -> None:

@@ -1,6 +1,7 @@
 """Read and write meshes: Wavefront OBJ and binary PLY (with per-vertex albedo), in km.
 
-PLY carries the albedo as a named vertex property (`albedo`, float, after x y z). OBJ has no
+PLY carries the albedo as a named vertex property (`albedo`, float, after x y z), and the 1-sigma
+height as `height_sigma` (float, km, NaN where nothing says; pwm.uncertainty); OBJ has neither. OBJ has no
 albedo field: it goes as a grey vertex colour stretched over the mesh's albedo range
 (ALBEDO_COLOUR_FLOOR at the darkest, 1 at the brightest) so that viewers show the body's
 pattern instead of a near-black body (albedos are a few per cent), and a comment header
@@ -100,24 +101,24 @@ def _comment_lines(comments: Sequence[str]) -> list[str]:
 
 
 def write_ply(path: str | Path, mesh: Mesh, *, comments: Sequence[str] = ()) -> None:
-    """Write binary little-endian PLY: float64 x y z (km), float32 albedo if present, and
-    `comments` (one line each) in its header."""
+    """Write binary little-endian PLY: float64 x y z (km), float32 albedo and height_sigma (km)
+    if present, and `comments` (one line each) in its header."""
     n, m = len(mesh.vertices), len(mesh.faces)
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    if mesh.albedo is not None:
-        fields.append(("albedo", "<f4"))
+    extra = [(name, values) for name, values in (("albedo", mesh.albedo), ("height_sigma", mesh.sigma))
+             if values is not None]
+    fields += [(name, "<f4") for name, _ in extra]
     vert = np.empty(n, dtype=fields)
     vert["x"], vert["y"], vert["z"] = mesh.vertices.T
-    if mesh.albedo is not None:
-        vert["albedo"] = mesh.albedo
+    for name, values in extra:
+        vert[name] = values
     face = np.empty(m, dtype=[("n", "u1"), ("i", "<i4", (3,))])
     face["n"] = 3
     face["i"] = mesh.faces
     header = ["ply", "format binary_little_endian 1.0", "comment pwm mesh, body-fixed frame, km",
               *(f"comment {line}" for line in _comment_lines(comments)), f"element vertex {n}",
               "property double x", "property double y", "property double z"]
-    if mesh.albedo is not None:
-        header.append("property float albedo")
+    header += [f"property float {name}" for name, _ in extra]
     header += [f"element face {m}", "property list uchar int vertex_indices", "end_header"]
     with open(path, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
@@ -154,7 +155,7 @@ def read_ply(path: str | Path) -> Mesh:
                 break
         if fmt != "binary_little_endian":
             raise ValueError(f"{path}: only binary_little_endian PLY is supported, got {fmt!r}")
-        verts = albedo = faces = None
+        verts = albedo = sigma = faces = None
         for name, count, props in elements:
             if name == "vertex":
                 dt = np.dtype([(p, "<" + _PLY_TYPES[t]) for p, t in props])
@@ -162,6 +163,8 @@ def read_ply(path: str | Path) -> Mesh:
                 verts = np.column_stack([data["x"], data["y"], data["z"]]).astype(np.float64)
                 if "albedo" in (data.dtype.names or ()):
                     albedo = data["albedo"].astype(np.float64)
+                if "height_sigma" in (data.dtype.names or ()):
+                    sigma = data["height_sigma"].astype(np.float64)
             elif name == "face":
                 (pname, ptype), = props
                 _, ctype, itype = ptype.split()
@@ -174,7 +177,7 @@ def read_ply(path: str | Path) -> Mesh:
                 raise ValueError(f"{path}: unsupported element {name!r}")
     if verts is None or faces is None:
         raise ValueError(f"{path}: missing vertex or face element")
-    return Mesh(verts, faces, albedo)
+    return Mesh(verts, faces, albedo, sigma)
 
 
 def read_shape_model(path: str | Path) -> Mesh:

@@ -59,10 +59,16 @@ class SiteProductFiles(NamedTuple):
 
 
 def site_layers(height_km: np.ndarray, albedo: np.ndarray, *, spacing_m: float,
-                baseline_m: float = BASELINE_M) -> list[TerrainLayer]:
+                baseline_m: float = BASELINE_M, sigma_km: np.ndarray | None = None) -> list[TerrainLayer]:
     """A site's terrain layers on its grid (rows y increasing, NaN where no data): height (m
-    along the site frame's z), albedo, slope (deg) and roughness (m) over the baseline."""
+    along the site frame's z), albedo, slope (deg) and roughness (m) over the baseline, and the
+    heights' 1-sigma uncertainty (m) where the model has one."""
     height_m = np.asarray(height_km, dtype=np.float64) * 1e3
+    uncertain = [] if sigma_km is None else [
+        TerrainLayer("height_sigma", np.asarray(sigma_km, dtype=np.float64) * 1e3, "m",
+                     "One-sigma uncertainty (m) of the height at each node, from how the images "
+                     "agree with the refined shape (pwm.uncertainty); no data where no refined "
+                     "maplet covers the node.")]
     return [
         TerrainLayer("height", height_m, "m",
                      "Height (m) along the site frame z axis (the regional normal) from the site "
@@ -78,7 +84,7 @@ def site_layers(height_km: np.ndarray, albedo: np.ndarray, *, spacing_m: float,
                      "m",
                      f"Roughness (m): RMS deviation of the heights from the plane fitted over the "
                      f"square of side {baseline_m:g} m centred on each node."),
-    ]
+    ] + uncertain
 
 
 def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x_km: np.ndarray,
@@ -87,14 +93,15 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
                        source_lidvid: str, body_frame: str, target_name: str,
                        target_type: str = "Asteroid", mission: str, host_name: str,
                        start_utc: str, stop_utc: str,
-                       baseline_m: float = BASELINE_M) -> SiteProductFiles:
+                       baseline_m: float = BASELINE_M, sigma_km: np.ndarray | None = None) -> SiteProductFiles:
     """Write name.xml (PDS4 label), name.dat (heights, albedo, slope, roughness) and name.png
     (shaded relief and albedo side by side) into `directory`; existing files are never
     overwritten. Slope and roughness are computed from the heights (pwm.site) over a window of
     side baseline_m; the grid must be square (equal x and y steps).
 
     frame: the site frame (origin and axes in body_frame, km); x_km (nx,), y_km (ny,): regular,
-    increasing node coordinates in it; height_km, albedo: (ny, nx), NaN where there is no data.
+    increasing node coordinates in it; height_km, albedo: (ny, nx), NaN where there is no data;
+    sigma_km: the heights' 1-sigma uncertainty alike, a layer of its own (None: the model has none).
     projection: the site frame's map projection (pwm.io.terrain.site_projection).
     source_lidvid: the LIDVID the shape model version is referred to by.
     start_utc, stop_utc: time span of the images behind the model (UTC ISO-8601).
@@ -102,9 +109,10 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
     x, y = _axis(x_km, "x_km"), _axis(y_km, "y_km")
     start, stop = utc_iso(start_utc), utc_iso(stop_utc)
     shape = (len(y), len(x))
-    if np.shape(height_km) != shape or np.shape(albedo) != shape:
-        raise ValueError(f"height {np.shape(height_km)} and albedo {np.shape(albedo)} must be "
-                         f"(len(y_km), len(x_km)) = {shape}")
+    sigma_shape = shape if sigma_km is None else np.shape(sigma_km)
+    if np.shape(height_km) != shape or np.shape(albedo) != shape or sigma_shape != shape:
+        raise ValueError(f"height {np.shape(height_km)}, albedo {np.shape(albedo)} and sigma "
+                         f"{sigma_shape} must be (len(y_km), len(x_km)) = {shape}")
     if np.isnan(height_km).all():
         raise ValueError("height_km has no data")
     spacing_m = (x[1] - x[0]) * 1e3
@@ -118,7 +126,7 @@ def write_site_product(directory: str | Path, *, name: str, frame: LocalFrame, x
         if path.exists():
             raise FileExistsError(f"{path} exists; a product is written once")
 
-    layers = site_layers(height_km, albedo, spacing_m=spacing_m, baseline_m=baseline_m)
+    layers = site_layers(height_km, albedo, spacing_m=spacing_m, baseline_m=baseline_m, sigma_km=sigma_km)
     types = [_HEIGHT if layer.name == "height" else _SINGLE for layer in layers]
     # line 0 north: the grid's last row first
     arrays = [np.flipud(np.where(np.isnan(layer.values), MISSING, layer.values)).astype(dtype)

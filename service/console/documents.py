@@ -56,8 +56,8 @@ MAGIC = b"PWMC"
 # (at 300k the document is about 8 MB; bench/console.py times its first draw).
 MESH_FACES = 300_000
 # Bump when a document's content changes for the same inputs.
-REVISION = 4
-FIELD_UNITS = {"albedo": "", "height": "m", "slope": "deg", "change": "m"}
+REVISION = 5
+FIELD_UNITS = {"albedo": "", "height": "m", "slope": "deg", "change": "m", "sigma": "m"}
 UNKNOWN_GREY = 115
 # Farthest (km) a version's surface may have moved from its parent's and still be compared.
 CHANGE_REACH_KM = 0.01
@@ -125,8 +125,9 @@ def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | No
     """The file of the 3D view's document of a version, made once: the mesh decimated to at
     most `faces` faces, vertices (float32, km, body-fixed), faces (uint32), unit normals
     (int8, x 127), and per vertex an RGB colour (uint8) of each of albedo, height (m above the
-    mean radius), slope (deg between the vertex normal and the radial direction) and change (m
-    along the normal since the parent version, pwm.compare; unknown without a parent), with
+    mean radius), slope (deg between the vertex normal and the radial direction), change (m
+    along the normal since the parent version, pwm.compare; unknown without a parent) and the
+    1-sigma height (m, pwm.uncertainty; unknown where the version has none), with
     the range each colour map spans in the header. The browser does no per-vertex work.
     cache_bytes: as for service.artifacts.cached_artifact."""
     key = digest({"console": "mesh", "revision": REVISION, "mesh": request.mesh["sha256"],
@@ -163,7 +164,7 @@ def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh)
     fields = {"albedo": (mesh.albedo if mesh.albedo is not None
                          else np.full(len(mesh.vertices), np.nan)),
               "height": (radius - radius.mean()) * 1e3, "slope": slope,
-              "change": _change(data_dir, request, mesh, full=full)}
+              "change": _change(data_dir, request, mesh, full=full), "sigma": _sigma_m(mesh, full=full)}
     colours = {name: _colour(values, signed=name == "change") for name, values in fields.items()}
     header = {"kind": "mesh", "version": request.version, "parent": request.parent,
               "faces_full": len(full.faces), "faces": len(mesh.faces),
@@ -189,6 +190,17 @@ def _change(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> 
         return change
     _, nearest = cKDTree(full.vertices).query(mesh.vertices)
     return change[nearest]
+
+
+def _sigma_m(mesh: Mesh, *, full: Mesh) -> np.ndarray:
+    """The 1-sigma height (m) at the vertices of `mesh`: each from its nearest vertex of the full
+    mesh, which carries them (decimation does not); NaN where the version has none."""
+    if full.sigma is None:
+        return np.full(len(mesh.vertices), np.nan)
+    if mesh is full:
+        return full.sigma * 1e3
+    _, nearest = cKDTree(full.vertices).query(mesh.vertices)
+    return full.sigma[nearest] * 1e3
 
 
 def _extent_km(mesh: Mesh) -> dict[str, Any]:
@@ -273,11 +285,12 @@ class SiteRequest:
 def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> Path:
     """The file of a site's maps, made once: the version's surface resampled on the site
     frame's grid (service.exports.site_grid, as the site product is), with height (m),
-    albedo, slope (deg), roughness (m), relief (m above the plane over the baseline) and the
-    hazard mask (uint8, pwm.site) and the fine-data mask (uint8, `_fine`) as [line = y,
-    sample = x] arrays; the header holds the grid (x0_m, y0_m, spacing_m, the site frame), the
-    direction of north in it (`_north`), where the fine data lies (`_fine`) and each map's
-    minimum, mean and maximum. Raises ExportError when the site meets no surface."""
+    albedo, slope (deg), roughness (m), relief (m above the plane over the baseline), the 1-sigma
+    height (m; NaN where the version has none), the hazard mask (uint8, pwm.site) and the
+    fine-data mask (uint8, `_fine`) as [line = y, sample = x] arrays; the header holds the grid
+    (x0_m, y0_m, spacing_m, the site frame), the direction of north in it (`_north`), where the
+    fine data lies (`_fine`) and each map's minimum, mean and maximum. Raises ExportError when
+    the site meets no surface."""
     key = digest({"console": "site", "revision": REVISION, "mesh": request.mesh["sha256"],
                   "site": request.site.model_dump(), "baseline_m": request.baseline_m,
                   "thresholds": [request.thresholds.max_slope_deg,
@@ -294,7 +307,8 @@ def site_document(data_dir: Path, request: SiteRequest, *, cache_bytes: int) -> 
                 "slope": slope_deg(height, spacing_m=spacing_m, baseline_m=request.baseline_m),
                 "roughness": roughness_m(height, spacing_m=spacing_m,
                                          baseline_m=request.baseline_m),
-                "relief": relief_m(height, spacing_m=spacing_m, baseline_m=request.baseline_m)}
+                "relief": relief_m(height, spacing_m=spacing_m, baseline_m=request.baseline_m),
+                "sigma": (np.full_like(height, np.nan) if grid.sigma_km is None else grid.sigma_km * 1e3)}
         hazardous = hazard(maps["slope"], maps["relief"], request.thresholds)
         fine, fine_header = _fine(grid.frame, grid.x_km, grid.y_km, request.maplets)
         header = {"kind": "site", "version": request.version, "site": request.site.model_dump(),

@@ -59,10 +59,12 @@ def module_postgres_url(postgres_server) -> Iterator[str]:
 
 
 def refined_bennu() -> Mesh:
-    """The Bennu radar model subdivided once, with an albedo pattern."""
+    """The Bennu radar model subdivided once, with an albedo pattern and a 1-sigma height of 2-4
+    cm over its northern half (none over the south, as where no maplet was refined)."""
     start = read_mesh(BENNU_OBJ)
     vertices, faces = trimesh.remesh.subdivide(start.vertices, start.faces)
-    return Mesh(vertices, faces, albedo=0.044 + 0.01 * np.sin(vertices[:, 0] / 0.05))
+    sigma = np.where(vertices[:, 2] > 0, 1e-5 * (3 + np.cos(vertices[:, 1] / 0.05)), np.nan)
+    return Mesh(vertices, faces, albedo=0.044 + 0.01 * np.sin(vertices[:, 0] / 0.05), sigma=sigma)
 
 
 @pytest.fixture(scope="module")

@@ -165,7 +165,7 @@ def test_cli_export_and_release(populated, tmp_path, monkeypatch):
                                      "--radius-km", "0.02", "--out", str(tif)])
         assert result.exit_code == 0, result.output
         with rasterio.open(tif) as raster:
-            assert raster.crs.to_dict()["proj"] == "ortho" and raster.count == 4
+            assert raster.crs.to_dict()["proj"] == "ortho" and raster.count == 5
         result = runner.invoke(cli, ["export", "2", "--format", "obj", "--radius-km", "0.02",
                                      "--out", str(tmp_path / "v2.obj")])
         assert result.exit_code != 0 and "--radius-km" in result.output
@@ -197,7 +197,7 @@ def test_site_as_geotiff_and_isis_cube(client, populated, tmp_path):
     cub = _download(client, 2, tmp_path, "v2.cub", format="isis", **SITE)
     with rasterio.open(tif) as raster:
         tags = raster.tags()
-        assert raster.units[0] == "m" and raster.units[2] == "deg"
+        assert raster.units[0] == "m" and raster.units[2] == "deg" and raster.units[4] == "m"
     assert tags["PWM_VERSION"] == "2" and tags["BODY_FRAME"] == "IAU_BENNU" and tags["BODY"] == "BENNU"
     # the kernels' triaxial radii; the projection's sphere has their mean
     radii_km = np.array(tags["BODY_RADII_KM"].split(), dtype=float)
@@ -208,8 +208,10 @@ def test_site_as_geotiff_and_isis_cube(client, populated, tmp_path):
     assert abs(lat - SITE["lat"]) < 30.0
     for path, driver, tolerance_m in ((tif, "GTiff", 1e-9), (cub, "ISIS3", 1e-3)):
         with rasterio.open(path) as raster:
-            assert raster.driver == driver and raster.count == 4
-            assert raster.descriptions == ("height", "albedo", "slope", "roughness")
+            assert raster.driver == driver and raster.count == 5
+            assert raster.descriptions == ("height", "albedo", "slope", "roughness", "height_sigma")
+            sigma = raster.read(5, masked=True)
+            assert 0.02 <= sigma.min() <= sigma.max() <= 0.04  # m
             crs = raster.crs.to_dict()
             assert crs["proj"] == "ortho" and abs(crs["lat_0"] - lat) < 1e-9
             assert abs((crs["lon_0"] - lon + 180.0) % 360.0 - 180.0) < 1e-9

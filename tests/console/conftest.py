@@ -46,11 +46,13 @@ class Console:
 
 
 def raised(start: Mesh) -> Mesh:
-    """The start subdivided once, moved RAISE_M outward along the radius, with albedo."""
+    """The start subdivided once, moved RAISE_M outward along the radius, with albedo, and a
+    1-sigma height of 1-3 cm over its northern half (none over the south: no refined maplet)."""
     vertices, faces = trimesh.remesh.subdivide(start.vertices, start.faces)
     radius = np.linalg.norm(vertices, axis=1, keepdims=True)
     vertices = vertices * (1 + RAISE_M * 1e-3 / radius)
-    return Mesh(vertices, faces, albedo=0.044 + 0.01 * np.sin(vertices[:, 0] / 0.02))
+    sigma = np.where(vertices[:, 2] > 0, 1e-5 * (2 + np.cos(vertices[:, 1] / 0.02)), np.nan)
+    return Mesh(vertices, faces, albedo=0.044 + 0.01 * np.sin(vertices[:, 0] / 0.02), sigma=sigma)
 
 
 @pytest.fixture(scope="module")

@@ -130,6 +130,10 @@ def test_3d_view_draws_the_version(browser, console, screenshot):
     assert float(bar.get_attribute("data-max")) == pytest.approx(header["colours"]["change"]["max"])
     browser.find_element(By.CSS_SELECTOR, "#colour option[value=albedo]").click()
     assert "(no unit)" in browser.find_element(By.CSS_SELECTOR, "#colour-bar text.title").text
+    browser.find_element(By.CSS_SELECTOR, "#colour option[value=sigma]").click()
+    bar = browser.find_element(By.CSS_SELECTOR, "#colour-bar [data-role=colour-bar]")
+    assert bar.find_element(By.CSS_SELECTOR, "text.title").text == "height uncertainty (1 sigma) (m)"
+    assert float(bar.get_attribute("data-max")) == pytest.approx(header["colours"]["sigma"]["max"])
     assert console_errors(browser) == []
 
 
@@ -185,7 +189,7 @@ def test_site_page_shows_the_sites_numbers(browser, console, screenshot):
     header, arrays = unpack(response.content)
     shown = {row[0].split(" ")[0]: row[1:] for row in cells(browser, "site-stats")}
     assert set(shown) == set(header["statistics"]) == {"height", "albedo", "slope", "roughness",
-                                                       "relief"}
+                                                       "relief", "sigma"}
     for name, extent in header["statistics"].items():
         assert [float(v) for v in shown[name]] == pytest.approx(
             [extent["min"], extent["mean"], extent["max"]], rel=1e-3, abs=1e-6)
@@ -200,7 +204,7 @@ def test_site_page_shows_the_sites_numbers(browser, console, screenshot):
     rotation = np.array(header["frame"]["rotation"])
     north_deg = math.degrees(math.atan2(rotation[0, 2], rotation[1, 2]))
     extent_m = header["nx"] * header["spacing_m"]
-    units = {"height": "m", "slope": "deg", "roughness": "m", "albedo": "no unit"}
+    units = {"height": "m", "slope": "deg", "roughness": "m", "albedo": "no unit", "sigma": "m"}
     figures = browser.find_elements(By.CSS_SELECTOR, "#maps figure")
     assert [f.get_attribute("data-map") for f in figures] == [*units, "hazard"]
     for figure in figures:

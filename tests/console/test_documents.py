@@ -41,9 +41,11 @@ def test_mesh_document_of_a_refined_version(console):
     assert arrays["faces"].max() == version["vertices"] - 1
     normals = arrays["normals"].astype(float) / 127
     np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=0.02)
-    for name in ("albedo", "height", "slope", "change"):
+    for name in ("albedo", "height", "slope", "change", "sigma"):
         assert arrays[f"colour_{name}"].shape == (version["vertices"], 3)
     colours = header["colours"]
+    # the 1-3 cm sigma of the northern half, in m (percentiles of it)
+    assert colours["sigma"]["unit"] == "m" and 0.01 <= colours["sigma"]["min"] < colours["sigma"]["max"] <= 0.03
     # the refinement stands RAISE_M outside its parent everywhere: the change map's range
     assert colours["change"]["max"] == pytest.approx(RAISE_M, abs=0.01)
     assert colours["change"]["min"] == -colours["change"]["max"]
@@ -59,6 +61,7 @@ def test_mesh_document_of_a_refined_version(console):
     # the start has no parent (no change) and no albedo in its OBJ: grey
     header1, arrays1 = unpack(console.api.get("/console/api/versions/1/mesh").content)
     assert header1["parent"] is None and header1["colours"]["change"]["min"] is None
+    assert header1["colours"]["sigma"]["min"] is None  # nothing refined, no sigma
     assert (arrays1["colour_change"] == arrays1["colour_change"][0]).all()
 
 
@@ -117,6 +120,11 @@ def test_site_document_says_where_refined_data_lies_and_where_north_is(console):
     start, start_arrays = unpack(console.api.get("/console/api/versions/1/site", params=site).content)
     assert start["fine"] == {"level": None, "maplets": [], "gsd_m": None, "fraction": 0.0}
     assert not start_arrays["fine"].any()
+    # the refined version's 1-sigma heights (1-3 cm north of the equator, the site's side); none
+    # in the start
+    sigma = arrays["sigma"][np.isfinite(arrays["sigma"])]
+    assert sigma.size > 0.9 * arrays["sigma"].size and 0.01 <= sigma.min() <= sigma.max() <= 0.03
+    assert np.isnan(start_arrays["sigma"]).all()
     # north: the body's +Z axis in the site frame's x-y plane; near 8 deg latitude with x east,
     # nearly the frame's +y
     rotation = np.array(header["frame"]["rotation"])

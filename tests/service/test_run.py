@@ -112,6 +112,10 @@ def test_downlinks_publish_versions_incrementally(tiny_sim, catalog, db_url, tmp
         assert sorted(r.id for r in v2.maplet_revisions) == sorted(run.revisions[:n])
         assert v2.statistics["maplets_changed"] == n
         assert v2.statistics["images"] == 6 and v2.statistics["base_version"] == 1
+        # each version's 1-sigma heights, from its maplets' (the tiny site's 5 cm pixels: cm)
+        sigma = v2.statistics["height_sigma"]
+        assert 0 < sigma["vertex_share"] < 1 and 0.005 < sigma["median_m"] < sigma["p90_m"] < 0.5, sigma
+        assert version_mesh(data, v2).sigma is not None
         # The second pass: the same maplets from the same images, against version 2.
         assert v3.parent.version == 2 and [d.name for d in v3.downlinks] == ["first"]
         assert sorted(r.id for r in v3.maplet_revisions) == sorted(run.revisions[n:])

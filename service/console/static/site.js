@@ -1,4 +1,4 @@
-// A site: height, slope, roughness and albedo at the finest level there and the hazard map
+// A site: height, slope, roughness, albedo and height uncertainty at the finest level there and the hazard map
 // (slopes above a threshold, boulders standing above the local plane), from one binary
 // document the server makes (service/console/documents.py); a profile along a line drawn on
 // the height map; the site terrain product to download. Each map has axes in metres of the
@@ -16,6 +16,7 @@ const MAPS = [
   ["slope", "slope", "deg", "from the regional normal, of the plane over the baseline"],
   ["roughness", "roughness", "m", "RMS about the plane over the baseline"],
   ["albedo", "albedo", "", ""],
+  ["sigma", "height uncertainty", "m", "1 sigma, from how the images agree with the refined shape"],
 ];
 const STOPS = Array.from({ length: 9 }, (_, k) => viridis(k / 8).map((c) => Math.round(255 * c)));
 const UNKNOWN = [200, 200, 200];
@@ -131,7 +132,7 @@ function drawMaps() {
     `above the plane over ${h.baseline_m} m; ${(100 * h.hazard_fraction).toFixed(1)}% of the site`).figure);
   const body = document.querySelector("#site-stats tbody");
   body.replaceChildren();
-  const units = { height: "m", slope: "deg", roughness: "m", albedo: "", relief: "m" };
+  const units = { height: "m", slope: "deg", roughness: "m", albedo: "", relief: "m", sigma: "m" };
   for (const [name, extent] of Object.entries(h.statistics)) {
     const row = tableRow([withUnit(name, units[name]), fmt(extent.min, 4), fmt(extent.mean, 4), fmt(extent.max, 4)], [1, 2, 3]);
     row.dataset.name = name;

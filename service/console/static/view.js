@@ -1,6 +1,7 @@
 // The 3D view: a version's mesh (decimated on the server, one binary document) drawn with
-// three.js, coloured per vertex by albedo, height, slope or change since the parent version,
-// with the colour bar of what is coloured, a scale bar at the body's centre and the body's size.
+// three.js, coloured per vertex by albedo, height, slope, change since the parent version or
+// height uncertainty, with the colour bar of what is coloured, a scale bar at the body's centre
+// and the body's size.
 // It opens on the whole body (north up, the refined region towards the viewer) and "reset view"
 // goes back there. When the first frame is drawn, body[data-drawn-ms] holds the time since
 // navigation start (bench/console.py reads it), body[data-framing] how far out the mesh's
@@ -42,9 +43,10 @@ const scaleHolder = svg("svg", { width: 180, height: 34, class: "corner" });
 holder.append(scaleHolder);
 
 const LABELS = { albedo: "albedo", height: "height above the mean radius", slope: "slope from the radial direction",
-  change: "height change since the parent" };
+  change: "height change since the parent", sigma: "height uncertainty (1 sigma)" };
 const NOTES = { albedo: "2nd to 98th percentile; grey: unknown", height: "2nd to 98th percentile; grey: unknown",
-  slope: "2nd to 98th percentile; grey: unknown", change: "blue lower, red higher than the parent; grey: unknown" };
+  slope: "2nd to 98th percentile; grey: unknown", change: "blue lower, red higher than the parent; grey: unknown",
+  sigma: "2nd to 98th percentile; grey: no refined maplet" };
 
 // The colours come made from the server (uint8 RGB per vertex): no per-vertex work here; the
 // colour bar shows the colour map's samples the server sent.
