@@ -77,8 +77,8 @@ def _changed(value):
     return value + 1
 
 
-@pytest.mark.parametrize("nested", ["placement", "registration"])
-def test_each_placement_and_registration_setting_changes_the_digest(nested):
+@pytest.mark.parametrize("nested", ["placement", "registration", "uncertainty"])
+def test_each_placement_registration_and_uncertainty_setting_changes_the_digest(nested):
     settings = getattr(DEFAULTS, nested)
     for f in dataclasses.fields(settings):
         changed = dataclasses.replace(settings, **{f.name: _changed(getattr(settings, f.name))})
