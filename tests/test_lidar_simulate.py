@@ -139,7 +139,7 @@ def test_a_footprint_on_a_slope_ranges_its_centre() -> None:
                  np.array([[0, 1, 2], [0, 2, 3]]))  # z = x: a 45 degree slope
     mean, centre, _ = range_footprints(RayTracer(plane), origins=np.array([[0.0, 0.0, h]]),
                                        directions=np.array([[0.0, 0.0, -1.0]]), half_angle=half, rays=7)
-    assert centre[0] == pytest.approx(h, abs=1e-9)
+    assert centre[0] == pytest.approx(h, abs=1e-6)  # Embree's hits are single precision
     assert abs(mean[0] - centre[0]) < 2 * half ** 2
 
 
