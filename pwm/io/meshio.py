@@ -1,8 +1,8 @@
 """Read and write meshes: Wavefront OBJ and binary PLY (with per-vertex albedo), in km.
 
 PLY carries the albedo as a named vertex property (`albedo`, float, after x y z), and the 1-sigma
-height as `height_sigma` (float, km, NaN where nothing says; pwm.uncertainty); OBJ has neither. OBJ has no
-albedo field: it goes as a grey vertex colour stretched over the mesh's albedo range
+height as `height_sigma` (float, km, NaN where nothing says; pwm.uncertainty), which OBJ does
+not carry. OBJ has no albedo field: it goes as a grey vertex colour stretched over the mesh's albedo range
 (ALBEDO_COLOUR_FLOOR at the darkest, 1 at the brightest) so that viewers show the body's
 pattern instead of a near-black body (albedos are a few per cent), and a comment header
 (`# albedo_colour_scale lo hi floor`) gives the range to read the albedo back. Both headers

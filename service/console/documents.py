@@ -20,7 +20,9 @@ import json
 import logging
 import math
 import struct
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -161,10 +163,12 @@ def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh)
     radial = mesh.vertices / radius[:, None]
     normals = mesh.vertex_normals()
     slope = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", normals, radial), -1.0, 1.0)))
+    carried = _carrier(mesh, full=full)
     fields = {"albedo": (mesh.albedo if mesh.albedo is not None
                          else np.full(len(mesh.vertices), np.nan)),
               "height": (radius - radius.mean()) * 1e3, "slope": slope,
-              "change": _change(data_dir, request, mesh, full=full), "sigma": _sigma_m(mesh, full=full)}
+              "change": carried(_change(data_dir, request, full)),
+              "sigma": carried(None if full.sigma is None else full.sigma * 1e3)}
     colours = {name: _colour(values, signed=name == "change") for name, values in fields.items()}
     header = {"kind": "mesh", "version": request.version, "parent": request.parent,
               "faces_full": len(full.faces), "faces": len(mesh.faces),
@@ -178,29 +182,29 @@ def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh)
                          *((f"colour_{name}", rgb) for name, (rgb, _) in colours.items())])
 
 
-def _change(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> np.ndarray:
-    """Height change (m) since the parent at the vertices of `mesh`: measured on the full mesh
-    (decimation moves the surface, which is no change of the model) and taken from each
-    vertex's nearest full one; NaN everywhere without a parent."""
+def _carrier(mesh: Mesh, *, full: Mesh) -> Callable[[np.ndarray | None], np.ndarray]:
+    """Values per vertex of the full mesh (None: unknown) at the vertices of `mesh`, each from its
+    nearest full one (decimation carries none of them); NaN where unknown. The nearest vertices
+    are found once, and only when a field needs them."""
+    @cache
+    def nearest() -> np.ndarray:
+        return cKDTree(full.vertices).query(mesh.vertices)[1]
+
+    def carried(values: np.ndarray | None) -> np.ndarray:
+        if values is None:
+            return np.full(len(mesh.vertices), np.nan)
+        return values if mesh is full else values[nearest()]
+
+    return carried
+
+
+def _change(data_dir: Path, request: MeshRequest, full: Mesh) -> np.ndarray | None:
+    """Height change (m) since the parent at the vertices of the full mesh (decimation moves the
+    surface, which is no change of the model); None without a parent."""
     if request.parent_mesh is None:
-        return np.full(len(mesh.vertices), np.nan)
-    change = height_change(artifact_mesh(data_dir, request.parent_mesh), full,
-                           max_distance_km=CHANGE_REACH_KM).change_m
-    if mesh is full:
-        return change
-    _, nearest = cKDTree(full.vertices).query(mesh.vertices)
-    return change[nearest]
-
-
-def _sigma_m(mesh: Mesh, *, full: Mesh) -> np.ndarray:
-    """The 1-sigma height (m) at the vertices of `mesh`: each from its nearest vertex of the full
-    mesh, which carries them (decimation does not); NaN where the version has none."""
-    if full.sigma is None:
-        return np.full(len(mesh.vertices), np.nan)
-    if mesh is full:
-        return full.sigma * 1e3
-    _, nearest = cKDTree(full.vertices).query(mesh.vertices)
-    return full.sigma[nearest] * 1e3
+        return None
+    return height_change(artifact_mesh(data_dir, request.parent_mesh), full,
+                         max_distance_km=CHANGE_REACH_KM).change_m
 
 
 def _extent_km(mesh: Mesh) -> dict[str, Any]:
