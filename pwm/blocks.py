@@ -20,6 +20,10 @@ Fusing takes three passes over the blocks, each block a job of its own (`fuse_in
    it, so they make the same vertices there; the pieces are welded by the lattice edge each
    vertex lies on (`stitch`), which leaves no crack and no vertex twice.
 
+Each block's reach, closed values and piece are kept with its sums, so that the next fusion over
+the same base remakes only the blocks about those whose sums changed: the others' files stay
+as they were, byte for byte, and the surface is the one a fusion from the start would make.
+
 The blocks' files are kept by a `BlockStore` (pwm.io.fusion_state.BlockFiles); jobs run on
 pwm.parallel.map_processes. Lengths in km, lattice indices along the body axes.
 """
@@ -47,8 +51,9 @@ _AT_POINT = 1e-9
 
 
 class BlockStore(Protocol):
-    """Where the blocks' sums ("sums") and closed values ("closed") are kept; picklable, so that
-    each job opens it itself."""
+    """Where the blocks' sums ("sums") and closed values ("closed") are kept, with what a fusion
+    made of them per block: its mesh piece ("pieces") and the base's reach ("reach"); picklable,
+    so that each job opens it itself."""
 
     def blocks(self, kind: str) -> list[int]:
         """The blocks of this kind held, by key."""
@@ -59,11 +64,19 @@ class BlockStore(Protocol):
         ...
 
     def write(self, kind: str, block: int, grid: DistanceGrid) -> None:
-        """Keep a block's sums of this kind."""
+        """Keep a block's sums of this kind (a grid without points: drop them)."""
+        ...
+
+    def read_arrays(self, kind: str, block: int) -> dict[str, np.ndarray] | None:
+        """A block's arrays of this kind, None where it has none."""
+        ...
+
+    def write_arrays(self, kind: str, block: int, arrays: dict[str, np.ndarray]) -> None:
+        """Keep a block's arrays of this kind (none: drop them)."""
         ...
 
     def clear(self, kind: str) -> None:
-        """Drop every block's sums of this kind."""
+        """Drop every block's files of this kind."""
         ...
 
 
@@ -164,44 +177,99 @@ class BlockedSums:
 
 
 def mesh_in_blocks(grid: DistanceGrid, base: Mesh | None, *, store: BlockStore, blocks: FusionBlocks) -> Mesh:
-    """grid.mesh(base), in blocks (kept by an empty `store`) when its lattice spans more than a
-    block: a smaller one is fused whole, as it always was."""
+    """grid.mesh(base), in blocks kept by `store` when its lattice spans more than a block: a
+    smaller one is fused whole, as it always was. The store is empty, or holds an earlier fusion
+    in blocks over the same base with the same `blocks`: then only the blocks whose sums differ
+    from the grid's are written, and only they and those about them fused again (`fuse_in_blocks`)."""
     if span(grid) <= blocks.cells:
         return grid.mesh(base)
-    for block, part in split(grid, blocks.cells).items():
-        store.write("sums", block, part)
-    return fuse_in_blocks(store, base=base, blocks=blocks)
+    parts = split(grid, blocks.cells)
+    changed = set()
+    for block in sorted(set(parts) | set(store.blocks("sums"))):
+        held, part = store.read("sums", block), parts.get(block)
+        if part is None:
+            store.write("sums", block, DistanceGrid(grid.voxel_km, taper_fraction=grid.taper_fraction))
+        elif held is None or not (np.array_equal(held.keys, part.keys) and np.array_equal(held.sums, part.sums)
+                                  and np.array_equal(held.count, part.count)):
+            store.write("sums", block, part)
+        else:
+            continue
+        changed.add(block)
+    return fuse_in_blocks(store, base=base, blocks=blocks, changed=changed if store.blocks("pieces") else None)
 
 
-def fuse_in_blocks(store: BlockStore, *, base: Mesh | None, blocks: FusionBlocks) -> Mesh:
+def fuse_in_blocks(store: BlockStore, *, base: Mesh | None, blocks: FusionBlocks,
+                   changed: set[int] | None = None) -> Mesh:
     """The closed surface of the sums the store holds per block (with `base` closing where no
     maplet reached, as pwm.volume.DistanceGrid.mesh), fused block by block on blocks.workers
-    processes (see the module docstring)."""
+    processes (see the module docstring); each block's closed values, mesh piece and base reach
+    are kept in the store.
+
+    changed: the blocks whose sums changed since the store's pieces were made over the same
+    base (None: make them all). A block's closed values depend only on the sums of the blocks
+    about it (the margin is at most a block) and on the base's reach over the whole body, and
+    its piece only on its own and its upper neighbours' closed values: while that reach stays
+    as it was, only the blocks about the changed ones are closed again and only the pieces
+    those reach meshed again; the other blocks' files are left as they were, byte for byte,
+    and the surface is the one making them all would give."""
     held = store.blocks("sums")
     if not held:
         raise ValueError("nothing fused")
     sample = store.read("sums", held[0])
     assert sample is not None  # listed by the store
     names = np.asarray(held, dtype=np.int64)
-    store.clear("closed")
     shape = Shape(cells=blocks.cells, margin=blocks.margin, voxel_km=sample.voxel_km,
                   taper_fraction=sample.taper_fraction)
+    if changed is None:
+        store.clear("reach")
+    about = None if changed is None else around(changed)
     clip_km = None
     if base is not None:
         # the base's distances are clipped at its widest band's reach over the whole body: the
         # largest of the blocks that hold its samples
-        sampled = base_blocks(base, voxel_km=sample.voxel_km, cells=blocks.cells, margin=1)
-        clip_km = max(map_processes(partial(block_reach, store, base=base, shape=shape), sampled.tolist(),
-                                    workers=blocks.workers))
+        sampled = base_blocks(base, voxel_km=sample.voxel_km, cells=blocks.cells, margin=1).tolist()
+        before = _clip(store, sampled)
+        again = [b for b in sampled if about is None or b in about or store.read_arrays("reach", b) is None]
+        reaches = map_processes(partial(block_reach, store, base=base, shape=shape), again, workers=blocks.workers)
+        for block, reach in zip(again, reaches, strict=True):
+            store.write_arrays("reach", block, {"reach_km": np.array(reach)})
+        clip_km = _clip(store, sampled)
+        assert clip_km is not None  # each of the base's blocks was just reached
+        if clip_km != before:
+            about = None
         # its band reaches that far from its faces (and the rings about its bend follow the
         # surface, which its bend moves no further)
         names = np.union1d(names, base_blocks(base, voxel_km=sample.voxel_km, cells=blocks.cells,
                                               margin=int(np.ceil(clip_km / sample.voxel_km)) + 2))
-    list(map_processes(partial(close_block, store, base=base, clip_km=clip_km, shape=shape), names.tolist(),
+    if about is None:
+        store.clear("closed")
+        store.clear("pieces")
+    closing = names.tolist() if about is None else sorted(set(names.tolist()) & about)
+    for block in set() if about is None else about - set(closing):
+        store.write("closed", block, DistanceGrid(shape.voxel_km, taper_fraction=shape.taper_fraction))
+    list(map_processes(partial(close_block, store, base=base, clip_km=clip_km, shape=shape), closing,
                        workers=blocks.workers))
-    meshing = partial(mesh_block, store, cells=blocks.cells)
-    return stitch(list(map_processes(meshing, store.blocks("closed"), workers=blocks.workers)),
+    # a block's piece reads its own closed values and its upper neighbours'
+    meshing = store.blocks("closed") if about is None else sorted(around(about, steps=-_UPPER))
+    list(map_processes(partial(mesh_block, store, cells=blocks.cells), meshing, workers=blocks.workers))
+    pieces = [store.read_arrays("pieces", b) for b in store.blocks("pieces")]
+    return stitch([(p["vertices"], p["faces"], p["albedo"]) for p in pieces if p is not None],
                   voxel_km=sample.voxel_km)
+
+
+def around(blocks: Iterable[int], *, steps: np.ndarray = _AROUND) -> set[int]:
+    """The keys of the blocks at `steps` (block indices) from the given ones: by default each
+    block and the 26 about it."""
+    index = unpack(np.asarray(list(blocks), dtype=np.int64).reshape(-1))
+    if not len(index):
+        return set()
+    return set(pack((index[:, None, :] + steps[None, :, :]).reshape(-1, 3)).tolist())
+
+
+def _clip(store: BlockStore, sampled: list[int]) -> float | None:
+    """The largest base reach the store holds of these blocks (None: none held)."""
+    held = [store.read_arrays("reach", b) for b in sampled]
+    return max((float(h["reach_km"]) for h in held if h is not None), default=None)
 
 
 @dataclass(frozen=True)
@@ -252,12 +320,12 @@ def close_block(store: BlockStore, block: int, *, base: Mesh | None, clip_km: fl
     grid = context(store, block, shape=shape)
     faces = None if base is None else _faces_about(base, block, shape=shape)
     if not len(grid.keys) and (faces is None or not faces.any()):
+        store.write("closed", block, grid)
         return 0
     closed = grid.closed(base, faces, clip_km)
     own = block_of(closed.keys, shape.cells) == block
-    if own.any():
-        store.write("closed", block, DistanceGrid(shape.voxel_km, closed.keys[own], closed.sums[own],
-                                                  closed.count[own], taper_fraction=shape.taper_fraction))
+    store.write("closed", block, DistanceGrid(shape.voxel_km, closed.keys[own], closed.sums[own],
+                                              closed.count[own], taper_fraction=shape.taper_fraction))
     return len(closed.keys)
 
 
@@ -272,25 +340,32 @@ def _faces_about(base: Mesh, block: int, *, shape: Shape) -> np.ndarray:
     return ((tri.max(axis=1) >= lo) & (tri.min(axis=1) <= hi)).all(axis=1)
 
 
-def mesh_block(store: BlockStore, block: int, *, cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Marching cubes over the cells whose lowest corner is the block's (step 2 of the module
-    docstring): vertices in lattice steps, faces, albedo per vertex (nan without)."""
+def mesh_block(store: BlockStore, block: int, *, cells: int) -> int:
+    """Marching cubes over the cells whose lowest corner is the block's (step 3 of the module
+    docstring), kept as its piece: vertices in lattice steps, faces, albedo per vertex (nan
+    without); its faces (a block without closed values of its own has none)."""
     index = unpack(np.array([block]))[0]
     origin = index * cells
     parts = []
-    for step in _UPPER:
-        grid = store.read("closed", int(pack((index + step)[None])[0]))
-        if grid is None:
-            continue
-        rel = unpack(grid.keys) - origin
-        # the first layer of an upper neighbour closes the block's last cells
-        keep = (rel <= cells).all(axis=1)
-        parts.append((grid.keys[keep], grid.sums[keep], grid.count[keep]))
+    if store.read("closed", block) is not None:
+        for step in _UPPER:
+            grid = store.read("closed", int(pack((index + step)[None])[0]))
+            if grid is None:
+                continue
+            rel = unpack(grid.keys) - origin
+            # the first layer of an upper neighbour closes the block's last cells
+            keep = (rel <= cells).all(axis=1)
+            parts.append((grid.keys[keep], grid.sums[keep], grid.count[keep]))
+    if not parts:
+        store.write_arrays("pieces", block, {})
+        return 0
     keys = np.concatenate([p[0] for p in parts])
     order = np.argsort(keys)
     voxel_km = 1.0  # marching cubes work in lattice steps
-    return extract(SparseSums(voxel_km, keys[order], np.vstack([p[1] for p in parts])[order],
-                              np.concatenate([p[2] for p in parts])[order]))
+    vertices, faces, albedo = extract(SparseSums(voxel_km, keys[order], np.vstack([p[1] for p in parts])[order],
+                                                 np.concatenate([p[2] for p in parts])[order]))
+    store.write_arrays("pieces", block, {"vertices": vertices, "faces": faces, "albedo": albedo} if len(faces) else {})
+    return len(faces)
 
 
 def stitch(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], *, voxel_km: float) -> Mesh:

@@ -93,12 +93,17 @@ def artifact_mesh(data_dir: Path, artifact: dict[str, Any]) -> Mesh:
     return read_mesh(artifact_path(data_dir, artifact, verify=True))
 
 
-def scratch_path(data_dir: Path, suffix: str) -> Path:
-    """A new empty file in the data directory's scratch folder, on the store's filesystem (so
-    that `store_artifact` can move it in atomically)."""
+def scratch_folder(data_dir: Path) -> Path:
+    """The data directory's scratch folder, on the store's filesystem (so that `store_artifact`
+    can move a file from it in atomically)."""
     directory = data_dir / ARTIFACTS_DIRNAME / "tmp"
     directory.mkdir(parents=True, exist_ok=True)
-    handle, name = tempfile.mkstemp(suffix=suffix, dir=directory)
+    return directory
+
+
+def scratch_path(data_dir: Path, suffix: str) -> Path:
+    """A new empty file in the data directory's scratch folder (`scratch_folder`)."""
+    handle, name = tempfile.mkstemp(suffix=suffix, dir=scratch_folder(data_dir))
     os.close(handle)
     return Path(name)
 

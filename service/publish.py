@@ -12,6 +12,9 @@ below it (pwm.levels), so a closed base gives a closed model (a base of a body a
 it is sealed first, pwm.levels.sealed). The parent's "composition" artifact says how its
 surface was made: while the closed levels' sums and the base are the same, that surface is not
 made again, and the laid levels' regions that no changed maplet touches keep the parent's faces.
+A closed level whose lattice spans more than a block is fused in blocks (pwm.blocks), whose
+files the version keeps (service.fusion_blocks): the next fusion over the same base makes again
+only the blocks about the maplets that changed.
 
 All of it runs under the publication lock (service.versions.publication_lock), taken before the
 parent is read, so two fusions never build on the same parent. Publication only publishes: what
@@ -47,9 +50,12 @@ from pwm.lidar.model import disagreement, residual_summary, sample_shots, spot_n
 from pwm.lidar.shots import Shots
 from pwm.lidar.tracks import NO_TRACK, crossovers
 from pwm.mesh import Mesh
+from pwm.tiling import level_of
 from pwm.uncertainty import sigma_summary, vertex_sigma
-from service.artifacts import artifact_path, scratch_path
+from pwm.volume import DistanceGrid
+from service.artifacts import artifact_path, scratch_folder, scratch_path
 from service.db import session_scope
+from service.fusion_blocks import Layout, carry_blocks, keep_blocks
 from service.jobs import refined_downlinks
 from service.lidar_shots import adjusted_shots, usable_lidar_products
 from service.refinement import load_revision_maplet
@@ -84,7 +90,9 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
     "laid"), voxels, each level's surface, voxel size and voxels, how the surface was
     composed (regions laid and carried over, whether the closed levels' surface was made again),
     the 1-sigma heights (`pwm.uncertainty.sigma_summary`; each vertex's in the mesh, from every
-    current maplet's, pwm.uncertainty.vertex_sigma), and seconds; with the mesh's own
+    current maplet's, pwm.uncertainty.vertex_sigma), the block files kept with it and how many
+    of them were written rather than carried from the parent ("blocks", where it was fused in
+    blocks), and seconds; with the mesh's own
     (service.versions.mesh_statistics: size, closure checks and mass properties).
     """
     clock = time.perf_counter()
@@ -120,14 +128,23 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
         level = {maplet_id: k for maplet_id, k in session.execute(select(Maplet.id, Maplet.level))}
         added = sorted(added, key=lambda r: (-level[r.maplet_id], r.maplet_id))
         fusion.add_all((load_revision_maplet(data_dir, r) for r in added), base=base_mesh)
-        with tempfile.TemporaryDirectory(prefix="pwm-blocks-") as blocks_dir:
-            # a closed level whose lattice spans more than a block is fused in blocks
-            close = partial(mesh_in_blocks, store=BlockFiles(Path(blocks_dir)), blocks=blocks)
-            mesh, composition, laid = fusion.compose(base_mesh, previous=previous, close=close)
+        layout = _layout(fusion, base, blocks)
+        with tempfile.TemporaryDirectory(prefix="blocks-", dir=scratch_folder(data_dir)) as work:
+            folder = Path(work)
+            carried = {} if layout is None else carry_blocks(data_dir, parent, layout=layout,
+                                                             into=folder / f"L{layout.level}")
+            # a closed level whose lattice spans more than a block is fused in blocks, each level
+            # in its own folder
+            mesh, composition, laid = fusion.compose(base_mesh, previous=previous,
+                                                     close=partial(_close, folder=folder, blocks=blocks))
+            manifest, kept = (None, None) if layout is None else keep_blocks(
+                data_dir, folder / f"L{layout.level}", carried, layout=layout)
         sigma = vertex_sigma(mesh.vertices, (load_revision_maplet(data_dir, r) for r in current.values()),
                              taper_fraction=config.overlap)
         mesh = dataclasses.replace(mesh, sigma=sigma)
         scratch = {"grid": scratch_path(data_dir, ".npz"), "composition": scratch_path(data_dir, ".npz")}
+        if manifest is not None:
+            scratch["blocks"] = manifest
         write_levels(scratch["grid"], fusion)
         write_composition(scratch["composition"], composition)
         downlinks = {d.id: d for d in parent.downlinks}
@@ -148,6 +165,8 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
             "composition": {"regions_laid": laid.regions_laid, "regions_carried": laid.regions_carried,
                             "closed_levels_made": laid.below_made},
             "height_sigma": sigma_summary(sigma), "fusion_seconds": time.perf_counter() - clock}
+        if kept is not None and kept["files"]:
+            statistics["blocks"] = kept
         lidar = lidar_statistics(session, data_dir=data_dir, mesh=mesh, version=parent.version + 1)
         if lidar is not None:
             statistics["lidar"] = lidar
@@ -229,6 +248,24 @@ def first_version_with(session: Session, *, downlink_id: int) -> int | None:
     return session.scalar(select(func.min(ModelVersion.version)).join(
         model_version_downlinks, model_version_downlinks.c.model_version_id == ModelVersion.id)
         .where(model_version_downlinks.c.downlink_id == downlink_id))
+
+
+def _layout(fusion: LevelGrids, base: ModelVersion, blocks: FusionBlocks) -> Layout | None:
+    """The layout of the blocks kept with the version (service.fusion_blocks): those of the
+    coarsest level, where it is closed over the base (a finer closed level closes over a
+    surface that changes, so its blocks are made afresh each time); None where it is not."""
+    held = [k for k in sorted(fusion.grids, reverse=True) if len(fusion.grids[k].keys)]
+    if not held or not isinstance(fusion.grids[held[0]], DistanceGrid):
+        return None
+    return Layout(base_version=base.version, level=held[0], voxel_km=fusion.grids[held[0]].voxel_km,
+                  cells=blocks.cells, margin=blocks.margin)
+
+
+def _close(grid: DistanceGrid, below: Mesh, *, folder: Path, blocks: FusionBlocks) -> Mesh:
+    """A closed level's surface over the one below, in blocks kept in the level's own folder
+    (pwm.blocks.mesh_in_blocks)."""
+    store = BlockFiles(folder / f"L{int(level_of(grid.voxel_km))}")
+    return mesh_in_blocks(grid, below, store=store, blocks=blocks)
 
 
 def _current_revisions(session: Session) -> dict[int, MapletRevision]:

@@ -20,13 +20,19 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import psycopg
 import pytest
+import trimesh
 from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.knowledge import NavigationErrors
+from pwm.maplets import MapletGrid
+from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
 from pwm.simulate.campaign import simulate, simulate_campaign
 from pwm.simulate.scenarios import CAMPAIGNS, get_scenario
+from pwm.tiling import sample_surface, tile
 from service.db import make_engine, make_sessionmaker, upgrade
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -216,6 +222,29 @@ def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServ
         yield server
     finally:
         server.stop()
+
+
+# The elongated body of `long_body`: its lattice step (km) and the blocks (lattice steps a side)
+# that it spans five of along its length.
+LONG_VOXEL, LONG_BLOCK = 0.006, 12
+
+
+@pytest.fixture(scope="session")
+def long_body() -> tuple[Mesh, list[MapletGrid]]:
+    """An elongated body (0.3 x 0.06 x 0.06 km) tiled with 11 x 11-node maplets of LONG_VOXEL
+    on it (albedo 0.1), and a base 3 m larger: a maplet at one end reaches few of the blocks
+    of LONG_BLOCK lattice steps that its fusion spans (pwm.blocks)."""
+    axes = np.array([0.15, 0.03, 0.03])
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    truth = Mesh(np.asarray(sphere.vertices) * axes, np.asarray(sphere.faces))
+    tracer = RayTracer(truth)
+    maplets = []
+    for maplet in tile(truth, spacing_km=LONG_VOXEL, nodes=11, overlap=0.25):
+        maplet.heights, _ = sample_surface(tracer, maplet)
+        maplet.albedo = np.full_like(maplet.heights, 0.1)
+        maplets.append(maplet)
+    coarse = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    return Mesh(np.asarray(coarse.vertices) * (axes + 0.003), np.asarray(coarse.faces)), maplets
 
 
 @pytest.fixture(scope="session")

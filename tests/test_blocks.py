@@ -9,7 +9,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from pwm.blocks import BlockedSums, Shape, context, fuse_in_blocks, maplet_blocks, mesh_in_blocks, split
+from pwm.blocks import (
+    _UPPER,
+    BlockedSums,
+    Shape,
+    around,
+    context,
+    fuse_in_blocks,
+    maplet_blocks,
+    mesh_in_blocks,
+    split,
+)
 from pwm.config import FusionBlocks
 from pwm.evaluate.closure import closure
 from pwm.evaluate.distance import ClosestPoint
@@ -19,7 +29,8 @@ from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface, tile
 from pwm.volume import DistanceGrid
-from pwm.voxels import unpack
+from pwm.voxels import pack, unpack
+from tests.conftest import LONG_BLOCK, LONG_VOXEL
 
 VOXEL, NODES, CELLS, MARGIN = 0.006, 11, 32, 16
 AXES = np.array([0.10, 0.075, 0.06])
@@ -135,3 +146,58 @@ def test_a_block_holds_its_own_points_and_its_margin_not_the_body(body, tmp_path
         assert counts[-1] == about
     assert sum(len(store.read("sums", b).keys) for b in store.blocks("sums")) == len(whole.keys)
     assert max(counts) < 0.8 * len(whole.keys)
+
+
+def test_a_fusion_over_an_earlier_one_remakes_only_the_blocks_about_the_change(long_body, tmp_path):
+    # the maplets enclose the body: no base (the service's test, with one, checks its reach too)
+    _, maplets = long_body
+    blocks = FusionBlocks(cells=LONG_BLOCK, margin=4)
+    whole = DistanceGrid(LONG_VOXEL, taper_fraction=0.25)
+    whole.add_all(maplets)
+    store = BlockFiles(tmp_path / "kept")
+    mesh_in_blocks(whole, None, store=store, blocks=blocks)
+    files = {p: p.read_bytes() for p in (tmp_path / "kept").rglob("*.npz")}
+    assert {p.parent.name for p in files} == {"sums", "closed", "pieces"}
+    old = max(maplets, key=lambda m: m.frame.origin[0])
+    new = MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km, heights=old.heights + 0.002,
+                     albedo=old.albedo)
+    whole.subtract(old)
+    whole.add_all([new])
+    again = mesh_in_blocks(whole, None, store=store, blocks=blocks)
+    # the surface a fusion from the start makes, bit for bit
+    fresh = mesh_in_blocks(whole, None, store=BlockFiles(tmp_path / "fresh"), blocks=blocks)
+    assert np.array_equal(again.vertices, fresh.vertices) and np.array_equal(again.faces, fresh.faces)
+    assert again.albedo is not None and fresh.albedo is not None and np.array_equal(again.albedo, fresh.albedo)
+    # the sums changed where the maplet reaches; the values about them were closed again, and
+    # the pieces those reach meshed again; no other file was written
+    changed = {_key(p) for p in files if p.parent.name == "sums" and p.read_bytes() != files[p]}
+    assert changed and changed <= set(maplet_blocks(old, voxel_km=LONG_VOXEL, cells=blocks.cells).tolist())
+    closed = around(changed)
+    remade = {"sums": changed, "closed": closed, "pieces": around(closed, steps=-_UPPER)}
+    kept = [p for p in files if _key(p) not in remade[p.parent.name]]
+    assert len(kept) > 0.3 * len(files)
+    for path in kept:
+        assert path.read_bytes() == files[path], path
+
+
+def test_a_change_that_widens_the_bases_reach_closes_every_block_again(body, tmp_path):
+    base, maplets = body
+    blocks = FusionBlocks(cells=CELLS, margin=MARGIN)
+    whole = DistanceGrid(VOXEL, taper_fraction=0.25)
+    whole.add_all(maplets)
+    store = BlockFiles(tmp_path / "kept")
+    mesh_in_blocks(whole, base, store=store, blocks=blocks)
+    reach = {b: float(store.read_arrays("reach", b)["reach_km"]) for b in store.blocks("reach")}
+    # a maplet 10 m under the others: the base, 3 m out, now disagrees with it by 13 m
+    old = maplets[len(maplets) // 2]
+    whole.subtract(old)
+    whole.add_all([MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km,
+                              heights=old.heights - 0.010, albedo=old.albedo)])
+    again = mesh_in_blocks(whole, base, store=store, blocks=blocks)
+    assert max(float(store.read_arrays("reach", b)["reach_km"]) for b in reach) > max(reach.values())
+    fresh = mesh_in_blocks(whole, base, store=BlockFiles(tmp_path / "fresh"), blocks=blocks)
+    assert np.array_equal(again.vertices, fresh.vertices) and np.array_equal(again.faces, fresh.faces)
+
+
+def _key(path: Path) -> int:
+    return int(pack(np.array([[int(v) for v in path.stem.split("_")]]))[0])

@@ -113,9 +113,9 @@ STAGES = ("service.ingest", "service.spg", "service.coverage", "service.refineme
 """A downlink's stages in the method's order: catalogue, adjust poses, weigh, plan and refine, fuse
 and publish, strip-adjust the lidar; the conductor that calls them in that order last."""
 SHARED = {"service.db", "service.rows", "service.settings", "service.kernels", "service.views",
-          "service.versions", "service.artifacts", "service.jobs", "service.lidar_shots"}
-"""What every stage may use: the catalog's engine, rows and settings, its kernels, views, versions,
-stored files, jobs table and lidar shots as placed now."""
+          "service.versions", "service.fusion_blocks", "service.artifacts", "service.jobs", "service.lidar_shots"}
+"""What every stage may use: the catalog's engine, rows and settings, its kernels, views, versions
+(and the fusion blocks a version keeps), stored files, jobs table and lidar shots as placed now."""
 
 
 def test_each_stage_imports_only_the_stages_before_it():

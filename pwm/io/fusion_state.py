@@ -114,10 +114,10 @@ def _grid(data: Any, prefix: str) -> VoxelGrid | DistanceGrid:
 
 @dataclass(frozen=True)
 class BlockFiles:
-    """The blocks' sums of pwm.blocks (a pwm.blocks.BlockStore), as one file per block and kind
+    """The blocks' files of pwm.blocks (a pwm.blocks.BlockStore), as one file per block and kind
     under `directory`: `<kind>/<i>_<j>_<k>.npz` for the block of index (i, j, k), holding its
-    grid's arrays (as `write_levels` holds a level's). A block's file is written only when its
-    sums change, so the others stay as they were, byte for byte."""
+    arrays (a grid's as `write_levels` holds a level's). A block's file is written only when its
+    contents change, so the others stay as they were, byte for byte."""
 
     directory: Path
 
@@ -131,24 +131,33 @@ class BlockFiles:
         return sorted(int(b) for b in pack(np.array(index, dtype=np.int64).reshape(-1, 3)))
 
     def read(self, kind: str, block: int) -> DistanceGrid | None:
+        arrays = self.read_arrays(kind, block)
+        if arrays is None:
+            return None
+        grid = _grid(arrays, "")
+        if not isinstance(grid, DistanceGrid):
+            raise ValueError(f"{self.path(kind, block)} holds no signed distances")
+        return grid
+
+    def write(self, kind: str, block: int, grid: DistanceGrid) -> None:
+        self.write_arrays(kind, block, _grid_arrays(grid) if len(grid.keys) else {})
+
+    def read_arrays(self, kind: str, block: int) -> dict[str, np.ndarray] | None:
         path = self.path(kind, block)
         if not path.exists():
             return None
         with np.load(path, allow_pickle=False) as data:
-            grid = _grid(data, "")
-        if not isinstance(grid, DistanceGrid):
-            raise ValueError(f"{path} holds no signed distances")
-        return grid
+            return {name: data[name] for name in data.files}
 
-    def write(self, kind: str, block: int, grid: DistanceGrid) -> None:
+    def write_arrays(self, kind: str, block: int, arrays: dict[str, np.ndarray]) -> None:
         path = self.path(kind, block)
         path.parent.mkdir(parents=True, exist_ok=True)
-        if not len(grid.keys):
+        if not arrays:
             path.unlink(missing_ok=True)
             return
         scratch = path.with_suffix(".part")
         with open(scratch, "wb") as stream:
-            np.savez(stream, **_grid_arrays(grid))  # type: ignore[arg-type]  # as in write_maplet
+            np.savez(stream, **arrays)  # type: ignore[arg-type]  # as in write_maplet
         scratch.replace(path)
 
     def clear(self, kind: str) -> None:

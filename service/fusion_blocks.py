@@ -1,0 +1,79 @@
+"""A version's fusion in blocks (pwm.blocks), kept from one version to the next: each block's
+files (sums, closed values, mesh piece, base reach) are stored artifacts, listed by the
+version's "blocks" artifact (a JSON manifest), so that the next fusion over the same base remakes
+only the blocks about the maplets that changed and the others stay the same files.
+
+The next fusion links the parent's files into a working folder (pwm.io.fusion_state.BlockFiles,
+which replaces a file it writes rather than writing into it, so the stored artifact is never
+touched), fuses there, and stores what it wrote; a file it left alone keeps its record. The
+parent's files are carried only when they describe the same closed level over the same base
+with the same layout (`Layout`); otherwise the fusion starts from an empty folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from service.artifacts import artifact_path, scratch_path, store_artifact
+from service.rows import ModelVersion
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What a version's blocks were made of: its base version, the closed level fused in
+    blocks and its voxel (km), and the blocks' size and margin (pwm.config.FusionBlocks)."""
+
+    base_version: int
+    level: int
+    voxel_km: float
+    cells: int
+    margin: int
+
+
+def carry_blocks(data_dir: Path, parent: ModelVersion, *, layout: Layout, into: Path) -> dict[str, dict[str, Any]]:
+    """Link the parent's block files into the folder `into` where they were made with this
+    layout; their records, by path relative to `into` (none carried: empty)."""
+    if "blocks" not in parent.artifacts:
+        return {}
+    manifest = json.loads(artifact_path(data_dir, parent.artifacts["blocks"], verify=True).read_text())
+    if manifest["layout"] != asdict(layout):
+        return {}
+    for relative, record in manifest["files"].items():
+        target = (into / relative).resolve()
+        if not target.is_relative_to(into.resolve()):
+            raise ValueError(f"version {parent.version}'s blocks name {relative!r}, outside their folder")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        source = artifact_path(data_dir, record)
+        try:
+            os.link(source, target)
+        except OSError:  # a filesystem without hard links
+            shutil.copyfile(source, target)
+    return dict(manifest["files"])
+
+
+def keep_blocks(data_dir: Path, folder: Path, carried: dict[str, dict[str, Any]], *,
+                layout: Layout) -> tuple[Path | None, dict[str, int]]:
+    """Store the block files in `folder` (a file still the carried one keeps its record) and
+    write their manifest to a scratch file, to be stored as the version's "blocks" artifact;
+    the manifest (None where the folder holds no block) and how many files were kept as they
+    were and written."""
+    files: dict[str, dict[str, Any]] = {}
+    written = 0
+    for path in sorted(folder.rglob("*.npz")):
+        relative = path.relative_to(folder).as_posix()
+        old = carried.get(relative)
+        if old is not None and os.path.samefile(path, artifact_path(data_dir, old)):
+            files[relative] = old
+        else:
+            files[relative] = store_artifact(data_dir, path)
+            written += 1
+    if not files:
+        return None, {"files": 0, "written": 0}
+    manifest = scratch_path(data_dir, ".json")
+    manifest.write_text(json.dumps({"layout": asdict(layout), "files": files}, sort_keys=True))
+    return manifest, {"files": len(files), "written": written}
