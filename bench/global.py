@@ -2,7 +2,7 @@
 of 100 x 100 nodes over the whole of Bennu, on the cores given (issue 15.5).
 
     .venv/bin/python bench/global.py [--maplets 100 400 1300] [--survey SIM] [--sample 8] [--workers 2]
-    .venv/bin/python bench/global.py --maplets 100 400 --blocks 1 2 [--cells 256] [--compare]
+    .venv/bin/python bench/global.py --maplets 100 400 --blocks 1 2 [--cells 256] [--compare] [--downlink 5]
 
 Fusion, per size: the whole shape (pwm's Bennu radar model) is tiled at the spacing that gives
 about N maplets, each maplet's heights get 1 cm of noise (so that fusion has disagreements to
@@ -19,7 +19,10 @@ the PWM paper's 1300-maplet Bennu model.
 With --blocks, the fusion runs in blocks (pwm.blocks) on each process count given: each
 block's sums made from the maplet files that reach it, then closed, meshed and stitched; the
 peak memory of the parent and of the largest worker, and with --compare the distance of the
-blocks' vertices to the one-process surface; then the extrapolation to Bennu at 5 cm.
+blocks' vertices to the one-process surface; with --downlink K, a downlink that changes the K
+maplets nearest one of them (heights 1 m up) fused over the first fusion's blocks (pwm.blocks
+.fuse_in_blocks' changed): its seconds and how many of the blocks' files it wrote; then the
+extrapolation to Bennu at 5 cm.
 """
 
 from __future__ import annotations
@@ -98,12 +101,13 @@ def fuse_once(maplets: int, nodes: int) -> dict:
             "closed": closed, "check_s": time.perf_counter() - clock, "peak_gib": peak_gib}
 
 
-def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare: bool) -> dict:
+def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare: bool, downlink: int) -> dict:
     """As `fuse_once`, in blocks of `cells` lattice steps (pwm.blocks) on `workers` processes:
     each block's sums made from the maplet files that reach it, then closed, meshed and
     stitched; the peak resident memory of this process and of the largest worker (with one
     worker the blocks run here), and with `compare` the RMS and largest distance of the
-    blocks' vertices to the one-process surface (made after the peaks are read)."""
+    blocks' vertices to the one-process surface (made after the peaks are read); with `downlink`
+    maplets changed (`_downlink`), the seconds and files written of their fusion."""
     from pwm.blocks import fuse_in_blocks
     from pwm.config import FusionBlocks
     from pwm.evaluate.closure import closure
@@ -126,6 +130,8 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
         peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
         worker_gib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
         sums_mib = sum(store.path("sums", b).stat().st_size for b in store.blocks("sums")) / 2**20
+        again = (_downlink(store, paths, blocks=blocks, spacing=spacing, base=shape, count=downlink)
+                 if downlink else None)
         rms_mm = max_mm = None
         if compare:
             grid = DistanceGrid(voxel_km=spacing, taper_fraction=DEFAULTS.overlap)
@@ -136,7 +142,32 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
     return {"maplets": count, "spacing_m": spacing * 1e3, "workers": workers, "blocks": len(points),
             "lattice_points": sum(points), "largest_block_points": max(points), "add_s": add_s, "mesh_s": mesh_s,
             "peak_gib": peak_gib, "worker_gib": worker_gib, "sums_mib": sums_mib, "faces": len(mesh.faces),
-            "closed": closed, "rms_mm": rms_mm, "max_mm": max_mm}
+            "closed": closed, "rms_mm": rms_mm, "max_mm": max_mm, "downlink": again}
+
+
+def _downlink(store, paths: list[Path], *, blocks, spacing: float, base: Mesh, count: int) -> dict:
+    """The `count` maplets nearest the first one raised 1 m, their old revisions taken out of
+    the blocks' sums and the new ones added, and fused over the blocks as they are: seconds
+    (sums and fusion), the blocks whose sums changed, and the files written of all."""
+    from pwm.blocks import BlockedSums, fuse_in_blocks
+    from pwm.io.fusion_state import read_maplet
+
+    maplets = [read_maplet(p) for p in paths]
+    origin = maplets[0].frame.origin
+    chosen = sorted(maplets, key=lambda m: float(np.linalg.norm(m.frame.origin - origin)))[:count]
+    files = {p: p.stat().st_mtime_ns for p in store.directory.rglob("*.npz")}
+    clock = time.perf_counter()
+    sums = BlockedSums(store, spacing, DEFAULTS.overlap, blocks.cells)
+    for old in chosen:
+        sums.subtract(old)
+        old.heights = old.heights + 0.001
+        sums.add_batch([old])
+    changed = set(sums.save())
+    fuse_in_blocks(store, base=base, blocks=blocks, changed=changed)
+    seconds = time.perf_counter() - clock
+    written = sum(not p.exists() or p.stat().st_mtime_ns != t for p, t in files.items())
+    return {"maplets": count, "seconds": seconds, "blocks_changed": len(changed), "written": written,
+            "files": len(files)}
 
 
 def refine_sample(sim: Path, sample: int, nodes: int, workers: int) -> dict:
@@ -173,12 +204,15 @@ def main() -> None:
                         help="fuse in blocks (pwm.blocks) instead, on each of these process counts")
     parser.add_argument("--cells", type=int, default=BLOCKS.cells, help="lattice steps a side of a block")
     parser.add_argument("--compare", action="store_true", help="with --blocks: also fuse in one process, compare")
+    parser.add_argument("--downlink", type=int, default=0, metavar="K",
+                        help="with --blocks: then fuse a downlink that changes K maplets in one region")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a size in a process of its own
     parser.add_argument("--workers-one", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         print(json.dumps(fuse_once(args.one, args.nodes) if args.workers_one is None else
-                         fuse_blocks_once(args.one, args.nodes, args.workers_one, args.cells, args.compare)))
+                         fuse_blocks_once(args.one, args.nodes, args.workers_one, args.cells, args.compare,
+                                          args.downlink)))
         return
     if args.blocks:
         blocks_table(args)
@@ -216,22 +250,27 @@ def blocks_table(args: argparse.Namespace) -> None:
     """The table of fusion in blocks, a size and process count in a process of its own each, and
     the extrapolation of the largest size to Bennu at 5 cm (50,000 maplets of 100 x 100 nodes)."""
     print("\n| maplets | spacing m | processes | blocks | lattice points | largest block's points | sums s "
-          "| mesh s | peak GiB (this, largest worker) | sums MiB | faces | closed | to one process: RMS, max mm |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| mesh s | peak GiB (this, largest worker) | sums MiB | faces | closed | to one process: RMS, max mm "
+          "| downlink: maplets, s, blocks changed, files written of all |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     last = None
     for n in args.maplets:
         for workers in args.blocks:
             command = [sys.executable, __file__, "--one", str(n), "--nodes", str(args.nodes), "--workers-one",
-                       str(workers), "--cells", str(args.cells)] + (["--compare"] if args.compare else [])
+                       str(workers), "--cells", str(args.cells), "--downlink", str(args.downlink)] + (
+                           ["--compare"] if args.compare else [])
             r = _run_one(command, n)
             if r is None:
                 continue
             last = r
             compared = "-" if r["rms_mm"] is None else f"{r['rms_mm']:.3f}, {r['max_mm']:.1f}"
+            d = r["downlink"]
+            downlink = "-" if d is None else (f"{d['maplets']}, {d['seconds']:.0f}, {d['blocks_changed']}, "
+                                              f"{d['written']} of {d['files']}")
             print(f"| {r['maplets']} | {r['spacing_m']:.2f} | {workers} | {r['blocks']} | {r['lattice_points']:,} "
                   f"| {r['largest_block_points']:,} | {r['add_s']:.0f} | {r['mesh_s']:.0f} "
                   f"| {r['peak_gib']:.2f}, {r['worker_gib']:.2f} | {r['sums_mib']:.0f} | {r['faces']:,} "
-                  f"| {CLOSED[r['closed']]} | {compared} |")
+                  f"| {CLOSED[r['closed']]} | {compared} | {downlink} |")
     if last is not None:
         # the lattice grows with the area over the spacing squared; a block's points do not
         scale = (last["spacing_m"] / BENNU_FINE_M) ** 2

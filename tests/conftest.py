@@ -30,8 +30,8 @@ from pwm.knowledge import NavigationErrors
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
-from pwm.simulate.campaign import simulate, simulate_campaign
-from pwm.simulate.scenarios import CAMPAIGNS, get_scenario
+from pwm.simulate.campaign import simulate
+from pwm.simulate.scenarios import get_scenario
 from pwm.tiling import sample_surface, tile
 from service.db import make_engine, make_sessionmaker, upgrade
 
@@ -288,8 +288,14 @@ def castalia_tiny_sim(tmp_path_factory) -> Path:
 def campaign_tiny_sim(tmp_path_factory) -> Path:
     """OUT directory of `pwm simulate OUT --scenario campaign-tiny --seed 4 --with-start-model`:
     a survey with its start model, then two site downlinks, in time order under downlinks/."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
     out = tmp_path_factory.mktemp("campaign-tiny") / "sim"
-    simulate_campaign(out, campaign=CAMPAIGNS["campaign-tiny"], seed=4, with_start_model=True)
+    result = CliRunner().invoke(app, ["simulate", str(out), "--scenario", "campaign-tiny", "--seed", "4",
+                                      "--with-start-model"])
+    assert result.exit_code == 0, result.output
     return out
 
 

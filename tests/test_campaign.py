@@ -96,11 +96,9 @@ def test_two_sites_are_one_surface_and_the_first_is_what_a_lone_site_draws():
 
 
 @pytest.fixture(scope="module")
-def campaign(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("campaign")
-    result = CliRunner().invoke(app, ["simulate", str(out), "--scenario", "campaign-tiny", "--seed", "2"])
-    assert result.exit_code == 0, result.output
-    return out
+def campaign(campaign_tiny_sim) -> Path:
+    """`pwm simulate OUT --scenario campaign-tiny` (the session's, which the workers' tests share)."""
+    return campaign_tiny_sim
 
 
 def test_a_campaign_is_its_downlinks_in_time_order_over_one_truth(campaign):
@@ -113,7 +111,8 @@ def test_a_campaign_is_its_downlinks_in_time_order_over_one_truth(campaign):
     for entry, scenario in zip(summary["downlinks"], spec.downlinks, strict=True):
         downlink = campaign / entry["downlink"]
         assert (downlink / "manifest.json").exists()  # written last: a complete downlink
-        assert not (downlink / "start_model.obj").exists()
+        # --with-start-model: the survey comes with a start model, a site with none of its own
+        assert (downlink / "start_model.obj").exists() == (entry["scope"] == "global")
         manifest = json.loads((campaign / entry["truth"] / "manifest.json").read_text())
         assert manifest["scenario"]["name"] == scenario.name
         times = sorted(image["et"] for image in manifest["images"])

@@ -394,9 +394,6 @@ def test_a_campaign_nests_each_site_under_the_survey_and_changes_only_about_it(
     refined = [{j.maplet_id for j in _jobs(catalog, JobKind.REFINE, Job.downlink_id == _downlink_id(catalog, d.name))}
                for d in downlinks]
     assert all(refined)
-    # each site at its own level, 16x and more finer than the survey's; site B's downlink refines
-    # none of site A's maplets (nor the survey's: its images are too fine for them)
-    coarse = min(level[m] for m in refined[0])
     # each site tiled at its own level, 16x and more finer than the survey's; site B's downlink
     # refines none of site A's maplets (a site's images may refine a survey maplet they suit)
     coarse = min(level[m] for m in refined[0])
