@@ -322,7 +322,8 @@ def close_block(store: BlockStore, block: int, *, base: Mesh | None, clip_km: fl
     if not len(grid.keys) and (faces is None or not faces.any()):
         store.write("closed", block, grid)
         return 0
-    closed = grid.closed(base, faces, clip_km)
+    origin = unpack(np.array([block]))[0] * shape.cells
+    closed = grid.closed(base, faces, clip_km, within=(origin, origin + shape.cells - 1))
     own = block_of(closed.keys, shape.cells) == block
     store.write("closed", block, DistanceGrid(shape.voxel_km, closed.keys[own], closed.sums[own],
                                               closed.count[own], taper_fraction=shape.taper_fraction))

@@ -117,12 +117,16 @@ class DistanceGrid(SparseSums):
             keys.append(np.unique(pack((cell[:, None, :] + _CORNERS[None]).reshape(-1, 3))))
         return np.unique(np.concatenate(keys))
 
-    def _base_sums(self, base: Mesh, faces: np.ndarray | None = None,
-                   clip_km: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _base_sums(self, base: Mesh, faces: np.ndarray | None = None, clip_km: float | None = None,
+                   within: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The base's signed distances, bent to meet the maplets, at the lattice points about it
         that no maplet touched; faces: a mask of the base's faces to sample (all by default: a
         block of pwm.blocks takes those about it), the sign comes from the whole base; clip_km:
-        the largest distance kept (by default the widest band's reach, `base_reach`).
+        the largest distance kept (by default the widest band's reach, `base_reach`); within: the
+        lattice box (lowest, highest index) whose points are wanted (all by default). Each point's
+        value is made on its own but for the rings below, which spread at most FADE_VOXELS steps:
+        the points more than that beyond the box are left out, and those in it get the values
+        the whole lattice would give them.
 
         Distances to the base come from the nearest of samples at most a lattice step apart on
         its faces. Where the base and the maplets disagree (by delta at a maplet's point near its
@@ -147,7 +151,21 @@ class DistanceGrid(SparseSums):
         if bare.any() and not bare.all():
             margin = local_reach + 2.0 * self.voxel_km
             bare = cKDTree(points[bare]).query(points, distance_upper_bound=margin.max())[0] <= margin
-        keys = (self._band(points[bare], normals[bare], local_reach[bare]) if bare.any()
+        if within is not None:
+            # what reaches the box: the samples whose band can, and the points the rings can
+            pad = int(FADE_VOXELS) + 1
+            lo, hi = within[0] - pad, within[1] + pad
+            cell = np.floor(points / self.voxel_km)
+            beyond = int(np.ceil(float(local_reach.max(initial=0.0)) / self.voxel_km)) + 2
+            bare &= ((cell >= lo - beyond) & (cell <= hi + beyond)).all(axis=1)
+
+        def wanted(keys: np.ndarray) -> np.ndarray:
+            if within is None:
+                return keys
+            index = unpack(keys)
+            return keys[((index >= lo) & (index <= hi)).all(axis=1)]
+
+        keys = (wanted(self._band(points[bare], normals[bare], local_reach[bare])) if bare.any()
                 else np.empty(0, dtype=np.int64))
         keys = keys[~np.isin(keys, self.keys, assume_unique=True)]
 
@@ -177,7 +195,7 @@ class DistanceGrid(SparseSums):
         values = np.concatenate([maplet_distance, distance])
         near = np.abs(values) <= np.sqrt(3.0) * self.voxel_km
         for _ in range(int(FADE_VOXELS)):
-            around = np.unique(pack((unpack(held[near])[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
+            around = wanted(np.unique(pack((unpack(held[near])[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3))))
             missing = around[~np.isin(around, self.keys) & ~np.isin(around, keys)]
             if not len(missing):
                 break
@@ -231,12 +249,13 @@ class DistanceGrid(SparseSums):
             points = points[((cell >= within[0]) & (cell <= within[1])).all(axis=1)]
         return float(self._disagreement(points, distance_to_base)[2].max(initial=self.truncation_km))
 
-    def closed(self, base: Mesh | None, faces: np.ndarray | None = None, clip_km: float | None = None) -> SparseSums:
-        """A copy of the sums with the base's (see `_base_sums`) where no maplet reached; without
-        a base, the sums alone."""
+    def closed(self, base: Mesh | None, faces: np.ndarray | None = None, clip_km: float | None = None,
+               within: tuple[np.ndarray, np.ndarray] | None = None) -> SparseSums:
+        """A copy of the sums with the base's (see `_base_sums`, and its `within`) where no
+        maplet reached; without a base, the sums alone."""
         sums = SparseSums(self.voxel_km, self.keys.copy(), self.sums.copy(), self.count.copy())
         if base is not None:
-            sums.merge(*self._base_sums(base, faces, clip_km), sign=+1, name="the base")
+            sums.merge(*self._base_sums(base, faces, clip_km, within), sign=+1, name="the base")
         return sums
 
 
