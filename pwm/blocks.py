@@ -12,9 +12,10 @@ Fusing takes three passes over the blocks, each block a job of its own (`fuse_in
    clipped at the body's widest, the largest of the blocks');
 2. closing: a block reads its own sums and its neighbours' within `margin` lattice steps, adds
    the base's distances where no maplet reached (pwm.volume.DistanceGrid.closed, from the base's
-   faces about it) and keeps the result at its own points only: every lattice point's value is
-   made once, by its own block, and the margin gives it nearly what the whole body would (the
-   base's bend reaches FADE_VOXELS and its band the maplets' disagreement: FusionBlocks.margin);
+   faces about it, made only where they reach the block's own points) and keeps the result at
+   its own points only: every lattice point's value is made once, by its own block, and the
+   margin gives it nearly what the whole body would (the base's bend reaches FADE_VOXELS and its
+   band the maplets' disagreement: FusionBlocks.margin);
 3. marching cubes over the cells whose lowest corner is the block's own, from its closed values
    and the first layer of its upper neighbours'. Two blocks sharing a face see the same values on
    it, so they make the same vertices there; the pieces are welded by the lattice edge each
