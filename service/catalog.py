@@ -13,4 +13,4 @@ def open_catalog(settings: Settings | None = None) -> sessionmaker[Session]:
     settings = settings or get_settings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     upgrade(settings.database_url)
-    return make_sessionmaker(make_engine(settings.database_url))
+    return make_sessionmaker(make_engine(settings.database_url, pool_timeout_s=settings.database_pool_timeout_s))

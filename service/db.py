@@ -63,11 +63,14 @@ def _set_sqlite_pragmas(dbapi_connection: Any, _connection_record: Any) -> None:
         cursor.close()
 
 
-def make_engine(url: str | URL) -> Engine:
-    """An engine for a SQLite file (WAL, foreign keys on, 30 s busy timeout) or PostgreSQL."""
+def make_engine(url: str | URL, *, pool_timeout_s: float | None = None) -> Engine:
+    """An engine for a SQLite file (WAL, foreign keys on, 30 s busy timeout) or PostgreSQL
+    (pool_timeout_s: how long a checkout waits for a free connection; None: SQLAlchemy's)."""
     parsed = normalize_url(url)
     if parsed.get_backend_name() != "sqlite":
-        return create_engine(parsed, pool_pre_ping=True)
+        if pool_timeout_s is None:
+            return create_engine(parsed, pool_pre_ping=True)
+        return create_engine(parsed, pool_pre_ping=True, pool_timeout=pool_timeout_s)
     if parsed.database and parsed.database != ":memory:" and not parsed.query.get("uri"):
         Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
     engine = create_engine(parsed)

@@ -64,6 +64,8 @@ class Settings(BaseSettings):
     data_dir: PWM_DATA_DIR, made absolute at load time.
     database_url: PWM_DATABASE_URL, sqlite:///FILE or postgresql://USER@HOST/DATABASE; empty
         means the SQLite file `catalog.sqlite` in data_dir.
+    database_pool_timeout_s: PWM_DATABASE_POOL_TIMEOUT_S, how long a request waits for a free
+        PostgreSQL connection of the process's pool before it is answered 503.
     broker_url: PWM_BROKER_URL; None runs jobs in-process instead of through a broker.
     api_token: PWM_API_TOKEN, the bearer token of the API's changing calls; None refuses them all.
     export_cache_bytes: PWM_EXPORT_CACHE_BYTES, how many bytes of made exports (decimated
@@ -102,6 +104,7 @@ class Settings(BaseSettings):
 
     data_dir: Path = Path("pwm-data")
     database_url: str = ""
+    database_pool_timeout_s: float = Field(30.0, gt=0)
     broker_url: str | None = None
     api_token: SecretStr | None = None
     export_cache_bytes: int = Field(2 * 1024**3, ge=0)
