@@ -245,9 +245,12 @@ def fuse_in_blocks(store: BlockStore, *, base: Mesh | None, blocks: FusionBlocks
     if about is None:
         store.clear("closed")
         store.clear("pieces")
-    closing = names.tolist() if about is None else sorted(set(names.tolist()) & about)
-    for block in set() if about is None else about - set(closing):
-        store.write("closed", block, DistanceGrid(shape.voxel_km, taper_fraction=shape.taper_fraction))
+        closing = names.tolist()
+    else:
+        closing = sorted(set(names.tolist()) & about)
+        # a block about the change that is no longer fused drops what it held
+        for block in about - set(closing):
+            store.write("closed", block, DistanceGrid(shape.voxel_km, taper_fraction=shape.taper_fraction))
     list(map_processes(partial(close_block, store, base=base, clip_km=clip_km, shape=shape), closing,
                        workers=blocks.workers))
     # a block's piece reads its own closed values and its upper neighbours'
@@ -348,19 +351,19 @@ def mesh_block(store: BlockStore, block: int, *, cells: int) -> int:
     without); its faces (a block without closed values of its own has none)."""
     index = unpack(np.array([block]))[0]
     origin = index * cells
-    parts = []
-    if store.read("closed", block) is not None:
-        for step in _UPPER:
-            grid = store.read("closed", int(pack((index + step)[None])[0]))
-            if grid is None:
-                continue
-            rel = unpack(grid.keys) - origin
-            # the first layer of an upper neighbour closes the block's last cells
-            keep = (rel <= cells).all(axis=1)
-            parts.append((grid.keys[keep], grid.sums[keep], grid.count[keep]))
-    if not parts:
+    own = store.read("closed", block)
+    if own is None:  # no cell has its lowest corner here
         store.write_arrays("pieces", block, {})
         return 0
+    # _UPPER starts at the block itself
+    parts = []
+    for grid in [own] + [store.read("closed", int(pack((index + step)[None])[0])) for step in _UPPER[1:]]:
+        if grid is None:
+            continue
+        rel = unpack(grid.keys) - origin
+        # the first layer of an upper neighbour closes the block's last cells
+        keep = (rel <= cells).all(axis=1)
+        parts.append((grid.keys[keep], grid.sums[keep], grid.count[keep]))
     keys = np.concatenate([p[0] for p in parts])
     order = np.argsort(keys)
     voxel_km = 1.0  # marching cubes work in lattice steps

@@ -160,7 +160,7 @@ class LevelGrids:
         level's surface over the one below (DistanceGrid.mesh by default; pwm.blocks
         .mesh_in_blocks fuses a large one in blocks)."""
         base = sealed(base)
-        order = [k for k in sorted(self.grids, reverse=True) if len(self.grids[k].keys)]
+        order = self.held
         closed = [i for i, k in enumerate(order) if isinstance(self.grids[k], DistanceGrid)]
         made = order[: max(closed, default=0) + 1]
         digest = _digest(base, [(k, self.grids[k]) for k in made])
@@ -237,6 +237,11 @@ class LevelGrids:
             raise RuntimeError(f"laying region {r} reached its margin: MARGIN_EDGES is too small")
         vertex_origin = np.concatenate([origin_vertex, np.full(m - n, -1)])
         return _Piece(surface, vertex_origin, origin_face)
+
+    @property
+    def held(self) -> list[int]:
+        """The levels that hold points, coarsest first: the order they are composed in."""
+        return [k for k in sorted(self.grids, reverse=True) if len(self.grids[k].keys)]
 
     @property
     def voxels(self) -> int:

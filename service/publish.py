@@ -254,7 +254,7 @@ def _layout(fusion: LevelGrids, base: ModelVersion, blocks: FusionBlocks) -> Lay
     """The layout of the blocks kept with the version (service.fusion_blocks): those of the
     coarsest level, where it is closed over the base (a finer closed level closes over a
     surface that changes, so its blocks are made afresh each time); None where it is not."""
-    held = [k for k in sorted(fusion.grids, reverse=True) if len(fusion.grids[k].keys)]
+    held = fusion.held
     if not held or not isinstance(fusion.grids[held[0]], DistanceGrid):
         return None
     return Layout(base_version=base.version, level=held[0], voxel_km=fusion.grids[held[0]].voxel_km,
