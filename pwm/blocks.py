@@ -88,6 +88,8 @@ def block_of(keys: np.ndarray, cells: int) -> np.ndarray:
 
 def split(grid: DistanceGrid, cells: int) -> dict[int, DistanceGrid]:
     """The sums of each block (by key) that the grid's points fall in, each still sorted."""
+    if not len(grid.keys):
+        return {}
     blocks = block_of(grid.keys, cells)
     order = np.argsort(blocks, kind="stable")
     names, starts = np.unique(blocks[order], return_index=True)
@@ -148,7 +150,7 @@ class BlockedSums:
     def add_batch(self, maplets: Iterable[MapletGrid]) -> None:
         """Add maplets as one batch (as SparseSums.add_all does a batch)."""
         shape = DistanceGrid(self.voxel_km, taper_fraction=self.taper_fraction)
-        parts = [shape._contribution(m) for m in maplets]
+        parts = [shape._contribution(m, self._box()) for m in maplets]
         if parts:
             self._merge(*sum_by_key(np.concatenate([p[0] for p in parts]), np.vstack([p[1] for p in parts]),
                                     np.concatenate([p[2] for p in parts])), sign=+1, name="a batch of maplets")
@@ -156,7 +158,14 @@ class BlockedSums:
     def subtract(self, maplet: MapletGrid) -> None:
         """Take a maplet's revision out, exactly as it was added."""
         shape = DistanceGrid(self.voxel_km, taper_fraction=self.taper_fraction)
-        self._merge(*shape._contribution(maplet), sign=-1, name=f"maplet {maplet.name}")
+        self._merge(*shape._contribution(maplet, self._box()), sign=-1, name=f"maplet {maplet.name}")
+
+    def _box(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The lattice box (lowest, highest index) about the blocks kept (None: all)."""
+        if self.only is None:
+            return None
+        index = unpack(np.array(sorted(self.only), dtype=np.int64))
+        return index.min(axis=0) * self.cells, (index.max(axis=0) + 1) * self.cells - 1
 
     def _merge(self, keys: np.ndarray, sums: np.ndarray, count: np.ndarray, *, sign: int, name: str) -> None:
         part = DistanceGrid(self.voxel_km, keys, sums, count, taper_fraction=self.taper_fraction)

@@ -78,10 +78,21 @@ class DistanceGrid(SparseSums):
     def truncation_km(self) -> float:
         return TRUNCATION_VOXELS * self.voxel_km
 
-    def _contribution(self, maplet: MapletGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _contribution(self, maplet: MapletGrid,
+                      within: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """within: the lattice box (lowest, highest index) whose points are wanted (None: all);
+        each point's value is made on its own, so those in it are the whole contribution's."""
         nodes = maplet.nodes_body().reshape(-1, 3)
         normals = maplet.normals_body().reshape(-1, 3)
+        if within is not None:
+            # a node's band reaches its truncation's whole steps and a cell's corners beyond
+            pad = np.ceil(self.truncation_km / self.voxel_km) + 2
+            at = nodes / self.voxel_km
+            near = ((at >= within[0] - pad) & (at <= within[1] + 1 + pad)).all(axis=1)
+            nodes, normals = nodes[near], normals[near]
         index = unpack(self._band(nodes, normals))
+        if within is not None:
+            index = index[((index >= within[0]) & (index <= within[1])).all(axis=1)]
         local = maplet.frame.to_local(index * self.voxel_km)
         c = 0.5 * (maplet.n - 1)
         grid = np.stack([local[:, 1] / maplet.spacing_km + c, local[:, 0] / maplet.spacing_km + c])

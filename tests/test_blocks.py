@@ -23,7 +23,7 @@ from pwm.blocks import (
 from pwm.config import FusionBlocks
 from pwm.evaluate.closure import closure
 from pwm.evaluate.distance import ClosestPoint
-from pwm.io.fusion_state import BlockFiles
+from pwm.io.fusion_state import BlockFiles, build_blocks, write_maplet
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
@@ -89,6 +89,21 @@ def test_blocks_make_the_one_process_surface_with_exact_seams(body, tmp_path):
         held = store.read("sums", block)
         assert held is not None
         assert np.array_equal(held.keys, part.keys) and np.array_equal(held.sums, part.sums)
+    # made block by block from the maplets' files, each job making only its own block's points
+    paths = []
+    (tmp_path / "maplets").mkdir()
+    for k, m in enumerate(maplets):
+        paths.append(tmp_path / "maplets" / f"{k}.npz")
+        write_maplet(paths[-1], m)
+    jobs = BlockFiles(tmp_path / "jobs")
+    build_blocks(jobs, paths, voxel_km=VOXEL, taper_fraction=0.25, cells=CELLS, workers=1)
+    assert jobs.blocks("sums") == sorted(parts)
+    assert split(DistanceGrid(VOXEL), CELLS) == {}  # a maplet whose box, not band, reaches a block
+    for block, part in parts.items():
+        held = jobs.read("sums", block)
+        assert held is not None and np.array_equal(held.keys, part.keys)
+        assert np.array_equal(held.count, part.count)
+        assert np.allclose(held.sums, part.sums, rtol=0, atol=1e-12)
     blocked = fuse_in_blocks(store, base=base, blocks=FusionBlocks(cells=CELLS, margin=MARGIN))
     checks = closure(blocked)
     assert checks.closed and checks.components == 1, checks
