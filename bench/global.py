@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pwm.config import BLOCKS, DEFAULTS  # noqa: E402
 from pwm.mesh import Mesh  # noqa: E402
 
-CHECK_MAX_FACES = 10_000_000
+CHECK_MAX_FACES = 30_000_000  # about 0.55 GiB a million faces (pwm.evaluate.closure, in slabs)
 BENNU_FINE_M = 0.05
 CLOSED = {True: "yes", False: "no", None: "not checked"}
 SHAPE = Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
@@ -132,17 +132,21 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
         sums_mib = sum(store.path("sums", b).stat().st_size for b in store.blocks("sums")) / 2**20
         again = (_downlink(store, paths, blocks=blocks, spacing=spacing, base=shape, count=downlink)
                  if downlink else None)
+        clock = time.perf_counter()
+        closed = closure(mesh).closed if len(mesh.faces) <= CHECK_MAX_FACES else None
+        check_s = time.perf_counter() - clock
         rms_mm = max_mm = None
         if compare:
             grid = DistanceGrid(voxel_km=spacing, taper_fraction=DEFAULTS.overlap)
             grid.add_all(read_maplet(p) for p in paths)
-            off = ClosestPoint(grid.mesh(shape)).query(mesh.vertices)[0]
+            one = grid.mesh(shape)
+            del grid  # the one-process sums are the largest thing held; the comparison needs only the mesh
+            off = ClosestPoint(one).query(mesh.vertices)[0]
             rms_mm, max_mm = float(np.sqrt(np.mean(off ** 2)) * 1e6), float(off.max() * 1e6)
-    closed = closure(mesh).closed if len(mesh.faces) <= CHECK_MAX_FACES else None
     return {"maplets": count, "spacing_m": spacing * 1e3, "workers": workers, "blocks": len(points),
             "lattice_points": sum(points), "largest_block_points": max(points), "add_s": add_s, "mesh_s": mesh_s,
             "peak_gib": peak_gib, "worker_gib": worker_gib, "sums_mib": sums_mib, "faces": len(mesh.faces),
-            "closed": closed, "rms_mm": rms_mm, "max_mm": max_mm, "downlink": again}
+            "closed": closed, "check_s": check_s, "rms_mm": rms_mm, "max_mm": max_mm, "downlink": again}
 
 
 def _downlink(store, paths: list[Path], *, blocks, spacing: float, base: Mesh, count: int) -> dict:
@@ -250,8 +254,8 @@ def blocks_table(args: argparse.Namespace) -> None:
     """The table of fusion in blocks, a size and process count in a process of its own each, and
     the extrapolation of the largest size to Bennu at 5 cm (50,000 maplets of 100 x 100 nodes)."""
     print("\n| maplets | spacing m | processes | blocks | lattice points | largest block's points | sums s "
-          "| mesh s | peak GiB (this, largest worker) | sums MiB | faces | closed | to one process: RMS, max mm "
-          "| downlink: maplets, s, blocks changed, files written of all |")
+          "| mesh s | peak GiB (this, largest worker) | sums MiB | faces | closed (check s) "
+          "| to one process: RMS, max mm | downlink: maplets, s, blocks changed, files written of all |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     last = None
     for n in args.maplets:
@@ -270,7 +274,7 @@ def blocks_table(args: argparse.Namespace) -> None:
             print(f"| {r['maplets']} | {r['spacing_m']:.2f} | {workers} | {r['blocks']} | {r['lattice_points']:,} "
                   f"| {r['largest_block_points']:,} | {r['add_s']:.0f} | {r['mesh_s']:.0f} "
                   f"| {r['peak_gib']:.2f}, {r['worker_gib']:.2f} | {r['sums_mib']:.0f} | {r['faces']:,} "
-                  f"| {CLOSED[r['closed']]} | {compared} | {downlink} |")
+                  f"| {CLOSED[r['closed']]} ({r['check_s']:.0f}) | {compared} | {downlink} |")
     if last is not None:
         # the lattice grows with the area over the spacing squared; a block's points do not
         scale = (last["spacing_m"] / BENNU_FINE_M) ** 2

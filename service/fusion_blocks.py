@@ -7,32 +7,59 @@ The next fusion links the parent's files into a working folder (pwm.io.fusion_st
 which replaces a file it writes rather than writing into it, so the stored artifact is never
 touched), fuses there, and stores what it wrote; a file it left alone keeps its record. The
 parent's files are carried only when they describe the same closed level over the same base
-with the same layout (`Layout`); otherwise the fusion starts from an empty folder.
+with the same layout, made by the same release of pwm (`Layout`); otherwise the fusion starts
+from an empty folder. The working folders live in the store's scratch folder; one that a killed
+fusion left behind is removed by the next (`working_folder`).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from service.artifacts import artifact_path, scratch_path, store_artifact
+from service.artifacts import artifact_path, scratch_folder, scratch_path, store_artifact
 from service.rows import ModelVersion
+
+log = logging.getLogger(__name__)
+
+
+_WORKING = "blocks-"
 
 
 @dataclass(frozen=True)
 class Layout:
     """What a version's blocks were made of: its base version, the closed level fused in
-    blocks and its voxel (km), and the blocks' size and margin (pwm.config.FusionBlocks)."""
+    blocks and its voxel (km), the blocks' size and margin (pwm.config.FusionBlocks), and the
+    release of pwm that fused them (a release that fuses otherwise makes every block afresh)."""
 
     base_version: int
     level: int
     voxel_km: float
     cells: int
     margin: int
+    code: str
+
+
+@contextmanager
+def working_folder(data_dir: Path) -> Iterator[Path]:
+    """A new empty folder for a fusion's blocks in the store's scratch folder, removed with what
+    it holds afterwards. Take it under the publication lock (service.versions
+    .publication_lock): then no other fusion is under way, and the working folders that fusions
+    killed before their end left behind are removed first."""
+    scratch = scratch_folder(data_dir)
+    for stale in scratch.glob(f"{_WORKING}*"):
+        log.warning("fusion: removing %s, left by a fusion that did not end", stale)
+        shutil.rmtree(stale, ignore_errors=True)
+    with tempfile.TemporaryDirectory(prefix=_WORKING, dir=scratch) as work:
+        yield Path(work)
 
 
 def carry_blocks(data_dir: Path, parent: ModelVersion, *, layout: Layout, into: Path) -> dict[str, dict[str, Any]]:

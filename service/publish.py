@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import tempfile
 import time
 from collections.abc import Sequence
 from functools import partial
@@ -41,6 +40,7 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
+import pwm
 from pwm.blocks import mesh_in_blocks
 from pwm.config import BLOCKS, DEFAULTS, FusionBlocks, RefinementConfig
 from pwm.io.fusion_state import BlockFiles, read_composition, read_levels, write_composition, write_levels
@@ -53,9 +53,9 @@ from pwm.mesh import Mesh
 from pwm.tiling import level_of
 from pwm.uncertainty import sigma_summary, vertex_sigma
 from pwm.volume import DistanceGrid
-from service.artifacts import artifact_path, scratch_folder, scratch_path
+from service.artifacts import artifact_path, scratch_path
 from service.db import session_scope
-from service.fusion_blocks import Layout, carry_blocks, keep_blocks
+from service.fusion_blocks import Layout, carry_blocks, keep_blocks, working_folder
 from service.jobs import refined_downlinks
 from service.lidar_shots import adjusted_shots, usable_lidar_products
 from service.refinement import load_revision_maplet
@@ -129,8 +129,7 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
         added = sorted(added, key=lambda r: (-level[r.maplet_id], r.maplet_id))
         fusion.add_all((load_revision_maplet(data_dir, r) for r in added), base=base_mesh)
         layout = _layout(fusion, base, blocks)
-        with tempfile.TemporaryDirectory(prefix="blocks-", dir=scratch_folder(data_dir)) as work:
-            folder = Path(work)
+        with working_folder(data_dir) as folder:
             carried = {} if layout is None else carry_blocks(data_dir, parent, layout=layout,
                                                              into=folder / f"L{layout.level}")
             # a closed level whose lattice spans more than a block is fused in blocks, each level
@@ -258,7 +257,7 @@ def _layout(fusion: LevelGrids, base: ModelVersion, blocks: FusionBlocks) -> Lay
     if not held or not isinstance(fusion.grids[held[0]], DistanceGrid):
         return None
     return Layout(base_version=base.version, level=held[0], voxel_km=fusion.grids[held[0]].voxel_km,
-                  cells=blocks.cells, margin=blocks.margin)
+                  cells=blocks.cells, margin=blocks.margin, code=pwm.__version__)
 
 
 def _close(grid: DistanceGrid, below: Mesh, *, folder: Path, blocks: FusionBlocks) -> Mesh:

@@ -9,7 +9,8 @@ import pytest
 import trimesh
 from skimage.measure import marching_cubes
 
-from pwm.evaluate.closure import closure
+import pwm.evaluate.closure as closure_module
+from pwm.evaluate.closure import closure, self_intersections
 from pwm.frames import local_frame
 from pwm.fusion import VoxelGrid
 from pwm.maplets import MapletGrid
@@ -194,6 +195,17 @@ def test_the_closure_checks_see_what_they_check():
     flipped = faces.copy()
     flipped[0] = flipped[0, ::-1]
     assert not closure(Mesh(np.asarray(sphere.vertices), flipped)).winding_consistent
+
+
+def test_self_intersections_counted_in_slabs_are_those_counted_at_once(monkeypatch):
+    # two spheres through each other: every crossing pair counted once, whatever the slabs
+    a, b = trimesh.creation.icosphere(3, 1.0), trimesh.creation.icosphere(3, 0.8)
+    b.apply_translation([0.9, 0.1, 0.05])
+    both = Mesh(np.vstack([a.vertices, b.vertices]), np.vstack([a.faces, np.asarray(b.faces) + len(a.vertices)]))
+    whole = self_intersections(both)
+    assert whole > 100
+    monkeypatch.setattr(closure_module, "_SLAB_FACES", 97)
+    assert self_intersections(both) == whole
 
 
 def test_the_self_intersection_check_holds_a_dense_site_on_a_coarse_body():

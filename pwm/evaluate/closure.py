@@ -18,6 +18,8 @@ from scipy.spatial import cKDTree
 from pwm.mesh import Mesh, edge_keys, pieces, welded
 
 _CHUNK = 200_000
+# faces whose near pairs are found at once (about 1.5 GB of pairs at a million)
+_SLAB_FACES = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -104,18 +106,34 @@ def mass_properties(mesh: Mesh) -> MassProperties:
 
 
 def self_intersections(mesh: Mesh) -> int:
-    """Number of pairs of faces that share no vertex and cross."""
+    """Number of pairs of faces that share no vertex and cross. The faces are taken in slabs of
+    _SLAB_FACES along the axis they spread most on, each with the faces near enough to cross
+    its own, so that the near pairs held at a time stay bounded whatever the mesh's size; a pair
+    is counted by the slab of its first face in that order."""
     tri = mesh.vertices[mesh.faces]
     centroids = tri.mean(axis=1)
     radius = np.linalg.norm(tri - centroids[:, None], axis=2).max(axis=1)
-    pairs = _near_pairs(centroids, radius)
-    shared = (mesh.faces[pairs[:, 0], :, None] == mesh.faces[pairs[:, 1], None, :]).any(axis=(1, 2))
-    pairs = pairs[~shared]
+    axis = int(np.argmax(np.ptp(centroids, axis=0))) if len(centroids) else 0
+    order = np.argsort(centroids[:, axis], kind="stable")
+    along = centroids[order, axis]
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    halo = 2.0 * float(radius.max(initial=0.0))  # two faces cross only within their radii's sum
     crossing = 0
-    for start in range(0, len(pairs), _CHUNK):
-        a, b = pairs[start:start + _CHUNK].T
-        hit = _edges_cross(tri[a], tri[b]) | _edges_cross(tri[b], tri[a])
-        crossing += int(hit.sum())
+    for start in range(0, len(order), _SLAB_FACES):
+        end = min(start + _SLAB_FACES, len(order))
+        first = int(np.searchsorted(along, along[start] - halo, side="left"))
+        last = int(np.searchsorted(along, along[end - 1] + halo, side="right"))
+        members = order[first:last]
+        pairs = members[_near_pairs(centroids[members], radius[members])]
+        owner = np.minimum(rank[pairs[:, 0]], rank[pairs[:, 1]])
+        pairs = pairs[(owner >= start) & (owner < end)]
+        shared = (mesh.faces[pairs[:, 0], :, None] == mesh.faces[pairs[:, 1], None, :]).any(axis=(1, 2))
+        pairs = pairs[~shared]
+        for chunk in range(0, len(pairs), _CHUNK):
+            a, b = pairs[chunk:chunk + _CHUNK].T
+            hit = _edges_cross(tri[a], tri[b]) | _edges_cross(tri[b], tri[a])
+            crossing += int(hit.sum())
     return crossing
 
 

@@ -10,6 +10,7 @@ import json
 import numpy as np
 from sqlalchemy import select
 
+import pwm
 from pwm.blocks import _UPPER, around
 from pwm.config import FusionBlocks
 from pwm.evaluate.closure import closure
@@ -56,7 +57,7 @@ def _block(relative: str) -> tuple[str, int]:
 
 
 def test_a_downlink_at_one_end_refuses_only_the_blocks_it_touches(long_body, sqlite_url, open_catalog_at,
-                                                                    tmp_path):
+                                                                    tmp_path, monkeypatch):
     base, maplets = long_body
     sessions, data = open_catalog_at(sqlite_url), tmp_path / "data"
     write_ply(tmp_path / "base.ply", base)
@@ -101,3 +102,17 @@ def test_a_downlink_at_one_end_refuses_only_the_blocks_it_touches(long_body, sql
     assert incremental.faces.shape == fresh.faces.shape
     # the sums of the incremental version took the old revisions out again: equal to 1e-12
     assert np.abs(incremental.vertices - fresh.vertices).max() < 1e-9
+
+    # a fusion killed before its end left its working folder; a new release of pwm fuses the
+    # next version: nothing of its parent's blocks is carried, and the folder left is removed
+    stale = data / "artifacts" / "tmp" / "blocks-killed"
+    (stale / "L0").mkdir(parents=True)
+    monkeypatch.setattr(pwm, "__version__", "0-another-release")
+    old = end[0]
+    _revise(sessions, data, MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km,
+                                       heights=old.heights + 0.003, albedo=old.albedo))
+    assert fuse_and_publish(sessions, data_dir=data, blocks=BLOCKS) == 6
+    with sessions() as session:
+        statistics = get_version(session, 6).statistics["blocks"]
+    assert statistics["written"] == statistics["files"] == len(_files(sessions, data, 6))
+    assert not stale.exists()
