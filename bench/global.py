@@ -47,6 +47,7 @@ from pwm.mesh import Mesh  # noqa: E402
 CHECK_MAX_FACES = 30_000_000  # about 0.55 GiB a million faces (pwm.evaluate.closure, in slabs)
 BENNU_FINE_M = 0.05
 CLOSED = {True: "yes", False: "no", None: "not checked"}
+VERTICES = "blocks_vertices.npy"
 SHAPE = Path(__file__).resolve().parents[1] / "pwm" / "data" / "shapes" / "bennu_radar_nolan2013_sbgat.obj"
 
 
@@ -111,9 +112,7 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
     from pwm.blocks import fuse_in_blocks
     from pwm.config import FusionBlocks
     from pwm.evaluate.closure import closure
-    from pwm.evaluate.distance import ClosestPoint
-    from pwm.io.fusion_state import BlockFiles, build_blocks, read_maplet
-    from pwm.volume import DistanceGrid
+    from pwm.io.fusion_state import BlockFiles, build_blocks
 
     blocks = FusionBlocks(cells=cells, workers=workers)
     with tempfile.TemporaryDirectory() as scratch:
@@ -127,26 +126,52 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
         clock = time.perf_counter()
         mesh = fuse_in_blocks(store, base=shape, blocks=blocks)
         mesh_s = time.perf_counter() - clock
-        peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-        worker_gib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
-        sums_mib = sum(store.path("sums", b).stat().st_size for b in store.blocks("sums")) / 2**20
-        again = (_downlink(store, paths, blocks=blocks, spacing=spacing, base=shape, count=downlink)
-                 if downlink else None)
+        figures = {"maplets": count, "spacing_m": spacing * 1e3, "workers": workers, "blocks": len(points),
+                   "lattice_points": sum(points), "largest_block_points": max(points), "add_s": add_s,
+                   "mesh_s": mesh_s, "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+                   "worker_gib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20,
+                   "sums_mib": sum(store.path("sums", b).stat().st_size for b in store.blocks("sums")) / 2**20,
+                   "faces": len(mesh.faces), "closed": None, "check_s": 0.0, "rms_mm": None, "max_mm": None,
+                   "downlink": None}
+        _report(figures)  # what a later step that fails (memory) would lose
+        if downlink:
+            figures["downlink"] = _downlink(store, paths, blocks=blocks, spacing=spacing, base=shape, count=downlink)
         clock = time.perf_counter()
-        closed = closure(mesh).closed if len(mesh.faces) <= CHECK_MAX_FACES else None
-        check_s = time.perf_counter() - clock
-        rms_mm = max_mm = None
+        figures["closed"] = closure(mesh).closed if len(mesh.faces) <= CHECK_MAX_FACES else None
+        figures["check_s"] = time.perf_counter() - clock
+        _report(figures)
         if compare:
-            grid = DistanceGrid(voxel_km=spacing, taper_fraction=DEFAULTS.overlap)
-            grid.add_all(read_maplet(p) for p in paths)
-            one = grid.mesh(shape)
-            del grid  # the one-process sums are the largest thing held; the comparison needs only the mesh
-            off = ClosestPoint(one).query(mesh.vertices)[0]
-            rms_mm, max_mm = float(np.sqrt(np.mean(off ** 2)) * 1e6), float(off.max() * 1e6)
-    return {"maplets": count, "spacing_m": spacing * 1e3, "workers": workers, "blocks": len(points),
-            "lattice_points": sum(points), "largest_block_points": max(points), "add_s": add_s, "mesh_s": mesh_s,
-            "peak_gib": peak_gib, "worker_gib": worker_gib, "sums_mib": sums_mib, "faces": len(mesh.faces),
-            "closed": closed, "check_s": check_s, "rms_mm": rms_mm, "max_mm": max_mm, "downlink": again}
+            # in a process of its own: the one-process sums are the largest thing held
+            np.save(Path(scratch) / VERTICES, mesh.vertices)
+            del mesh
+            one = _run_one([sys.executable, __file__, "--compare-one", scratch, "--spacing-km", repr(float(spacing))],
+                           count)
+            if one is None or "failed" in one:
+                raise RuntimeError("the one-process fusion to compare with failed")
+            figures.update(one)
+    return figures
+
+
+def _report(figures: dict) -> None:
+    print(json.dumps(figures), flush=True)
+
+
+def compare_one(scratch: Path, spacing: float) -> dict:
+    """The maplet files under `scratch` fused in one process (pwm.volume.DistanceGrid) over the
+    shape, and the RMS and largest distance (mm) of the blocks' vertices saved there to it."""
+    from pwm.evaluate.distance import ClosestPoint
+    from pwm.io.fusion_state import read_maplet
+    from pwm.io.meshio import read_obj
+    from pwm.volume import DistanceGrid
+
+    paths = sorted(scratch.glob("*.npz"), key=lambda p: int(p.stem))
+    grid = DistanceGrid(voxel_km=spacing, taper_fraction=DEFAULTS.overlap)
+    grid.add_all(read_maplet(p) for p in paths)
+    one = grid.mesh(read_obj(SHAPE))
+    del grid
+    off = ClosestPoint(one).query(np.load(scratch / VERTICES))[0]
+    return {"rms_mm": float(np.sqrt(np.mean(off ** 2)) * 1e6), "max_mm": float(off.max() * 1e6),
+            "one_faces": len(one.faces), "one_peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
 
 
 def _downlink(store, paths: list[Path], *, blocks, spacing: float, base: Mesh, count: int) -> dict:
@@ -212,7 +237,12 @@ def main() -> None:
                         help="with --blocks: then fuse a downlink that changes K maplets in one region")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a size in a process of its own
     parser.add_argument("--workers-one", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--compare-one", type=Path, help=argparse.SUPPRESS)  # the one-process fusion, compared
+    parser.add_argument("--spacing-km", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.compare_one:
+        print(json.dumps(compare_one(args.compare_one, args.spacing_km)))
+        return
     if args.one:
         print(json.dumps(fuse_once(args.one, args.nodes) if args.workers_one is None else
                          fuse_blocks_once(args.one, args.nodes, args.workers_one, args.cells, args.compare,
@@ -241,13 +271,18 @@ def main() -> None:
 
 
 def _run_one(command: list[str], maplets: int) -> dict | None:
-    """The figures a size's own process prints, or None after printing a row that says why not."""
+    """The last figures a size's own process printed (with "failed" and why where it then
+    failed), or None after printing a row that says why it printed none."""
     out = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
-    if out.returncode:
-        why = out.stderr.strip().splitlines()[-1] if out.stderr.strip() else out.returncode
+    printed = [line for line in out.stdout.splitlines() if line.startswith("{")]
+    why = (out.stderr.strip().splitlines()[-1] if out.stderr.strip() else f"exit status {out.returncode}")
+    if not printed:
         print(f"| {maplets} | failed: {why} |")
         return None
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    figures = json.loads(printed[-1])
+    if out.returncode:
+        figures["failed"] = why
+    return figures
 
 
 def blocks_table(args: argparse.Namespace) -> None:
@@ -255,7 +290,8 @@ def blocks_table(args: argparse.Namespace) -> None:
     the extrapolation of the largest size to Bennu at 5 cm (50,000 maplets of 100 x 100 nodes)."""
     print("\n| maplets | spacing m | processes | blocks | lattice points | largest block's points | sums s "
           "| mesh s | peak GiB (this, largest worker) | sums MiB | faces | closed (check s) "
-          "| to one process: RMS, max mm | downlink: maplets, s, blocks changed, files written of all |")
+          "| to one process: RMS, max mm (its faces, peak) "
+          "| downlink: maplets, s, blocks changed, files written of all |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     last = None
     for n in args.maplets:
@@ -267,7 +303,8 @@ def blocks_table(args: argparse.Namespace) -> None:
             if r is None:
                 continue
             last = r
-            compared = "-" if r["rms_mm"] is None else f"{r['rms_mm']:.3f}, {r['max_mm']:.1f}"
+            compared = "-" if r["rms_mm"] is None else (f"{r['rms_mm']:.3f}, {r['max_mm']:.1f} "
+                                                        f"({r['one_faces']:,} faces, {r['one_peak_gib']:.2f} GiB)")
             d = r["downlink"]
             downlink = "-" if d is None else (f"{d['maplets']}, {d['seconds']:.0f}, {d['blocks_changed']}, "
                                               f"{d['written']} of {d['files']}")
@@ -275,6 +312,8 @@ def blocks_table(args: argparse.Namespace) -> None:
                   f"| {r['largest_block_points']:,} | {r['add_s']:.0f} | {r['mesh_s']:.0f} "
                   f"| {r['peak_gib']:.2f}, {r['worker_gib']:.2f} | {r['sums_mib']:.0f} | {r['faces']:,} "
                   f"| {CLOSED[r['closed']]} ({r['check_s']:.0f}) | {compared} | {downlink} |")
+            if "failed" in r:
+                print(f"(then failed: {r['failed']})")
     if last is not None:
         # the lattice grows with the area over the spacing squared; a block's points do not
         scale = (last["spacing_m"] / BENNU_FINE_M) ** 2

@@ -168,14 +168,17 @@ def test_global_scope_judges_the_whole_body(campaign, tmp_path):
 
 
 def test_a_scope_needs_the_truth_it_judges(campaign, tmp_path):
+    # (a site truth judged at its own scope, the default there: tests/test_simulate.py)
     site_dir = campaign / "truth" / "2-campaign-tiny-site-a"
     write_ply(tmp_path / "site.ply", load_truth(site_dir).mesh)
     result = CliRunner().invoke(app, ["evaluate", str(tmp_path / "site.ply"), "--truth", str(site_dir),
                                       "--scope", "global"])
     assert result.exit_code == 2
     assert "survey downlink's truth" in result.output
-    site = evaluate(tmp_path / "site.ply", truth_dir=site_dir)
-    assert site["scope"] == "site" and site["rms_gsd"] < 0.01
+    result = CliRunner().invoke(app, ["evaluate", str(tmp_path / "site.ply"), "--truth",
+                                      str(campaign / "truth" / "1-campaign-tiny-survey"), "--scope", "site"])
+    assert result.exit_code == 2
+    assert "a site downlink's truth" in result.output
 
 
 def test_a_quadric_ground_measures_a_boulder_on_a_curved_body():

@@ -28,7 +28,7 @@ def test_refined_maplets_beat_the_start_and_fuse(tiny_sim):
     assert abs(region.spacing_km - 5e-5) < 2e-6  # the tiny scenario's 5 cm GSD
     maplets = tile(start, spacing_km=region.spacing_km, nodes=48, overlap=0.25, centre_lat_deg=region.lat_deg,
                    centre_lon_deg=region.lon_deg, radius_km=0.0015)
-    results = refine_maplets(maplets, views, start)
+    results = refine_maplets(maplets, views, start, workers=2)
     truth_tracer = RayTracer(truth.mesh)
     start_err, refined_err, start_offset, refined_offset = [], [], [], []
     for original, result in zip(maplets, results, strict=True):
@@ -77,7 +77,7 @@ def test_a_maplet_nested_under_a_coarse_model_is_placed_by_its_images_parallax(t
     truth_tracer = RayTracer(load_truth(tiny_sim / "truth").mesh)
     maplets = tile(coarse, spacing_km=5e-5, nodes=48, overlap=0.25, centre_lat_deg=10.0, centre_lon_deg=40.0,
                    radius_km=0.0015)
-    results = refine_maplets(maplets, views, coarse)
+    results = refine_maplets(maplets, views, coarse, workers=2)
     before = [float(np.mean(m.heights - sample_heights(truth_tracer, m))) for m in maplets]
     after = [float(np.mean(r.maplet.heights - sample_heights(truth_tracer, m))) for m, r in
              zip(maplets, results, strict=True)]
@@ -134,9 +134,9 @@ def test_a_second_pass_refines_the_first_pass_model(tiny_sim):
     region = dataclasses.replace(imaged_region(views, start), radius_km=0.0015)
     with pytest.raises(ValueError, match="one pass"):
         refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=0))
-    first, _ = refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=1))
+    first, _ = refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=1), workers=2)
     told: list[tuple[str, int, int]] = []
-    second, results = refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=2),
+    second, results = refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=2), workers=2,
                                     progress=lambda stage, done, total: told.append((stage, done, total)))
     assert second.albedo is not None
     # each pass's progress, from none to all of its maplets

@@ -148,6 +148,7 @@ def test_a_truth_point_lands_where_the_renderer_drew_a_marker(tiny_sim):
 
 def test_truth_against_itself_is_perfect(tiny_sim, tmp_path):
     result = evaluate(tiny_sim / "truth" / "mesh.ply", truth_dir=tiny_sim / "truth", plots_dir=tmp_path)
+    assert result["scope"] == "site"  # the default for a site downlink's truth
     assert result["rms_gsd"] < 0.01
     assert result["ncc"] > 0.99
     assert result["boulder_height_ratio_median"] == pytest.approx(1.0, abs=0.02)

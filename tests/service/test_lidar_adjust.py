@@ -130,7 +130,7 @@ def test_images_then_lidar_then_images_through_pwm_run(
     images = tmp_path / "images"
     for part in ("images", "kernels"):
         shutil.copytree(source / part, images / part)
-    first = run_directory(catalog, images, data_dir=data, config=config)
+    first = run_directory(catalog, images, data_dir=data, config=config, workers=2)
     assert first.plan.base_version == 1 and first.versions and first.lidar is None
     lidar_only = tmp_path / "lidar"
     for part in ("lidar", "kernels"):
@@ -139,7 +139,7 @@ def test_images_then_lidar_then_images_through_pwm_run(
     assert second.versions == [] and second.lidar is not None and second.lidar.version == first.versions[-1]
     again = tmp_path / "again"
     window_downlink(source, again, size_px=128, first_px=(96, 96), count=4, tag="again")
-    third = run_directory(catalog, again, data_dir=data, config=config)
+    third = run_directory(catalog, again, data_dir=data, config=config, workers=2)
     assert third.versions and third.lidar is not None and third.lidar.version == third.versions[-1]
     with catalog() as session:
         for number in first.versions:  # made before the catalog had lidar

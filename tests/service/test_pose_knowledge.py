@@ -118,7 +118,7 @@ def test_the_maplets_registrations_feed_back_into_the_adjustment(tiny_nav_sim, c
 
     monkeypatch.setattr(service.conductor, "update_coverage", counted)
     config = RefinementConfig(nodes=40, tile_radius_km=0.002, passes=1)
-    report = run_directory(catalog, tiny_nav_sim / "downlink", data_dir=tmp_path, config=config)
+    report = run_directory(catalog, tiny_nav_sim / "downlink", data_dir=tmp_path, config=config, workers=2)
     assert len(report.versions) == 2  # the first fusion, and the one after the feedback
     assert len(weighings) == 2  # once after the first adjustment, once after the feedback
     with catalog() as session:
