@@ -3,6 +3,7 @@ of 100 x 100 nodes over the whole of Bennu, on the cores given (issue 15.5).
 
     .venv/bin/python bench/global.py [--maplets 100 400 1300] [--survey SIM] [--sample 8] [--workers 2]
     .venv/bin/python bench/global.py --maplets 100 400 --blocks 1 2 [--cells 256] [--compare] [--downlink 5]
+        [--no-check]
 
 Fusion, per size: the whole shape (pwm's Bennu radar model) is tiled at the spacing that gives
 about N maplets, each maplet's heights get 1 cm of noise (so that fusion has disagreements to
@@ -18,7 +19,8 @@ the PWM paper's 1300-maplet Bennu model.
 
 With --blocks, the fusion runs in blocks (pwm.blocks) on each process count given: each
 block's sums made from the maplet files that reach it, then closed, meshed and stitched; the
-peak memory of the parent and of the largest worker, and with --compare the distance of the
+peak memory of the parent and of the largest worker, whether the mesh is one closed surface (but
+with --no-check), and with --compare (in a process of its own, after) the distance of the
 blocks' vertices to the one-process surface; with --downlink K, a downlink that changes the K
 maplets nearest one of them (heights 1 m up) fused over the first fusion's blocks (pwm.blocks
 .fuse_in_blocks' changed): its seconds and how many of the blocks' files it wrote; then the
@@ -31,6 +33,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -102,7 +105,8 @@ def fuse_once(maplets: int, nodes: int) -> dict:
             "closed": closed, "check_s": time.perf_counter() - clock, "peak_gib": peak_gib}
 
 
-def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare: bool, downlink: int) -> dict:
+def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare: bool, downlink: int,
+                     check: bool) -> dict:
     """As `fuse_once`, in blocks of `cells` lattice steps (pwm.blocks) on `workers` processes:
     each block's sums made from the maplet files that reach it, then closed, meshed and
     stitched; the peak resident memory of this process and of the largest worker (with one
@@ -126,7 +130,8 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
         clock = time.perf_counter()
         mesh = fuse_in_blocks(store, base=shape, blocks=blocks)
         mesh_s = time.perf_counter() - clock
-        figures = {"maplets": count, "spacing_m": spacing * 1e3, "workers": workers, "blocks": len(points),
+        figures = {"maplets": count, "spacing_m": spacing * 1e3, "spacing_km": float(spacing), "workers": workers,
+                   "blocks": len(points),
                    "lattice_points": sum(points), "largest_block_points": max(points), "add_s": add_s,
                    "mesh_s": mesh_s, "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
                    "worker_gib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20,
@@ -136,19 +141,19 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
         _report(figures)  # what a later step that fails (memory) would lose
         if downlink:
             figures["downlink"] = _downlink(store, paths, blocks=blocks, spacing=spacing, base=shape, count=downlink)
-        clock = time.perf_counter()
-        figures["closed"] = closure(mesh).closed if len(mesh.faces) <= CHECK_MAX_FACES else None
-        figures["check_s"] = time.perf_counter() - clock
-        _report(figures)
+        if check:
+            clock = time.perf_counter()
+            figures["closed"] = closure(mesh).closed if len(mesh.faces) <= CHECK_MAX_FACES else None
+            figures["check_s"] = time.perf_counter() - clock
+            _report(figures)
         if compare:
-            # in a process of its own: the one-process sums are the largest thing held
-            np.save(Path(scratch) / VERTICES, mesh.vertices)
-            del mesh
-            one = _run_one([sys.executable, __file__, "--compare-one", scratch, "--spacing-km", repr(float(spacing))],
-                           count)
-            if one is None or "failed" in one:
-                raise RuntimeError("the one-process fusion to compare with failed")
-            figures.update(one)
+            # kept for a process of its own, once this one has ended: the one-process sums are
+            # the largest thing the comparison holds, and nothing of this process may hold beside them
+            kept = Path(tempfile.mkdtemp(prefix="pwm-compare-"))
+            for path in paths:
+                shutil.move(path, kept / path.name)
+            np.save(kept / VERTICES, mesh.vertices)
+            figures["compare_dir"] = str(kept)
     return figures
 
 
@@ -235,6 +240,8 @@ def main() -> None:
     parser.add_argument("--compare", action="store_true", help="with --blocks: also fuse in one process, compare")
     parser.add_argument("--downlink", type=int, default=0, metavar="K",
                         help="with --blocks: then fuse a downlink that changes K maplets in one region")
+    parser.add_argument("--no-check", dest="check", action="store_false",
+                        help="with --blocks: leave out the closed-surface check (about 0.55 GiB a million faces)")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a size in a process of its own
     parser.add_argument("--workers-one", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--compare-one", type=Path, help=argparse.SUPPRESS)  # the one-process fusion, compared
@@ -246,7 +253,7 @@ def main() -> None:
     if args.one:
         print(json.dumps(fuse_once(args.one, args.nodes) if args.workers_one is None else
                          fuse_blocks_once(args.one, args.nodes, args.workers_one, args.cells, args.compare,
-                                          args.downlink)))
+                                          args.downlink, args.check)))
         return
     if args.blocks:
         blocks_table(args)
@@ -298,10 +305,17 @@ def blocks_table(args: argparse.Namespace) -> None:
         for workers in args.blocks:
             command = [sys.executable, __file__, "--one", str(n), "--nodes", str(args.nodes), "--workers-one",
                        str(workers), "--cells", str(args.cells), "--downlink", str(args.downlink)] + (
-                           ["--compare"] if args.compare else [])
+                           ["--compare"] if args.compare else []) + ([] if args.check else ["--no-check"])
             r = _run_one(command, n)
             if r is None:
                 continue
+            if "compare_dir" in r:
+                kept = Path(r["compare_dir"])
+                one = _run_one([sys.executable, __file__, "--compare-one", str(kept), "--spacing-km",
+                                repr(r["spacing_km"])], n)
+                shutil.rmtree(kept)
+                if one is not None:
+                    r.update(one)
             last = r
             compared = "-" if r["rms_mm"] is None else (f"{r['rms_mm']:.3f}, {r['max_mm']:.1f} "
                                                         f"({r['one_faces']:,} faces, {r['one_peak_gib']:.2f} GiB)")
