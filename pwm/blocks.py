@@ -149,8 +149,8 @@ class BlockedSums:
 
     def add_batch(self, maplets: Iterable[MapletGrid]) -> None:
         """Add maplets as one batch (as SparseSums.add_all does a batch)."""
-        shape = DistanceGrid(self.voxel_km, taper_fraction=self.taper_fraction)
-        parts = [shape._contribution(m, self._box()) for m in maplets]
+        shape, box = DistanceGrid(self.voxel_km, taper_fraction=self.taper_fraction), self._box()
+        parts = [shape._contribution(m, box) for m in maplets]
         if parts:
             self._merge(*sum_by_key(np.concatenate([p[0] for p in parts]), np.vstack([p[1] for p in parts]),
                                     np.concatenate([p[2] for p in parts])), sign=+1, name="a batch of maplets")

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from pwm.mesh import Mesh, edge_keys, pieces, welded
 
 _CHUNK = 200_000
-# faces whose near pairs are found at once (about 1.5 GB of pairs at a million)
+# faces whose near pairs are found at once: a bound on the pairs held (a million: about 0.6 GiB)
 _SLAB_FACES = 1_000_000
 
 
