@@ -88,11 +88,11 @@ class DistanceGrid(SparseSums):
             # a node's band reaches its truncation's whole steps and a cell's corners beyond
             pad = np.ceil(self.truncation_km / self.voxel_km) + 2
             at = nodes / self.voxel_km
-            near = ((at >= within[0] - pad) & (at <= within[1] + 1 + pad)).all(axis=1)
+            near = _in_box(at, within[0] - pad, within[1] + 1 + pad)
             nodes, normals = nodes[near], normals[near]
         index = unpack(self._band(nodes, normals))
         if within is not None:
-            index = index[((index >= within[0]) & (index <= within[1])).all(axis=1)]
+            index = index[_in_box(index, *within)]
         local = maplet.frame.to_local(index * self.voxel_km)
         c = 0.5 * (maplet.n - 1)
         grid = np.stack([local[:, 1] / maplet.spacing_km + c, local[:, 0] / maplet.spacing_km + c])
@@ -168,13 +168,12 @@ class DistanceGrid(SparseSums):
             lo, hi = within[0] - pad, within[1] + pad
             cell = np.floor(points / self.voxel_km)
             beyond = int(np.ceil(float(local_reach.max(initial=0.0)) / self.voxel_km)) + 2
-            bare &= ((cell >= lo - beyond) & (cell <= hi + beyond)).all(axis=1)
+            bare &= _in_box(cell, lo - beyond, hi + beyond)
 
         def wanted(keys: np.ndarray) -> np.ndarray:
             if within is None:
                 return keys
-            index = unpack(keys)
-            return keys[((index >= lo) & (index <= hi)).all(axis=1)]
+            return keys[_in_box(unpack(keys), lo, hi)]
 
         keys = (wanted(self._band(points[bare], normals[bare], local_reach[bare])) if bare.any()
                 else np.empty(0, dtype=np.int64))
@@ -257,7 +256,7 @@ class DistanceGrid(SparseSums):
         distance_to_base = _MeshDistance(base, points, normals, self.voxel_km)
         if within is not None:
             cell = np.floor(points / self.voxel_km)
-            points = points[((cell >= within[0]) & (cell <= within[1])).all(axis=1)]
+            points = points[_in_box(cell, *within)]
         return float(self._disagreement(points, distance_to_base)[2].max(initial=self.truncation_km))
 
     def closed(self, base: Mesh | None, faces: np.ndarray | None = None, clip_km: float | None = None,
@@ -310,6 +309,11 @@ class _MeshDistance:
         hits = self.tracer.intersect(x, direction)
         inside = hits.hit & (self.tracer.face_normals[np.where(hits.hit, hits.face, 0)] @ _INSIDE_RAY > 0)
         return np.where(inside, -size, size), nearest
+
+
+def _in_box(index: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Mask of the (N, 3) lattice indices (or positions in lattice steps) within lo..hi, both included."""
+    return np.asarray(((index >= lo) & (index <= hi)).all(axis=1))
 
 
 def _largest_near(points: np.ndarray, at: np.ndarray, values: np.ndarray, radius_km: float) -> np.ndarray:
