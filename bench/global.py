@@ -18,11 +18,13 @@ so maplets per hour carry over to every size. The table gives the hours for each
 the PWM paper's 1300-maplet Bennu model.
 
 With --blocks, the fusion runs in blocks (pwm.blocks) on each process count given: each
-block's sums made from the maplet files that reach it, then closed, meshed and stitched; the
-peak memory of the parent and of the largest worker, whether the mesh is one closed surface (but
-with --no-check), and with --compare (in a process of its own, after) the distance of the
-blocks' vertices to the one-process surface; with --downlink K, a downlink that changes the K
-maplets nearest one of them (heights 1 m up) fused over the first fusion's blocks (pwm.blocks
+block's sums made from the maplet files that reach it, then closed and meshed, the body's
+parts of the pieces found across their seams, the surface left in the blocks; the peak memory
+of the parent and of the largest worker, whether the surface is closed (pwm.blocks
+.closure_in_blocks, block by block, with the parent's peak then; but with --no-check), and with
+--compare (in a process of its own, after) the distance of the blocks' vertices to the
+one-process vertices on the same lattice edges; with --downlink K, a downlink that changes the
+K maplets nearest one of them (heights 1 m up) fused over the first fusion's blocks (pwm.blocks
 .fuse_in_blocks' changed): its seconds and how many of the blocks' files it wrote; then the
 extrapolation to Bennu at 5 cm.
 """
@@ -108,14 +110,13 @@ def fuse_once(maplets: int, nodes: int) -> dict:
 def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare: bool, downlink: int,
                      check: bool) -> dict:
     """As `fuse_once`, in blocks of `cells` lattice steps (pwm.blocks) on `workers` processes:
-    each block's sums made from the maplet files that reach it, then closed, meshed and
-    stitched; the peak resident memory of this process and of the largest worker (with one
+    each block's sums made from the maplet files that reach it, then closed and meshed, the
+    surface left in the blocks; the peak resident memory of this process and of the largest worker (with one
     worker the blocks run here), and with `compare` the RMS and largest distance of the
-    blocks' vertices to the one-process surface (made after the peaks are read); with `downlink`
-    maplets changed (`_downlink`), the seconds and files written of their fusion."""
-    from pwm.blocks import fuse_in_blocks
+    blocks' vertices to the one-process vertices on their lattice edges (made after the peaks are
+    read); with `downlink` maplets changed (`_downlink`), the seconds and files written of their fusion."""
+    from pwm.blocks import body_mesh, closure_in_blocks, fuse_in_blocks
     from pwm.config import FusionBlocks
-    from pwm.evaluate.closure import closure
     from pwm.io.fusion_state import BlockFiles, build_blocks
 
     blocks = FusionBlocks(cells=cells, workers=workers)
@@ -128,7 +129,7 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
         add_s = time.perf_counter() - clock
         points = [len(g.keys) for b in store.blocks("sums") if (g := store.read("sums", b)) is not None]
         clock = time.perf_counter()
-        mesh = fuse_in_blocks(store, base=shape, blocks=blocks)
+        body = fuse_in_blocks(store, base=shape, blocks=blocks)
         mesh_s = time.perf_counter() - clock
         figures = {"maplets": count, "spacing_m": spacing * 1e3, "spacing_km": float(spacing), "workers": workers,
                    "blocks": len(points),
@@ -136,15 +137,18 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
                    "mesh_s": mesh_s, "peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
                    "worker_gib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20,
                    "sums_mib": sum(store.path("sums", b).stat().st_size for b in store.blocks("sums")) / 2**20,
-                   "faces": len(mesh.faces), "closed": None, "check_s": 0.0, "rms_mm": None, "max_mm": None,
+                   "faces": body.faces, "closed": None, "check_s": 0.0, "check_peak_gib": None, "rms_mm": None,
+                   "max_mm": None,
                    "downlink": None}
         _report(figures)  # what a later step that fails (memory) would lose
         if downlink:
             figures["downlink"] = _downlink(store, paths, blocks=blocks, spacing=spacing, base=shape, count=downlink)
         if check:
             clock = time.perf_counter()
-            figures["closed"] = closure(mesh).closed if len(mesh.faces) <= CHECK_MAX_FACES else None
+            checks = closure_in_blocks(store, voxel_km=spacing, cells=cells, workers=workers)
+            figures["closed"] = checks.closed
             figures["check_s"] = time.perf_counter() - clock
+            figures["check_peak_gib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
             _report(figures)
         if compare:
             # kept for a process of its own, once this one has ended: the one-process sums are
@@ -152,7 +156,7 @@ def fuse_blocks_once(maplets: int, nodes: int, workers: int, cells: int, compare
             kept = Path(tempfile.mkdtemp(prefix="pwm-compare-"))
             for path in paths:
                 shutil.move(path, kept / path.name)
-            np.save(kept / VERTICES, mesh.vertices)
+            np.save(kept / VERTICES, body_mesh(store, voxel_km=spacing).vertices)
             figures["compare_dir"] = str(kept)
     return figures
 
@@ -163,8 +167,12 @@ def _report(figures: dict) -> None:
 
 def compare_one(scratch: Path, spacing: float) -> dict:
     """The maplet files under `scratch` fused in one process (pwm.volume.DistanceGrid) over the
-    shape, and the RMS and largest distance (mm) of the blocks' vertices saved there to it."""
-    from pwm.evaluate.distance import ClosestPoint
+    shape, and the RMS and largest distance (mm) of the blocks' vertices saved there to the
+    one-process vertex on the same lattice edge (pwm.block_surface.lattice_edges): each lies on the
+    other's surface only if they are the same point, so this bounds the distance to the surface
+    from above, with no distance structure over the whole mesh (at 22.5M faces ClosestPoint's
+    would need about 30 GiB); the vertices that have no partner, in each mesh, are counted."""
+    from pwm.block_surface import lattice_edges, named
     from pwm.io.fusion_state import read_maplet
     from pwm.io.meshio import read_obj
     from pwm.volume import DistanceGrid
@@ -174,9 +182,26 @@ def compare_one(scratch: Path, spacing: float) -> dict:
     grid.add_all(read_maplet(p) for p in paths)
     one = grid.mesh(read_obj(SHAPE))
     del grid
-    off = ClosestPoint(one).query(np.load(scratch / VERTICES))[0]
+    blocks = np.load(scratch / VERTICES)
+    edge = [named(lattice_edges(_steps(v, spacing))) for v in (one.vertices, blocks)]
+    order = np.argsort(edge[0])
+    at = np.minimum(np.searchsorted(edge[0], edge[1], sorter=order), len(order) - 1)
+    partner = order[at]
+    found = edge[0][partner] == edge[1]
+    off = np.linalg.norm(blocks[found] - one.vertices[partner[found]], axis=1)
     return {"rms_mm": float(np.sqrt(np.mean(off ** 2)) * 1e6), "max_mm": float(off.max() * 1e6),
+            "blocks_unpaired": int((~found).sum()),
+            "one_unpaired": int(len(one.vertices) - len(np.unique(partner[found]))),
             "one_faces": len(one.faces), "one_peak_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+
+
+def _steps(vertices: np.ndarray, spacing: float) -> np.ndarray:
+    """Vertices (km) in lattice steps, the coordinates off their edge's axis made whole again
+    (dividing by the spacing leaves them a rounding error off, which would put a vertex on
+    another edge)."""
+    steps = vertices / spacing
+    whole = np.round(steps)
+    return np.where(np.abs(steps - whole) < 1e-6, whole, steps)
 
 
 def _downlink(store, paths: list[Path], *, blocks, spacing: float, base: Mesh, count: int) -> dict:
@@ -296,8 +321,8 @@ def blocks_table(args: argparse.Namespace) -> None:
     """The table of fusion in blocks, a size and process count in a process of its own each, and
     the extrapolation of the largest size to Bennu at 5 cm (50,000 maplets of 100 x 100 nodes)."""
     print("\n| maplets | spacing m | processes | blocks | lattice points | largest block's points | sums s "
-          "| mesh s | peak GiB (this, largest worker) | sums MiB | faces | closed (check s) "
-          "| to one process: RMS, max mm (its faces, peak) "
+          "| mesh s | peak GiB (this, largest worker) | sums MiB | faces | closed (check s, this one's peak GiB) "
+          "| to one process, vertex to vertex: RMS, max mm (its faces, peak; unpaired here, there) "
           "| downlink: maplets, s, blocks changed, files written of all |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     last = None
@@ -318,14 +343,16 @@ def blocks_table(args: argparse.Namespace) -> None:
                     r.update(one)
             last = r
             compared = "-" if r["rms_mm"] is None else (f"{r['rms_mm']:.3f}, {r['max_mm']:.1f} "
-                                                        f"({r['one_faces']:,} faces, {r['one_peak_gib']:.2f} GiB)")
+                                                        f"({r['one_faces']:,} faces, {r['one_peak_gib']:.2f} GiB; "
+                                                        f"unpaired {r['blocks_unpaired']}, {r['one_unpaired']})")
             d = r["downlink"]
+            check_peak = "" if r["check_peak_gib"] is None else f", {r['check_peak_gib']:.2f}"
             downlink = "-" if d is None else (f"{d['maplets']}, {d['seconds']:.0f}, {d['blocks_changed']}, "
                                               f"{d['written']} of {d['files']}")
             print(f"| {r['maplets']} | {r['spacing_m']:.2f} | {workers} | {r['blocks']} | {r['lattice_points']:,} "
                   f"| {r['largest_block_points']:,} | {r['add_s']:.0f} | {r['mesh_s']:.0f} "
                   f"| {r['peak_gib']:.2f}, {r['worker_gib']:.2f} | {r['sums_mib']:.0f} | {r['faces']:,} "
-                  f"| {CLOSED[r['closed']]} ({r['check_s']:.0f}) | {compared} | {downlink} |")
+                  f"| {CLOSED[r['closed']]} ({r['check_s']:.0f}{check_peak}) | {compared} | {downlink} |")
             if "failed" in r:
                 print(f"(then failed: {r['failed']})")
     if last is not None:

@@ -1,5 +1,5 @@
 """Volumetric fusion (pwm.volume) in blocks of the lattice, each on its own with bounded memory,
-stitched into one closed mesh: that of the whole lattice but where the base's samples about a
+into one closed surface held as a piece per block: that of the whole lattice but where the base's samples about a
 block's edge differ from the whole body's (a thousandth of a voxel RMS in tests/test_blocks.py;
 bench/RESULTS.md for Bennu).
 
@@ -18,8 +18,11 @@ Fusing takes three passes over the blocks, each block a job of its own (`fuse_in
    band the maplets' disagreement: FusionBlocks.margin);
 3. marching cubes over the cells whose lowest corner is the block's own, from its closed values
    and the first layer of its upper neighbours'. Two blocks sharing a face see the same values on
-   it, so they make the same vertices there; the pieces are welded by the lattice edge each
-   vertex lies on (`stitch`), which leaves no crack and no vertex twice.
+   it, so they make the same vertices there, named by the lattice edge each lies on
+   (pwm.block_surface): the pieces meet with no crack and no vertex twice. The body's parts of
+   the pieces are then found across their seams (`choose_body`); the surface stays in the
+   blocks, made one mesh where it fits one process (`body_mesh`) and checked there without
+   (`closure_in_blocks`).
 
 Each block's reach, closed values and piece are kept with its sums, so that the next fusion over
 the same base remakes only the blocks about those whose sums changed: the others' files stay
@@ -38,17 +41,19 @@ from typing import Protocol
 
 import numpy as np
 
+from pwm.block_surface import Seams, body_parts, named, seam_checks, seams, welded
 from pwm.config import FusionBlocks
+from pwm.evaluate.closure import Closure, self_intersections
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.parallel import map_processes
-from pwm.volume import FADE_VOXELS, TRUNCATION_VOXELS, DistanceGrid, body_surface, extract
+from pwm.volume import FADE_VOXELS, TRUNCATION_VOXELS, DistanceGrid, extract, surface_mesh
 from pwm.voxels import SparseSums, pack, sum_by_key, unpack
 
 _UPPER = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
 _AROUND = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64)
-# a vertex this close (in lattice steps) to a lattice point is at it: both blocks about it agree
-_AT_POINT = 1e-9
+# two faces of marching cubes cross only within this many lattice steps of each other's centres
+_CROSSING_STEPS = 2
 
 
 class BlockStore(Protocol):
@@ -205,15 +210,17 @@ def mesh_in_blocks(grid: DistanceGrid, base: Mesh | None, *, store: BlockStore, 
         else:
             continue
         changed.add(block)
-    return fuse_in_blocks(store, base=base, blocks=blocks, changed=changed if store.blocks("pieces") else None)
+    fuse_in_blocks(store, base=base, blocks=blocks, changed=changed if store.blocks("pieces") else None)
+    return body_mesh(store, voxel_km=grid.voxel_km)
 
 
 def fuse_in_blocks(store: BlockStore, *, base: Mesh | None, blocks: FusionBlocks,
-                   changed: set[int] | None = None) -> Mesh:
+                   changed: set[int] | None = None) -> Body:
     """The closed surface of the sums the store holds per block (with `base` closing where no
     maplet reached, as pwm.volume.DistanceGrid.mesh), fused block by block on blocks.workers
-    processes (see the module docstring); each block's closed values, mesh piece and base reach
-    are kept in the store.
+    processes (see the module docstring); each block's closed values, mesh piece (with its
+    seams), base reach and part of the body are kept in the store, and the surface is left
+    there (`body_mesh` makes it one mesh, `closure_in_blocks` checks it).
 
     changed: the blocks whose sums changed since the store's pieces were made over the same
     base (None: make them all). A block's closed values depend only on the sums of the blocks
@@ -221,7 +228,8 @@ def fuse_in_blocks(store: BlockStore, *, base: Mesh | None, blocks: FusionBlocks
     its piece only on its own and its upper neighbours' closed values: while that reach stays
     as it was, only the blocks about the changed ones are closed again and only the pieces
     those reach meshed again; the other blocks' files are left as they were, byte for byte,
-    and the surface is the one making them all would give."""
+    and the surface is the one making them all would give (the body's parts are chosen again
+    over all blocks' seams, a block's file written only where its parts changed)."""
     held = store.blocks("sums")
     if not held:
         raise ValueError("nothing fused")
@@ -265,9 +273,7 @@ def fuse_in_blocks(store: BlockStore, *, base: Mesh | None, blocks: FusionBlocks
     # a block's piece reads its own closed values and its upper neighbours'
     meshing = store.blocks("closed") if about is None else sorted(around(about, steps=-_UPPER))
     list(map_processes(partial(mesh_block, store, cells=blocks.cells), meshing, workers=blocks.workers))
-    pieces = [store.read_arrays("pieces", b) for b in store.blocks("pieces")]
-    return stitch([(p["vertices"], p["faces"], p["albedo"]) for p in pieces if p is not None],
-                  voxel_km=sample.voxel_km)
+    return choose_body(store)
 
 
 def around(blocks: Iterable[int], *, steps: np.ndarray = _AROUND) -> set[int]:
@@ -356,13 +362,14 @@ def _faces_about(base: Mesh, block: int, *, shape: Shape) -> np.ndarray:
 
 def mesh_block(store: BlockStore, block: int, *, cells: int) -> int:
     """Marching cubes over the cells whose lowest corner is the block's (step 3 of the module
-    docstring), kept as its piece: vertices in lattice steps, faces, albedo per vertex (nan
-    without); its faces (a block without closed values of its own has none)."""
+    docstring), welded (pwm.block_surface.welded) and kept as its piece (vertices in lattice
+    steps) with its seams; its faces (a block without closed values of its own has none)."""
     index = unpack(np.array([block]))[0]
     origin = index * cells
     own = store.read("closed", block)
     if own is None:  # no cell has its lowest corner here
         store.write_arrays("pieces", block, {})
+        store.write_arrays("seams", block, {})
         return 0
     # _UPPER starts at the block itself
     parts = []
@@ -376,34 +383,108 @@ def mesh_block(store: BlockStore, block: int, *, cells: int) -> int:
     keys = np.concatenate([p[0] for p in parts])
     order = np.argsort(keys)
     voxel_km = 1.0  # marching cubes work in lattice steps
-    vertices, faces, albedo = extract(SparseSums(voxel_km, keys[order], np.vstack([p[1] for p in parts])[order],
-                                                 np.concatenate([p[2] for p in parts])[order]))
-    store.write_arrays("pieces", block, {"vertices": vertices, "faces": faces, "albedo": albedo} if len(faces) else {})
-    return len(faces)
+    piece = welded(*extract(SparseSums(voxel_km, keys[order], np.vstack([p[1] for p in parts])[order],
+                                       np.concatenate([p[2] for p in parts])[order])))
+    if not len(piece.faces):
+        store.write_arrays("pieces", block, {})
+        store.write_arrays("seams", block, {})
+        return 0
+    store.write_arrays("pieces", block, {"ids": piece.ids, "vertices": piece.vertices, "albedo": piece.albedo,
+                                         "faces": piece.faces, "part": piece.part})
+    store.write_arrays("seams", block, seams(piece, origin=origin, cells=cells).arrays())
+    return len(piece.faces)
 
 
-def stitch(pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]], *, voxel_km: float) -> Mesh:
-    """The blocks' pieces (vertices in lattice steps, faces, albedo) welded into one mesh by the
-    lattice edge (or point) each vertex lies on, its largest piece kept (pwm.volume.body_surface)."""
-    pieces = [p for p in pieces if len(p[1])]
-    if not pieces:
+@dataclass(frozen=True)
+class Body:
+    """The body's surface as the blocks hold it: its faces in all, and the parts of pieces apart
+    from it left out (specks that marching cubes make off the surface)."""
+
+    faces: int
+    parts_left_out: int
+
+
+def _seams(store: BlockStore) -> dict[int, Seams]:
+    return {b: Seams.from_arrays(a) for b in store.blocks("seams") if (a := store.read_arrays("seams", b))}
+
+
+def _body(store: BlockStore, block: int) -> np.ndarray:
+    held = store.read_arrays("body", block)
+    return np.empty(0, dtype=np.int64) if held is None else held["parts"]
+
+
+def choose_body(store: BlockStore) -> Body:
+    """Find the body's parts of the blocks' pieces across their seams (pwm.block_surface
+    .body_parts) and keep them as each block's "body"; a block's file is written only where
+    they changed."""
+    held = _seams(store)
+    body = body_parts(held)
+    for block in sorted(set(body) | set(store.blocks("body"))):
+        parts = body.get(block)
+        if parts is None:
+            store.write_arrays("body", block, {})
+        elif not np.array_equal(_body(store, block), parts):
+            store.write_arrays("body", block, {"parts": parts})
+    faces = sum(int(held[b].faces[parts].sum()) for b, parts in body.items())
+    return Body(faces=faces, parts_left_out=sum(len(s.faces) for s in held.values()) - sum(map(len, body.values())))
+
+
+def _body_piece(store: BlockStore, block: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A block's part of the body: its piece's ids, vertices, albedo, and the faces the body holds."""
+    piece = store.read_arrays("pieces", block)
+    assert piece is not None  # a block of the body has a piece
+    return piece["ids"], piece["vertices"], piece["albedo"], piece["faces"][np.isin(piece["part"], _body(store, block))]
+
+
+def body_mesh(store: BlockStore, *, voxel_km: float) -> Mesh:
+    """The body's surface as one mesh (km): each block's part of it, welded by the lattice edge
+    each vertex lies on (pwm.block_surface.named), which leaves no crack and no vertex twice."""
+    parts = [_body_piece(store, b) for b in store.blocks("body")]
+    if not parts:
         raise ValueError("the fused distances have no zero crossing")
-    offsets = np.cumsum([0] + [len(p[0]) for p in pieces])
-    vertices = np.vstack([p[0] for p in pieces])
-    faces = np.vstack([p[1] + o for p, o in zip(pieces, offsets, strict=False)])
-    albedo = np.concatenate([p[2] for p in pieces])
-    _, first, inverse = np.unique(lattice_edges(vertices), axis=0, return_index=True, return_inverse=True)
-    faces = inverse.ravel()[faces]
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
-    return body_surface(vertices[first], faces, albedo[first], voxel_km=voxel_km)
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts])
+    _, first, inverse = np.unique(named(np.vstack([p[0] for p in parts])), return_index=True, return_inverse=True)
+    faces = inverse.reshape(-1)[np.vstack([p[3] + o for p, o in zip(parts, offsets, strict=False)])]
+    return surface_mesh(np.vstack([p[1] for p in parts])[first], faces, np.concatenate([p[2] for p in parts])[first],
+                        voxel_km=voxel_km)
 
 
-def lattice_edges(vertices: np.ndarray) -> np.ndarray:
-    """(N, 2) the lattice edge each marching-cubes vertex (in lattice steps) lies on: the key of
-    its lower end and its axis (0-2), or the key of the lattice point it is at and 3."""
-    nearest = np.round(vertices)
-    at_point = (np.abs(vertices - nearest) <= _AT_POINT).all(axis=1)
-    lower = np.floor(vertices)
-    axis = np.argmax(vertices - lower, axis=1)
-    lower = np.where(at_point[:, None], nearest, lower).astype(np.int64)
-    return np.column_stack([pack(lower), np.where(at_point, 3, axis)])
+def closure_in_blocks(store: BlockStore, *, voxel_km: float, cells: int, workers: int,
+                      count_intersections: bool = True) -> Closure:
+    """The checks of a closed surface (pwm.evaluate.closure) on the body the blocks hold,
+    without making it one mesh: each block's own and its open edges met across the seams
+    (pwm.block_surface.seam_checks), and the self-intersections counted block by block
+    (`block_crossings`) on `workers` processes."""
+    body = {b: _body(store, b) for b in store.blocks("body")}
+    checks = seam_checks(_seams(store), body)
+    watertight = checks.boundary_edges == 0 and checks.nonmanifold_edges == 0
+    counted = watertight and count_intersections
+    crossings = sum(map_processes(partial(block_crossings, store, cells=cells), sorted(body), workers=workers)
+                    ) if counted else None
+    return Closure(watertight=watertight, winding_consistent=checks.inconsistent_edges == 0,
+                   outward=checks.volume > 0, self_intersections=crossings, intersections_counted=counted,
+                   volume_km3=checks.volume * voxel_km ** 3, boundary_edges=checks.boundary_edges,
+                   nonmanifold_edges=checks.nonmanifold_edges, components=1 if body else 0)
+
+
+def block_crossings(store: BlockStore, block: int, *, cells: int) -> int:
+    """The pairs of the body's faces that cross (pwm.evaluate.closure.self_intersections) with
+    at least one face in this block and none in a block of a lower key: each pair is counted by
+    one block. The faces of the blocks about it are taken where they can reach its own."""
+    index = unpack(np.array([block]))[0]
+    lo, hi = index * cells - _CROSSING_STEPS, (index + 1) * cells + _CROSSING_STEPS
+    parts, owned = [], []
+    for step in _AROUND:
+        other = int(pack((index + step)[None])[0])
+        if other < block or (other != block and store.read_arrays("body", other) is None):
+            continue
+        ids, vertices, _, faces = _body_piece(store, other)
+        centre = vertices[faces].mean(axis=1)
+        faces = faces[((centre >= lo) & (centre <= hi)).all(axis=1)]
+        parts.append((ids, vertices, faces))
+        owned.append(np.full(len(faces), other == block))
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts])
+    _, first, inverse = np.unique(named(np.vstack([p[0] for p in parts])), return_index=True, return_inverse=True)
+    faces = inverse.reshape(-1)[np.vstack([p[2] + o for p, o in zip(parts, offsets, strict=False)])]
+    mesh = Mesh(np.vstack([p[1] for p in parts])[first], faces)
+    return self_intersections(mesh, owned=np.concatenate(owned))

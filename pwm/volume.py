@@ -274,7 +274,13 @@ def body_surface(vertices: np.ndarray, faces: np.ndarray, albedo: np.ndarray, *,
     per vertex, nan without) as a mesh in km, each vertex without albedo given its nearest's."""
     if not len(faces):
         raise ValueError("the fused distances have no zero crossing")
-    used, faces = compact(len(vertices), faces[largest_piece(len(vertices), faces)])
+    return surface_mesh(vertices, faces[largest_piece(len(vertices), faces)], albedo, voxel_km=voxel_km)
+
+
+def surface_mesh(vertices: np.ndarray, faces: np.ndarray, albedo: np.ndarray, *, voxel_km: float) -> Mesh:
+    """The faces of a fused surface (vertices in lattice steps, albedo per vertex, nan without)
+    as a mesh in km of the vertices they use, each vertex without albedo given its nearest's."""
+    used, faces = compact(len(vertices), faces)
     vertices, albedo = vertices[used], albedo[used]
     return Mesh(vertices * voxel_km, faces, None if np.isnan(albedo).all() else fill_gaps(albedo, vertices))
 

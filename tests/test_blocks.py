@@ -9,11 +9,15 @@ import numpy as np
 import pytest
 import trimesh
 
+from pwm.block_surface import Seams, body_parts, seams, welded
 from pwm.blocks import (
     _UPPER,
     BlockedSums,
     Shape,
     around,
+    block_crossings,
+    body_mesh,
+    closure_in_blocks,
     context,
     fuse_in_blocks,
     maplet_blocks,
@@ -104,7 +108,9 @@ def test_blocks_make_the_one_process_surface_with_exact_seams(body, tmp_path):
         assert held is not None and np.array_equal(held.keys, part.keys)
         assert np.array_equal(held.count, part.count)
         assert np.allclose(held.sums, part.sums, rtol=0, atol=1e-12)
-    blocked = fuse_in_blocks(store, base=base, blocks=FusionBlocks(cells=CELLS, margin=MARGIN))
+    body = fuse_in_blocks(store, base=base, blocks=FusionBlocks(cells=CELLS, margin=MARGIN))
+    blocked = body_mesh(store, voxel_km=VOXEL)
+    assert (body.faces, body.parts_left_out) == (len(blocked.faces), 0)
     checks = closure(blocked)
     assert checks.closed and checks.components == 1, checks
     # welded: no two vertices at one place
@@ -172,7 +178,7 @@ def test_a_fusion_over_an_earlier_one_remakes_only_the_blocks_about_the_change(l
     store = BlockFiles(tmp_path / "kept")
     mesh_in_blocks(whole, None, store=store, blocks=blocks)
     files = {p: p.read_bytes() for p in (tmp_path / "kept").rglob("*.npz")}
-    assert {p.parent.name for p in files} == {"sums", "closed", "pieces"}
+    assert {p.parent.name for p in files} == {"sums", "closed", "pieces", "seams", "body"}
     old = max(maplets, key=lambda m: m.frame.origin[0])
     new = MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km, heights=old.heights + 0.002,
                      albedo=old.albedo)
@@ -188,9 +194,11 @@ def test_a_fusion_over_an_earlier_one_remakes_only_the_blocks_about_the_change(l
     changed = {_key(p) for p in files if p.parent.name == "sums" and p.read_bytes() != files[p]}
     assert changed and changed <= set(maplet_blocks(old, voxel_km=LONG_VOXEL, cells=blocks.cells).tolist())
     closed = around(changed)
-    remade = {"sums": changed, "closed": closed, "pieces": around(closed, steps=-_UPPER)}
+    meshed = around(closed, steps=-_UPPER)
+    remade = {"sums": changed, "closed": closed, "pieces": meshed, "seams": meshed, "body": meshed}
     kept = [p for p in files if _key(p) not in remade[p.parent.name]]
-    assert len(kept) > 0.3 * len(files)
+    # of each kind, some blocks' files are left as they were
+    assert {p.parent.name for p in kept} == set(remade)
     for path in kept:
         assert path.read_bytes() == files[path], path
 
@@ -212,6 +220,90 @@ def test_a_change_that_widens_the_bases_reach_closes_every_block_again(body, tmp
     assert max(float(store.read_arrays("reach", b)["reach_km"]) for b in reach) > max(reach.values())
     fresh = mesh_in_blocks(whole, base, store=BlockFiles(tmp_path / "fresh"), blocks=blocks)
     assert np.array_equal(again.vertices, fresh.vertices) and np.array_equal(again.faces, fresh.faces)
+
+
+def test_the_blocks_check_their_surface_as_the_whole_mesh_is_checked(body, tmp_path):
+    """pwm.blocks.closure_in_blocks, which never makes the surface one mesh, finds what
+    pwm.evaluate.closure finds on it: a closed surface, a face missing, a face turned, and
+    faces folded through the body across the blocks' seams (each crossing pair counted once)."""
+    base, maplets = body
+    store = _store(tmp_path, maplets)
+    fuse_in_blocks(store, base=base, blocks=FusionBlocks(cells=CELLS, margin=MARGIN))
+
+    def both() -> tuple:
+        return (closure_in_blocks(store, voxel_km=VOXEL, cells=CELLS, workers=1),
+                closure(body_mesh(store, voxel_km=VOXEL)))
+
+    in_blocks, at_once = both()
+    assert in_blocks.closed and at_once.closed
+    assert abs(in_blocks.volume_km3 - at_once.volume_km3) < 1e-9 * at_once.volume_km3
+    # a block's piece at a seam, edited as marching cubes never would
+    block = store.blocks("body")[0]
+    piece = store.read_arrays("pieces", block)
+    shell = {tuple(i) for i in store.read_arrays("seams", block)["shell"]}
+    at_seam = next(k for k, f in enumerate(piece["faces"]) if any(tuple(piece["ids"][v]) in shell for v in f))
+    origin = unpack(np.array([block]))[0] * CELLS
+
+    def rewrite(faces: np.ndarray, vertices: np.ndarray = piece["vertices"]) -> None:
+        edited = welded(vertices, faces, piece["albedo"])
+        assert len(edited.faces) == len(faces)
+        store.write_arrays("pieces", block, {"ids": edited.ids, "vertices": edited.vertices, "albedo": edited.albedo,
+                                             "faces": edited.faces, "part": edited.part})
+        store.write_arrays("seams", block, seams(edited, origin=origin, cells=CELLS).arrays())
+
+    rewrite(np.delete(piece["faces"], at_seam, axis=0))
+    in_blocks, at_once = both()
+    assert not in_blocks.watertight and in_blocks.boundary_edges == at_once.boundary_edges == 3
+    turned = piece["faces"].copy()
+    turned[at_seam] = turned[at_seam, ::-1]
+    rewrite(turned)
+    in_blocks, at_once = both()
+    assert in_blocks.watertight and not in_blocks.winding_consistent and not at_once.winding_consistent
+    rewrite(piece["faces"])
+    # the top of the body folded down through it and widened: the same map on every block's
+    # vertices, so the pieces still meet
+    for b in store.blocks("pieces"):
+        held = store.read_arrays("pieces", b)
+        v = held["vertices"].copy()
+        up = np.clip(v[:, 2] - 5.0, 0.0, None)
+        v[:, 2] -= 4.0 * up
+        v[:, :2] *= 1.0 + 0.3 * up[:, None]
+        store.write_arrays("pieces", b, {**held, "vertices": v})
+    in_blocks, at_once = both()
+    assert in_blocks.self_intersections == at_once.self_intersections > 0
+
+
+def test_a_crossing_across_a_seam_is_counted_by_one_block(tmp_path):
+    """Two faces that cross, each in its own block on either side of a seam (at 32 steps up):
+    the lower block counts the pair, the upper one does not count it again."""
+    store = BlockFiles(tmp_path)
+    lower, upper = (int(pack(np.array([[0, 0, k]]))[0]) for k in (0, 1))
+    flat = np.array([[10, 10, 31.8], [16, 10, 31.8], [10, 16, 31.8]])
+    through = np.array([[11, 11, 30.5], [12, 11, 33.5], [11, 12, 33.5]])
+    for block, vertices, first in ((lower, flat, 1), (upper, through, 4)):
+        store.write_arrays("pieces", block, {"ids": np.column_stack([np.arange(first, first + 3), np.zeros(3, int)]),
+                                             "vertices": vertices, "albedo": np.full(3, np.nan),
+                                             "faces": np.array([[0, 1, 2]]), "part": np.array([0])})
+        store.write_arrays("body", block, {"parts": np.array([0])})
+    assert [block_crossings(store, b, cells=32) for b in (lower, upper)] == [1, 0]
+
+
+def test_the_body_is_the_largest_whole_joined_across_the_seams():
+    def held(faces: list[int], shell: list[tuple[int, int]]) -> Seams:
+        parts = len(faces)
+        return Seams(shell=np.array([[k, 0] for k, _ in shell]).reshape(-1, 2),
+                     shell_part=np.array([p for _, p in shell], dtype=np.int64), faces=np.array(faces),
+                     volume=np.zeros(parts), open=np.empty((0, 4), dtype=np.int64),
+                     open_part=np.empty(0, dtype=np.int64), nonmanifold=np.zeros(parts, dtype=np.int64),
+                     inconsistent=np.zeros(parts, dtype=np.int64))
+
+    # block 1's part 1 meets block 2's only part (vertex 7): 5 + 50 faces, less than block 1's part 0
+    a = held([100, 5], [(3, 0), (7, 1)])
+    b = held([50], [(7, 0), (9, 0)])
+    assert {k: v.tolist() for k, v in body_parts({1: a, 2: b}).items()} == {1: [0]}
+    # once block 2 also meets part 0 (vertex 3), all of it is one whole
+    b = held([50], [(7, 0), (3, 0)])
+    assert {k: v.tolist() for k, v in body_parts({1: a, 2: b}).items()} == {1: [0, 1], 2: [0]}
 
 
 def _key(path: Path) -> int:

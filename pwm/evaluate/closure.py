@@ -105,11 +105,13 @@ def mass_properties(mesh: Mesh) -> MassProperties:
                           inertia_km5=np.asarray(properties.inertia), area_km2=float(tm.area))
 
 
-def self_intersections(mesh: Mesh) -> int:
-    """Number of pairs of faces that share no vertex and cross. The faces are taken in slabs of
-    _SLAB_FACES along the axis they spread most on, each with the faces near enough to cross
-    its own, so that the near pairs held at a time stay bounded whatever the mesh's size; a pair
-    is counted by the slab of its first face in that order."""
+def self_intersections(mesh: Mesh, *, owned: np.ndarray | None = None) -> int:
+    """Number of pairs of faces that share no vertex and cross; with `owned` (a mask of the
+    faces), only the pairs with an owned face (a part of a surface with the faces about it:
+    pwm.blocks.block_crossings). The faces are taken in slabs of _SLAB_FACES along the axis
+    they spread most on, each with the faces near enough to cross its own, so that the near
+    pairs held at a time stay bounded whatever the mesh's size; a pair is counted by the slab
+    of its first face in that order."""
     tri = mesh.vertices[mesh.faces]
     centroids = tri.mean(axis=1)
     radius = np.linalg.norm(tri - centroids[:, None], axis=2).max(axis=1)
@@ -128,6 +130,8 @@ def self_intersections(mesh: Mesh) -> int:
         pairs = members[_near_pairs(centroids[members], radius[members])]
         owner = np.minimum(rank[pairs[:, 0]], rank[pairs[:, 1]])
         pairs = pairs[(owner >= start) & (owner < end)]
+        if owned is not None:
+            pairs = pairs[owned[pairs[:, 0]] | owned[pairs[:, 1]]]
         shared = (mesh.faces[pairs[:, 0], :, None] == mesh.faces[pairs[:, 1], None, :]).any(axis=(1, 2))
         pairs = pairs[~shared]
         for chunk in range(0, len(pairs), _CHUNK):
