@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from service.artifacts import artifact_path, scratch_folder, scratch_path, store_artifact
+from service.artifacts import artifact_path, scratch_folder, store_artifact
 from service.rows import ModelVersion
 
 log = logging.getLogger(__name__)
@@ -50,8 +50,9 @@ class Layout:
 
 @contextmanager
 def working_folder(data_dir: Path) -> Iterator[Path]:
-    """A new empty folder for a fusion's blocks in the store's scratch folder, removed with what
-    it holds afterwards. Take it under the publication lock (service.versions
+    """A new empty folder for a fusion's blocks and the files it publishes, in the store's
+    scratch folder (the store moves a file from there in atomically), removed with what it
+    still holds afterwards. Take it under the publication lock (service.versions
     .publication_lock): then no other fusion is under way, and the working folders that fusions
     killed before their end left behind are removed first."""
     scratch = scratch_folder(data_dir)
@@ -84,11 +85,11 @@ def carry_blocks(data_dir: Path, parent: ModelVersion, *, layout: Layout, into: 
 
 
 def keep_blocks(data_dir: Path, folder: Path, carried: dict[str, dict[str, Any]], *,
-                layout: Layout) -> tuple[Path | None, dict[str, int]]:
+                layout: Layout, manifest: Path) -> tuple[Path | None, dict[str, int]]:
     """Store the block files in `folder` (a file still the carried one keeps its record) and
-    write their manifest to a scratch file, to be stored as the version's "blocks" artifact;
-    the manifest (None where the folder holds no block) and how many files were kept as they
-    were and written."""
+    write their manifest to the file `manifest` (in the working folder), to be stored as the
+    version's "blocks" artifact; the manifest (None where the folder holds no block) and how
+    many files were kept as they were and written."""
     files: dict[str, dict[str, Any]] = {}
     written = 0
     for path in sorted(folder.rglob("*.npz")):
@@ -101,6 +102,5 @@ def keep_blocks(data_dir: Path, folder: Path, carried: dict[str, dict[str, Any]]
             written += 1
     if not files:
         return None, {"files": 0, "written": 0}
-    manifest = scratch_path(data_dir, ".json")
     manifest.write_text(json.dumps({"layout": asdict(layout), "files": files}, sort_keys=True))
     return manifest, {"files": len(files), "written": written}

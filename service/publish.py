@@ -53,7 +53,7 @@ from pwm.mesh import Mesh
 from pwm.tiling import level_of
 from pwm.uncertainty import sigma_summary, vertex_sigma
 from pwm.volume import DistanceGrid
-from service.artifacts import artifact_path, scratch_path
+from service.artifacts import artifact_path
 from service.db import session_scope
 from service.fusion_blocks import Layout, carry_blocks, keep_blocks, working_folder
 from service.jobs import refined_downlinks
@@ -137,47 +137,48 @@ def fuse_and_publish(sessions: sessionmaker[Session], *, data_dir: Path, downlin
             mesh, composition, laid = fusion.compose(base_mesh, previous=previous,
                                                      close=partial(_close, folder=folder, blocks=blocks))
             manifest, kept = (None, None) if layout is None else keep_blocks(
-                data_dir, folder / f"L{layout.level}", carried, layout=layout)
-        sigma = vertex_sigma(mesh.vertices, (load_revision_maplet(data_dir, r) for r in current.values()),
-                             taper_fraction=config.overlap)
-        mesh = dataclasses.replace(mesh, sigma=sigma)
-        scratch = {"grid": scratch_path(data_dir, ".npz"), "composition": scratch_path(data_dir, ".npz")}
-        if manifest is not None:
-            scratch["blocks"] = manifest
-        write_levels(scratch["grid"], fusion)
-        write_composition(scratch["composition"], composition)
-        downlinks = {d.id: d for d in parent.downlinks}
-        # Every downlink whose refinements this version carries, besides those asked for: a
-        # fusion may take up revisions whose own downlink's fusion has not run yet.
-        for downlink_id in sorted(set(downlink_ids) | refined_downlinks(session, changed)):
-            if downlink_id not in downlinks:
-                downlinks[downlink_id] = session.get_one(Downlink, downlink_id)
-        images = {name for r in current.values() for name in r.statistics.get("images", [])}
-        levels = fusion.describe()
-        statistics = {
-            "maplets_changed": len(changed), "maplets_added": sum(r.maplet_id not in used
-                                                                  for r in changed),
-            "maplets_replaced": sum(r.maplet_id in used for r in changed),
-            "maplets_removed": len(gone), "maplets_fused": len(current), "images": len(images),
-            "incremental": "grid" in parent.artifacts, "base_version": base.version,
-            "surface": next(iter(levels.values()))["surface"], "voxels": fusion.voxels, "levels": levels,
-            "composition": {"regions_laid": laid.regions_laid, "regions_carried": laid.regions_carried,
-                            "closed_levels_made": laid.below_made},
-            "height_sigma": sigma_summary(sigma), "fusion_seconds": time.perf_counter() - clock}
-        if kept is not None and kept["files"]:
-            statistics["blocks"] = kept
-        lidar = lidar_statistics(session, data_dir=data_dir, mesh=mesh, version=parent.version + 1)
-        if lidar is not None:
-            statistics["lidar"] = lidar
-        version = publish_version(session, data_dir=data_dir, mesh=mesh, kind=ModelKind.REFINED,
-                                  parent=parent, statistics=statistics,
-                                  extra_artifacts=scratch,
-                                  maplet_revisions=current.values(),
-                                  downlinks=downlinks.values())
-        log.info("fusion: version %d from version %d, %d of %d maplets changed (%.1f s)",
-                 version.version, parent.version, len(changed), len(current),
-                 time.perf_counter() - clock)
-        return version.version
+                data_dir, folder / f"L{layout.level}", carried, layout=layout, manifest=folder / "blocks.json")
+            sigma = vertex_sigma(mesh.vertices, (load_revision_maplet(data_dir, r) for r in current.values()),
+                                 taper_fraction=config.overlap)
+            mesh = dataclasses.replace(mesh, sigma=sigma)
+            # in the working folder, which the next fusion clears if this one is killed
+            scratch = {"grid": folder / "grid.npz", "composition": folder / "composition.npz"}
+            if manifest is not None:
+                scratch["blocks"] = manifest
+            write_levels(scratch["grid"], fusion)
+            write_composition(scratch["composition"], composition)
+            downlinks = {d.id: d for d in parent.downlinks}
+            # Every downlink whose refinements this version carries, besides those asked for: a
+            # fusion may take up revisions whose own downlink's fusion has not run yet.
+            for downlink_id in sorted(set(downlink_ids) | refined_downlinks(session, changed)):
+                if downlink_id not in downlinks:
+                    downlinks[downlink_id] = session.get_one(Downlink, downlink_id)
+            images = {name for r in current.values() for name in r.statistics.get("images", [])}
+            levels = fusion.describe()
+            statistics = {
+                "maplets_changed": len(changed), "maplets_added": sum(r.maplet_id not in used
+                                                                      for r in changed),
+                "maplets_replaced": sum(r.maplet_id in used for r in changed),
+                "maplets_removed": len(gone), "maplets_fused": len(current), "images": len(images),
+                "incremental": "grid" in parent.artifacts, "base_version": base.version,
+                "surface": next(iter(levels.values()))["surface"], "voxels": fusion.voxels, "levels": levels,
+                "composition": {"regions_laid": laid.regions_laid, "regions_carried": laid.regions_carried,
+                                "closed_levels_made": laid.below_made},
+                "height_sigma": sigma_summary(sigma), "fusion_seconds": time.perf_counter() - clock}
+            if kept is not None and kept["files"]:
+                statistics["blocks"] = kept
+            lidar = lidar_statistics(session, data_dir=data_dir, mesh=mesh, version=parent.version + 1)
+            if lidar is not None:
+                statistics["lidar"] = lidar
+            version = publish_version(session, data_dir=data_dir, mesh=mesh, kind=ModelKind.REFINED,
+                                      parent=parent, statistics=statistics,
+                                      extra_artifacts=scratch,
+                                      maplet_revisions=current.values(),
+                                      downlinks=downlinks.values())
+            log.info("fusion: version %d from version %d, %d of %d maplets changed (%.1f s)",
+                     version.version, parent.version, len(changed), len(current),
+                     time.perf_counter() - clock)
+            return version.version
 
 
 def lidar_statistics(session: Session, *, data_dir: Path, mesh: Mesh, version: int,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from sqlalchemy import select
 
 import pwm
@@ -18,6 +19,7 @@ from pwm.io.fusion_state import write_maplet
 from pwm.io.meshio import write_ply
 from pwm.maplets import MapletGrid
 from pwm.voxels import pack
+from service import publish
 from service.artifacts import artifact_path, scratch_path, store_artifact
 from service.db import session_scope
 from service.publish import fuse_and_publish
@@ -105,10 +107,13 @@ def test_a_downlink_at_one_end_refuses_only_the_blocks_it_touches(long_body, sql
     # the sums of the incremental version took the old revisions out again: equal to 1e-12
     assert np.abs(incremental.vertices - fresh.vertices).max() < 1e-9
 
-    # a fusion killed before its end left its working folder; a new release of pwm fuses the
-    # next version: nothing of its parent's blocks is carried, and the folder left is removed
+    # a fusion killed before its end left its working folder, with the files it was about to
+    # publish; a new release of pwm fuses the next version: nothing of its parent's blocks is
+    # carried, and the folder left is removed. A fusion that ends leaves nothing behind.
+    assert not list((data / "artifacts" / "tmp").iterdir())
     stale = data / "artifacts" / "tmp" / "blocks-killed"
     (stale / "L0").mkdir(parents=True)
+    (stale / "grid.npz").write_bytes(b"half written")
     monkeypatch.setattr(pwm, "__version__", "0-another-release")
     old = end[0]
     _revise(sessions, data, MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km,
@@ -118,3 +123,14 @@ def test_a_downlink_at_one_end_refuses_only_the_blocks_it_touches(long_body, sql
         statistics = get_version(session, 6).statistics["blocks"]
     assert statistics["written"] == statistics["files"] == len(_files(sessions, data, 6))
     assert not stale.exists()
+    # a fusion that fails as it publishes leaves none of its files either
+    _revise(sessions, data, MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km,
+                                       heights=old.heights + 0.004, albedo=old.albedo))
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("the disk filled")
+
+    monkeypatch.setattr(publish, "publish_version", failing)
+    with pytest.raises(RuntimeError, match="disk filled"):
+        fuse_and_publish(sessions, data_dir=data, blocks=BLOCKS)
+    assert not list((data / "artifacts" / "tmp").iterdir())
