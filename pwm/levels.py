@@ -44,7 +44,7 @@ from pwm.mesh import Mesh, border_edges, compact, edge_keys, largest_piece, piec
 from pwm.raytrace import Hits, RayTracer
 from pwm.tiling import level_of
 from pwm.volume import DistanceGrid, grid_for
-from pwm.voxels import pack, unpack
+from pwm.voxels import find, pack, unpack
 from pwm.weights import raised_cosine
 
 Grid = VoxelGrid | DistanceGrid
@@ -460,7 +460,7 @@ class _Regions:
 
     def of(self, points: np.ndarray) -> np.ndarray:
         """The region of each point (N, 3), -1 for none."""
-        found = _find(self.cells, pack(np.floor(points / self.margin_km).astype(np.int64)))
+        found = find(self.cells, pack(np.floor(points / self.margin_km).astype(np.int64)))
         return np.where(found >= 0, self.label[found], -1)
 
     def touched(self, spheres: list[tuple[np.ndarray, float]]) -> np.ndarray:
@@ -470,7 +470,7 @@ class _Regions:
             lo = np.floor((centre - radius) / self.margin_km).astype(np.int64) - 1
             hi = np.floor((centre + radius) / self.margin_km).astype(np.int64) + 1
             box = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)], indexing="ij"), -1)
-            found = _find(self.cells, pack(box.reshape(-1, 3)))
+            found = find(self.cells, pack(box.reshape(-1, 3)))
             out[self.label[found[found >= 0]]] = True
         return out
 
@@ -502,19 +502,13 @@ def _components(cells: np.ndarray, steps: np.ndarray) -> np.ndarray:
     order = np.argsort(keys)
     rows, cols = [], []
     for step in steps:
-        found = _find(keys[order], pack(cells + step))
+        found = find(keys[order], pack(cells + step))
         rows.append(np.flatnonzero(found >= 0))
         cols.append(order[found[found >= 0]])
     n = len(keys)
     graph = coo_matrix((np.ones(sum(len(r) for r in rows)), (np.concatenate(rows), np.concatenate(cols))),
                        shape=(n, n))
     return connected_components(graph, directed=False)[1]
-
-
-def _find(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
-    """Index of each key in sorted_keys, -1 where it is not there."""
-    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-    return np.where(sorted_keys[pos] == keys, pos, -1)
 
 
 def _part(grid: Grid, regions: _Regions, r: int) -> VoxelGrid | None:

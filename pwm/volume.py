@@ -37,7 +37,7 @@ from pwm.fusion import VoxelGrid, edge_taper, fill_gaps
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh, compact, largest_piece
 from pwm.raytrace import RayTracer
-from pwm.voxels import SparseSums, pack, sum_by_key, unpack
+from pwm.voxels import SparseSums, find, pack, sum_by_key, unpack
 from pwm.weights import raised_cosine
 
 TRUNCATION_VOXELS = 4.0
@@ -53,6 +53,7 @@ MAX_SURFACE_CELLS = 4_000_000
 closed surface; beyond, maplets are fused as points laid onto the base (pwm.fusion, pwm.levels.displace)."""
 
 _BEND_NEIGHBOURS = 8
+_RING_BATCH = 250_000
 _INSIDE_RAY = np.array([0.4472, 0.7746, 0.4472]) / np.linalg.norm([0.4472, 0.7746, 0.4472])
 _W, _WD, _WA, _A = 0, 1, 2, 3
 _COLUMNS = 4
@@ -201,12 +202,22 @@ class DistanceGrid(SparseSums):
         # leave a hole. Every lattice point next to one within a cell diagonal of the surface
         # gets the base's distance too, ring after ring while the points added are themselves
         # that near (where the bend carries the surface out of the base's band).
-        held = np.concatenate([self.keys[maplet_sums], keys])
-        values = np.concatenate([maplet_distance, distance])
-        near = np.abs(values) <= np.sqrt(3.0) * self.voxel_km
+        diagonal = np.sqrt(3.0) * self.voxel_km
+
+        def missing_about(held: np.ndarray) -> np.ndarray:
+            # _RING_BATCH points at a time: the points next to a whole body's surface at once
+            # would be 26 times its band
+            found = [np.empty(0, dtype=np.int64)]
+            for start in range(0, len(held), _RING_BATCH):
+                around = unpack(held[start:start + _RING_BATCH])[:, None, :] + _NEIGHBOURS[None]
+                around = wanted(np.unique(pack(around.reshape(-1, 3))))
+                found.append(around[(find(self.keys, around) < 0) & (find(keys, around) < 0)])
+            return np.unique(np.concatenate(found))
+
+        held = np.concatenate([self.keys[maplet_sums][np.abs(maplet_distance) <= diagonal],
+                               keys[np.abs(distance) <= diagonal]])
         for _ in range(int(FADE_VOXELS)):
-            around = wanted(np.unique(pack((unpack(held[near])[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3))))
-            missing = around[~np.isin(around, self.keys) & ~np.isin(around, keys)]
+            missing = missing_about(held)
             if not len(missing):
                 break
             more = bent(missing)
@@ -214,7 +225,7 @@ class DistanceGrid(SparseSums):
             distance, nearest = np.concatenate([distance, more[0]]), np.concatenate([nearest, more[1]])
             order = np.argsort(keys)
             keys, distance, nearest = keys[order], distance[order], nearest[order]
-            held, near = missing, np.abs(more[0]) <= np.sqrt(3.0) * self.voxel_km
+            held = missing[np.abs(more[0]) <= diagonal]
         cols = np.zeros((len(keys), _COLUMNS))
         cols[:, _W] = BASE_WEIGHT
         cols[:, _WD] = BASE_WEIGHT * np.clip(distance, -reach, reach)

@@ -32,6 +32,14 @@ def pack(index: np.ndarray) -> np.ndarray:
     return (idx[:, 0] << 2 * _KEY_BITS) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
 
 
+def find(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Index of each key in sorted_keys (sorted, unique), -1 where it is not there."""
+    if not len(sorted_keys):
+        return np.full(len(keys), -1, dtype=np.int64)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return np.where(sorted_keys[pos] == keys, pos, -1)
+
+
 def unpack(keys: np.ndarray) -> np.ndarray:
     """(N, 3) lattice indices of keys made by `pack`."""
     keys = np.asarray(keys, dtype=np.int64)
