@@ -50,6 +50,11 @@ from pwm.parallel import map_processes
 from pwm.volume import FADE_VOXELS, TRUNCATION_VOXELS, DistanceGrid, extract, surface_mesh
 from pwm.voxels import SparseSums, pack, sum_by_key, unpack
 
+FILES = 2
+"""The form of the files a fusion in blocks keeps (1: pieces as marching cubes made them; 2:
+pieces welded by lattice edge, with their seams and the body's parts): a fusion over a store
+of another form makes every block afresh (service.fusion_blocks.Layout)."""
+
 _UPPER = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
 _AROUND = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.int64)
 # two faces of marching cubes cross only within this many lattice steps of each other's centres

@@ -7,7 +7,7 @@ The next fusion links the parent's files into a working folder (pwm.io.fusion_st
 which replaces a file it writes rather than writing into it, so the stored artifact is never
 touched), fuses there, and stores what it wrote; a file it left alone keeps its record. The
 parent's files are carried only when they describe the same closed level over the same base
-with the same layout, made by the same release of pwm (`Layout`); otherwise the fusion starts
+with the same layout, made by the same release of pwm in the same form (`Layout`); otherwise the fusion starts
 from an empty folder. The working folders live in the store's scratch folder; one that a killed
 fusion left behind is removed by the next (`working_folder`).
 """
@@ -37,8 +37,9 @@ _WORKING = "blocks-"
 @dataclass(frozen=True)
 class Layout:
     """What a version's blocks were made of: its base version, the closed level fused in
-    blocks and its voxel (km), the blocks' size and margin (pwm.config.FusionBlocks), and the
-    release of pwm that fused them (a release that fuses otherwise makes every block afresh)."""
+    blocks and its voxel (km), the blocks' size and margin (pwm.config.FusionBlocks), the
+    release of pwm that fused them (a release that fuses otherwise makes every block afresh)
+    and the form of their files (pwm.blocks.FILES)."""
 
     base_version: int
     level: int
@@ -46,6 +47,7 @@ class Layout:
     cells: int
     margin: int
     code: str
+    files: int
 
 
 @contextmanager

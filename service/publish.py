@@ -41,7 +41,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, selectinload, sessionmaker
 
 import pwm
-from pwm.blocks import mesh_in_blocks
+from pwm.blocks import FILES, mesh_in_blocks
 from pwm.config import BLOCKS, DEFAULTS, FusionBlocks, RefinementConfig
 from pwm.io.fusion_state import BlockFiles, read_composition, read_levels, write_composition, write_levels
 from pwm.levels import LevelGrids
@@ -258,7 +258,7 @@ def _layout(fusion: LevelGrids, base: ModelVersion, blocks: FusionBlocks) -> Lay
     if not held or not isinstance(fusion.grids[held[0]], DistanceGrid):
         return None
     return Layout(base_version=base.version, level=held[0], voxel_km=fusion.grids[held[0]].voxel_km,
-                  cells=blocks.cells, margin=blocks.margin, code=pwm.__version__)
+                  cells=blocks.cells, margin=blocks.margin, code=pwm.__version__, files=FILES)
 
 
 def _close(grid: DistanceGrid, below: Mesh, *, folder: Path, blocks: FusionBlocks) -> Mesh:

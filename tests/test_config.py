@@ -134,6 +134,7 @@ NOT_REFINEMENT = {
     "pwm.volume.BLOCK": "memory: marching cubes' blocks",
     "pwm.volume.MAX_SURFACE_CELLS": "memory and fusion: a closed surface or regions, after refinement",
     "pwm.volume._BEND_NEIGHBOURS": "fusion (the base's bend): no maplet's result",
+    "pwm.volume._RING_BATCH": "memory: the points the fusion's rings take at a time (the same rings)",
     "pwm.volume._COLUMNS": "the layout of the fusion's sums",
     **{f"pwm.volume.{column}": "a column of the fusion's sums" for column in ("_W", "_WD", "_WA", "_A")},
     "pwm.voxels._KEY_BITS": "how voxel keys are packed",

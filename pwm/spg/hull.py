@@ -122,10 +122,12 @@ def visual_hull(views: list[View], *, bound_km: float, config: HullConfig) -> Hu
     cells = config.coarse_cells
     while 2.0 * bound_km / cells > finest * 1.5:
         cells *= 2
+    outlines = [Outline(v, config=config) for v in views]
+    if not any(o.any_lit for o in outlines):
+        return None  # a view with nothing lit shows no pixel surely space: none would carve
     alive = np.ones((config.coarse_cells,) * 3, dtype=bool)
     carving = np.zeros(len(views), dtype=bool)
     level = config.coarse_cells
-    outlines = [Outline(v, config=config) for v in views]
     while True:
         # a cell is carved by its centre's pixel: the margin covers the rest of the cell
         half_diagonal_px = 0.5 * np.sqrt(3.0) * (2.0 * bound_km / level) / pixel_km

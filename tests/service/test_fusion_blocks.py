@@ -5,6 +5,7 @@ is the one a fusion from the start makes."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 from sqlalchemy import select
 
 import pwm
-from pwm.blocks import _UPPER, around
+from pwm.blocks import _UPPER, FILES, around
 from pwm.config import FusionBlocks
 from pwm.evaluate.closure import closure
 from pwm.io.fusion_state import write_maplet
@@ -22,6 +23,7 @@ from pwm.voxels import pack
 from service import publish
 from service.artifacts import artifact_path, scratch_path, store_artifact
 from service.db import session_scope
+from service.fusion_blocks import Layout, carry_blocks, keep_blocks
 from service.publish import fuse_and_publish
 from service.rows import Maplet, MapletRevision
 from service.versions import get_version, import_model, version_mesh
@@ -71,6 +73,14 @@ def test_a_downlink_at_one_end_refuses_only_the_blocks_it_touches(long_body, sql
     before = _files(sessions, data, 2)
     content = {relative: artifact_path(data, record).read_bytes() for relative, record in before.items()}
     assert {_block(r)[0] for r in before} == {"sums", "closed", "pieces", "seams", "body", "reach"}
+    with sessions() as session:
+        parent = get_version(session, 2)
+        layout = Layout(**json.loads(artifact_path(data, parent.artifacts["blocks"]).read_text())["layout"])
+        assert layout.files == FILES
+        assert len(carry_blocks(data, parent, layout=layout, into=tmp_path / "carried")) == len(before)
+        # blocks kept in another form are not carried
+        assert carry_blocks(data, parent, layout=dataclasses.replace(layout, files=FILES - 1),
+                            into=tmp_path / "other") == {}
 
     # the next downlink moves the maplets at the body's +x end up by 2 m
     end = [m for m in maplets if m.frame.origin[0] > 0.13]
@@ -108,8 +118,9 @@ def test_a_downlink_at_one_end_refuses_only_the_blocks_it_touches(long_body, sql
     assert np.abs(incremental.vertices - fresh.vertices).max() < 1e-9
 
     # a fusion killed before its end left its working folder, with the files it was about to
-    # publish; a new release of pwm fuses the next version: nothing of its parent's blocks is
-    # carried, and the folder left is removed. A fusion that ends leaves nothing behind.
+    # publish; a new release of pwm fuses the next version, and fails as it publishes: the
+    # folder left is removed, nothing of the parent's blocks was carried, and the failed fusion
+    # leaves none of its files behind either (nor does one that ends)
     assert not list((data / "artifacts" / "tmp").iterdir())
     stale = data / "artifacts" / "tmp" / "blocks-killed"
     (stale / "L0").mkdir(parents=True)
@@ -118,19 +129,20 @@ def test_a_downlink_at_one_end_refuses_only_the_blocks_it_touches(long_body, sql
     old = end[0]
     _revise(sessions, data, MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km,
                                        heights=old.heights + 0.003, albedo=old.albedo))
-    assert fuse_and_publish(sessions, data_dir=data, blocks=BLOCKS) == 6
-    with sessions() as session:
-        statistics = get_version(session, 6).statistics["blocks"]
-    assert statistics["written"] == statistics["files"] == len(_files(sessions, data, 6))
-    assert not stale.exists()
-    # a fusion that fails as it publishes leaves none of its files either
-    _revise(sessions, data, MapletGrid(name=old.name, frame=old.frame, spacing_km=old.spacing_km,
-                                       heights=old.heights + 0.004, albedo=old.albedo))
+    kept = []
+
+    def keeping(*args, **kwargs):
+        manifest, counts = keep_blocks(*args, **kwargs)
+        kept.append(counts)
+        return manifest, counts
 
     def failing(*args, **kwargs):
+        assert not stale.exists()
         raise RuntimeError("the disk filled")
 
+    monkeypatch.setattr(publish, "keep_blocks", keeping)
     monkeypatch.setattr(publish, "publish_version", failing)
     with pytest.raises(RuntimeError, match="disk filled"):
         fuse_and_publish(sessions, data_dir=data, blocks=BLOCKS)
+    assert kept and kept[0]["written"] == kept[0]["files"] > 0
     assert not list((data / "artifacts" / "tmp").iterdir())
