@@ -14,7 +14,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from pwm.mesh import compact, pieces
+from pwm.mesh import compact, edge_keys, pieces, uncollapsed
 from pwm.voxels import pack, unpack
 
 # a vertex this close (in lattice steps) to a lattice point is at it: both blocks about it agree
@@ -56,9 +56,7 @@ def welded(vertices: np.ndarray, faces: np.ndarray, albedo: np.ndarray) -> Piece
     (the first of each), the faces that weld leaves with two corners one vertex dropped."""
     ids = lattice_edges(vertices)
     _, first, inverse = np.unique(named(ids), return_index=True, return_inverse=True)
-    faces = inverse.reshape(-1)[faces]
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
-    used, faces = compact(len(first), faces)
+    used, faces = compact(len(first), uncollapsed(inverse.reshape(-1)[faces]))
     keep = first[used]
     return Piece(ids=ids[keep], vertices=vertices[keep], albedo=albedo[keep], faces=faces,
                  part=pieces(len(keep), faces))
@@ -100,23 +98,22 @@ def seams(piece: Piece, *, origin: np.ndarray, cells: int) -> Seams:
     vertex_part[piece.faces.reshape(-1)] = np.repeat(piece.part, 3)
     tri = piece.vertices[piece.faces]
     volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
-    n = len(piece.ids)
-    directed = np.concatenate([piece.faces[:, [0, 1]], piece.faces[:, [1, 2]], piece.faces[:, [2, 0]]])
-    edge_part = np.tile(piece.part, 3)
-    _, where, count = np.unique(np.sort(directed, axis=1) @ np.array([n, 1]), return_inverse=True,
-                                return_counts=True)
+    # edge k of a face joins its corners k and k + 1 (pwm.mesh.edge_keys), face by face
+    directed = np.stack([piece.faces, np.roll(piece.faces, -1, axis=1)], axis=-1).reshape(-1, 2)
+    edge_part = np.repeat(piece.part, 3)
+    _, first, where, count = np.unique(edge_keys(piece.faces, len(piece.ids)).reshape(-1), return_index=True,
+                                       return_inverse=True, return_counts=True)
     uses = count[where.reshape(-1)]
-    _, where, count = np.unique(directed @ np.array([n, 1]), return_inverse=True, return_counts=True)
-    # an edge in two faces wound the same way: both its uses run one way
-    same_way = (uses == 2) & (count[where.reshape(-1)] == 2)
+    # an edge in two faces wound the same way: its two uses are one directed edge
+    _, first_way, ways = np.unique(directed @ np.array([len(piece.ids), 1]), return_index=True, return_counts=True)
+    same_way = first_way[(ways == 2) & (uses[first_way] == 2)]
     one = uses == 1
     return Seams(shell=piece.ids[shell], shell_part=vertex_part[shell],
                  faces=np.bincount(piece.part, minlength=parts), volume=np.bincount(piece.part, volume, parts),
                  open=np.column_stack([piece.ids[directed[one, 0]], piece.ids[directed[one, 1]]]),
                  open_part=edge_part[one],
-                 # each use of such an edge counts 1 / its uses
-                 nonmanifold=np.rint(np.bincount(edge_part[uses > 2], 1.0 / uses[uses > 2], parts)).astype(np.int64),
-                 inconsistent=np.bincount(edge_part[same_way], minlength=parts) // 2)
+                 nonmanifold=np.bincount(edge_part[first[count > 2]], minlength=parts),
+                 inconsistent=np.bincount(edge_part[same_way], minlength=parts))
 
 
 def body_parts(held: dict[int, Seams]) -> dict[int, np.ndarray]:

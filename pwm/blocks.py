@@ -47,7 +47,7 @@ from pwm.evaluate.closure import Closure, self_intersections
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh
 from pwm.parallel import map_processes
-from pwm.volume import FADE_VOXELS, TRUNCATION_VOXELS, DistanceGrid, extract, surface_mesh
+from pwm.volume import FADE_VOXELS, TRUNCATION_VOXELS, DistanceGrid, extract, in_box, surface_mesh
 from pwm.voxels import SparseSums, pack, sum_by_key, unpack
 
 FILES = 2
@@ -434,22 +434,33 @@ def choose_body(store: BlockStore) -> Body:
     return Body(faces=faces, parts_left_out=sum(len(s.faces) for s in held.values()) - sum(map(len, body.values())))
 
 
-def _body_piece(store: BlockStore, block: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """A block's part of the body: its piece's ids, vertices, albedo, and the faces the body holds."""
+def _body_piece(store: BlockStore, block: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """A block's part of the body: its piece's ids, vertices, albedo, and the faces the body
+    holds; None where the block holds none of it."""
+    parts = store.read_arrays("body", block)
+    if parts is None:
+        return None
     piece = store.read_arrays("pieces", block)
     assert piece is not None  # a block of the body has a piece
-    return piece["ids"], piece["vertices"], piece["albedo"], piece["faces"][np.isin(piece["part"], _body(store, block))]
+    return piece["ids"], piece["vertices"], piece["albedo"], piece["faces"][np.isin(piece["part"], parts["parts"])]
+
+
+def _joined(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Pieces (ids, vertices, faces) welded by the lattice edge each vertex lies on
+    (pwm.block_surface.named): the index of each vertex kept (the first of each edge) in the
+    pieces' vertices one after the other, and the faces over those kept."""
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts])
+    _, first, inverse = np.unique(named(np.vstack([p[0] for p in parts])), return_index=True, return_inverse=True)
+    return first, inverse.reshape(-1)[np.vstack([p[2] + o for p, o in zip(parts, offsets, strict=False)])]
 
 
 def body_mesh(store: BlockStore, *, voxel_km: float) -> Mesh:
     """The body's surface as one mesh (km): each block's part of it, welded by the lattice edge
-    each vertex lies on (pwm.block_surface.named), which leaves no crack and no vertex twice."""
-    parts = [_body_piece(store, b) for b in store.blocks("body")]
+    each vertex lies on, which leaves no crack and no vertex twice."""
+    parts = [p for b in store.blocks("body") if (p := _body_piece(store, b)) is not None]
     if not parts:
         raise ValueError("the fused distances have no zero crossing")
-    offsets = np.cumsum([0] + [len(p[0]) for p in parts])
-    _, first, inverse = np.unique(named(np.vstack([p[0] for p in parts])), return_index=True, return_inverse=True)
-    faces = inverse.reshape(-1)[np.vstack([p[3] + o for p, o in zip(parts, offsets, strict=False)])]
+    first, faces = _joined([(ids, vertices, faces) for ids, vertices, _, faces in parts])
     return surface_mesh(np.vstack([p[1] for p in parts])[first], faces, np.concatenate([p[2] for p in parts])[first],
                         voxel_km=voxel_km)
 
@@ -481,15 +492,12 @@ def block_crossings(store: BlockStore, block: int, *, cells: int) -> int:
     parts, owned = [], []
     for step in _AROUND:
         other = int(pack((index + step)[None])[0])
-        if other < block or (other != block and store.read_arrays("body", other) is None):
+        held = None if other < block else _body_piece(store, other)
+        if held is None:
             continue
-        ids, vertices, _, faces = _body_piece(store, other)
-        centre = vertices[faces].mean(axis=1)
-        faces = faces[((centre >= lo) & (centre <= hi)).all(axis=1)]
+        ids, vertices, _, faces = held
+        faces = faces[in_box(vertices[faces].mean(axis=1), lo, hi)]
         parts.append((ids, vertices, faces))
         owned.append(np.full(len(faces), other == block))
-    offsets = np.cumsum([0] + [len(p[0]) for p in parts])
-    _, first, inverse = np.unique(named(np.vstack([p[0] for p in parts])), return_index=True, return_inverse=True)
-    faces = inverse.reshape(-1)[np.vstack([p[2] + o for p, o in zip(parts, offsets, strict=False)])]
-    mesh = Mesh(np.vstack([p[1] for p in parts])[first], faces)
-    return self_intersections(mesh, owned=np.concatenate(owned))
+    first, faces = _joined(parts)
+    return self_intersections(Mesh(np.vstack([p[1] for p in parts])[first], faces), owned=np.concatenate(owned))

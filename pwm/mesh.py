@@ -98,6 +98,12 @@ def pieces(n_vertices: int, faces: np.ndarray) -> np.ndarray:
     return np.unique(labels[faces[:, 0]], return_inverse=True)[1].reshape(-1)
 
 
+def uncollapsed(faces: np.ndarray) -> np.ndarray:
+    """The faces (M, 3) whose three corners are three vertices: a weld can leave a face with two
+    corners one vertex, and no area."""
+    return faces[~(faces == np.roll(faces, 1, axis=1)).any(axis=1)]
+
+
 def welded(mesh: Mesh, *, tolerance: float = 1e-9) -> Mesh:
     """`mesh` with the vertices that coincide, within `tolerance` of its extent, made one (the
     first of each), faces renumbered, and the faces so left with two corners one vertex (no
@@ -113,9 +119,7 @@ def welded(mesh: Mesh, *, tolerance: float = 1e-9) -> Mesh:
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     _, first = np.unique(labels, return_index=True)
-    faces = first[labels][mesh.faces]
-    collapsed = (faces == np.roll(faces, 1, axis=1)).any(axis=1)
-    return Mesh(mesh.vertices, faces[~collapsed], mesh.albedo)
+    return Mesh(mesh.vertices, uncollapsed(first[labels][mesh.faces]), mesh.albedo)
 
 
 def largest_piece(n_vertices: int, faces: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from skimage.measure import marching_cubes
 
 from pwm.fusion import VoxelGrid, edge_taper, fill_gaps
 from pwm.maplets import MapletGrid
-from pwm.mesh import Mesh, compact, largest_piece
+from pwm.mesh import Mesh, compact, largest_piece, uncollapsed
 from pwm.raytrace import RayTracer
 from pwm.voxels import SparseSums, find, pack, sum_by_key, unpack
 from pwm.weights import raised_cosine
@@ -89,11 +89,11 @@ class DistanceGrid(SparseSums):
             # a node's band reaches its truncation's whole steps and a cell's corners beyond
             pad = np.ceil(self.truncation_km / self.voxel_km) + 2
             at = nodes / self.voxel_km
-            near = _in_box(at, within[0] - pad, within[1] + 1 + pad)
+            near = in_box(at, within[0] - pad, within[1] + 1 + pad)
             nodes, normals = nodes[near], normals[near]
         index = unpack(self._band(nodes, normals))
         if within is not None:
-            index = index[_in_box(index, *within)]
+            index = index[in_box(index, *within)]
         local = maplet.frame.to_local(index * self.voxel_km)
         c = 0.5 * (maplet.n - 1)
         grid = np.stack([local[:, 1] / maplet.spacing_km + c, local[:, 0] / maplet.spacing_km + c])
@@ -169,12 +169,12 @@ class DistanceGrid(SparseSums):
             lo, hi = within[0] - pad, within[1] + pad
             cell = np.floor(points / self.voxel_km)
             beyond = int(np.ceil(float(local_reach.max(initial=0.0)) / self.voxel_km)) + 2
-            bare &= _in_box(cell, lo - beyond, hi + beyond)
+            bare &= in_box(cell, lo - beyond, hi + beyond)
 
         def wanted(keys: np.ndarray) -> np.ndarray:
             if within is None:
                 return keys
-            return keys[_in_box(unpack(keys), lo, hi)]
+            return keys[in_box(unpack(keys), lo, hi)]
 
         keys = (wanted(self._band(points[bare], normals[bare], local_reach[bare])) if bare.any()
                 else np.empty(0, dtype=np.int64))
@@ -267,7 +267,7 @@ class DistanceGrid(SparseSums):
         distance_to_base = _MeshDistance(base, points, normals, self.voxel_km)
         if within is not None:
             cell = np.floor(points / self.voxel_km)
-            points = points[_in_box(cell, *within)]
+            points = points[in_box(cell, *within)]
         return float(self._disagreement(points, distance_to_base)[2].max(initial=self.truncation_km))
 
     def closed(self, base: Mesh | None, faces: np.ndarray | None = None, clip_km: float | None = None,
@@ -328,7 +328,7 @@ class _MeshDistance:
         return np.where(inside, -size, size), nearest
 
 
-def _in_box(index: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def in_box(index: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Mask of the (N, 3) lattice indices (or positions in lattice steps) within lo..hi, both included."""
     return np.asarray(((index >= lo) & (index <= hi)).all(axis=1))
 
@@ -427,9 +427,7 @@ def extract(sums: SparseSums) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     vertices, faces, albedo = np.vstack(all_vertices), np.vstack(all_faces), np.concatenate(all_albedo)
     # a vertex on a face shared by two blocks was made by both, from the same two values
     _, first, inverse = np.unique(np.round(vertices * 2 ** 20), axis=0, return_index=True, return_inverse=True)
-    faces = inverse.ravel()[faces]
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])]
-    return vertices[first], faces, albedo[first]
+    return vertices[first], uncollapsed(inverse.ravel()[faces]), albedo[first]
 
 
 def _cube_mask(valid: np.ndarray) -> np.ndarray:
