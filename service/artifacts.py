@@ -29,9 +29,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from pwm.io.mesh_tiles import TileIndex, read_index, read_tile
 from pwm.io.meshio import read_mesh
 from pwm.io.pds4 import file_sha256
 from pwm.mesh import Mesh
+from pwm.mesh_tiles import MeshTile, join
 
 ARTIFACTS_DIRNAME = "artifacts"
 # The folder of derived files: named for the exports, its first tenants, which data
@@ -89,8 +91,29 @@ def artifact_path(data_dir: Path, artifact: dict[str, Any], *, verify: bool = Fa
 
 
 def artifact_mesh(data_dir: Path, artifact: dict[str, Any]) -> Mesh:
-    """The mesh of a mesh artifact record (PLY or OBJ), checksum verified."""
-    return read_mesh(artifact_path(data_dir, artifact, verify=True))
+    """The mesh of a mesh artifact record, checksum verified: a PLY or OBJ, or the index of a
+    mesh stored in tiles (pwm.io.mesh_tiles; the tiles joined)."""
+    path = artifact_path(data_dir, artifact, verify=True)
+    if path.suffix != ".json":
+        return read_mesh(path)
+    index = tile_index(data_dir, artifact)
+    return join((artifact_tile(data_dir, entry.file) for entry in index.tiles),
+                vertices=index.vertices, faces=index.faces)
+
+
+def tile_index(data_dir: Path, artifact: dict[str, Any]) -> TileIndex:
+    """The index of a mesh stored in tiles, checksum verified. ArtifactError where the file is
+    not one."""
+    path = artifact_path(data_dir, artifact, verify=True)
+    try:
+        return read_index(path)
+    except ValueError as exc:
+        raise ArtifactError(str(exc)) from None
+
+
+def artifact_tile(data_dir: Path, artifact: dict[str, Any]) -> MeshTile:
+    """One tile of a mesh stored in tiles, checksum verified."""
+    return read_tile(artifact_path(data_dir, artifact, verify=True))
 
 
 def scratch_folder(data_dir: Path) -> Path:

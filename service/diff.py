@@ -76,7 +76,7 @@ def change_map(session: Session, *, data_dir: Path, old: ModelVersion, new: Mode
     store's cache (service.artifacts.cached_artifact; cache_bytes as there). The session's
     transaction is ended first, so that no connection is held while the map waits for the
     making lock (making it reads the catalog again)."""
-    key = digest({"diff": [v.artifacts["ply"]["sha256"] for v in (old, new)],
+    key = digest({"diff": [v.mesh_artifact["sha256"] for v in (old, new)],
                   "threshold_m": threshold_m, "max_distance_km": max_distance_km})
     numbers = old.version, new.version
 

@@ -14,6 +14,11 @@ and each segment's index sized to its plates; the global DSK is one segment. A s
 sampled from the whole model at the spacing of its faces there, the finest level's; its
 projection is on the sphere of the body's mean radius, from the constants kernels' radii.
 
+A version whose mesh is stored in tiles (PWM_MESH_TILE_FACES, service.versions.store_mesh) is
+too big for one file of a mesh format: its OBJ, PLY and LAS are made a tile at a time (`tile`,
+the tiles' keys in its index), each from that tile's file alone, or of the whole decimated; its
+DSK has a segment per tile (and per site region within it), each within DSK type 2's limits.
+
 Every export may be decimated to a requested face count first (pwm.decimate: a closed surface
 stays closed). A DSK is made only of one closed surface (pwm.evaluate.closure), else refused
 saying why; OBJ, PLY and ICQ are made either way, and tell whether their file is closed
@@ -51,13 +56,15 @@ from pwm.io.dsk import write_dsk
 from pwm.io.fusion_state import read_composition
 from pwm.io.icq import mesh_to_icq, write_icq
 from pwm.io.las import body_fixed_wkt, write_las
+from pwm.io.mesh_tiles import TileIndex
 from pwm.io.meshio import read_shape_model, write_obj, write_ply
 from pwm.io.site_product import site_layers, write_site_product
 from pwm.io.spice_kernels import kernel_pool
 from pwm.io.terrain import TerrainDriver, site_projection, write_terrain
 from pwm.mesh import Mesh
+from pwm.mesh_tiles import face_labels, join
 from pwm.site import SiteGrid, resample_site
-from service.artifacts import artifact_mesh, artifact_path, cached_artifact, digest
+from service.artifacts import artifact_mesh, artifact_path, artifact_tile, cached_artifact, digest, tile_index
 from service.kernels import accepted_kernels
 from service.rows import (
     Image,
@@ -119,6 +126,8 @@ class ExportError(Exception):
 # The formats that are one surface: a DSK is refused unless it is closed, these are made and
 # their closure told (ExportFile.closure).
 CLOSURE_FORMATS = frozenset({ExportFormat.OBJ, ExportFormat.PLY, ExportFormat.ICQ})
+# The formats made a tile at a time of a version stored in tiles.
+TILE_FORMATS = frozenset({ExportFormat.OBJ, ExportFormat.PLY, ExportFormat.LAS})
 
 
 class Site(BaseModel):
@@ -162,7 +171,8 @@ def icq_size(faces: int) -> int:
 @dataclass(frozen=True)
 class ExportPlan:
     """What making an export needs from the catalog, read beforehand: the version (number, kind,
-    creation time, PLY artifact record and its composition's, if any), the request (format,
+    creation time, its mesh's record (`ModelVersion.mesh_artifact`, or the one tile's asked
+    for, `tile` its key) and its composition's, if any), the request (format,
     surface, faces, site, body and frame; frame from the catalog's images unless given), the
     catalog's accepted PCK and FK files with their checksums, and for a site product the time
     span and spacecraft of its images."""
@@ -183,6 +193,7 @@ class ExportPlan:
     kernels: tuple[tuple[Path, str], ...] = ()
     time_span: tuple[datetime, datetime] | None = None
     spacecraft_id: int | None = None
+    tile: str | None = None
 
     def key(self) -> str:
         """The cache key: a hex digest of everything the file depends on."""
@@ -192,12 +203,13 @@ class ExportPlan:
                        "composition": self.composition["sha256"] if self.composition else None,
                        "site": self.site.model_dump() if self.site else None, "body": self.body,
                        "frame": self.frame, "kernels": [sha for _, sha in self.kernels],
-                       "time_span": self.time_span, "spacecraft": self.spacecraft_id})
+                       "time_span": self.time_span, "spacecraft": self.spacecraft_id, "tile": self.tile})
 
 
 def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt: ExportFormat,
                 surface: ExportSurface = ExportSurface.MODEL, faces: int | None = None,
-                site: Site | None = None, body: str | None = None, frame: str | None = None) -> ExportPlan:
+                site: Site | None = None, body: str | None = None, frame: str | None = None,
+                tile: str | None = None) -> ExportPlan:
     """Read from the catalog what exporting `version` in format `fmt` needs (make_export makes
     it, without the catalog: end the session's transaction in between).
 
@@ -206,7 +218,9 @@ def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt:
     the surface's count: full resolution); ICQ takes q from it (icq_size). site: needed by, and only by, a site's
     terrain (SITE_FORMATS). body (NAIF name or ID) and frame (body-fixed frame name) override
     what the catalog's images give, for the formats that name them (TARGET_FORMATS; OBJ and
-    PLY name the frame when it is known). Raises ExportError when the export cannot be made.
+    PLY name the frame when it is known). tile: the key of one tile of a version stored in tiles
+    (TILE_FORMATS), which such a version's OBJ, PLY and LAS need unless decimated. Raises
+    ExportError when the export cannot be made.
     """
     if (fmt in SITE_FORMATS) != (site is not None):
         raise ExportError(f"a site's terrain ({', '.join(sorted(SITE_FORMATS))}) needs a site, "
@@ -221,10 +235,11 @@ def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt:
         raise ExportError(f"faces must be at least 4, got {faces}")
     if faces is not None and total is not None and faces >= total:
         faces = None
+    mesh = _mesh_record(data_dir, version, fmt=fmt, tile=tile, faces=faces, below=below)
     name = (f"pwm-v{version.version:04d}" + ("-global" if below else "") + (f"-f{faces}" if faces else "")
-            + SUFFIXES[fmt])
+            + (f"-{tile}" if tile else "") + SUFFIXES[fmt])
     plan = ExportPlan(data_dir=data_dir, version=version.version, kind=str(version.kind),
-                      created_at=version.created_at, mesh=dict(version.artifacts["ply"]),
+                      created_at=version.created_at, mesh=mesh, tile=tile,
                       fmt=fmt, faces=faces, filename=name, site=site,
                       surface=ExportSurface.GLOBAL if below else ExportSurface.MODEL,
                       composition=dict(composition) if composition is not None else None)
@@ -248,6 +263,34 @@ def plan_export(session: Session, *, data_dir: Path, version: ModelVersion, fmt:
     return dataclasses.replace(plan, body=body, frame=frame, kernels=kernels, **site_context)
 
 
+def version_tiles(data_dir: Path, version: ModelVersion) -> TileIndex | None:
+    """The index of a version's tiles, or None for a version stored whole."""
+    return tile_index(data_dir, version.artifacts["tiles"]) if "tiles" in version.artifacts else None
+
+
+def _mesh_record(data_dir: Path, version: ModelVersion, *, fmt: ExportFormat, tile: str | None,
+                 faces: int | None, below: bool) -> dict[str, Any]:
+    """The record of the file the export reads its mesh from: the version's, or the tile's."""
+    tiles = version_tiles(data_dir, version)
+    if tile is None:
+        if tiles is not None and fmt in TILE_FORMATS and faces is None and not below:
+            raise ExportError(
+                f"version {version.version}'s mesh has {tiles.faces} faces, stored in {len(tiles.tiles)} tiles: "
+                f"export its {fmt.value.upper()} a tile at a time (tile=KEY; the keys: GET "
+                f"/versions/{version.version}/tiles, or `pwm export --tiles`), or decimated (faces=N)")
+        return version.mesh_artifact
+    if tiles is None:
+        raise ExportError(f"version {version.version} is stored whole, not in tiles: export it without a tile")
+    if fmt not in TILE_FORMATS or faces is not None or below:
+        raise ExportError(f"a tile is exported whole, as {' | '.join(sorted(TILE_FORMATS))}, of the model's "
+                          "surface: no faces and no global surface with it")
+    try:
+        return dict(tiles.entry(tile).file)
+    except KeyError:
+        raise ExportError(f"version {version.version} has no tile {tile!r}; it has "
+                          f"{tiles.tiles[0].key} to {tiles.tiles[-1].key}") from None
+
+
 def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
     """The file of an export plan, made and kept on first request (cache_bytes: how many bytes
     of derived files the data directory keeps; service.artifacts.cached_artifact).
@@ -260,21 +303,29 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
     def make(path: Path) -> dict[str, Any] | None:
         composition = (read_composition(artifact_path(plan.data_dir, plan.composition, verify=True))
                        if plan.composition is not None else None)
+        tiles = None
         if plan.surface is ExportSurface.GLOBAL and composition is not None:
             mesh = composition.below
+        elif plan.tile is not None:
+            mesh = artifact_tile(plan.data_dir, plan.mesh).mesh
+        elif plan.mesh["path"].endswith(".json") and fmt is ExportFormat.DSK:  # a tiles' index
+            mesh, tiles = _tiled_mesh(plan)
         else:
             mesh = artifact_mesh(plan.data_dir, plan.mesh)
         # a DSK of the whole model at full resolution: a segment per site region, one for the rest
         parts = composition.face_region() if plan.surface is ExportSurface.MODEL and composition else None
+        if tiles is not None:  # and within each tile
+            parts = tiles if parts is None else np.unique(np.stack([tiles, parts]), axis=1,
+                                                          return_inverse=True)[1].ravel()
         if faces is not None and faces < len(mesh.faces):
-            mesh, parts = _decimated(mesh, faces), None
+            mesh, parts, tiles = _decimated(mesh, faces), None, None
         if fmt is ExportFormat.DSK and not (checks := closure(mesh)).closed:
             raise ExportError(f"no DSK of version {plan.version}: a DSK must be one closed surface, and this "
                               f"one is {checks.describe()}")
         if fmt is ExportFormat.ICQ:
             _write_icq(path, mesh, icq_size(faces or len(mesh.faces)))
         elif fmt is ExportFormat.DSK:
-            _write_dsk(path, mesh, plan=plan, parts=parts)
+            _write_dsk(path, mesh, plan=plan, parts=parts, tiled=tiles is not None)
         elif fmt is ExportFormat.SITE:
             _write_site(path, mesh, plan=plan)
         elif fmt in (ExportFormat.GEOTIFF, ExportFormat.ISIS):
@@ -285,7 +336,8 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
             frame = plan.frame or "body-fixed (frame not named by the catalog)"
             (write_ply if fmt is ExportFormat.PLY else write_obj)(path, mesh, comments=[
                 f"pwm shape model version {plan.version} ({plan.kind}), made "
-                f"{plan.created_at:%Y-%m-%dT%H:%M:%SZ}", f"frame {frame}", "units km"])
+                f"{plan.created_at:%Y-%m-%dT%H:%M:%SZ}", f"frame {frame}", "units km",
+                *([f"tile {plan.tile}: the version's tiles meet vertex on vertex"] if plan.tile else [])])
         # read back from the file as written, and kept in its record
         # (self-intersections are counted for a DSK only: they cost tens of seconds a million faces)
         return ({"closure": closure(read_shape_model(path), count_intersections=False).describe()}
@@ -299,6 +351,14 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
         log.warning("%s of version %d is not one closed surface (%s): mass properties and polyhedral "
                     "gravity need one", plan.filename, plan.version, verdict)
     return ExportFile(path, plan.filename, MEDIA_TYPES[fmt], record["sha256"], verdict)
+
+
+def _tiled_mesh(plan: ExportPlan) -> tuple[Mesh, np.ndarray]:
+    """The whole mesh of a version stored in tiles, and each face's tile."""
+    index = tile_index(plan.data_dir, plan.mesh)
+    tiles = [artifact_tile(plan.data_dir, entry.file) for entry in index.tiles]
+    return (join(tiles, vertices=index.vertices, faces=index.faces),
+            face_labels(tiles, faces=index.faces))
 
 
 def _decimated(mesh: Mesh, faces: int) -> Mesh:
@@ -347,10 +407,12 @@ def _write_icq(path: Path, mesh: Mesh, q: int) -> None:
     write_icq(path, grid)
 
 
-def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan, parts: np.ndarray | None) -> None:
+def _write_dsk(path: Path, mesh: Mesh, *, plan: ExportPlan, parts: np.ndarray | None, tiled: bool) -> None:
     target = _target(plan)
     segments = 1 if parts is None else len(np.unique(parts))
     what = ("the global model beneath the sites" if plan.surface is ExportSurface.GLOBAL
+            else f"{segments} segments: each tile of the model and each site region within it, parting the "
+                 "surface without overlap" if tiled
             else f"{segments} segments: the body and each site region, parting the surface without overlap"
             if segments > 1 else "one segment")
     comment = (f"pwm shape model version {plan.version} ({plan.kind}), made "

@@ -225,7 +225,7 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
         views = catalog_views(session, image_ids=current.image_ids, pixels=True)
         ordered = [views[i] for i in current.image_ids if i in views]
         grid = row.grid()
-        model_version, model_ply = model.version, model.artifacts["ply"]
+        model_version, model_ply = model.version, model.mesh_artifact
     say(0.2, f"refining (pass {pass_number}) against version {model_version}")
     tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
     grid.heights, grid.albedo = sample_surface(tracer, grid)

@@ -790,6 +790,13 @@ class ModelVersion(Base):
     )
     downlinks: Mapped[list[Downlink]] = relationship(secondary=model_version_downlinks)
 
+    @property
+    def mesh_artifact(self) -> dict[str, Any]:
+        """The record of the file that holds the version's mesh: its PLY, or for a mesh stored
+        in tiles (service.versions.store_mesh) the tiles' index; either reads back with
+        service.artifacts.artifact_mesh, and its checksum names the mesh."""
+        return dict(self.artifacts["tiles"] if "tiles" in self.artifacts else self.artifacts["ply"])
+
 
 MUTABLE_MODEL_VERSION_FIELDS = frozenset({"released", "release_tag", "children"})
 

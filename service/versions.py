@@ -2,9 +2,12 @@
 
 A version's files (artifacts) are stored content-addressed (service.artifacts.store_artifact).
 `ModelVersion.artifacts` maps a role to a stored file's record; every version has "ply" (mesh
-with per-vertex albedo when known) and "obj"; refined versions add "grid" (the fusion sums that
-let the next version be fused incrementally) and "composition" (how its surface was composed
-from them, pwm.levels.Composition, which lets the next one carry over what did not change).
+with per-vertex albedo when known) and "obj", or where its mesh has more faces than
+PWM_MESH_TILE_FACES, "tiles" instead: the index of its tiles (pwm.mesh_tiles, each tile a
+stored file of its own; `ModelVersion.mesh_artifact` names whichever holds the mesh); refined
+versions add "grid" (the fusion sums that let the next version be fused incrementally) and
+"composition" (how its surface was composed from them, pwm.levels.Composition, which lets the
+next one carry over what did not change).
 
 Publications are serialised by `publication_lock`, held to the end of the publishing
 transaction: concurrent publications get consecutive numbers instead of failing on the unique
@@ -24,25 +27,45 @@ from sqlalchemy import func, select, text
 from sqlalchemy.orm import Session
 
 from pwm.evaluate.closure import closure, mass_properties
+from pwm.io.mesh_tiles import TileEntry, TileIndex, tile_key, write_index, write_tile
 from pwm.io.meshio import read_shape_model, write_obj, write_ply
 from pwm.io.pds4 import file_sha256
 from pwm.levels import sealed
 from pwm.mesh import Mesh
+from pwm.mesh_tiles import split
 from service.artifacts import artifact_mesh, scratch_file, store_artifact
 from service.rows import Downlink, MapletRevision, ModelKind, ModelVersion
+from service.settings import get_settings
 
 # Arbitrary constant naming the PostgreSQL advisory lock that serialises publications.
 _PUBLICATION_LOCK_ID = 0x70776D5F76657273
 
 
-def store_mesh(data_dir: Path, mesh: Mesh) -> dict[str, dict[str, Any]]:
-    """Write `mesh` (km, body-fixed) as PLY (with albedo) and OBJ into the store."""
+def store_mesh(data_dir: Path, mesh: Mesh, *, tile_faces: int) -> dict[str, dict[str, Any]]:
+    """Write `mesh` (km, body-fixed) into the store: as PLY (with albedo) and OBJ, or where it
+    has more than `tile_faces` faces as tiles of at most that many (pwm.mesh_tiles.split) and
+    their index ("tiles")."""
+    if len(mesh.faces) > tile_faces:
+        return {"tiles": _store_tiles(data_dir, mesh, tile_faces=tile_faces)}
     records = {}
     for role, writer in (("ply", write_ply), ("obj", write_obj)):
         with scratch_file(data_dir, f".{role}") as scratch:
             writer(scratch, mesh)
             records[role] = store_artifact(data_dir, scratch)
     return records
+
+
+def _store_tiles(data_dir: Path, mesh: Mesh, *, tile_faces: int) -> dict[str, Any]:
+    entries = []
+    for number, tile in enumerate(split(mesh, max_faces=tile_faces)):
+        with scratch_file(data_dir, ".npz") as scratch:
+            write_tile(scratch, tile)
+            record = store_artifact(data_dir, scratch)
+        entries.append(TileEntry(key=tile_key(number), faces=len(tile.faces), vertices=len(tile.vertices),
+                                 box_km=tile.box_km(), file=record))
+    with scratch_file(data_dir, ".json") as scratch:
+        write_index(scratch, TileIndex(vertices=len(mesh.vertices), faces=len(mesh.faces), tiles=tuple(entries)))
+        return store_artifact(data_dir, scratch)
 
 
 def mesh_statistics(mesh: Mesh) -> dict[str, Any]:
@@ -69,13 +92,16 @@ def publish_version(session: Session, *, data_dir: Path, mesh: Mesh, kind: Model
                     parent: ModelVersion | None = None, statistics: dict[str, Any] | None = None,
                     extra_artifacts: dict[str, Path] | None = None,
                     maplet_revisions: Iterable[MapletRevision] = (),
-                    downlinks: Iterable[Downlink] = ()) -> ModelVersion:
+                    downlinks: Iterable[Downlink] = (), tile_faces: int | None = None) -> ModelVersion:
     """Store `mesh` and publish it as the next model version, in the caller's transaction.
 
+    tile_faces: store it in tiles above this many faces (store_mesh; default
+    PWM_MESH_TILE_FACES).
     extra_artifacts: role -> a file to move into the store with the mesh (e.g. "grid").
     statistics: figures to keep beside the mesh's own (mesh_statistics: its size, closure checks
     and mass properties, made here for every version, whatever its kind)."""
-    artifacts = store_mesh(data_dir, mesh)
+    artifacts = store_mesh(data_dir, mesh, tile_faces=get_settings().mesh_tile_faces if tile_faces is None
+                           else tile_faces)
     for role, path in (extra_artifacts or {}).items():
         artifacts[role] = store_artifact(data_dir, path)
     publication_lock(session)
@@ -125,8 +151,9 @@ def get_version(session: Session, ref: str | int) -> ModelVersion:
 
 
 def version_mesh(data_dir: Path, version: ModelVersion) -> Mesh:
-    """The mesh of `version` (km, body-fixed, albedo when published with it), checksum verified."""
-    return artifact_mesh(data_dir, version.artifacts["ply"])
+    """The mesh of `version` (km, body-fixed, albedo when published with it), checksum verified
+    (a mesh stored in tiles: joined)."""
+    return artifact_mesh(data_dir, version.mesh_artifact)
 
 
 def publication_lock(session: Session) -> None:

@@ -49,6 +49,29 @@ class ArtifactOut(_Out):
     bytes: int
 
 
+class TileOut(_Out):
+    """One tile of a version stored in tiles: its key (`GET /versions/{ref}/export?tile=KEY`),
+    face and vertex counts, bounding box (lowest and highest x, y, z; km, body-fixed) and its
+    stored file's checksum and size."""
+
+    key: str
+    faces: int
+    vertices: int
+    box_min_km: list[float]
+    box_max_km: list[float]
+    sha256: str
+    bytes: int
+
+
+class VersionTiles(_Out):
+    """The tiles a version's mesh is stored in (service.versions.store_mesh)."""
+
+    version: int
+    vertices: int
+    faces: int
+    tiles: list[TileOut]
+
+
 class DownlinkRef(_Out):
     id: int
     name: str

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import tempfile
@@ -18,7 +19,7 @@ def export(
     format: str = typer.Option(..., "--format",
                                help="obj | ply | icq | dsk | las | site | geotiff | isis (the last three "
                                     "about a site)"),
-    out: Path = typer.Option(..., "--out", dir_okay=False, help="file to write"),
+    out: Path = typer.Option(..., "--out", help="file to write (with --tile all: a folder)"),
     surface: str = typer.Option("model", "--surface",
                                 help="model (every level) | global (the whole body's levels, beneath the sites)"),
     faces: int | None = typer.Option(None, min=4, help="decimate to about this many faces first"),
@@ -29,10 +30,15 @@ def export(
     body: str | None = typer.Option(None, help="NAIF body name or ID (dsk, las, site formats; default: the "
                                                 "catalog's)"),
     frame: str | None = typer.Option(None, help="body-fixed frame (default: the catalog's)"),
+    tile: str | None = typer.Option(None, help="of a version stored in tiles (obj, ply, las): one tile's key, "
+                                               "or `all`: every tile into the folder --out, with their index"),
 ) -> None:
     """Export a model version. A site product is a zip of its PDS4 label, data file and PNG preview; geotiff and isis
     hold the same layers as a GeoTIFF or an ISIS3 cube in an orthographic projection about the site; las is the
-    vertices as a point cloud (m, body-fixed, albedo per point; uncompressed LAS, no LAZ)."""
+    vertices as a point cloud (m, body-fixed, albedo per point; uncompressed LAS, no LAZ). A version whose mesh is
+    too big for one file (PWM_MESH_TILE_FACES) is exported as obj, ply or las a tile at a time (--tile), or
+    decimated (--faces); its dsk has a segment per tile."""
+    from service.artifacts import ArtifactError
     from service.catalog import open_catalog
     from service.exports import (
         SITE_FORMATS,
@@ -42,6 +48,7 @@ def export(
         Site,
         make_export,
         plan_export,
+        version_tiles,
     )
     from service.settings import get_settings
     from service.versions import get_version
@@ -62,21 +69,34 @@ def export(
     settings = get_settings()
     with open_catalog(settings)() as session:
         try:
-            plan = plan_export(session, data_dir=settings.data_dir, version=get_version(session, version),
-                               fmt=fmt, surface=which, faces=faces, body=body, frame=frame,
-                               site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
-                               if lat is not None and lon is not None and radius_km is not None else None)
+            chosen = get_version(session, version)
+            index = version_tiles(settings.data_dir, chosen) if tile == "all" else None
+            keys = [t.key for t in index.tiles] if index is not None else [tile]
+            if tile == "all" and index is None:
+                raise ExportError(f"version {chosen.version} is stored whole, not in tiles: export it without --tile")
+            plans = [plan_export(session, data_dir=settings.data_dir, version=chosen,
+                                 fmt=fmt, surface=which, faces=faces, body=body, frame=frame, tile=key,
+                                 site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
+                                 if lat is not None and lon is not None and radius_km is not None else None)
+                     for key in keys]
             session.close()
-            made = make_export(plan, cache_bytes=settings.export_cache_bytes)
-        except (LookupError, ExportError) as exc:
+            for plan in plans:
+                made = make_export(plan, cache_bytes=settings.export_cache_bytes)
+                target = out / made.filename if index is not None else out
+                _copy_whole(made.path, target)
+                typer.echo(f"{target} ({made.path.stat().st_size} bytes, sha256 {made.sha256})")
+        except (LookupError, ExportError, ArtifactError) as exc:
             typer.echo(str(exc), err=True)
             raise typer.Exit(1) from None
-    try:
-        _copy_whole(made.path, out)
-    except OSError as exc:
-        typer.echo(f"error: cannot write {out}: {exc.strerror or exc}", err=True)
-        raise typer.Exit(1) from None
-    typer.echo(f"{out} ({made.path.stat().st_size} bytes, sha256 {made.sha256})")
+        except OSError as exc:
+            typer.echo(f"error: cannot write {out}: {exc.strerror or exc}", err=True)
+            raise typer.Exit(1) from None
+    if index is not None:
+        (out / "tiles.json").write_text(json.dumps({
+            "version": chosen.version, "vertices": index.vertices, "faces": index.faces,
+            "tiles": [{"key": t.key, "faces": t.faces, "vertices": t.vertices, "box_km": t.box_km,
+                       "file": plans[n].filename} for n, t in enumerate(index.tiles)]}, indent=1))
+        typer.echo(f"{out / 'tiles.json'} ({len(index.tiles)} tiles, {index.faces} faces)")
 
 
 def _copy_whole(source: Path, out: Path) -> None:

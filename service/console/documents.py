@@ -37,8 +37,9 @@ from pwm.compare import height_change
 from pwm.decimate import decimate
 from pwm.frames import LocalFrame, stored_frame, unit_to_latlon
 from pwm.mesh import Mesh
+from pwm.mesh_tiles import MeshTile, face_labels, join
 from pwm.site import BASELINE_M, HazardThresholds, hazard, relief_m, roughness_m, slope_deg
-from service.artifacts import artifact_mesh, artifact_path, cached_artifact, digest
+from service.artifacts import artifact_mesh, artifact_path, artifact_tile, cached_artifact, digest, tile_index
 from service.exports import ExportError, Site, site_grid
 from service.queries import list_maplets
 from service.rows import (
@@ -58,7 +59,7 @@ MAGIC = b"PWMC"
 # (at 300k the document is about 8 MB; bench/console.py times its first draw).
 MESH_FACES = 300_000
 # Bump when a document's content changes for the same inputs.
-REVISION = 5
+REVISION = 6
 FIELD_UNITS = {"albedo": "", "height": "m", "slope": "deg", "change": "m", "sigma": "m"}
 UNKNOWN_GREY = 115
 # Farthest (km) a version's surface may have moved from its parent's and still be compared.
@@ -107,19 +108,21 @@ def unpack(document: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
 
 @dataclass(frozen=True)
 class MeshRequest:
-    """A version's mesh record (its PLY artifact) and its parent's, for the change colour."""
+    """A version's mesh record (`ModelVersion.mesh_artifact`) and its parent's, for the change
+    colour; whether the version's mesh is stored in tiles (its record then the tiles' index)."""
 
     version: int
     mesh: dict[str, Any]
     parent: int | None
     parent_mesh: dict[str, Any] | None
+    tiled: bool = False
 
     @classmethod
     def of(cls, version: ModelVersion) -> MeshRequest:
         parent = version.parent
-        return cls(version=version.version, mesh=dict(version.artifacts["ply"]),
+        return cls(version=version.version, mesh=version.mesh_artifact,
                    parent=parent.version if parent else None,
-                   parent_mesh=dict(parent.artifacts["ply"]) if parent else None)
+                   parent_mesh=parent.mesh_artifact if parent else None, tiled="tiles" in version.artifacts)
 
 
 def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | None,
@@ -131,15 +134,57 @@ def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | No
     along the normal since the parent version, pwm.compare; unknown without a parent) and the
     1-sigma height (m, pwm.uncertainty; unknown where the version has none), with
     the range each colour map spans in the header. The browser does no per-vertex work.
+    Of a version stored in tiles, the header lists the tiles (key, faces, bounding box) and
+    "face_tile" (uint32) gives each face's tile (of a decimated mesh, that of the full face whose
+    centre is nearest its centre), so that the view can draw a tile at full resolution in its place (`tile_document`).
     cache_bytes: as for service.artifacts.cached_artifact."""
     key = digest({"console": "mesh", "revision": REVISION, "mesh": request.mesh["sha256"],
                   "parent": request.parent_mesh["sha256"] if request.parent_mesh else None,
                   "faces": faces})
 
     def make(path: Path) -> None:
-        full = artifact_mesh(data_dir, request.mesh)
+        tiles: list[MeshTile] = []
+        if request.tiled:
+            index = tile_index(data_dir, request.mesh)
+            tiles = [artifact_tile(data_dir, entry.file) for entry in index.tiles]
+            full = join(tiles, vertices=index.vertices, faces=index.faces)
+        else:
+            full = artifact_mesh(data_dir, request.mesh)
         mesh = decimate(full, faces) if len(full.faces) > faces else full
-        path.write_bytes(_mesh_bytes(data_dir, request, mesh, full=full))
+        header, arrays = _mesh_fields(request, mesh, full=full, change=_change(data_dir, request, full))
+        if tiles:
+            labels = face_labels(tiles, faces=len(full.faces)).astype(np.uint32)
+            if mesh is not full:  # each decimated face in the tile of the full face nearest it
+                nearest = cKDTree(full.vertices[full.faces].mean(axis=1)).query(
+                    mesh.vertices[mesh.faces].mean(axis=1))[1]
+                labels = labels[nearest]
+            header["tiles"] = [{"key": entry.key, "faces": entry.faces, "box_km": list(entry.box_km)}
+                               for entry in index.tiles]
+            arrays.append(("face_tile", labels))
+        path.write_bytes(pack(header, arrays))
+
+    record = cached_artifact(data_dir, key, suffix=".pwmc", make=make, cache_bytes=cache_bytes)
+    return artifact_path(data_dir, record)
+
+
+def tile_document(data_dir: Path, request: MeshRequest, tile: str, *, cache_bytes: int | None) -> Path:
+    """The file of the 3D view's document of one tile of a version stored in tiles, at full
+    resolution, made once: laid out as `mesh_document`'s, coloured on the whole version's
+    colour ranges and mean radius (its document's header), so that it takes the decimated
+    surface's place seamlessly; the change since the parent is not coloured (unknown: it would
+    read the parent's whole mesh). KeyError for a tile the version does not have; ValueError
+    for a version stored whole."""
+    if not request.tiled:
+        raise ValueError(f"version {request.version} is stored whole, not in tiles")
+    entry = tile_index(data_dir, request.mesh).entry(tile)
+    key = digest({"console": "tile", "revision": REVISION, "mesh": request.mesh["sha256"], "tile": tile,
+                  "parent": request.parent_mesh["sha256"] if request.parent_mesh else None})
+
+    def make(path: Path) -> None:
+        whole, _ = unpack(mesh_document(data_dir, request, cache_bytes=cache_bytes).read_bytes())
+        mesh = artifact_tile(data_dir, entry.file).mesh
+        header, arrays = _mesh_fields(request, mesh, full=mesh, change=None, whole=whole)
+        path.write_bytes(pack({**header, "tile": tile}, arrays))
 
     record = cached_artifact(data_dir, key, suffix=".pwmc", make=make, cache_bytes=cache_bytes)
     return artifact_path(data_dir, record)
@@ -157,29 +202,35 @@ def make_mesh_document(sessions: sessionmaker[Session], *, data_dir: Path, versi
         log.exception("the console's mesh of version %d was not made now", version)
 
 
-def _mesh_bytes(data_dir: Path, request: MeshRequest, mesh: Mesh, *, full: Mesh) -> bytes:
-    """The document of `mesh` (`full` decimated, or `full` itself)."""
+def _mesh_fields(request: MeshRequest, mesh: Mesh, *, full: Mesh, change: np.ndarray | None,
+                 whole: dict[str, Any] | None = None) -> tuple[dict[str, Any], list[tuple[str, np.ndarray]]]:
+    """The header and arrays of the document of `mesh` (`full` decimated, or `full` itself;
+    `change`: per vertex of `full`, or None), coloured on their own ranges, or on those of the
+    header `whole` of the document of the whole version that `mesh` is a tile of."""
     radius = np.linalg.norm(mesh.vertices, axis=1)
     radial = mesh.vertices / radius[:, None]
     normals = mesh.vertex_normals()
     slope = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", normals, radial), -1.0, 1.0)))
     carried = _carrier(mesh, full=full)
+    mean_radius_km = float(radius.mean()) if whole is None else float(whole["mean_radius_km"])
     fields = {"albedo": (mesh.albedo if mesh.albedo is not None
                          else np.full(len(mesh.vertices), np.nan)),
-              "height": (radius - radius.mean()) * 1e3, "slope": slope,
-              "change": carried(_change(data_dir, request, full)),
+              "height": (radius - mean_radius_km) * 1e3, "slope": slope,
+              "change": carried(change),
               "sigma": carried(None if full.sigma is None else full.sigma * 1e3)}
-    colours = {name: _colour(values, signed=name == "change") for name, values in fields.items()}
+    colours = {name: _colour(values, signed=name == "change",
+                             span=None if whole is None else whole["colours"][name])
+               for name, values in fields.items()}
     header = {"kind": "mesh", "version": request.version, "parent": request.parent,
               "faces_full": len(full.faces), "faces": len(mesh.faces),
-              "vertices": len(mesh.vertices),
+              "vertices": len(mesh.vertices), "mean_radius_km": mean_radius_km,
               "colours": {name: {"unit": FIELD_UNITS[name], **scale}
                           for name, (_, scale) in colours.items()},
               "extent_km": _extent_km(mesh)}
-    return pack(header, [("vertices", mesh.vertices.astype(np.float32)),
-                         ("faces", mesh.faces.astype(np.uint32)),
-                         ("normals", np.round(normals * 127).astype(np.int8)),
-                         *((f"colour_{name}", rgb) for name, (rgb, _) in colours.items())])
+    return header, [("vertices", mesh.vertices.astype(np.float32)),
+                    ("faces", mesh.faces.astype(np.uint32)),
+                    ("normals", np.round(normals * 127).astype(np.int8)),
+                    *((f"colour_{name}", rgb) for name, (rgb, _) in colours.items())]
 
 
 def _carrier(mesh: Mesh, *, full: Mesh) -> Callable[[np.ndarray | None], np.ndarray]:
@@ -215,9 +266,11 @@ def _extent_km(mesh: Mesh) -> dict[str, Any]:
             "max_radius": float(np.linalg.norm(mesh.vertices, axis=1).max())}
 
 
-def _colour(values: np.ndarray, *, signed: bool) -> tuple[np.ndarray, dict[str, Any]]:
+def _colour(values: np.ndarray, *, signed: bool,
+            span: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """RGB (uint8, per vertex) of `values` on viridis from their 2nd to 98th percentile, or for
-    a signed field on RdBu_r symmetric about 0 (grey where unknown), and that range with the
+    a signed field on RdBu_r symmetric about 0 (grey where unknown), or over the range `span`
+    ("min" and "max", another document's) where given; and that range with the
     colour map's name and COLOUR_BAR_STOPS samples of it (RGB 0-255, low to high)."""
     known = np.isfinite(values)
     rgb = np.full((len(values), 3), UNKNOWN_GREY, dtype=np.uint8)
@@ -225,14 +278,17 @@ def _colour(values: np.ndarray, *, signed: bool) -> tuple[np.ndarray, dict[str, 
     cmap = colormaps[name]
     stops = [[int(c) for c in np.round(np.asarray(cmap(t))[:3] * 255)]
              for t in np.linspace(0.0, 1.0, COLOUR_BAR_STOPS)]
-    if not known.any():
+    if span is not None and span["min"] is not None:
+        low, high = float(span["min"]), float(span["max"])
+    elif not known.any() or span is not None:
         return rgb, {"min": None, "max": None, "colormap": name, "stops": stops}
-    low, high = (float(v) for v in np.percentile(values[known], [2.0, 98.0]))
+    else:
+        low, high = (float(v) for v in np.percentile(values[known], [2.0, 98.0]))
     if signed:
         high = max(abs(low), abs(high), 1e-9)
         low = -high
-    span = high - low if high > low else 1.0
-    rgb[known] = np.round(cmap(np.clip((values[known] - low) / span, 0.0, 1.0))[:, :3] * 255)
+    width = high - low if high > low else 1.0
+    rgb[known] = np.round(cmap(np.clip((values[known] - low) / width, 0.0, 1.0))[:, :3] * 255)
     return rgb, {"min": low, "max": high, "colormap": name, "stops": stops}
 
 

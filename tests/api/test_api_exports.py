@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import zipfile
 from pathlib import Path
 
@@ -21,14 +22,15 @@ from typer.testing import CliRunner
 from pwm.frames import unit_to_latlon
 from pwm.io.dsk import read_dsk
 from pwm.io.icq import icq_to_mesh, read_icq
-from pwm.io.meshio import read_obj
+from pwm.io.meshio import read_obj, read_shape_model
 from pwm.io.site_product import label_schema
 from pwm.io.spice_kernels import kernel_pool
 from pwm.raytrace import RayTracer
 from service.cli import app as cli
 from service.db import session_scope
 from service.exports import icq_size
-from service.versions import import_model, version_mesh
+from service.rows import ModelKind
+from service.versions import import_model, publish_version, version_mesh
 
 MM_KM = 1e-6
 
@@ -42,13 +44,9 @@ def _download(client, version, tmp_path: Path, name: str, **params) -> Path:
     return path
 
 
-def test_dsk_intercepts_agree_with_the_mesh(client, populated, tmp_path):
-    # body and frame come from the catalog's images: Bennu, IAU_BENNU
-    dsk = _download(client, 2, tmp_path, "v2.bds", format="dsk")
-    mesh = populated.refined
-    back = read_dsk(dsk)
-    np.testing.assert_array_equal(back.vertices, mesh.vertices)
-    np.testing.assert_array_equal(back.faces, mesh.faces)
+def _intercepts_agree(dsk: Path, mesh) -> None:
+    """SPICE's intercepts on the DSK of Bennu in IAU_BENNU are the mesh's, within a mm, along
+    500 rays from all round that all meet the body."""
     rng = np.random.default_rng(5)
     origins = rng.normal(size=(500, 3))
     origins *= 1.5 / np.linalg.norm(origins, axis=1, keepdims=True)
@@ -62,6 +60,16 @@ def test_dsk_intercepts_agree_with_the_mesh(client, populated, tmp_path):
         points, found = sp.dskxv(False, "BENNU", [], 0.0, "IAU_BENNU", origins, directions)
     assert np.all(found)
     assert np.abs(np.asarray(points) - expected).max() < MM_KM
+
+
+def test_dsk_intercepts_agree_with_the_mesh(client, populated, tmp_path):
+    # body and frame come from the catalog's images: Bennu, IAU_BENNU
+    dsk = _download(client, 2, tmp_path, "v2.bds", format="dsk")
+    mesh = populated.refined
+    back = read_dsk(dsk)
+    np.testing.assert_array_equal(back.vertices, mesh.vertices)
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    _intercepts_agree(dsk, mesh)
 
 
 def test_the_real_deimos_dsk_imports_and_round_trips(client, populated, tmp_path, shared_data):
@@ -257,3 +265,85 @@ def test_every_mesh_export_imports_back(client, populated, tmp_path, fmt):
     assert np.abs(back.vertices - mesh.vertices).max() <= (5e-10 if fmt == "obj" else 0.0)
     if fmt in ("obj", "ply"):  # the albedo round trip: PLY's float32, OBJ's stretched colour
         np.testing.assert_allclose(back.albedo, mesh.albedo, rtol=2e-7, atol=1e-8)
+
+
+def _segments(path: Path) -> int:
+    handle = sp.dasopr(str(path))
+    try:
+        count, descriptor, found = 0, sp.dlabfs(handle), True
+        while found:
+            count += 1
+            with sp.no_found_check():
+                descriptor, found = sp.dlafns(handle, descriptor)
+    finally:
+        sp.dascls(handle)
+    return count
+
+
+def test_a_version_too_big_for_one_file_is_stored_and_exported_in_tiles(client, populated, tmp_path,
+                                                                         monkeypatch):
+    from service.settings import get_settings
+
+    mesh = populated.refined
+    most = len(mesh.faces) // 6
+    with session_scope(populated.app.state.sessions) as session:
+        version = publish_version(session, data_dir=populated.data_dir, mesh=mesh, kind=ModelKind.REFINED,
+                                  tile_faces=most)
+        number = version.version
+        assert "tiles" in version.artifacts and "ply" not in version.artifacts
+        # stored in tiles, read back whole: the very mesh
+        back = version_mesh(populated.data_dir, version)
+    for name in ("vertices", "faces", "albedo", "sigma"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name))
+
+    listed = client.get(f"/versions/{number}/tiles").json()
+    tiles = listed["tiles"]
+    assert listed["faces"] == len(mesh.faces) and len(tiles) >= 6
+    assert sum(t["faces"] for t in tiles) == len(mesh.faces) and max(t["faces"] for t in tiles) <= most
+    assert client.get("/versions/2/tiles").status_code == 404  # stored whole
+
+    # the whole is too big for one PLY: refused, saying how to get it
+    refused = client.get(f"/versions/{number}/export", params={"format": "ply"})
+    assert refused.status_code == 422 and "tile" in refused.json()["detail"]
+    assert client.get(f"/versions/{number}/export", params={"format": "ply", "tile": "t99999"}).status_code == 422
+    assert client.get(f"/versions/{number}/export", params={"format": "ply", "tile": "../x"}).status_code == 422
+    # each tile as a PLY: its faces, over vertices the whole's at the same place, so that the
+    # tiles together are the mesh, each face once, meeting vertex on vertex
+    index = {tuple(v): i for i, v in enumerate(mesh.vertices)}
+    faces = []
+    for tile in tiles:
+        part = read_shape_model(_download(client, number, tmp_path, f"{tile['key']}.ply", format="ply",
+                                          tile=tile["key"]))
+        assert len(part.faces) == tile["faces"]
+        box = np.array([tile["box_min_km"], tile["box_max_km"]])
+        assert (part.vertices >= box[0]).all() and (part.vertices <= box[1]).all()
+        ids = np.array([index[tuple(v)] for v in part.vertices])
+        faces.append(ids[part.faces])
+    joined = np.concatenate(faces)
+    assert len(joined) == len(mesh.faces)
+    assert {tuple(f) for f in joined} == {tuple(f) for f in mesh.faces}
+    # decimated, the whole is one file
+    small = read_obj(_download(client, number, tmp_path, "small.obj", format="obj", faces=2000))
+    assert abs(len(small.faces) - 2000) <= 100
+
+    # the DSK: a segment per tile, which SPICE intercepts as the mesh
+    dsk = _download(client, number, tmp_path, "tiled.bds", format="dsk")
+    assert _segments(dsk) == len(tiles)
+    _intercepts_agree(dsk, mesh)
+
+    # the CLI writes every tile and their index
+    settings = populated.app.state.settings
+    monkeypatch.setenv("PWM_DATA_DIR", str(settings.data_dir))
+    monkeypatch.setenv("PWM_DATABASE_URL", settings.database_url)
+    get_settings.cache_clear()
+    try:
+        out = tmp_path / "tiles"
+        result = CliRunner().invoke(cli, ["export", str(number), "--format", "obj", "--tile", "all", "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        written = json.loads((out / "tiles.json").read_text())
+        assert [t["key"] for t in written["tiles"]] == [t["key"] for t in tiles]
+        assert sum(len(read_obj(out / t["file"]).faces) for t in written["tiles"]) == len(mesh.faces)
+        result = CliRunner().invoke(cli, ["export", "2", "--format", "obj", "--tile", "all", "--out", str(out)])
+        assert result.exit_code == 1 and "stored whole" in result.output
+    finally:
+        get_settings.cache_clear()

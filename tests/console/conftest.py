@@ -29,7 +29,7 @@ from service.ingest import ingest_directory
 from service.jobs import claim_job, fail_job, report_progress, submit_job
 from service.rows import Downlink, JobKind, Maplet, MapletRevision, ModelKind
 from service.settings import Settings
-from service.versions import import_model, publish_version
+from service.versions import get_version, import_model, publish_version
 from tests.console.browser import chromium, serve
 
 TOKEN = "console-token-0123456789"
@@ -91,6 +91,20 @@ def console(tiny_sim, tmp_path_factory) -> Iterator[Console]:
         fail_job(session, failed, error=FAILURE)
     with serve(app) as url, httpx.Client(base_url=url, timeout=120) as api:
         yield Console(app=app, url=url, api=api, maplet_id=maplet_id)
+
+
+@pytest.fixture(scope="module")
+def tiled_version(console, tiny_sim) -> int:
+    """A third version, the refinement again, stored in four tiles or more (a mesh too big for
+    one file, pwm.mesh_tiles); its number. Published when first asked for: the tests that take
+    it come last in their module, since it becomes the latest version."""
+    mesh = raised(read_mesh(tiny_sim / "downlink" / "start_model.obj"))
+    with session_scope(console.app.state.sessions) as session:
+        version = publish_version(session, data_dir=console.app.state.settings.data_dir, mesh=mesh,
+                                  kind=ModelKind.REFINED, parent=get_version(session, 2),
+                                  tile_faces=len(mesh.faces) // 4)
+        assert "tiles" in version.artifacts
+        return version.version
 
 
 @pytest.fixture(scope="module")

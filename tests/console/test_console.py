@@ -366,3 +366,29 @@ def test_without_the_token_release_and_requeue_are_refused(browser, console):
         lambda driver: "released" in driver.find_element(By.ID, "release-status").text)
     assert console.api.get("/versions/1").json()["release_tag"] == "console-test"
     browser.execute_script("sessionStorage.clear()")
+
+
+def test_3d_view_draws_a_tile_at_full_resolution_where_double_clicked(browser, console, screenshot, tiled_version):
+    open_page(browser, console, f"/console/view.html?v={tiled_version}&colour=albedo", "drawnMs")
+    tiles = console.api.get(f"/versions/{tiled_version}/tiles").json()["tiles"]
+    note = browser.find_element(By.CSS_SELECTOR, "[data-role=tiles-note]").text
+    assert f"Stored in {len(tiles)} tiles" in note
+    assert browser.execute_script("return document.body.dataset.tilesLoaded") == "0"
+    _, before = drawn_pixels(browser)
+    view = browser.find_element(By.CSS_SELECTOR, "#view canvas")
+    ActionChains(browser).double_click(view).perform()  # the canvas's centre: the body
+    WebDriverWait(browser, LOAD_TIMEOUT_S).until(
+        lambda driver: driver.execute_script("return document.body.dataset.tilesLoaded") == "1")
+    title = browser.find_element(By.ID, "title").text
+    loaded = re.search(rf"1 of {len(tiles)} tiles at full resolution, ([\d,]+) faces", title)
+    assert loaded and int(loaded.group(1).replace(",", "")) in {t["faces"] for t in tiles}, title
+    # drawn in place of its decimated faces: no crack along the tile's border, where the space
+    # behind would show through
+    _, after = drawn_pixels(browser)
+    assert (before & ~after).sum() <= 20
+    # double-clicked again on the tile drawn: nothing more loaded; another colour colours it too
+    ActionChains(browser).double_click(view).perform()
+    browser.find_element(By.CSS_SELECTOR, "#colour option[value=height]").click()
+    assert browser.execute_script("return document.body.dataset.tilesLoaded") == "1"
+    assert console_errors(browser) == []
+    screenshot(browser, "view-tile-at-full-resolution")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.console.documents import MESH_FACES, MeshRequest, mesh_document, pack, unpack
+from service.console.documents import MESH_FACES, UNKNOWN_GREY, MeshRequest, mesh_document, pack, unpack
 from service.db import session_scope
 from service.versions import get_version
 from tests.console.conftest import RAISE_M
@@ -141,3 +141,35 @@ def test_coverage_outlines_are_the_maplets_squares(console):
             [np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=1)
         sides = np.linalg.norm(points - np.roll(points, 1, axis=0), axis=1)
         np.testing.assert_allclose(sides, maplet["size_km"], rtol=0.02)
+
+
+def test_a_version_in_tiles_is_drawn_decimated_and_a_tile_at_full_resolution(console, tiled_version):
+    whole_header, whole = unpack(console.api.get(f"/console/api/versions/{tiled_version}/mesh").content)
+    listed = console.api.get(f"/versions/{tiled_version}/tiles").json()["tiles"]
+    assert [t["key"] for t in whole_header["tiles"]] == [t["key"] for t in listed]
+    # each drawn face's tile: the one whose box holds the face (decimated or not, it lies on it)
+    owner = whole["face_tile"]
+    assert owner.shape == (whole_header["faces"],) and owner.max() == len(listed) - 1
+    centres = whole["vertices"][whole["faces"]].astype(float).mean(axis=1)
+    boxes = np.array([[t["box_min_km"], t["box_max_km"]] for t in listed])
+    inside = ((centres >= boxes[owner, 0] - 1e-6) & (centres <= boxes[owner, 1] + 1e-6)).all(axis=1)
+    assert inside.mean() > 0.99
+    # a tile at full resolution, coloured on the whole's ranges: a vertex's albedo, height and
+    # sigma colours are the whole's at the same place (the whole is small enough to be drawn full)
+    assert whole_header["faces"] == whole_header["faces_full"]
+    key = listed[1]["key"]
+    response = console.api.get(f"/console/api/versions/{tiled_version}/tiles/{key}/mesh")
+    assert response.status_code == 200 and "immutable" in response.headers["cache-control"]
+    header, tile = unpack(response.content)
+    assert header["tile"] == key and header["faces"] == listed[1]["faces"]
+    for name in ("albedo", "height", "sigma"):
+        assert header["colours"][name]["min"] == whole_header["colours"][name]["min"]
+        assert header["colours"][name]["max"] == whole_header["colours"][name]["max"]
+    index = {tuple(v): i for i, v in enumerate(whole["vertices"])}
+    same = np.array([index[tuple(v)] for v in tile["vertices"]])
+    for name in ("albedo", "height", "sigma"):
+        np.testing.assert_array_equal(tile[f"colour_{name}"], whole[f"colour_{name}"][same])
+    assert (tile["colour_change"] == UNKNOWN_GREY).all()  # not coloured on a tile: grey
+    assert console.api.get(f"/console/api/versions/{tiled_version}/tiles/t99999/mesh").status_code == 404
+    assert console.api.get(f"/console/api/versions/{tiled_version}/tiles/..%2Fx/mesh").status_code in (404, 422)
+    assert console.api.get("/console/api/versions/2/tiles/t00000/mesh").status_code == 404

@@ -8,10 +8,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query, status
+from fastapi import APIRouter, HTTPException, Path as FastPath, Query, status
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
+from pwm.io.mesh_tiles import TILE_KEY_PATTERN
 from pwm.site import BASELINE_M, HazardThresholds
 from service.api.deps import SessionDep, SettingsDep, VersionRef, resolve_version
 from service.api.schemas import Problem
@@ -24,6 +25,7 @@ from service.console.documents import (
     mesh_document,
     site_document,
     site_maplets,
+    tile_document,
 )
 from service.exports import ExportError, Site
 
@@ -64,6 +66,25 @@ def version_mesh(session: SessionDep, settings: SettingsDep, ref: VersionRef) ->
     return _document(path, ref)
 
 
+@router.get("/console/api/versions/{ref}/tiles/{key}/mesh", response_class=FileResponse, responses=BINARY)
+def version_tile(session: SessionDep, settings: SettingsDep, ref: VersionRef,
+                 key: Annotated[str, FastPath(pattern=TILE_KEY_PATTERN)]) -> FileResponse:
+    """The 3D view's document of one tile of a version stored in tiles
+    (service.console.documents.tile_document): the tile at full resolution, coloured on the
+    whole version's ranges; 404 for a version stored whole or a tile it does not have."""
+    request = MeshRequest.of(resolve_version(session, ref))
+    session.close()
+    try:
+        path = tile_document(settings.data_dir, request, key, cache_bytes=settings.export_cache_bytes)
+    except (KeyError, ValueError) as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND,
+                            f"version {request.version} has no tile {key!r}" if isinstance(exc, KeyError)
+                            else str(exc)) from None
+    except ArtifactError as exc:
+        raise HTTPException(status.HTTP_410_GONE, str(exc)) from None
+    return _document(path, ref)
+
+
 @router.get("/console/api/versions/{ref}/site", response_class=FileResponse,
             responses={**BINARY, 422: {"model": Problem}})
 def version_site(
@@ -83,7 +104,7 @@ def version_site(
     refined maplets cover it, in the console's binary layout."""
     version = resolve_version(session, ref)
     site = Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)
-    request = SiteRequest(version=version.version, mesh=dict(version.artifacts["ply"]),
+    request = SiteRequest(version=version.version, mesh=version.mesh_artifact,
                           site=site, baseline_m=baseline_m,
                           thresholds=HazardThresholds(max_slope_deg=max_slope_deg,
                                                       max_relief_m=max_relief_m),

@@ -8,6 +8,7 @@ from fastapi import APIRouter, HTTPException, Path, Query, status
 from fastapi.responses import FileResponse
 from sqlalchemy import func, select
 
+from pwm.io.mesh_tiles import TILE_KEY_PATTERN
 from service.api.deps import Authorized, PagingDep, SessionDep, SettingsDep, VersionRef, resolve_version
 from service.api.schemas import (
     ArtifactOut,
@@ -16,8 +17,10 @@ from service.api.schemas import (
     Page,
     Problem,
     ReleaseRequest,
+    TileOut,
     VersionDetail,
     VersionSummary,
+    VersionTiles,
 )
 from service.artifacts import ArtifactError, artifact_path
 from service.exports import (
@@ -28,6 +31,7 @@ from service.exports import (
     Site,
     make_export,
     plan_export,
+    version_tiles,
 )
 from service.releases import ReleaseConflict, release_version
 from service.rows import ModelKind, ModelVersion
@@ -107,6 +111,26 @@ def download_artifact(session: SessionDep, settings: SettingsDep, ref: VersionRe
                         headers={"Cache-Control": IMMUTABLE})
 
 
+@router.get("/{ref}/tiles", response_model=VersionTiles, responses={404: {"model": Problem},
+                                                                    410: {"model": Problem}})
+def list_tiles(session: SessionDep, settings: SettingsDep, ref: VersionRef) -> VersionTiles:
+    """The tiles of a version whose mesh is too big for one file (more faces than
+    PWM_MESH_TILE_FACES): each one's key, size and bounding box; export one with
+    `export?format=ply&tile=KEY` (or obj, las). 404 for a version stored whole."""
+    version = resolve_version(session, ref)
+    try:
+        index = version_tiles(settings.data_dir, version)
+    except ArtifactError as exc:
+        raise HTTPException(status.HTTP_410_GONE, str(exc)) from None
+    if index is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"version {version.version} is stored whole, "
+                            f"not in tiles ({version.statistics.get('faces')} faces)")
+    return VersionTiles(version=version.version, vertices=index.vertices, faces=index.faces,
+                        tiles=[TileOut(key=t.key, faces=t.faces, vertices=t.vertices, box_min_km=t.box_km[0],
+                                       box_max_km=t.box_km[1], sha256=t.file["sha256"], bytes=t.file["bytes"])
+                               for t in index.tiles])
+
+
 @router.get("/{ref}/export", response_class=FileResponse,
             responses={200: {"content": {"application/octet-stream": {}}},
                        404: {"model": Problem}, 503: {"model": Problem}})
@@ -127,13 +151,17 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
                                              description="NAIF body name or ID")] = None,
            frame: Annotated[str | None, Query(pattern=SPICE_NAME,
                                               description="body-fixed frame name")] = None,
+           tile: Annotated[str | None, Query(pattern=TILE_KEY_PATTERN, description="one tile of a version "
+                                             "stored in tiles (obj, ply, las)")] = None,
            ) -> FileResponse:
     """The version as OBJ, PLY (albedo per vertex), ICQ, SPICE DSK type 2 (km, body-fixed; of
     the whole model, a segment for the body and one per site), LAS (its vertices, m, body-fixed,
     albedo per point), or the terrain of a site (lat, lon and radius_km): format `site`, a zip
     of the PDS4 label, its data file and a PNG preview; `geotiff` or `isis`, the same layers as
     a GeoTIFF or an ISIS3 cube in an orthographic projection about the site. surface `global`:
-    the global model alone, beneath the sites. Body and frame default to the catalog's. While
+    the global model alone, beneath the sites. Body and frame default to the catalog's. A
+    version too big for one file (`GET /versions/{ref}/tiles`) gives its OBJ, PLY and LAS a
+    tile at a time (`tile`) or decimated (`faces`), its DSK a segment per tile. While
     too many exports are being made, one not made yet is refused with 503 and Retry-After."""
     version = resolve_version(session, ref)
     site_args = (lat, lon, radius_km)
@@ -147,7 +175,7 @@ def export(session: SessionDep, settings: SettingsDep, ref: VersionRef,
             if lat is not None and lon is not None and radius_km is not None else None)  # site format only
     try:
         plan = plan_export(session, data_dir=settings.data_dir, version=version, fmt=format,
-                           surface=surface, faces=faces, site=site, body=body, frame=frame)
+                           surface=surface, faces=faces, site=site, body=body, frame=frame, tile=tile)
         # The connection goes back to the pool before the export waits for its turn.
         session.close()
         made = make_export(plan, cache_bytes=settings.export_cache_bytes)

@@ -3,7 +3,9 @@
 // height uncertainty, with the colour bar of what is coloured, a scale bar at the body's centre
 // and the body's size.
 // It opens on the whole body (north up, the refined region towards the viewer) and "reset view"
-// goes back there. When the first frame is drawn, body[data-drawn-ms] holds the time since
+// goes back there. A version too big for one file is stored in tiles: its document lists them
+// with each decimated face's tile, and a double-click on the surface draws the tile there at
+// full resolution in place of its decimated faces (body[data-tiles-loaded] counts them). When the first frame is drawn, body[data-drawn-ms] holds the time since
 // navigation start (bench/console.py reads it), body[data-framing] how far out the mesh's
 // vertices reach in the view (1: its edge).
 import * as THREE from "/console/vendor/three.module.min.js";
@@ -51,7 +53,7 @@ const NOTES = { albedo: "2nd to 98th percentile; grey: unknown", height: "2nd to
 // The colours come made from the server (uint8 RGB per vertex): no per-vertex work here; the
 // colour bar shows the colour map's samples the server sent.
 function colours(field) {
-  const { header: h, arrays } = document_;
+  const { header: h } = document_;
   const scale = h.colours[field];
   const unknown = scale.min === null;
   const note = unknown ? "unknown everywhere (grey)" + (field === "change" && h.parent === null ? ": no parent version" : "") : NOTES[field];
@@ -59,7 +61,74 @@ function colours(field) {
     lo: scale.min, hi: scale.max, stops: scale.stops, width: Math.min(width, 420), note }));
   document.getElementById("legend").textContent = unknown ? `${field}: ${note}`
     : `${field}: ${fmt(scale.min)} to ${fmt(scale.max)} ${scale.unit} (${note})`;
-  return new THREE.BufferAttribute(arrays[`colour_${field}`], 3, true);
+  return colourOf(document_, field);
+}
+
+function colourOf(doc, field) {
+  return new THREE.BufferAttribute(doc.arrays[`colour_${field}`], 3, true);
+}
+
+function geometryOf(doc, field) {
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute("position", new THREE.BufferAttribute(doc.arrays.vertices, 3));
+  geometry.setIndex(new THREE.BufferAttribute(doc.arrays.faces, 1));
+  geometry.setAttribute("normal", new THREE.BufferAttribute(doc.arrays.normals, 3, true));
+  geometry.setAttribute("color", colourOf(doc, field));
+  geometry.computeBoundingSphere();
+  return geometry;
+}
+
+// The tiles drawn at full resolution (key -> mesh), and the decimated faces still drawn (their
+// numbers in the document) once some are.
+const tiles = new Map();
+let kept = null;
+const raycaster = new THREE.Raycaster();
+
+function dropTiles() {
+  for (const part of tiles.values()) { scene.remove(part); part.geometry.dispose(); }
+  tiles.clear();
+  kept = null;
+  document.body.dataset.tilesLoaded = "0";
+}
+
+// The decimated faces of the tiles not drawn at full resolution.
+function keepCoarse() {
+  const { header: h, arrays } = document_;
+  const loaded = new Set(h.tiles.map((t, i) => (tiles.has(t.key) ? i : -1)).filter((i) => i >= 0));
+  const keep = [];
+  for (let f = 0; f < arrays.face_tile.length; f++) if (!loaded.has(arrays.face_tile[f])) keep.push(f);
+  kept = Uint32Array.from(keep);
+  const index = new Uint32Array(3 * kept.length);
+  kept.forEach((f, i) => index.set(arrays.faces.subarray(3 * f, 3 * f + 3), 3 * i));
+  mesh.geometry.setIndex(new THREE.BufferAttribute(index, 1));
+}
+
+function describe() {
+  const h = document_.header;
+  const full = [...tiles.values()].reduce((n, part) => n + part.userData.faces, 0);
+  document.getElementById("title").textContent = `3D view: version ${h.version} (${fmt(h.faces)} of ` +
+    `${fmt(h.faces_full)} faces` + (tiles.size ? `; ${tiles.size} of ${h.tiles.length} tiles at full resolution, ` +
+    `${fmt(full)} faces` : "") + ")";
+  document.getElementById("tiles-note").textContent = h.tiles
+    ? `Stored in ${h.tiles.length} tiles: double-click the surface to draw the tile there at full resolution.` : "";
+}
+
+async function loadTile(number) {
+  const h = document_.header;
+  const { key } = h.tiles[number];
+  if (tiles.has(key)) return;
+  status.textContent = `loading tile ${key} at full resolution…`;
+  const doc = await getDocument(`/console/api/versions/${h.version}/tiles/${key}/mesh`);
+  if (document_.header !== h || tiles.has(key)) return; // another version shown meanwhile
+  const part = new THREE.Mesh(geometryOf(doc, document.getElementById("colour").value), material);
+  part.userData = { document: doc, faces: doc.header.faces };
+  scene.add(part);
+  tiles.set(key, part);
+  keepCoarse();
+  draw();
+  describe();
+  status.textContent = "";
+  document.body.dataset.tilesLoaded = String(tiles.size);
 }
 
 function place() {
@@ -113,12 +182,9 @@ async function show(version, responding) {
   document_ = await (responding ? documentOf(responding) : getDocument(`/console/api/versions/${version}/mesh`));
   timings.fetched = performance.now();
   const { header: h, arrays } = document_;
-  const geometry = new THREE.BufferGeometry();
-  geometry.setAttribute("position", new THREE.BufferAttribute(arrays.vertices, 3));
-  geometry.setIndex(new THREE.BufferAttribute(arrays.faces, 1));
-  geometry.setAttribute("normal", new THREE.BufferAttribute(arrays.normals, 3, true));
-  geometry.setAttribute("color", colours(document.getElementById("colour").value));
-  geometry.computeBoundingSphere();
+  const geometry = geometryOf(document_, document.getElementById("colour").value);
+  colours(document.getElementById("colour").value);
+  dropTiles();
   if (mesh) { scene.remove(mesh); mesh.geometry.dispose(); }
   mesh = new THREE.Mesh(geometry, material);
   scene.add(mesh);
@@ -140,8 +206,7 @@ async function show(version, responding) {
   timings.drawn = elapsed;
   document.body.dataset.timings = JSON.stringify(timings);
   document.body.dataset.framing = framing().toFixed(3);
-  document.getElementById("title").textContent =
-    `3D view: version ${h.version} (${fmt(h.faces)} of ${fmt(h.faces_full)} faces)`;
+  describe();
   const [sx, sy, sz] = h.extent_km.sides;
   document.getElementById("extent").textContent =
     `Body: ${lengthText(sx * 1000)} x ${lengthText(sy * 1000)} x ${lengthText(sz * 1000)} along the body-fixed x, y, z; ` +
@@ -170,7 +235,18 @@ document.getElementById("reset").addEventListener("click", () => { if (mesh) res
 document.getElementById("colour").addEventListener("change", (e) => {
   if (!mesh) return;
   mesh.geometry.setAttribute("color", colours(e.target.value));
+  for (const part of tiles.values()) part.geometry.setAttribute("color", colourOf(part.userData.document, e.target.value));
   draw();
+});
+renderer.domElement.addEventListener("dblclick", (e) => {
+  if (!mesh || !document_.header.tiles) return;
+  const rect = renderer.domElement.getBoundingClientRect();
+  raycaster.setFromCamera(new THREE.Vector2(((e.clientX - rect.left) / rect.width) * 2 - 1,
+    1 - ((e.clientY - rect.top) / rect.height) * 2), camera);
+  const hit = raycaster.intersectObjects([mesh, ...tiles.values()], false)[0];
+  if (!hit || hit.object !== mesh) return; // space, or a tile already at full resolution
+  const face = kept ? kept[hit.faceIndex] : hit.faceIndex;
+  loadTile(document_.arrays.face_tile[face]).catch((error) => showError(status, error));
 });
 
 async function start() {
