@@ -98,7 +98,8 @@ class Settings(BaseSettings):
     mesh_tile_faces: PWM_MESH_TILE_FACES, the most faces a version's mesh is stored and exported
         as one file with: a larger one is stored in tiles of at most this many faces
         (pwm.mesh_tiles, service.versions.store_mesh), exported tile by tile and drawn by the
-        console at full resolution a tile at a time.
+        console at full resolution a tile at a time; at most 32,000,000, the plates a SPICE DSK
+        type 2 segment holds (DSK02's MAXPLT), since a DSK has a segment per tile.
     pose_knowledge: PWM_POSE_KNOWLEDGE, the 1-sigma pose knowledge of kernels that state none
         (`POS_M,POINT_RAD` or `nav:ALONG_M,CROSS_M,MISALIGN_URAD,DRIFT_URAD`, as
         pwm.knowledge.parse_knowledge_errors reads it); unset: none to adjust.
@@ -129,7 +130,7 @@ class Settings(BaseSettings):
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
     refine_on_config_change: bool = False
     lidar_residual_shots: int = Field(200_000, ge=0)
-    mesh_tile_faces: int = Field(4_000_000, ge=100)
+    mesh_tile_faces: int = Field(4_000_000, ge=100, le=32_000_000)
     pose_knowledge: str | None = None
 
     @field_validator("database_url")

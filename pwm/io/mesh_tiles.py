@@ -22,8 +22,9 @@ from pwm.mesh_tiles import MeshTile
 
 def write_tile(path: str | Path, tile: MeshTile) -> None:
     """Save a tile."""
-    arrays = {"face_ids": tile.faces, "vertex_ids": tile.vertices,
-              "vertices_km": tile.mesh.vertices, "faces": tile.mesh.faces}
+    # indices in the narrowest integers that hold them: a tile's own always fit 32 bits
+    arrays = {"face_ids": _narrow(tile.faces), "vertex_ids": _narrow(tile.vertices),
+              "vertices_km": tile.mesh.vertices, "faces": tile.mesh.faces.astype(np.uint32)}
     if tile.mesh.albedo is not None:
         arrays["albedo"] = tile.mesh.albedo
     if tile.mesh.sigma is not None:
@@ -32,11 +33,15 @@ def write_tile(path: str | Path, tile: MeshTile) -> None:
         np.savez(stream, **arrays)  # type: ignore[arg-type]  # numpy's stub checks **arrays against allow_pickle
 
 
+def _narrow(ids: np.ndarray) -> np.ndarray:
+    return ids.astype(np.uint32) if not ids.size or ids.max() < 2**32 else ids
+
+
 def read_tile(path: str | Path) -> MeshTile:
     """A tile saved by `write_tile`. ValueError where its arrays do not agree with each other."""
     with np.load(path, allow_pickle=False) as data:
-        vertices, faces = data["vertices_km"], data["faces"]
-        face_ids, vertex_ids = data["face_ids"], data["vertex_ids"]
+        vertices, faces = data["vertices_km"], data["faces"].astype(np.int64)
+        face_ids, vertex_ids = data["face_ids"].astype(np.int64), data["vertex_ids"].astype(np.int64)
         if (face_ids.shape != (len(faces),) or vertex_ids.shape != (len(vertices),)
                 or (faces.size and not (0 <= faces.min() and faces.max() < len(vertices)))
                 or (face_ids.size and face_ids.min() < 0) or (vertex_ids.size and vertex_ids.min() < 0)):
