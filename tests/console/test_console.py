@@ -368,7 +368,8 @@ def test_without_the_token_release_and_requeue_are_refused(browser, console):
     browser.execute_script("sessionStorage.clear()")
 
 
-def test_3d_view_draws_a_tile_at_full_resolution_where_double_clicked(browser, console, screenshot, tiled_version):
+def test_3d_view_draws_a_tile_at_full_resolution_where_double_clicked_or_zoomed_in(
+        browser, console, screenshot, tiled_version):
     open_page(browser, console, f"/console/view.html?v={tiled_version}&colour=albedo", "drawnMs")
     tiles = console.api.get(f"/versions/{tiled_version}/tiles").json()["tiles"]
     note = browser.find_element(By.CSS_SELECTOR, "[data-role=tiles-note]").text
@@ -392,3 +393,11 @@ def test_3d_view_draws_a_tile_at_full_resolution_where_double_clicked(browser, c
     assert browser.execute_script("return document.body.dataset.tilesLoaded") == "1"
     assert console_errors(browser) == []
     screenshot(browser, "view-tile-at-full-resolution")
+    # zoomed in until the drawn faces' edges span more than a few pixels: the level of detail
+    # the view needs, the tile at its centre, comes by itself
+    open_page(browser, console, f"/console/view.html?v={tiled_version}", "drawnMs")
+    view = browser.find_element(By.CSS_SELECTOR, "#view canvas")
+    ActionChains(browser).scroll_from_origin(ScrollOrigin.from_element(view), 0, -800).perform()
+    WebDriverWait(browser, LOAD_TIMEOUT_S).until(
+        lambda driver: driver.execute_script("return document.body.dataset.tilesLoaded") == "1")
+    assert console_errors(browser) == []

@@ -4,8 +4,10 @@
 // and the body's size.
 // It opens on the whole body (north up, the refined region towards the viewer) and "reset view"
 // goes back there. A version too big for one file is stored in tiles: its document lists them
-// with each decimated face's tile, and a double-click on the surface draws the tile there at
-// full resolution in place of its decimated faces (body[data-tiles-loaded] counts them). When the first frame is drawn, body[data-drawn-ms] holds the time since
+// with each decimated face's tile, and once zoomed in so far that the decimated faces' edges
+// span DETAIL_PX pixels, or where double-clicked, the tile at the view's centre (under the
+// pointer) is drawn at full resolution in place of its decimated faces (body[data-tiles-loaded]
+// counts them). When the first frame is drawn, body[data-drawn-ms] holds the time since
 // navigation start (bench/console.py reads it), body[data-framing] how far out the mesh's
 // vertices reach in the view (1: its edge).
 import * as THREE from "/console/vendor/three.module.min.js";
@@ -83,6 +85,20 @@ function geometryOf(doc, field) {
 const tiles = new Map();
 let kept = null;
 const raycaster = new THREE.Raycaster();
+const DETAIL_PX = 3;
+let coarseEdgeKm = 0; // the drawn document's mean edge
+
+function meanEdgeKm() {
+  const { vertices: v, faces: f } = document_.arrays;
+  const step = 3 * Math.max(1, Math.floor(f.length / 3 / 5000));
+  let total = 0, count = 0;
+  for (let i = 0; i < f.length; i += step) {
+    const [a, b] = [f[i], f[i + 1]];
+    total += Math.hypot(v[3 * a] - v[3 * b], v[3 * a + 1] - v[3 * b + 1], v[3 * a + 2] - v[3 * b + 2]);
+    count++;
+  }
+  return count ? total / count : 0;
+}
 
 function dropTiles() {
   for (const part of tiles.values()) { scene.remove(part); part.geometry.dispose(); }
@@ -110,7 +126,8 @@ function describe() {
     `${fmt(h.faces_full)} faces` + (tiles.size ? `; ${tiles.size} of ${h.tiles.length} tiles at full resolution, ` +
     `${fmt(full)} faces` : "") + ")";
   document.getElementById("tiles-note").textContent = h.tiles
-    ? `Stored in ${h.tiles.length} tiles: double-click the surface to draw the tile there at full resolution.` : "";
+    ? `Stored in ${h.tiles.length} tiles: zoom in, or double-click the surface, to draw the tile there at full resolution.`
+    : "";
 }
 
 async function loadTile(number) {
@@ -144,10 +161,14 @@ function place() {
   sun.position.copy(camera.position).add(new THREE.Vector3().crossVectors(eye, up).multiplyScalar(distance * 0.5));
 }
 
+// Pixels a km spans at the target's depth.
+function pxPerKm() {
+  return height / (2 * orbit.distance * Math.tan(THREE.MathUtils.degToRad(FOV_DEG) / 2));
+}
+
 // A scale bar of lengths at the target's depth (km in the document; the bar in m or km).
 function drawScale() {
-  const pxPerKm = height / (2 * orbit.distance * Math.tan(THREE.MathUtils.degToRad(FOV_DEG) / 2));
-  scaleHolder.replaceChildren(scaleBar(8, 28, 1000 / pxPerKm, 150));
+  scaleHolder.replaceChildren(scaleBar(8, 28, 1000 / pxPerKm(), 150));
   scaleHolder.lastChild.append(svg("title", {}, "at the distance of the body's centre"));
 }
 
@@ -183,6 +204,7 @@ async function show(version, responding) {
   timings.fetched = performance.now();
   const { header: h, arrays } = document_;
   const geometry = geometryOf(document_, document.getElementById("colour").value);
+  coarseEdgeKm = meanEdgeKm();
   colours(document.getElementById("colour").value);
   dropTiles();
   if (mesh) { scene.remove(mesh); mesh.geometry.dispose(); }
@@ -238,15 +260,26 @@ document.getElementById("colour").addEventListener("change", (e) => {
   for (const part of tiles.values()) part.geometry.setAttribute("color", colourOf(part.userData.document, e.target.value));
   draw();
 });
-renderer.domElement.addEventListener("dblclick", (e) => {
+// The tile under the view's point (x, y) in normalised device coordinates drawn at full
+// resolution, unless there is space there or a tile already drawn so.
+function detailAt(x, y) {
   if (!mesh || !document_.header.tiles) return;
-  const rect = renderer.domElement.getBoundingClientRect();
-  raycaster.setFromCamera(new THREE.Vector2(((e.clientX - rect.left) / rect.width) * 2 - 1,
-    1 - ((e.clientY - rect.top) / rect.height) * 2), camera);
+  raycaster.setFromCamera(new THREE.Vector2(x, y), camera);
   const hit = raycaster.intersectObjects([mesh, ...tiles.values()], false)[0];
-  if (!hit || hit.object !== mesh) return; // space, or a tile already at full resolution
+  if (!hit || hit.object !== mesh) return;
   const face = kept ? kept[hit.faceIndex] : hit.faceIndex;
   loadTile(document_.arrays.face_tile[face]).catch((error) => showError(status, error));
+}
+
+renderer.domElement.addEventListener("dblclick", (e) => {
+  const rect = renderer.domElement.getBoundingClientRect();
+  detailAt(((e.clientX - rect.left) / rect.width) * 2 - 1, 1 - ((e.clientY - rect.top) / rect.height) * 2);
+});
+// zoomed in past what the decimated faces show: the tile at the centre, once the wheel rests
+let resting = null;
+renderer.domElement.addEventListener("wheel", () => {
+  clearTimeout(resting);
+  resting = setTimeout(() => { if (coarseEdgeKm * pxPerKm() > DETAIL_PX) detailAt(0, 0); }, 250);
 });
 
 async function start() {
