@@ -444,7 +444,13 @@ def horizons(u: np.ndarray, sun_local: np.ndarray) -> tuple[np.ndarray, np.ndarr
             # rint keeps the order: the rows (columns) whose step stays inside are consecutive
             at = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
             ri, cj = ci[at[0]], cj[at[1]]
-            h = u[np.ix_(ri, cj)] - rise * ((cj - cols) * dx + (ri - rows)[:, None] * dy)
+            down, across = ri - rows, cj - cols
+            if down.min() == down.max() and across.min() == across.max():
+                # the step's nodes one block of the grid moved (no rounding tie split it): a view
+                a, b = int(down[0]), int(across[0])
+                h = u[rows[0] + a:rows[-1] + a + 1, cols[0] + b:cols[-1] + b + 1] - rise * (b * dx + a * dy)
+            else:
+                h = u[np.ix_(ri, cj)] - rise * (across * dx + down[:, None] * dy)
             np.copyto(steps[at], step, where=h > top[k][at])
             np.maximum(top[k][at], h, out=top[k][at])
         cast = steps.ravel() > 0

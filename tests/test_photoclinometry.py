@@ -459,6 +459,40 @@ def test_a_horizon_is_the_shadow_line_of_the_highest_node_towards_the_sun() -> N
     assert np.isneginf(top[1]).all() and (caster[1] == -1).all()
 
 
+def _horizons_node_by_node(u: np.ndarray, sun_local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`horizons` as its docstring says, each step's node found for every node on its own."""
+    n = u.shape[0]
+    i, j = np.divmod(np.arange(n * n), n)
+    flat = u.ravel()
+    top = np.full((len(sun_local), n * n), -np.inf)
+    caster = np.full((len(sun_local), n * n), -1)
+    horizontal = np.hypot(sun_local[:, 0], sun_local[:, 1])
+    for k, sun in enumerate(sun_local):
+        dx, dy, rise = sun[0] / horizontal[k], sun[1] / horizontal[k], sun[2] / horizontal[k]
+        for step in range(1, 2 * n + 1):
+            ci, cj = np.rint(i + step * dy).astype(int), np.rint(j + step * dx).astype(int)
+            inside = (ci >= 0) & (ci < n) & (cj >= 0) & (cj < n)
+            h = np.full(n * n, -np.inf)
+            h[inside] = flat[ci[inside] * n + cj[inside]] - rise * ((cj - j) * dx + (ci - i) * dy)[inside]
+            higher = h > top[k]
+            top[k, higher], caster[k, higher] = h[higher], (ci * n + cj)[higher]
+    return top, caster
+
+
+def test_horizons_are_each_nodes_own_along_any_sun() -> None:
+    rng = np.random.default_rng(3)
+    n = 40
+    u = gaussian_filter(rng.normal(size=(n, n)), 2) * 15 + rng.normal(size=(n, n))
+    azimuth, elevation = rng.uniform(0, 2 * np.pi, 24), np.radians(rng.uniform(3, 70, 24))
+    suns = np.column_stack([np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation),
+                            np.sin(elevation)])
+    suns = np.vstack([suns, [[1.0, 0.0, 0.1], [0.0, -1.0, 0.2], [0.6, 0.8, 0.05]]])  # along the grid, and 3-4-5
+    top, caster = horizons(u, suns)
+    expected_top, expected_caster = _horizons_node_by_node(u, suns)
+    np.testing.assert_array_equal(top, expected_top)
+    np.testing.assert_array_equal(caster, expected_caster)
+
+
 def test_the_shadows_the_images_show_hold_the_slope_no_image_lights() -> None:
     # The Sun always low in the south: the bump's northern flank is dark in every image, and only
     # the ties to the flat start would shape it without the shadow term.
