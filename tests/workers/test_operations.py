@@ -377,6 +377,9 @@ def test_a_first_survey_with_no_model_becomes_a_closed_global_model(
     assert checks.closed, checks
 
 
+# Maplets of 24 nodes within 1.2 m of each place's centre: each site's as many maplets as the
+# harness's 40 within 2 m, at a third of the nodes (a site's level is its spacing's, pwm.tiling.level_of)
+@pytest.mark.parametrize("settings", [{"maplet_nodes": 24, "tile_radius_km": 0.0012}], indirect=True)
 def test_a_campaign_nests_each_site_under_the_survey_and_changes_only_about_it(
         campaign_tiny_sim: Path, catalog: sessionmaker[Session], settings: WorkerSettings, client: Celery,
         start_worker: Callable[..., Worker]) -> None:
