@@ -66,7 +66,10 @@ def test_a_first_survey_makes_its_own_start_model(global_tiny_sim, sqlite_url, o
     catalog, data = open_catalog_at(sqlite_url), tmp_path / "data"
     downlink = global_tiny_sim / "downlink"
     assert not (downlink / START_MODEL_NAME).exists()
-    run = run_directory(catalog, downlink, data_dir=data, config=SURVEY, workers=2)
+    # the survey's places within 60 m of each centre, as its workers twin tiles them
+    # (tests/workers/test_operations.py: a first survey becomes a closed global model)
+    run = run_directory(catalog, downlink, data_dir=data, config=dataclasses.replace(SURVEY, tile_radius_km=0.06),
+                        workers=2)
     # version 1 from the images' 12 views and version 2 from the lidar's 4,800 shots: the lidar's
     # spots sample the body far more finely than the images' few dozen stereo points, so the
     # refinement starts from version 2; and version 5: the kernels state no knowledge, so the
