@@ -37,7 +37,7 @@ from pwm.fusion import VoxelGrid, edge_taper, fill_gaps
 from pwm.maplets import MapletGrid
 from pwm.mesh import Mesh, compact, largest_piece, uncollapsed
 from pwm.raytrace import RayTracer
-from pwm.voxels import SparseSums, find, pack, sum_by_key, unpack
+from pwm.voxels import SparseSums, corners, find, pack, sum_by_key, unpack
 from pwm.weights import raised_cosine
 
 TRUNCATION_VOXELS = 4.0
@@ -126,8 +126,9 @@ class DistanceGrid(SparseSums):
         for t in self.voxel_km * np.arange(-steps, steps + 1):
             out_to = reach > abs(t) - self.voxel_km
             cell = np.floor((points[out_to] + t * normals[out_to]) / self.voxel_km).astype(np.int64)
-            keys.append(np.unique(pack((cell[:, None, :] + _CORNERS[None]).reshape(-1, 3))))
-        return np.unique(np.concatenate(keys))
+            pack(cell.max(axis=0, initial=0, keepdims=True) + 1)  # the cells' upper corners in reach too
+            keys.append(np.unique(pack(cell)))
+        return corners(np.unique(np.concatenate(keys)))
 
     def _base_sums(self, base: Mesh, faces: np.ndarray | None = None, clip_km: float | None = None,
                    within: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

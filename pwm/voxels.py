@@ -32,6 +32,19 @@ def pack(index: np.ndarray) -> np.ndarray:
     return (idx[:, 0] << 2 * _KEY_BITS) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
 
 
+def corners(cells: np.ndarray) -> np.ndarray:
+    """Sorted unique keys of the corners of the lattice cells whose lowest corners are the keys
+    `cells` (sorted, unique; each index below the keys' reach, so that one step up stays in its
+    field): the cells grown by one step up along each axis in turn, each step a merge of two
+    sorted runs (a stable sort merges them in linear time)."""
+    keys = np.asarray(cells, dtype=np.int64)
+    for step in (1, 1 << _KEY_BITS, 1 << 2 * _KEY_BITS):
+        merged = np.concatenate([keys, keys + step])
+        merged.sort(kind="stable")
+        keys = merged[np.concatenate([[True], merged[1:] != merged[:-1]])] if len(merged) else merged
+    return keys
+
+
 def find(sorted_keys: np.ndarray, keys: np.ndarray) -> np.ndarray:
     """Index of each key in sorted_keys (sorted, unique), -1 where it is not there."""
     if not len(sorted_keys):
