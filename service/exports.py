@@ -277,7 +277,7 @@ def _mesh_record(data_dir: Path, version: ModelVersion, *, fmt: ExportFormat, ti
             raise ExportError(
                 f"version {version.version}'s mesh has {tiles.faces} faces, stored in {len(tiles.tiles)} tiles: "
                 f"export its {fmt.value.upper()} a tile at a time (tile=KEY; the keys: GET "
-                f"/versions/{version.version}/tiles, or `pwm export --tiles`), or decimated (faces=N)")
+                f"/versions/{version.version}/tiles, or `pwm export --tile all`), or decimated (faces=N)")
         return version.mesh_artifact
     if tiles is None:
         raise ExportError(f"version {version.version} is stored whole, not in tiles: export it without a tile")
