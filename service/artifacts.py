@@ -29,11 +29,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pwm.io.mesh_tiles import TileIndex, read_index, read_tile
 from pwm.io.meshio import read_mesh
 from pwm.io.pds4 import file_sha256
 from pwm.mesh import Mesh
-from pwm.mesh_tiles import MeshTile, join
+from pwm.mesh_tiles import MeshTile, face_labels, join
 
 ARTIFACTS_DIRNAME = "artifacts"
 # The folder of derived files: named for the exports, its first tenants, which data
@@ -93,12 +95,22 @@ def artifact_path(data_dir: Path, artifact: dict[str, Any], *, verify: bool = Fa
 def artifact_mesh(data_dir: Path, artifact: dict[str, Any]) -> Mesh:
     """The mesh of a mesh artifact record, checksum verified: a PLY or OBJ, or the index of a
     mesh stored in tiles (pwm.io.mesh_tiles; the tiles joined)."""
-    path = artifact_path(data_dir, artifact, verify=True)
-    if path.suffix != ".json":
-        return read_mesh(path)
+    if holds_tiles(artifact):
+        return tiled_mesh(data_dir, artifact)[1]
+    return read_mesh(artifact_path(data_dir, artifact, verify=True))
+
+
+def holds_tiles(artifact: dict[str, Any]) -> bool:
+    """Whether a mesh artifact record is the index of a mesh stored in tiles (a JSON file)."""
+    return Path(artifact["path"]).suffix == ".json"
+
+
+def tiled_mesh(data_dir: Path, artifact: dict[str, Any]) -> tuple[TileIndex, Mesh, np.ndarray]:
+    """A mesh stored in tiles, checksum verified: its index, the tiles joined, and each face's
+    tile (its number in the index)."""
     index = tile_index(data_dir, artifact)
-    return join((artifact_tile(data_dir, entry.file) for entry in index.tiles),
-                vertices=index.vertices, faces=index.faces)
+    tiles = [artifact_tile(data_dir, entry.file) for entry in index.tiles]
+    return index, join(tiles, vertices=index.vertices, faces=index.faces), face_labels(tiles, faces=index.faces)
 
 
 def tile_index(data_dir: Path, artifact: dict[str, Any]) -> TileIndex:

@@ -62,9 +62,17 @@ from pwm.io.site_product import site_layers, write_site_product
 from pwm.io.spice_kernels import kernel_pool
 from pwm.io.terrain import TerrainDriver, site_projection, write_terrain
 from pwm.mesh import Mesh
-from pwm.mesh_tiles import face_labels, join
 from pwm.site import SiteGrid, resample_site
-from service.artifacts import artifact_mesh, artifact_path, artifact_tile, cached_artifact, digest, tile_index
+from service.artifacts import (
+    artifact_mesh,
+    artifact_path,
+    artifact_tile,
+    cached_artifact,
+    digest,
+    holds_tiles,
+    tile_index,
+    tiled_mesh,
+)
 from service.kernels import accepted_kernels
 from service.rows import (
     Image,
@@ -308,8 +316,8 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
             mesh = composition.below
         elif plan.tile is not None:
             mesh = artifact_tile(plan.data_dir, plan.mesh).mesh
-        elif plan.mesh["path"].endswith(".json") and fmt is ExportFormat.DSK:  # a tiles' index
-            mesh, tiles = _tiled_mesh(plan)
+        elif holds_tiles(plan.mesh) and fmt is ExportFormat.DSK:
+            _, mesh, tiles = tiled_mesh(plan.data_dir, plan.mesh)
         else:
             mesh = artifact_mesh(plan.data_dir, plan.mesh)
         # a DSK of the whole model at full resolution: a segment per site region, one for the rest
@@ -351,14 +359,6 @@ def make_export(plan: ExportPlan, *, cache_bytes: int) -> ExportFile:
         log.warning("%s of version %d is not one closed surface (%s): mass properties and polyhedral "
                     "gravity need one", plan.filename, plan.version, verdict)
     return ExportFile(path, plan.filename, MEDIA_TYPES[fmt], record["sha256"], verdict)
-
-
-def _tiled_mesh(plan: ExportPlan) -> tuple[Mesh, np.ndarray]:
-    """The whole mesh of a version stored in tiles, and each face's tile."""
-    index = tile_index(plan.data_dir, plan.mesh)
-    tiles = [artifact_tile(plan.data_dir, entry.file) for entry in index.tiles]
-    return (join(tiles, vertices=index.vertices, faces=index.faces),
-            face_labels(tiles, faces=index.faces))
 
 
 def _decimated(mesh: Mesh, faces: int) -> Mesh:

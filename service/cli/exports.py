@@ -71,9 +71,9 @@ def export(
         try:
             chosen = get_version(session, version)
             index = version_tiles(settings.data_dir, chosen) if tile == "all" else None
-            keys = [t.key for t in index.tiles] if index is not None else [tile]
             if tile == "all" and index is None:
                 raise ExportError(f"version {chosen.version} is stored whole, not in tiles: export it without --tile")
+            keys = [t.key for t in index.tiles] if index is not None else [tile]
             plans = [plan_export(session, data_dir=settings.data_dir, version=chosen,
                                  fmt=fmt, surface=which, faces=faces, body=body, frame=frame, tile=key,
                                  site=Site(lat_deg=lat, lon_deg=lon, radius_km=radius_km)

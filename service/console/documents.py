@@ -37,9 +37,17 @@ from pwm.compare import height_change
 from pwm.decimate import decimate
 from pwm.frames import LocalFrame, stored_frame, unit_to_latlon
 from pwm.mesh import Mesh
-from pwm.mesh_tiles import MeshTile, face_labels, join
 from pwm.site import BASELINE_M, HazardThresholds, hazard, relief_m, roughness_m, slope_deg
-from service.artifacts import artifact_mesh, artifact_path, artifact_tile, cached_artifact, digest, tile_index
+from service.artifacts import (
+    artifact_mesh,
+    artifact_path,
+    artifact_tile,
+    cached_artifact,
+    digest,
+    holds_tiles,
+    tile_index,
+    tiled_mesh,
+)
 from service.exports import ExportError, Site, site_grid
 from service.queries import list_maplets
 from service.rows import (
@@ -108,21 +116,20 @@ def unpack(document: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
 
 @dataclass(frozen=True)
 class MeshRequest:
-    """A version's mesh record (`ModelVersion.mesh_artifact`) and its parent's, for the change
-    colour; whether the version's mesh is stored in tiles (its record then the tiles' index)."""
+    """A version's mesh record (`ModelVersion.mesh_artifact`: of a mesh stored in tiles, their
+    index) and its parent's, for the change colour."""
 
     version: int
     mesh: dict[str, Any]
     parent: int | None
     parent_mesh: dict[str, Any] | None
-    tiled: bool = False
 
     @classmethod
     def of(cls, version: ModelVersion) -> MeshRequest:
         parent = version.parent
         return cls(version=version.version, mesh=version.mesh_artifact,
                    parent=parent.version if parent else None,
-                   parent_mesh=parent.mesh_artifact if parent else None, tiled="tiles" in version.artifacts)
+                   parent_mesh=parent.mesh_artifact if parent else None)
 
 
 def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | None,
@@ -143,24 +150,21 @@ def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | No
                   "faces": faces})
 
     def make(path: Path) -> None:
-        tiles: list[MeshTile] = []
-        if request.tiled:
-            index = tile_index(data_dir, request.mesh)
-            tiles = [artifact_tile(data_dir, entry.file) for entry in index.tiles]
-            full = join(tiles, vertices=index.vertices, faces=index.faces)
+        tiled = holds_tiles(request.mesh)
+        if tiled:
+            index, full, labels = tiled_mesh(data_dir, request.mesh)
         else:
             full = artifact_mesh(data_dir, request.mesh)
         mesh = decimate(full, faces) if len(full.faces) > faces else full
         header, arrays = _mesh_fields(request, mesh, full=full, change=_change(data_dir, request, full))
-        if tiles:
-            labels = face_labels(tiles, faces=len(full.faces)).astype(np.uint32)
+        if tiled:
             if mesh is not full:  # each decimated face in the tile of the full face nearest it
                 nearest = cKDTree(full.vertices[full.faces].mean(axis=1)).query(
                     mesh.vertices[mesh.faces].mean(axis=1))[1]
                 labels = labels[nearest]
             header["tiles"] = [{"key": entry.key, "faces": entry.faces, "box_km": list(entry.box_km)}
                                for entry in index.tiles]
-            arrays.append(("face_tile", labels))
+            arrays.append(("face_tile", labels.astype(np.uint32)))
         path.write_bytes(pack(header, arrays))
 
     record = cached_artifact(data_dir, key, suffix=".pwmc", make=make, cache_bytes=cache_bytes)
@@ -174,7 +178,7 @@ def tile_document(data_dir: Path, request: MeshRequest, tile: str, *, cache_byte
     surface's place seamlessly; the change since the parent is not coloured (unknown: it would
     read the parent's whole mesh). KeyError for a tile the version does not have; ValueError
     for a version stored whole."""
-    if not request.tiled:
+    if not holds_tiles(request.mesh):
         raise ValueError(f"version {request.version} is stored whole, not in tiles")
     entry = tile_index(data_dir, request.mesh).entry(tile)
     key = digest({"console": "tile", "revision": REVISION, "mesh": request.mesh["sha256"], "tile": tile,

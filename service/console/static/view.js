@@ -54,7 +54,7 @@ const NOTES = { albedo: "2nd to 98th percentile; grey: unknown", height: "2nd to
 
 // The colours come made from the server (uint8 RGB per vertex): no per-vertex work here; the
 // colour bar shows the colour map's samples the server sent.
-function colours(field) {
+function colourBarOf(field) {
   const { header: h } = document_;
   const scale = h.colours[field];
   const unknown = scale.min === null;
@@ -63,7 +63,6 @@ function colours(field) {
     lo: scale.min, hi: scale.max, stops: scale.stops, width: Math.min(width, 420), note }));
   document.getElementById("legend").textContent = unknown ? `${field}: ${note}`
     : `${field}: ${fmt(scale.min)} to ${fmt(scale.max)} ${scale.unit} (${note})`;
-  return colourOf(document_, field);
 }
 
 function colourOf(doc, field) {
@@ -205,7 +204,7 @@ async function show(version, responding) {
   const { header: h, arrays } = document_;
   const geometry = geometryOf(document_, document.getElementById("colour").value);
   coarseEdgeKm = meanEdgeKm();
-  colours(document.getElementById("colour").value);
+  colourBarOf(document.getElementById("colour").value);
   dropTiles();
   if (mesh) { scene.remove(mesh); mesh.geometry.dispose(); }
   mesh = new THREE.Mesh(geometry, material);
@@ -256,8 +255,10 @@ renderer.domElement.addEventListener("wheel", (e) => {
 document.getElementById("reset").addEventListener("click", () => { if (mesh) reset(); });
 document.getElementById("colour").addEventListener("change", (e) => {
   if (!mesh) return;
-  mesh.geometry.setAttribute("color", colours(e.target.value));
-  for (const part of tiles.values()) part.geometry.setAttribute("color", colourOf(part.userData.document, e.target.value));
+  colourBarOf(e.target.value);
+  for (const part of [mesh, ...tiles.values()]) {
+    part.geometry.setAttribute("color", colourOf(part === mesh ? document_ : part.userData.document, e.target.value));
+  }
   draw();
 });
 // The tile under the view's point (x, y) in normalised device coordinates drawn at full
