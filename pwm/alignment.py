@@ -27,14 +27,13 @@ from pwm.maplets import MapletGrid
 from pwm.photoclinometry import (
     MapletImages,
     bilinear,
-    bilinear_gradient,
-    bilinear_shifts,
     datum_complement,
     image_motion,
     node_pixels,
     predict,
     resampled,
 )
+from pwm.registration_sums import normal_sums, shift_sums
 
 
 @dataclass(frozen=True)
@@ -131,10 +130,14 @@ def _ncc(values: np.ndarray, model: np.ndarray, *, min_nodes: int, labels: np.nd
 
     def total(x: np.ndarray) -> np.ndarray:
         return x.sum(axis=-1) if labels is None else _part_sums(x, labels, parts)
-    count = total(ok.astype(float))
+    return _correlation(*(total(x) for x in (ok.astype(float), a, b, a * a, b * b, a * b)), min_nodes=min_nodes)
+
+
+def _correlation(count: np.ndarray, sa: np.ndarray, sb: np.ndarray, saa: np.ndarray, sbb: np.ndarray,
+                 sab: np.ndarray, *, min_nodes: int) -> np.ndarray:
+    """`_ncc` from its sums over the nodes used: their count and the sums of a, b, a^2, b^2, ab."""
     n = np.maximum(count, 1.0)
-    sa, sb, saa, sbb = total(a), total(b), total(a * a), total(b * b)
-    cov = total(a * b) - sa * sb / n
+    cov = sab - sa * sb / n
     var = np.maximum(saa - sa * sa / n, 0.0) * np.maximum(sbb - sb * sb / n, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         ncc = cov / np.sqrt(var)
@@ -152,7 +155,7 @@ def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, labels: np.
     pixels, model, labels = pixels[order], model[order], labels[order]
     shifts = np.arange(-search_px, search_px + 1)
     # every whole shift at once: [line shift i, sample shift j, part]
-    score = _ncc(bilinear_shifts(image, pixels, search_px), model, min_nodes=min_nodes, labels=labels, parts=parts)
+    score = _correlation(*shift_sums(image, pixels, model, labels, parts, search_px), min_nodes=min_nodes)
     found = np.isfinite(score).any(axis=(0, 1))
     coarse = np.zeros((parts, 2))
     for p in np.flatnonzero(found):
@@ -172,19 +175,11 @@ def _track(image: np.ndarray, pixels: np.ndarray, model: np.ndarray, labels: np.
     for _ in range(max_iterations):
         if not active.any():
             break
-        nodes = np.flatnonzero(active[labels])
-        at = labels[nodes]
-        values, grad = bilinear_gradient(image, pixels[nodes] + offset[at])
-        ok = np.isfinite(values) & np.isfinite(grad).all(axis=1)
-        # Unknowns: offset (sample, line), gain and bias of I(x + offset) ~ gain * model + bias
-        jac = np.where(ok[:, None], np.column_stack([grad, -model[nodes], -np.ones(len(nodes))]), 0.0)
-        resid = np.where(ok, values - gain[at] * model[nodes] - bias[at], 0.0)
-        totals = _part_sums(np.vstack([ok, (jac[:, :, None] * jac[:, None, :]).reshape(-1, 16).T,
-                                       (jac * resid[:, None]).T]), at, parts)
-        short = active & (totals[0] < min_nodes)
+        totals = normal_sums(image, pixels, offset, labels, active, model, gain, bias)
+        short = active & (totals[:, 0] < min_nodes)
         found &= ~short
         active &= ~short
-        normal, right = totals[1:17].T.reshape(parts, 4, 4), totals[17:].T
+        normal, right = totals[:, 1:17].reshape(parts, 4, 4), totals[:, 17:]
         step = np.zeros((parts, 4))
         step[active] = -np.einsum("pij,pj->pi", np.linalg.pinv(normal[active]), right[active])
         offset += step[:, :2]

@@ -57,6 +57,7 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 from scipy import ndimage
 from scipy.linalg import block_diag
 
@@ -92,6 +93,8 @@ class MapletImages:
 
     def __post_init__(self) -> None:
         k = len(self.images)
+        # the compiled samplers (cubic_gradient, pwm.registration_sums) take native doubles
+        self.images = [np.ascontiguousarray(image, dtype=float) for image in self.images]
         self.sun_directions = np.asarray(self.sun_directions, float).reshape(k, 3)
         self.sun_directions = self.sun_directions / np.linalg.norm(self.sun_directions, axis=1, keepdims=True)
         self.visible = np.asarray(self.visible, bool)
@@ -183,73 +186,51 @@ def bilinear(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     return np.where(inside, top + fl * (bottom - top), np.nan)
 
 
-def bilinear_shifts(image: np.ndarray, pixels: np.ndarray, reach: int) -> np.ndarray:
-    """`bilinear` samples (2 reach + 1, 2 reach + 1, N) of an image at pixels (N, 2) moved by every
-    whole shift within +-reach px, [line shift, sample shift, node]: the shifts share each node's
-    fractions, so its (2 reach + 2)^2 neighbourhood is gathered once instead of four pixels a shift."""
-    height, width = image.shape
-    s, line = pixels[:, 0], pixels[:, 1]
-    finite = np.isfinite(s) & np.isfinite(line)
-    s0, l0 = np.floor(np.where(finite, s, 0.0)), np.floor(np.where(finite, line, 0.0))
-    fs, fl = s - s0, line - l0
-    around = np.arange(-reach, reach + 2)[:, None]
-    cols = np.clip(s0.astype(np.intp) + around, 0, width - 1)
-    rows = np.clip(l0.astype(np.intp) + around, 0, height - 1)
-    patch = image[rows[:, None, :], cols[None, :, :]]  # [line, sample, node]
-    # a shift whose last column or row has weight 0 takes it from the frame's edge (clipped): the
-    # frame's last pixel centre is still inside, as in `bilinear`
-    top = patch[:, :-1] + fs * (patch[:, 1:] - patch[:, :-1])
-    values = top[:-1] + fl * (top[1:] - top[:-1])
-    shifted_s, shifted_l = s + around[:-1], line + around[:-1]
-    inside = ((shifted_l >= 0) & (shifted_l <= height - 1))[:, None, :] & (
-        (shifted_s >= 0) & (shifted_s <= width - 1))[None, :, :]
-    return np.where(inside, values, np.nan)
-
-
-def bilinear_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear samples (...) as `bilinear` and derivatives (..., 2) along sample and line, per px,
-    as central differences over one pixel: unlike the interpolant's own derivative, which jumps at
-    cell edges, these keep sub-pixel registration free of a bias towards whole pixels."""
-    along = (np.array([0.5, 0.0]), np.array([0.0, 0.5]))
-    gradient = np.stack([bilinear(image, pixels + d) - bilinear(image, pixels - d) for d in along], axis=-1)
-    return bilinear(image, pixels), gradient
-
-
-def _keys(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weights (..., 4) of Keys' cubic convolution (a = -1/2) for the pixels at -1, 0, 1, 2 from
-    the one below a sample at fraction f (...) in [0, 1), and their derivatives in f."""
+@njit(cache=True, inline="always")
+def _keys(f: float, tap: int) -> tuple[float, float]:
+    """Weight of Keys' cubic convolution (a = -1/2) for the pixel at tap - 1 (tap 0..3) from the
+    one below a sample at fraction f in [0, 1), and its derivative in f."""
     f2, f3 = f * f, f * f * f
-    w = 0.5 * np.stack([-f3 + 2 * f2 - f, 3 * f3 - 5 * f2 + 2, -3 * f3 + 4 * f2 + f, f3 - f2], axis=-1)
-    dw = 0.5 * np.stack([-3 * f2 + 4 * f - 1, 9 * f2 - 10 * f, -9 * f2 + 8 * f + 1, 3 * f2 - 2 * f], axis=-1)
-    return w, dw
+    if tap == 0:
+        return 0.5 * (-f3 + 2 * f2 - f), 0.5 * (-3 * f2 + 4 * f - 1)
+    if tap == 1:
+        return 0.5 * (3 * f3 - 5 * f2 + 2), 0.5 * (9 * f2 - 10 * f)
+    if tap == 2:
+        return 0.5 * (-3 * f3 + 4 * f2 + f), 0.5 * (-9 * f2 + 8 * f + 1)
+    return 0.5 * (f3 - f2), 0.5 * (3 * f2 - 2 * f)
 
 
+@njit(cache=True)
 def cubic_gradient(image: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Cubic-convolution samples (...) of an image [line, sample] at pixels (..., 2) = (sample,
-    line), pixel centres at integers, and the interpolant's derivatives (..., 2) per px (it is
+    """Cubic-convolution samples (N,) of an image [line, sample] at pixels (N, 2) = (sample,
+    line), pixel centres at integers, and the interpolant's derivatives (N, 2) per px (it is
     continuously differentiable); NaN outside the frame or next to a NaN pixel. Unlike bilinear
-    sampling, it does not blur what lies between the pixel centres."""
+    sampling, it does not blur what lies between the pixel centres. Compiled (numba): it samples
+    every image at every node at each of the solution's evaluations."""
     height, width = image.shape
-    s, line = pixels[..., 0], pixels[..., 1]
-    inside = (s >= 0) & (s <= width - 1) & (line >= 0) & (line <= height - 1)
-    s = np.where(inside, s, 0.0)
-    line = np.where(inside, line, 0.0)
-    s0, l0 = np.floor(s), np.floor(line)
-    ws, dws = _keys(s - s0)
-    wl, dwl = _keys(line - l0)
-    cols = np.clip(s0.astype(np.intp)[..., None] + np.arange(-1, 3), 0, width - 1)
-    first = l0.astype(np.intp)
-    flat = image.ravel()
-    value, ds, dl = np.zeros(s.shape), np.zeros(s.shape), np.zeros(s.shape)
-    # line by line: a (..., 4, 4) patch at once costs twice as much (index arrays, einsum)
-    for tap in range(4):
-        row = flat[np.clip(first + tap - 1, 0, height - 1)[..., None] * width + cols]
-        along = np.einsum("...j,...j->...", row, ws)
-        value += wl[..., tap] * along
-        ds += wl[..., tap] * np.einsum("...j,...j->...", row, dws)
-        dl += dwl[..., tap] * along
-    nan = np.where(inside, 0.0, np.nan)
-    return value + nan, np.stack([ds, dl], axis=-1) + nan[..., None]
+    count = pixels.shape[0]
+    values, gradient = np.full(count, np.nan), np.full((count, 2), np.nan)
+    for k in range(count):
+        s, line = pixels[k, 0], pixels[k, 1]
+        if not (0.0 <= s <= width - 1 and 0.0 <= line <= height - 1):
+            continue
+        s0, l0 = np.floor(s), np.floor(line)
+        col, row = int(s0), int(l0)
+        value = ds = dl = 0.0
+        for tap in range(4):
+            r = min(max(row + tap - 1, 0), height - 1)
+            along = d_along = 0.0
+            for j in range(4):
+                w, dw = _keys(s - s0, j)
+                pixel = image[r, min(max(col + j - 1, 0), width - 1)]
+                along += pixel * w
+                d_along += pixel * dw
+            w, dw = _keys(line - l0, tap)
+            value += w * along
+            ds += w * d_along
+            dl += dw * along
+        values[k], gradient[k, 0], gradient[k, 1] = value, ds, dl
+    return values, gradient
 
 
 def extract(maplet: MapletGrid, data: MapletImages, *, heights: np.ndarray | None = None,

@@ -32,7 +32,6 @@ from pwm.photoclinometry import (
     _Problem,
     _shading,
     bilinear,
-    bilinear_shifts,
     cubic_gradient,
     extract,
     horizons,
@@ -188,24 +187,6 @@ def test_extract_samples_bilinearly_and_marks_outside(scene: Scene) -> None:
     np.testing.assert_allclose(values[inside], 0.02 + 1e-4 * pix[inside][:, 0] + 3e-4 * pix[inside][:, 1], rtol=1e-12)
     assert np.isnan(values[~inside]).all()
     assert np.isnan(bilinear(image, np.array([[-0.01, 5.0], [5.0, 79.01]]))).all()
-
-
-def test_samples_at_every_whole_shift_are_those_of_bilinear_sampling() -> None:
-    # the frame's edges, its last pixel centre, a NaN pixel and a node behind the camera included
-    rng = np.random.default_rng(4)
-    image = rng.uniform(0.01, 0.05, (40, 50))
-    image[12, 20] = np.nan
-    pixels = np.column_stack([rng.uniform(-4.0, 53.0, 500), rng.uniform(-4.0, 43.0, 500)])
-    pixels[:4] = [[np.nan, np.nan], [49.0, 39.0], [0.0, 0.0], [45.0, 35.5]]
-    reach = 3
-    shifts = np.arange(-reach, reach + 1).astype(float)
-    grid = np.stack(np.meshgrid(shifts, shifts), axis=-1)[:, :, None, :]  # [line shift, sample shift]
-    expected = bilinear(image, pixels + grid)
-    found = bilinear_shifts(image, pixels, reach)
-    assert found.shape == expected.shape == (7, 7, 500)
-    np.testing.assert_array_equal(np.isnan(found), np.isnan(expected))
-    assert 0.05 < np.isnan(expected).mean() < 0.5
-    np.testing.assert_allclose(found, expected, rtol=0, atol=1e-15, equal_nan=True)
 
 
 def test_parts_registered_at_once_are_each_registered_on_its_own(scene: Scene) -> None:
