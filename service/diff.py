@@ -15,6 +15,7 @@ from pydantic import BaseModel
 from sqlalchemy.orm import Session
 
 from pwm.compare import HeightChange, height_change
+from pwm.evaluate.plots import north_arrow
 from pwm.frames import unit_to_latlon
 from pwm.mesh import Mesh
 from service.artifacts import cached_artifact, digest
@@ -91,9 +92,7 @@ def change_map(session: Session, *, data_dir: Path, old: ModelVersion, new: Mode
 def _north_and_scale(ax: Axes, *, radius_km: float, cos_lat: float) -> None:
     """A north arrow (latitude grows upwards: north is up) and a scale bar of a round length
     about a fifth of the map's width, at the map's middle latitude (cos_lat)."""
-    ax.annotate("N", xy=(0.95, 0.97), xytext=(0.95, 0.84), xycoords="axes fraction",
-                ha="center", va="center", fontweight="bold",
-                arrowprops={"arrowstyle": "-|>", "color": "black"})
+    north_arrow(ax)
     left, right = ax.get_xlim()
     km_per_deg = np.radians(1.0) * radius_km * cos_lat
     wanted_km = abs(right - left) * km_per_deg / 5.0

@@ -380,3 +380,16 @@ def test_the_tail_beyond_three_gsd_carries_its_share_of_the_squared_error():
     assert tail["vertex_share"] == pytest.approx(0.03)
     assert tail["squared_error_share"] == pytest.approx(3 * 25 / (3 * 25 + 97 * 0.25))
     assert tail["rms_without_m"] == pytest.approx(0.05)
+
+
+def test_maps_point_north(tmp_path):
+    # an error of zero is drawn white: what is dark inside the map's top right corner (below its
+    # frame, left of its right edge) is the arrow
+    x, y = np.linspace(-0.01, 0.01, 50), np.linspace(-0.01, 0.01, 50)
+    plots.height_error_map(tmp_path / "error.png", x, y, np.zeros((50, 50)), title="flat")
+    image = matplotlib.image.imread(tmp_path / "error.png")[..., :3]
+    height, width = image.shape[:2]
+    dark = image.max(axis=-1) < 0.3
+    rows, cols = np.nonzero(dark[int(0.1 * height) : height // 4, int(0.7 * width) : int(0.77 * width)])
+    assert len(rows) > 20  # the arrow and its N
+    assert np.ptp(rows) > 3 * np.ptp(cols)  # upright: taller than wide

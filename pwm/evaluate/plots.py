@@ -7,6 +7,7 @@ import os
 from typing import Any
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
@@ -21,7 +22,8 @@ def height_error_map(
 ) -> None:
     """Map of model minus truth height (m) on a site-frame grid: x_km (nx,), y_km (ny,) node
     coordinates, error_m (ny, nx); nan where there is no model. Axes in metres, diverging colours
-    with limits symmetric about zero at the 99th percentile of |error|."""
+    with limits symmetric about zero at the 99th percentile of |error|; north (the site frame's
+    +y, pwm.frames.local_frame) up."""
     error = np.ma.masked_invalid(np.asarray(error_m, float))
     limit = float(np.percentile(np.abs(error.compressed()), 99)) if error.count() else 1.0
     limit = limit if limit > 0 else 1.0
@@ -41,6 +43,7 @@ def height_error_map(
     ax.set_xlabel("x, site frame (m)")
     ax.set_ylabel("y, site frame (m)")
     ax.set_title(title)
+    north_arrow(ax)
     fig.savefig(path, dpi=120)
 
 
@@ -80,6 +83,7 @@ def class_map(
         a.set_aspect("equal")
         a.set_xlabel("x, site frame (m)")
         a.set_ylabel("y, site frame (m)")
+        north_arrow(a)
     fig.savefig(path, dpi=120)
 
 
@@ -168,6 +172,7 @@ def body_map(path: str | os.PathLike[str], points_km: np.ndarray, values: np.nda
     ax.set_xlabel("east longitude (deg)")
     ax.set_ylabel("latitude (deg)")
     ax.set_title(title)
+    north_arrow(ax)
     fig.savefig(path, dpi=120)
 
 
@@ -177,6 +182,13 @@ def coverage_map(path: str | os.PathLike[str], points_km: np.ndarray, gap_m: np.
     beyond which a point is not covered: a coverage of 99% coloured by percentile is one colour."""
     body_map(path, points_km, gap_m, title=f"truth to model distance (m): not covered at {tolerance_m:g} m or more",
              label="m", limits=(0.0, tolerance_m))
+
+
+def north_arrow(ax: Axes) -> None:
+    """An arrow marked N in the map's top right corner, pointing up: north on a map whose y grows
+    northwards (latitude, or a site frame's y)."""
+    ax.annotate("N", xy=(0.95, 0.97), xytext=(0.95, 0.84), xycoords="axes fraction", ha="center", va="center",
+                fontweight="bold", arrowprops={"arrowstyle": "-|>", "color": "black"})
 
 
 def _figure(width_in: float, height_in: float) -> Figure:
