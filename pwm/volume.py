@@ -126,7 +126,6 @@ class DistanceGrid(SparseSums):
         for t in self.voxel_km * np.arange(-steps, steps + 1):
             out_to = reach > abs(t) - self.voxel_km
             cell = np.floor((points[out_to] + t * normals[out_to]) / self.voxel_km).astype(np.int64)
-            pack(cell.max(axis=0, initial=0, keepdims=True) + 1)  # the cells' upper corners in reach too
             keys.append(np.unique(pack(cell)))
         return corners(np.unique(np.concatenate(keys)))
 

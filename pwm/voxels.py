@@ -24,20 +24,26 @@ _KEY_MASK = (1 << _KEY_BITS) - 1
 _BATCH = 64
 
 
+def _beyond_reach() -> ValueError:
+    return ValueError(f"points beyond {_KEY_OFFSET} voxels of the body centre: voxel_km too small")
+
+
 def pack(index: np.ndarray) -> np.ndarray:
     """int64 keys of (N, 3) integer lattice indices; ValueError beyond the keys' reach."""
     idx = np.asarray(index, dtype=np.int64) + _KEY_OFFSET
     if idx.min(initial=0) < 0 or idx.max(initial=0) > _KEY_MASK:
-        raise ValueError(f"points beyond {_KEY_OFFSET} voxels of the body centre: voxel_km too small")
+        raise _beyond_reach()
     return (idx[:, 0] << 2 * _KEY_BITS) | (idx[:, 1] << _KEY_BITS) | idx[:, 2]
 
 
 def corners(cells: np.ndarray) -> np.ndarray:
     """Sorted unique keys of the corners of the lattice cells whose lowest corners are the keys
-    `cells` (sorted, unique; each index below the keys' reach, so that one step up stays in its
-    field): the cells grown by one step up along each axis in turn, each step a merge of two
-    sorted runs (a stable sort merges them in linear time)."""
+    `cells` (sorted, unique): the cells grown by one step up along each axis in turn, each step a
+    merge of two sorted runs (a stable sort merges them in linear time). ValueError, as `pack`'s,
+    where a cell's upper corner lies beyond the keys' reach (one step up would leave its field)."""
     keys = np.asarray(cells, dtype=np.int64)
+    if any(((keys >> shift) & _KEY_MASK).max(initial=0) >= _KEY_MASK for shift in (0, _KEY_BITS, 2 * _KEY_BITS)):
+        raise _beyond_reach()
     for step in (1, 1 << _KEY_BITS, 1 << 2 * _KEY_BITS):
         merged = np.concatenate([keys, keys + step])
         merged.sort(kind="stable")

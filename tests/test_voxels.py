@@ -15,6 +15,14 @@ def test_the_corners_of_cells_are_each_cells_eight_once() -> None:
         [[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])[None]).reshape(-1, 3)))
     np.testing.assert_array_equal(corners(cells), expected)
     assert len(corners(np.empty(0, dtype=np.int64))) == 0
+    # a cell at the top of the keys' reach on any axis has corners beyond it
+    for axis in range(3):
+        top = np.zeros((1, 3), np.int64)
+        top[0, axis] = (1 << 20) - 1
+        with pytest.raises(ValueError, match="voxel_km too small"):
+            corners(pack(top))
+        top[0, axis] -= 1
+        assert len(corners(pack(top))) == 8
 
 
 def test_keys_round_trip_and_refuse_what_they_cannot_hold() -> None:
