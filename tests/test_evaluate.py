@@ -285,6 +285,28 @@ def test_boulder_height_ratio_of_scaled_bumps():
     assert np.isnan(ratios[-1])  # off the grid
 
 
+def test_a_boulder_is_measured_from_its_ground_not_its_neighbours():
+    # a boulder among taller neighbours over most of its ring; the model has it exactly and them
+    # 30% low, which moves the ring's median unless they are left out of it
+    x = y = np.linspace(-0.012, 0.012, 241)
+    xx, yy = np.meshgrid(x, y)
+    around = [(0.0055 * np.cos(a), 0.0055 * np.sin(a)) for a in np.arange(4) * np.pi / 2]
+
+    def cap(cx: float, cy: float, d: float, h: float) -> np.ndarray:
+        return h * np.sqrt(np.clip(1 - ((xx - cx) ** 2 + (yy - cy) ** 2) / (0.5 * d) ** 2, 0, None))
+
+    boulder, neighbours = cap(0.0, 0.0, 0.004, 0.001), sum(cap(cx, cy, 0.005, 0.0016) for cx, cy in around)
+    truth, model = boulder + neighbours, boulder + 0.7 * neighbours
+    centre, diameter = np.zeros((1, 2)), np.array([0.004])
+    plain = boulder_height_ratio(x, y, truth, model, centres_km=centre, diameters_km=diameter)[0]
+    ground = neighbours == 0
+    apart = boulder_height_ratio(x, y, truth, model, centres_km=centre, diameters_km=diameter, ground=ground)[0]
+    assert apart == pytest.approx(1.0, abs=1e-12)
+    assert abs(plain - 1.0) > 0.05
+    with pytest.raises(ValueError, match="ground"):
+        boulder_height_ratio(x, y, truth, model, centres_km=centre, diameters_km=diameter, ground=ground[1:])
+
+
 # --- figures -----------------------------------------------------------------------------
 
 

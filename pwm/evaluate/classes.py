@@ -52,16 +52,18 @@ def rim_mask(x_km: np.ndarray, y_km: np.ndarray, craters: list[Crater], band: fl
 
 
 def boulder_size_masks(x_km: np.ndarray, y_km: np.ndarray, boulders: list[Boulder],
-                       bounds_m: tuple[float, ...] = BOULDER_SIZE_CLASSES_M) -> dict[str, np.ndarray]:
-    """Nodes (len(y), len(x)) within BOULDER_REACH diameters of a boulder, by the boulder's size
-    class ('boulders <1 m', 'boulders 1-2 m', ..., 'boulders >=3 m' for the default bounds)."""
+                       bounds_m: tuple[float, ...] = BOULDER_SIZE_CLASSES_M, *,
+                       reach_diameters: float = BOULDER_REACH) -> dict[str, np.ndarray]:
+    """Nodes (len(y), len(x)) within reach_diameters diameters of a boulder (by default its
+    apron too), by the boulder's size class ('boulders <1 m', 'boulders 1-2 m', ...,
+    'boulders >=3 m' for the default bounds)."""
     edges = [f"{b:g}" for b in bounds_m]
     names = [f"boulders <{edges[0]} m", *(f"boulders {a}-{b} m" for a, b in zip(edges, edges[1:], strict=False)),
              f"boulders >={edges[-1]} m"]
     x, y = np.asarray(x_km), np.asarray(y_km)
     masks = {name: np.zeros((len(y), len(x)), bool) for name in names}
     for b in boulders:
-        reach = BOULDER_REACH * b.diameter_km
+        reach = reach_diameters * b.diameter_km
         cols = slice(np.searchsorted(x, b.x_km - reach), np.searchsorted(x, b.x_km + reach, side="right"))
         rows = slice(np.searchsorted(y, b.y_km - reach), np.searchsorted(y, b.y_km + reach, side="right"))
         near = np.hypot(x[cols][None, :] - b.x_km, y[rows][:, None] - b.y_km) <= reach

@@ -19,6 +19,7 @@ def boulder_height_ratio(
     diameters_km: np.ndarray,
     annulus_diameters: tuple[float, float] = (1.0, 1.5),
     curved: bool = False,
+    ground: np.ndarray | None = None,
 ) -> np.ndarray:
     """Model relief over truth relief for each boulder, (B,).
 
@@ -26,6 +27,9 @@ def boulder_height_ratio(
     nodes between annulus_diameters[0] and [1] diameters from its centre (its surroundings).
     curved: the surroundings are a quadric fitted to the ring instead, for boulders large beside
     the body's radius of curvature, whose ring lies metres below their foot.
+    ground: (len(y_km), len(x_km)) True where a node may be a boulder's surroundings (off every
+    boulder, as the truth knows them): a ring that crosses a neighbour, taller or smaller, would
+    otherwise measure the boulder from the neighbour's top and the model's error there.
     centres_km: (B, 2) local x, y; diameters_km: (B,). nan nodes (no model) are ignored; a
     boulder whose disc or ring has no valid node, or whose truth relief is not positive, gives nan.
     """
@@ -35,6 +39,9 @@ def boulder_height_ratio(
     model = np.asarray(model_heights_km, float)
     if truth.shape != (len(y), len(x)) or model.shape != truth.shape:
         raise ValueError("heights must be (len(y_km), len(x_km)) for truth and model alike")
+    usable = np.ones(truth.shape, bool) if ground is None else np.asarray(ground, bool)
+    if usable.shape != truth.shape:
+        raise ValueError("ground must be (len(y_km), len(x_km)) as the heights are")
     centres = np.asarray(centres_km, float).reshape(-1, 2)
     diameters = np.asarray(diameters_km, float).reshape(-1)
     outer = annulus_diameters[1] * diameters
@@ -45,7 +52,7 @@ def boulder_height_ratio(
         rows = slice(np.searchsorted(y, cy - reach), np.searchsorted(y, cy + reach, side="right"))
         r = np.hypot(x[cols][None, :] - cx, y[rows][:, None] - cy)
         disc = r <= 0.5 * diameter
-        ring = (r >= annulus_diameters[0] * diameter) & (r <= reach)
+        ring = (r >= annulus_diameters[0] * diameter) & (r <= reach) & usable[rows, cols]
         dx, dy = np.meshgrid(x[cols] - cx, y[rows] - cy)
         basis = np.stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], axis=-1) if curved else None
         truth_relief = _relief(truth[rows, cols], disc, ring, basis)
