@@ -77,12 +77,14 @@ def shared_frame_sigma(errors: KnowledgeErrors, *, range_km: float, radius_km: f
     these errors from `range_km` off a body of `radius_km` (a lidar's spots): its measurements
     share the spacecraft's trajectory and attitude errors, so their frame is placed no better
     than one pose is (the largest position sigma, and the pointing's at that range, together),
-    and turned by as much over the body's radius."""
+    and turned by as much over the body's radius. Under navigation errors the pointing is the
+    bus's drift alone: the camera's misalignment is the camera's, each instrument being aligned
+    with the bus on its own."""
     if isinstance(errors, IndependentErrors):
         position_m, pointing_rad = errors.position_m, errors.pointing_rad
     else:
         position_m = max(errors.along_m, errors.cross_m, errors.radial_m)
-        pointing_rad = math.hypot(errors.misalign_urad, errors.drift_urad) * 1e-6
+        pointing_rad = errors.drift_urad * 1e-6
     shift_km = math.hypot(position_m * 1e-3, pointing_rad * range_km)
     return shift_km, shift_km / radius_km
 

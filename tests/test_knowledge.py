@@ -230,10 +230,11 @@ def test_the_configured_pose_knowledge_is_checked(monkeypatch, tmp_path):
 
 def test_a_shared_frame_is_placed_as_well_as_one_pose():
     """What an instrument places under pose knowledge shares it (pwm.knowledge.shared_frame_sigma):
-    the largest position sigma and the pointing's at the range, together; the turn over the radius."""
+    the largest position sigma and the pointing's at the range, together (the bus's drift, not
+    the camera's misalignment); the turn over the radius."""
     shift, turn = shared_frame_sigma(NavigationErrors(along_m=3, cross_m=1, misalign_urad=30, drift_urad=40),
                                      range_km=20.0, radius_km=0.25)
-    assert shift == pytest.approx(np.hypot(3e-3, 50e-6 * 20.0)) and turn == pytest.approx(shift / 0.25)
+    assert shift == pytest.approx(np.hypot(3e-3, 40e-6 * 20.0)) and turn == pytest.approx(shift / 0.25)
     assert shared_frame_sigma(IndependentErrors(position_m=2.0, pointing_rad=0.0), range_km=5.0,
                               radius_km=1.0) == pytest.approx((2e-3, 2e-3))
     assert shared_frame_sigma(EXACT, range_km=5.0, radius_km=1.0) == (0.0, 0.0)

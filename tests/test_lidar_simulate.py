@@ -1,6 +1,6 @@
 """The proving ground's lidar (pwm.simulate.lidar) read back through pwm.io.lidar: spots from the
 exact kernels agree with the true ones to the range noise, those from kernels with navigation
-errors carry them; rasters give each shot's direction; the footprint averages ranges over the
+errors carry them (the bus's, not the camera's misalignment); rasters give each shot's direction; the footprint averages ranges over the
 beam; shots that cannot be used are kept with their reason; the images of a scenario are the
 same with the lidar on. And OLA's Level 2 layout, its directions through its scan mirror's CK
 in the same kernels."""
@@ -95,6 +95,12 @@ def test_spots_through_navigation_kernels_carry_its_errors(tmp_path: Path) -> No
     assert np.abs(moved_m - drawn_m).max() < 0.1 * np.linalg.norm(drawn_m, axis=1).max()
     offset_m = np.linalg.norm(shots.spots_km()[v] - truth["spot_km"][v], axis=1) * 1e3
     assert np.sqrt((offset_m**2).mean()) > 10 * NOISE_M
+    # the lidar is aligned with the bus on its own: its beams are turned by the attitude's drift
+    # (0 at the first image, 20 urad at the last), never by the camera's 50 urad misalignment
+    turned_urad = np.arccos(np.clip((shots.direction[v] * truth["direction"][v]).sum(axis=1), -1, 1)) * 1e6
+    assert turned_urad.max() < 20.5
+    first = view[v] == 0
+    assert first.any() and turned_urad[first].max() < 1.0
 
 
 def test_footprint_averages_the_ranges_over_the_beam() -> None:

@@ -182,9 +182,6 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
     with kernel_pool(fixed):
         detector = camera_from_kernel(scenario.instrument_id)
         camera, window = _readout(detector, scenario)
-        lidar_kernels = ([] if scenario.lidar is None else write_lidar_kernels(
-            downlink / "kernels", spec=scenario.lidar, spacecraft=spacecraft_of(scenario.instrument_id),
-            camera_frame=instrument_frame(scenario.instrument_id)))
         start_et = sp.str2et(scenario.start_utc)
         campaign_s = scenario.campaign_days * 86400.0
         sun_spk = downlink / "kernels" / "spk" / f"pwm_{scenario.name}_sun.bsp"
@@ -199,12 +196,19 @@ def _downlink(downlink: Path, truth_dir: Path, *, scenario: Scenario, truth: Tru
 
         true_kernels = _write_pose_kernels(truth_dir / "kernels", scenario=scenario, mission=mission,
                                            observations=observations + validation)
-        noisy, drawn = _perturb(observations, errors=knowledge, rng=rng, seed=seed)
+        noisy, misalignment, drawn = _perturb(observations, errors=knowledge, rng=rng, seed=seed)
         downlink_kernels = _write_pose_kernels(downlink / "kernels", scenario=scenario, mission=mission,
                                                observations=noisy,
                                                comments=[] if knowledge == EXACT else [knowledge_comment(knowledge)])
+        if scenario.lidar is not None:
+            # the truth's lidar FK and the downlink's differ by the camera's misalignment alone
+            for folder, kernels, error in ((truth_dir / "kernels", true_kernels, None),
+                                           (downlink / "kernels", downlink_kernels, misalignment)):
+                kernels += write_lidar_kernels(
+                    folder, spec=scenario.lidar, spacecraft=spacecraft_of(scenario.instrument_id),
+                    camera_frame=instrument_frame(scenario.instrument_id), camera_misalignment_rad=error)
 
-    all_fixed = fixed + [sun_spk] + lidar_kernels
+    all_fixed = fixed + [sun_spk]
     (downlink / "kernels" / "mk").mkdir(parents=True, exist_ok=True)
     write_metakernel(downlink / "kernels" / "mk" / f"pwm_{scenario.name}.tm", kernels=all_fixed + downlink_kernels)
     truth_mk = truth_dir / "kernels" / "truth.tm"
@@ -451,9 +455,10 @@ def _write_pose_kernels(kernel_dir: Path, *, scenario: Scenario, mission: Missio
 
 
 def _perturb(observations: list[Observation], *, errors: KnowledgeErrors, rng: np.random.Generator,
-             seed: int) -> tuple[list[Observation], tuple[dict, list[dict]]]:
-    """Navigation knowledge: the true poses with `errors`, and what the truth manifest records of
-    them (the summary, and an entry per observation).
+             seed: int) -> tuple[list[Observation], np.ndarray, tuple[dict, list[dict]]]:
+    """Navigation knowledge: the true poses with `errors`, the camera's misalignment among them
+    (rad, a rotation vector in the camera frame), and what the truth manifest records of them
+    (the summary, and an entry per observation).
 
     Independent errors come from the simulation's stream, as they always did. Navigation-like
     ones come from their own stream, and the simulation's stream makes the draws of independent
@@ -469,7 +474,7 @@ def _perturb(observations: list[Observation], *, errors: KnowledgeErrors, rng: n
         drawn = perturb(errors, rng=np.random.default_rng([seed, KNOWLEDGE_STREAM]), **arrays(observations))
     noisy = [Observation(obs.name, obs.et, drawn.positions_km[k], drawn.rotations[k], obs.emission_deg,
                          obs.azimuth_deg, obs.target_incidence_deg) for k, obs in enumerate(observations)]
-    return noisy, manifest_entries(errors, drawn, [obs.name for obs in observations])
+    return noisy, drawn.misalignment_rad, manifest_entries(errors, drawn, [obs.name for obs in observations])
 
 
 def _geometry(et: float, scenario: Scenario) -> tuple[Pose, np.ndarray]:

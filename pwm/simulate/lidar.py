@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 import spiceypy as sp
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy.spatial.transform import Rotation
 
 from pwm.io.lidar import RANGE_LIMITS_KEYWORD, RANGE_SIGMA_KEYWORD
 from pwm.raytrace import RayTracer
@@ -62,17 +63,30 @@ def lidar_code(spacecraft: int) -> int:
     return spacecraft * 1000 - LIDAR_CODE_OFFSET
 
 
-def write_lidar_kernels(kernel_dir: Path, *, spec: LidarSpec, spacecraft: int, camera_frame: str) -> list[Path]:
+def write_lidar_kernels(kernel_dir: Path, *, spec: LidarSpec, spacecraft: int, camera_frame: str,
+                        camera_misalignment_rad: np.ndarray | None = None) -> list[Path]:
     """The lidar's FK (PWM_LIDAR, fixed to `camera_frame`: co-boresighted with the camera) and
-    IK (a circular FOV of the beam's half angle on +Z, the range limits and sigma, km)."""
+    IK (a circular FOV of the beam's half angle on +Z, the range limits and sigma, km).
+
+    camera_misalignment_rad: the error of the camera's alignment with the bus in the kernels
+    these join (a rotation vector in the camera frame, `pwm.simulate.knowledge`). The lidar is
+    aligned with the bus on its own, so its FK, which the mission derives from the two
+    alignments, states it turned back by that error: its shots read through those kernels carry
+    the bus's errors but not the camera's misalignment.
+    """
     code = lidar_code(spacecraft)
+    # TKFRAME_MATRIX takes a vector from the camera frame to the lidar's (checked with pxform)
+    alignment = (np.eye(3) if camera_misalignment_rad is None
+                 else Rotation.from_rotvec(np.asarray(camera_misalignment_rad, float)).as_matrix().T)
+    rows = "\n".join("    " + " ".join(f"{v:.17g}" for v in row) for row in alignment)
     fk, ik = kernel_dir / "fk" / "pwm_lidar.tf", kernel_dir / "ik" / "pwm_lidar.ti"
     for path in (fk, ik):
         path.parent.mkdir(parents=True, exist_ok=True)
     fk.write_text(f"""KPL/FK
 
 The simulated laser altimeter's frame (pwm.simulate.lidar): fixed to {camera_frame}, so that it
-ranges along the camera's boresight (+Z).
+ranges along the camera's boresight (+Z), as the lidar's own alignment with the bus and the
+camera's as these kernels know it give it.
 
 \\begindata
 
@@ -86,7 +100,9 @@ FRAME_{code}_CLASS_ID = {code}
 FRAME_{code}_CENTER = {spacecraft}
 TKFRAME_{code}_RELATIVE = '{camera_frame}'
 TKFRAME_{code}_SPEC = 'MATRIX'
-TKFRAME_{code}_MATRIX = ( 1 0 0 0 1 0 0 0 1 )
+TKFRAME_{code}_MATRIX = (
+{rows}
+)
 
 \\begintext
 """)
