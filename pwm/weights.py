@@ -80,6 +80,9 @@ class Rules:
     the emission rule alone are kept up to this emission: ground that the images saw only
     obliquely (an approach survey's polar caps) is refined from what sees it rather than left as
     the start had it, and the emission weight still weighs them down. max_emission_deg: never."""
+    oblique_spread_deg: float = 90.0
+    """... and only when those oblique images look from directions this far apart (camera
+    azimuth spread): views from one side alone see a slope one way."""
     shadow_keep_weight: float = 0.1
     """Weight of a shadowed node next to a lit one, in steep terrain."""
     steep_slope_std_deg: float = 15.0
@@ -246,7 +249,7 @@ def image_weights(geom: MapletGeometry, rules: Rules = RULES) -> np.ndarray:
 def select_images(geom: MapletGeometry, rules: Rules = RULES) -> tuple[np.ndarray, list[list[str]]]:
     """The SPC drop rules: (keep (K,) bool, for each image the reasons it was dropped); with
     fewer than min_images kept, the images dropped for their emission alone, up to
-    oblique_emission_deg, are kept too."""
+    oblique_emission_deg, are kept too where they look from oblique_spread_deg apart."""
     tests = [
         (geom.visible_fraction < rules.min_visible_fraction,
          lambda k: f"visible {geom.visible_fraction[k]:.0%} < {rules.min_visible_fraction:.0%}"),
@@ -265,6 +268,8 @@ def select_images(geom: MapletGeometry, rules: Rules = RULES) -> tuple[np.ndarra
     if keep.sum() < rules.min_images:
         emission_only = np.array([len(r) == 1 for r in reasons], dtype=bool) & tests[2][0]
         oblique = emission_only & (geom.emission_deg <= rules.oblique_emission_deg)
+        if azimuth_spread_deg(geom.camera_azimuth_deg[oblique]) < rules.oblique_spread_deg:
+            oblique[:] = False
         keep |= oblique
         reasons = [[] if oblique[k] else r for k, r in enumerate(reasons)]
     return keep, reasons

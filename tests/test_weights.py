@@ -65,11 +65,14 @@ def test_each_drop_rule_fires_and_says_why():
 def test_oblique_images_are_kept_only_where_too_few_others_are():
     # four upright images and oblique ones at 45, 55 and 65 deg, one of them half hidden
     geom = geometry(emission_deg=[10.0, 10.0, 10.0, 10.0, 45.0, 55.0, 65.0, 45.0],
-                    visible_fraction=[1.0] * 7 + [0.1])
+                    visible_fraction=[1.0] * 7 + [0.1], camera_azimuth_deg=[0.0] * 4 + [0.0, 120.0, 240.0, 0.0])
     keep, reasons = select_images(geom)
     assert keep.tolist() == [True] * 6 + [False, False]
     assert reasons[4] == reasons[5] == [] and reasons[6][0].startswith("emission") and len(reasons[7]) == 2
     assert not select_images(geom, STRICT)[0][4:].any()
+    # oblique views from one side only are not kept
+    one_side = dataclasses.replace(geom, camera_azimuth_deg=np.array([0.0] * 4 + [10.0, 20.0, 240.0, 0.0]))
+    assert not select_images(one_side)[0][4:].any()
     # with the five images the set wants upright, none is kept beyond the emission rule
     enough = geometry(emission_deg=[10.0] * RULES.min_images + [45.0])
     assert select_images(enough)[0].tolist() == [True] * RULES.min_images + [False]
