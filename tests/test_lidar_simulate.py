@@ -1,9 +1,9 @@
 """The proving ground's lidar (pwm.simulate.lidar) read back through pwm.io.lidar: spots from the
 exact kernels agree with the true ones to the range noise, those from kernels with navigation
-errors carry them (the bus's, not the camera's misalignment); rasters give each shot's direction; the footprint averages ranges over the
-beam; shots that cannot be used are kept with their reason; the images of a scenario are the
-same with the lidar on. And OLA's Level 2 layout, its directions through its scan mirror's CK
-in the same kernels."""
+errors carry them (the bus's, not the camera's misalignment); rasters give each shot's
+direction; the footprint averages ranges over the beam; shots that cannot be used are kept
+with their reason; the images of a scenario are the same with the lidar on. And OLA's Level 2
+layout, its directions through its scan mirror's CK in the same kernels."""
 
 from __future__ import annotations
 
