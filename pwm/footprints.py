@@ -4,8 +4,7 @@ Each image's footprint is sampled by rays through a grid of up to FOOTPRINT_SAMP
 FOOTPRINT_SAMPLES of its pixels onto the shape (ground that several images sample is kept
 once, at half the finest spacing of any footprint's samples); every sample is then judged in
 every image as a maplet's node would be (pwm.weights.Rules): in the frame, in front, facing
-the camera within the SPC emission rule (or its oblique fallback where too few images do),
-lit, not occluded. A sample that at least min_images
+the camera within the SPC emission rule, lit, not occluded. A sample that at least min_images
 images see so is seen; its pixel scale (range over focal length) is the median of the finest of
 those images that are enough: those no more than twice as coarse as the min_images-th finest
 (SPC's rule that no image be over twice as coarse as the maplet), so that where a site's close
@@ -119,27 +118,21 @@ def judge_samples(tracer: RayTracer, samples: Samples, judges: Sequence[View], *
     in_cone = Cones.of(judges).seeing(centres, radius) if judges else np.zeros((0, len(centres)), bool)
     lifted = points + tracer.offset * normals
     pixel = np.full((len(judges), len(points)), np.nan)
-    oblique = np.zeros((len(judges), len(points)), bool)  # beyond the emission rule, within its fallback
-    cos_emission, cos_oblique = np.cos(np.radians([rules.max_emission_deg, rules.oblique_emission_deg]))
+    cos_emission = np.cos(np.radians(rules.max_emission_deg))
     cos_lit = np.cos(np.radians(rules.incidence_zero_deg))
     for k, view in enumerate(judges):
         idx = np.flatnonzero(in_cone[k][cell])
         to_camera = view.pose.position - points[idx]
         distance = np.linalg.norm(to_camera, axis=1)
         to_camera /= distance[:, None]
-        cos_e = np.einsum("ij,ij->i", normals[idx], to_camera)
-        usable = (cos_e >= min(cos_emission, cos_oblique)) & (normals[idx] @ view.sun > cos_lit)
+        usable = (np.einsum("ij,ij->i", normals[idx], to_camera) >= cos_emission) & (normals[idx] @ view.sun > cos_lit)
         usable &= view.pose.to_camera(points[idx])[:, 2] > 0
         px = project(points[idx[usable]], view.camera, view.pose)
         usable[usable] = ((px[:, 0] >= 0) & (px[:, 0] <= view.camera.width - 1) & (px[:, 1] >= 0)
                           & (px[:, 1] <= view.camera.height - 1))
-        idx, to_camera, distance, cos_e = idx[usable], to_camera[usable], distance[usable], cos_e[usable]
+        idx, to_camera, distance = idx[usable], to_camera[usable], distance[usable]
         blocked = tracer.occluded(lifted[idx], to_camera, distance)
         pixel[k, idx[~blocked]] = distance[~blocked] / view.camera.fx
-        oblique[k, idx[~blocked]] = cos_e[~blocked] < cos_emission
-    # as select_images keeps them: the oblique views only where too few others see the ground
-    upright = np.isfinite(pixel) & ~oblique
-    pixel = np.where(upright | ((upright.sum(axis=0) < rules.min_images) & oblique), pixel, np.nan)
     enough = np.isfinite(pixel).sum(axis=0) >= min_images
     if not enough.any():
         return Seen(np.empty((0, 3)), np.empty(0))

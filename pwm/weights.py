@@ -11,8 +11,7 @@ The rules, all thresholds in `Rules`:
   with the most contrast.
 - Operational SPC drops an image from a maplet (`select_images`) when under 20% of the maplet is
   visible in it, over 20% of what is visible is in shadow, the emission exceeds about 40 deg, or
-  its pixels are more than twice as coarse as the maplet's spacing. Where too few images pass,
-  those only too oblique are kept up to 60 deg: nothing better sees that ground. Here the shadow limit is 60%:
+  its pixels are more than twice as coarse as the maplet's spacing. Here the shadow limit is 60%:
   SPC's photoclinometry reads shadows as dark terrain, the pixel weights here leave them out. An
   image whose pixels are over five times finer than the spacing is dropped too: it belongs to the
   finer maplets tiled where it looks (two levels down or more), so that a site's close images
@@ -75,14 +74,6 @@ class Rules:
     SPC drops an image over 20% in shadow; with shadowed nodes weighed out one by one, an image's
     lit nodes are worth keeping well beyond that. The rule only bites once the shape casts the
     shadows the images show (a smooth start casts few; bench/RESULTS.md)."""
-    oblique_emission_deg: float = 60.0
-    """Where fewer images than the set wants (min_images) pass every drop rule, those that fail
-    the emission rule alone are kept up to this emission: ground that the images saw only
-    obliquely (an approach survey's polar caps) is refined from what sees it rather than left as
-    the start had it, and the emission weight still weighs them down. max_emission_deg: never."""
-    oblique_spread_deg: float = 90.0
-    """... and only when those oblique images look from directions this far apart (camera
-    azimuth spread): views from one side alone see a slope one way."""
     shadow_keep_weight: float = 0.1
     """Weight of a shadowed node next to a lit one, in steep terrain."""
     steep_slope_std_deg: float = 15.0
@@ -247,9 +238,7 @@ def image_weights(geom: MapletGeometry, rules: Rules = RULES) -> np.ndarray:
 
 
 def select_images(geom: MapletGeometry, rules: Rules = RULES) -> tuple[np.ndarray, list[list[str]]]:
-    """The SPC drop rules: (keep (K,) bool, for each image the reasons it was dropped); with
-    fewer than min_images kept, the images dropped for their emission alone, up to
-    oblique_emission_deg, are kept too where they look from oblique_spread_deg apart."""
+    """The SPC drop rules: (keep (K,) bool, for each image the reasons it was dropped)."""
     tests = [
         (geom.visible_fraction < rules.min_visible_fraction,
          lambda k: f"visible {geom.visible_fraction[k]:.0%} < {rules.min_visible_fraction:.0%}"),
@@ -264,15 +253,7 @@ def select_images(geom: MapletGeometry, rules: Rules = RULES) -> tuple[np.ndarra
                    "the finer levels' image"),
     ]
     reasons = [[text(k) for failed, text in tests if failed[k]] for k in range(len(geom.emission_deg))]
-    keep = np.array([not r for r in reasons], dtype=bool)
-    if keep.sum() < rules.min_images:
-        emission_only = np.array([len(r) == 1 for r in reasons], dtype=bool) & tests[2][0]
-        oblique = emission_only & (geom.emission_deg <= rules.oblique_emission_deg)
-        if azimuth_spread_deg(geom.camera_azimuth_deg[oblique]) < rules.oblique_spread_deg:
-            oblique[:] = False
-        keep |= oblique
-        reasons = [[] if oblique[k] else r for k, r in enumerate(reasons)]
-    return keep, reasons
+    return np.array([not r for r in reasons], dtype=bool), reasons
 
 
 def slope_spread_deg(heights: np.ndarray, spacing_km: float) -> float:

@@ -3,8 +3,6 @@ such places (pwm.tiling.tile(where=...))."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import trimesh
@@ -156,14 +154,3 @@ def test_judging_by_cells_changes_nothing_but_the_work(tracer, monkeypatch):
     assert len(judged.points) > 100
     np.testing.assert_array_equal(judged.points, everything.points)
     np.testing.assert_array_equal(judged.pixel_km, everything.pixel_km)
-
-
-def test_ground_seen_only_obliquely_is_seen_by_the_fallback(tracer):
-    """A polar cap of an approach survey: four views, each 50 deg off the ground's normal, beyond the
-    SPC emission rule (40 deg) but within its oblique fallback (pwm.weights.Rules)."""
-    views = views_of(0.0, 100.0, 1.0, [(50.0, 0.0), (-50.0, 0.0), (0.0, 50.0), (0.0, -50.0)], "oblique")
-    seen = seen_samples(tracer, views, rules=RULES, min_images=3)
-    lat, lon = unit_to_latlon(seen.points)
-    assert len(seen.points) > 10 and (np.hypot(lat, lon - 100.0) < 20.0).all()
-    strict = dataclasses.replace(RULES, oblique_emission_deg=RULES.max_emission_deg)
-    assert not len(seen_samples(tracer, views, rules=strict, min_images=3).points)

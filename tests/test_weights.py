@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -44,15 +42,11 @@ def directions(frame: LocalFrame, angles_deg: list[tuple[float, float]]) -> np.n
     return frame.to_body(np.column_stack([np.sin(a) * np.sin(b), np.sin(a) * np.cos(b), np.cos(a)])) - frame.origin
 
 
-STRICT = dataclasses.replace(RULES, oblique_emission_deg=RULES.max_emission_deg)
-"""The drop rules without the oblique fallback."""
-
-
 def test_each_drop_rule_fires_and_says_why():
     geom = geometry(visible_fraction=[0.9, 0.1, 0.9, 0.9, 0.9, 0.9], shadow_fraction=[0.0, 0.0, 0.7, 0.0, 0.0, 0.0],
                     emission_deg=[10.0, 10.0, 10.0, 45.0, 10.0, 10.0],
                     resolution_ratio=[1.0, 1.0, 1.0, 1.0, 2.5, 0.05])
-    keep, reasons = select_images(geom, STRICT)
+    keep, reasons = select_images(geom)
     assert keep.tolist() == [True, False, False, False, False, False]
     assert reasons[0] == []
     for k, word in enumerate(["visible", "shadowed", "emission", "pixel scale", "pixel scale"], start=1):
@@ -60,22 +54,6 @@ def test_each_drop_rule_fires_and_says_why():
     assert "finer levels" in reasons[5][0]
     keep, _ = select_images(geom, Rules(max_emission_deg=50.0, max_resolution_ratio=3.0, min_resolution_ratio=0.01))
     assert keep.tolist() == [True, False, False, True, True, True]
-
-
-def test_oblique_images_are_kept_only_where_too_few_others_are():
-    # four upright images and oblique ones at 45, 55 and 65 deg, one of them half hidden
-    geom = geometry(emission_deg=[10.0, 10.0, 10.0, 10.0, 45.0, 55.0, 65.0, 45.0],
-                    visible_fraction=[1.0] * 7 + [0.1], camera_azimuth_deg=[0.0] * 4 + [0.0, 120.0, 240.0, 0.0])
-    keep, reasons = select_images(geom)
-    assert keep.tolist() == [True] * 6 + [False, False]
-    assert reasons[4] == reasons[5] == [] and reasons[6][0].startswith("emission") and len(reasons[7]) == 2
-    assert not select_images(geom, STRICT)[0][4:].any()
-    # oblique views from one side only are not kept
-    one_side = dataclasses.replace(geom, camera_azimuth_deg=np.array([0.0] * 4 + [10.0, 20.0, 240.0, 0.0]))
-    assert not select_images(one_side)[0][4:].any()
-    # with the five images the set wants upright, none is kept beyond the emission rule
-    enough = geometry(emission_deg=[10.0] * RULES.min_images + [45.0])
-    assert select_images(enough)[0].tolist() == [True] * RULES.min_images + [False]
 
 
 def test_image_weight_favours_moderate_incidence_low_emission_and_fine_pixels():

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from sqlalchemy import delete, func, select, update
 
 from pwm.config import RefinementConfig
-from pwm.footprints import seen_samples
+from pwm.footprints import places, seen_samples
 from pwm.io.meshio import read_mesh
 from pwm.raytrace import RayTracer
 from pwm.simulate.truth import load as load_truth
@@ -119,7 +119,8 @@ def test_a_survey_is_tiled_wherever_its_images_see_enough_and_nowhere_else(globa
     assert report.maplets_added == len(maplets) > 0
     seen = seen_samples(RayTracer(truth), views, rules=config.rules, min_images=config.min_images)
     origins = np.array([m[:3] for m in maplets])
-    # the survey's maplets lie round the body, far apart (Bennu's radius is 0.25 km): not one disc
+    # the survey's places lie round the body, far apart (Bennu's radius is 0.25 km): not one disc
+    assert len(places(seen, nodes=16, spacing_gsd=1.0)) > 1
     assert max(np.linalg.norm(origins - o, axis=1).max() for o in origins) > 0.3
     # every seen sample lies under a maplet, and every maplet over seen ground
     size = maplets[0][3]
@@ -128,9 +129,9 @@ def test_a_survey_is_tiled_wherever_its_images_see_enough_and_nowhere_else(globa
     # at the pixel scale of the images that see it (4 m; none coarser than twice the finest)
     gsd = np.array([m[4] for m in maplets])
     assert np.allclose(gsd, np.median(seen.pixel_km) * 1e3, rtol=0.25)
-    # and part of the body is seen too little to be tiled, even obliquely (which makes the above a test)
+    # and a good part of the body is seen too little to be tiled (which makes the above a test)
     far = cKDTree(seen.points).query(truth.vertices)[0] > size
-    assert far.mean() > 0.05
+    assert far.mean() > 0.15
 
 
 def test_coverage_makes_views_only_of_the_images_that_may_see_the_new_ones_place(tiny_sim, catalog, caplog):
