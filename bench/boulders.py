@@ -61,6 +61,7 @@ def main() -> None:
     parser.add_argument("--only", type=int, nargs="*", default=None, help="these of the largest (0: the largest)")
     args = parser.parse_args()
 
+    from pwm.evaluate.classes import on_boulders
     from pwm.evaluate.profiles import boulder_height_ratio
     from pwm.frames import unit_to_latlon
     from pwm.io.downlink import read_downlink
@@ -85,6 +86,7 @@ def main() -> None:
     print(f"changes: {args.changes or 'none'}; start {args.start or 'start_model.obj'}; shift {args.shift_m} m; "
           f"{config.nodes} nodes at {spacing * 1e3:.3f} m")
     print(f"{'boulder':>16}{'':>3}{'ratio':>7}{'rms':>8}{'top':>8}{'apron':>8}{'s':>6}")
+    boulder_points = np.array([truth.site_point(o.x_km, o.y_km) for o in truth.boulders]).reshape(-1, 3)
     for b in largest:
         cx, cy = b.x_km + args.shift_m[0] * 1e-3, b.y_km + args.shift_m[1] * 1e-3
         # the truth about the maplet, as a small mesh to drop the maplet's rays on
@@ -96,6 +98,10 @@ def main() -> None:
         top = float(np.nanmax(maplet.heights)) + 0.01
         truth_h = drop_rays(truth_tracer, maplet.frame, gx.ravel(), gy.ravel(), top_km=top)[1].reshape(gx.shape)
         centre = maplet.frame.to_local(truth.site_point(b.x_km, b.y_km)[None])[0, :2]
+        # every boulder in the maplet's frame: no boulder is measured from their discs
+        local = [dataclasses.replace(o, x_km=float(px), y_km=float(py)) for o, (px, py, _) in
+                 zip(truth.boulders, maplet.frame.to_local(boulder_points), strict=True)]
+        ground = ~on_boulders(maplet.axis_km, maplet.axis_km, local)
         clock = time.perf_counter()
         refined = refine_maplet(maplet, views, tracer, config=config).maplet.heights
         seconds = time.perf_counter() - clock
@@ -117,7 +123,7 @@ def main() -> None:
             plt.close(fig)
         for label, heights in (("start", maplet.heights), ("refined", refined)):
             ratio = boulder_height_ratio(maplet.axis_km, maplet.axis_km, truth_h, heights, centres_km=centre[None],
-                                         diameters_km=np.array([b.diameter_km]))[0]
+                                         diameters_km=np.array([b.diameter_km]), ground=ground)[0]
             error = heights - truth_h
             r = np.hypot(gx - centre[0], gy - centre[1]) / (b.diameter_km / 2)
             sector = (np.arctan2(gy - centre[1], gx - centre[0]) // (np.pi / 4)).astype(int)

@@ -71,6 +71,12 @@ def boulder_size_masks(x_km: np.ndarray, y_km: np.ndarray, boulders: list[Boulde
     return masks
 
 
+def on_boulders(x_km: np.ndarray, y_km: np.ndarray, boulders: list[Boulder]) -> np.ndarray:
+    """Nodes (len(y), len(x)) on any boulder's disc (its apron not): ground no boulder is
+    measured from (`pwm.evaluate.profiles.boulder_height_ratio`'s ground is the rest)."""
+    return np.any(list(boulder_size_masks(x_km, y_km, boulders, reach_diameters=0.5).values()), axis=0)
+
+
 def edge_mask(points_body: np.ndarray, footprints: list[MapletFootprint], band_km: float) -> np.ndarray:
     """Points (..., 3, body-fixed km) within band_km inside the border of any maplet: where
     fusion joins a maplet to its neighbours."""

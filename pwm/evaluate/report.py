@@ -27,6 +27,7 @@ from pwm.evaluate.classes import (
     boulder_size_masks,
     edge_mask,
     error_by_class,
+    on_boulders,
     rim_mask,
     shadow_share,
 )
@@ -278,10 +279,10 @@ def _heights(truth: Truth, tracer: RayTracer, *, gsd_km: float, plots_dir: Path 
                      maplets=maplets)
     out["classes_m"] = _in_m(error_by_class(error, masks))
     if boulders:
-        # every boulder's disc (of the whole truth: those across the disc's edge too), not its apron
-        discs = np.any(list(boulder_size_masks(x, y, truth.boulders, reach_diameters=0.5).values()), axis=0)
+        # off every boulder of the whole truth: those across the disc's edge too
+        ground = ~on_boulders(x, y, truth.boulders)
         ratios = boulder_height_ratio(x, y, truth_h, model_h, centres_km=np.array([[b.x_km, b.y_km] for b in boulders]),
-                                      diameters_km=np.array([b.diameter_km for b in boulders]), ground=~discs)
+                                      diameters_km=np.array([b.diameter_km for b in boulders]), ground=ground)
         steep = np.array([b.steep for b in boulders])
         out["boulders"] = [{"x_m": b.x_km * 1e3, "y_m": b.y_km * 1e3, "diameter_m": b.diameter_km * 1e3,
                             "height_m": b.height_km * 1e3, "steep": b.steep, "height_ratio": float(r)}
