@@ -291,27 +291,32 @@ CAMPAIGNS: dict[str, Campaign] = {
         Campaign(
             name="campaign",
             description="global-coarse's survey, at twice its images (72), of a Bennu with craters and boulders "
-                        "everywhere (2 m GSD, a 0.5 m truth), then site's and site-polar's reconnaissance (10 cm GSD) "
-                        "at two places of it; an OLA-like lidar's rasters through the survey's views, and "
-                        "profiles through the first site's",
+                        "everywhere (2 m GSD, a 0.5 m truth), then site's and site-polar's reconnaissance (10 cm GSD, "
+                        "each pixel the mean of 3 x 3 rays) at two places of it; an OLA-like lidar's rasters through "
+                        "the survey's views, and profiles through the first site's",
             # 36 images left 63% of the surface seen by fewer than five within SPC's 40 deg emission
             # rule: too few for the five-view set (bench/RESULTS.md); surveys take many more
             survey=_campaign_part("global-coarse", name="campaign-survey", n_azimuths=72,
                                   lidar=LidarSpec(pattern="raster", shots_per_view=2000)),
-            sites=(_campaign_part("site", name="campaign-site-a", start_utc="2019-03-14T00:00:00"),
-                   _campaign_part("site-polar", name="campaign-site-b", start_utc="2019-03-28T00:00:00")),
+            # the sites' pixels integrate over their footprint as a detector's do: one ray per 10 cm
+            # pixel over a 2.5 cm truth aliases the cobbles' slopes into the images (bench/RESULTS.md)
+            sites=(_campaign_part("site", name="campaign-site-a", start_utc="2019-03-14T00:00:00", supersample=3),
+                   _campaign_part("site-polar", name="campaign-site-b", start_utc="2019-03-28T00:00:00",
+                                  supersample=3)),
             craters=30, crater_diameter_m=(10.0, 80.0), boulders=60, steep_boulders=15,
             boulder_diameter_m=(6.0, 30.0),
         ),
         Campaign(
             name="campaign-tiny",
             description="campaign's design for tests, seconds: global-tiny's survey (4 m GSD, 12 images) of a body "
-                        "with 20-60 m craters and 12-30 m boulders, then two tiny sites (5 cm GSD, 6 images each)",
+                        "with 20-60 m craters and 12-30 m boulders, then two tiny sites (5 cm GSD, 6 images each, "
+                        "each pixel the mean of 2 x 2 rays)",
             # no lidar yet: the catalog reads no lidar products (issue 46's next step)
             survey=_campaign_part("global-tiny", name="campaign-tiny-survey", lidar=None),
-            sites=(_campaign_part("tiny", name="campaign-tiny-site-a", start_utc="2019-03-14T00:00:00"),
+            sites=(_campaign_part("tiny", name="campaign-tiny-site-a", start_utc="2019-03-14T00:00:00",
+                                  supersample=2),
                    _campaign_part("tiny", name="campaign-tiny-site-b", start_utc="2019-03-20T00:00:00",
-                                  site_lat_deg=-30.0, site_lon_deg=200.0)),
+                                  site_lat_deg=-30.0, site_lon_deg=200.0, supersample=2)),
             craters=6, crater_diameter_m=(20.0, 60.0), boulders=8, steep_boulders=2, boulder_diameter_m=(12.0, 30.0),
         ),
         Campaign(
