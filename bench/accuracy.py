@@ -39,11 +39,13 @@ CHILD = """
 import resource, sys
 from service.cli import app
 try:
-    app(sys.argv[1:], prog_name="pwm", standalone_mode=False)
+    # without standalone mode a command's exit status is returned, not raised
+    code = app(sys.argv[1:], prog_name="pwm", standalone_mode=False)
 finally:
     # the largest process: the command itself or one of its worker processes
     peak = max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
     print("PEAK_KIB", peak, file=sys.stderr)
+sys.exit(code if isinstance(code, int) else 0)
 """
 
 
@@ -105,6 +107,29 @@ def downlinks(sim: Path, work: Path) -> list[Run]:
             for entry in json.loads(summary.read_text())["downlinks"]]
 
 
+def exported(run: Run, env: dict[str, str], *, site: bool) -> Path:
+    """The latest version as one PLY: the whole mesh, or for a site the tile of a version stored
+    in tiles (PWM_MESH_TILE_FACES) that holds the site's origin farthest inside its box."""
+    whole = run.work / "run" / "refined.ply"
+    whole.unlink(missing_ok=True)
+    try:
+        pwm("export", "latest", "--format", "ply", "--out", str(whole), env=env)
+        return whole
+    except RuntimeError:
+        if not site:
+            raise
+    folder = run.work / "run" / "tiles"
+    pwm("export", "latest", "--format", "ply", "--tile", "all", "--out", str(folder), env=env)
+    origin = json.loads((run.truth / "truth.json").read_text())["origin_km"]
+    tiles = json.loads((folder / "tiles.json").read_text())["tiles"]
+
+    def inside_by(tile: dict) -> float:
+        low, high = tile["box_km"]
+        return min(min(o - a, b - o) for o, a, b in zip(origin, low, high, strict=True))
+
+    return folder / max(tiles, key=inside_by)["file"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenarios", nargs="*", default=None,
@@ -156,8 +181,7 @@ def main() -> None:
             fresh.add(run.catalog)
             seconds, peak = pwm("run", str(run.downlink), "--workers", str(args.workers), "--mode", "pwm",
                                 *(["--tile-radius-km", *region] if region else []), env=env)
-            pwm("export", "latest", "--format", "ply", "--out", str(run.work / "run" / "refined.ply"), env=env)
-            steps.append(("pwm run", run.work / "run" / "refined.ply", (seconds, peak), None))
+            steps.append(("pwm run", exported(run, env, site=not scenario["global_views"]), (seconds, peak), None))
         for label, model, cost, maplets in steps:
             report = run.work / f"evaluation-{label.replace(' ', '-')}.json"
             pwm("evaluate", str(model), "--truth", str(run.truth), "--json", str(report), "--plots",
