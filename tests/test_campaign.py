@@ -115,6 +115,8 @@ def test_a_campaign_is_its_downlinks_in_time_order_over_one_truth(campaign):
         assert (downlink / "start_model.obj").exists() == (entry["scope"] == "global")
         manifest = json.loads((campaign / entry["truth"] / "manifest.json").read_text())
         assert manifest["scenario"]["name"] == scenario.name
+        # the sites' pixels integrate over their footprint, as a detector's do; the survey's need not
+        assert (manifest["scenario"]["supersample"] > 1) == (entry["scope"] == "site")
         times = sorted(image["et"] for image in manifest["images"])
         assert times[0] > previous_end  # each downlink after the last
         previous_end = times[-1]
