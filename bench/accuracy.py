@@ -112,14 +112,15 @@ def exported(run: Run, env: dict[str, str], *, site: bool) -> Path:
     in tiles (PWM_MESH_TILE_FACES) that holds the site's origin farthest inside its box."""
     whole = run.work / "run" / "refined.ply"
     whole.unlink(missing_ok=True)
+    folder = run.work / "run" / "tiles"
     try:
         pwm("export", "latest", "--format", "ply", "--out", str(whole), env=env)
         return whole
     except RuntimeError:
         if not site:
             raise
-    folder = run.work / "run" / "tiles"
-    pwm("export", "latest", "--format", "ply", "--tile", "all", "--out", str(folder), env=env)
+        # here, so that a failure other than a tiled version's is told with the first one's
+        pwm("export", "latest", "--format", "ply", "--tile", "all", "--out", str(folder), env=env)
     origin = json.loads((run.truth / "truth.json").read_text())["origin_km"]
     tiles = json.loads((folder / "tiles.json").read_text())["tiles"]
 
