@@ -25,24 +25,27 @@ collapse that joins two vertices with more than two neighbours in common pinches
 (an edge in four faces); which collapses do depends on both."""
 
 
-def decimate(mesh: Mesh, target_faces: int) -> Mesh:
+def decimate(mesh: Mesh, target_faces: int, *, keep_closed: bool = True) -> Mesh:
     """Reduce `mesh` to about `target_faces` faces (km, same frame) by quadric edge collapse.
 
-    A watertight, consistently wound input comes out so, and free of self-intersections where
+    With keep_closed (for what is measured or exported: volumes, DSKs, closed meshes), a
+    watertight, consistently wound input comes out so, and free of self-intersections where
     a collapse allows: the collapse sometimes folds two faces back to back (the same corners,
     opposite windings), which are dropped; its vertices then move along their normals by the one
     distance that restores the input's volume (`_with_volume`), unless that makes faces cross;
     where an edge is left in other than two faces, or faces cross, the collapse is made again
     otherwise (ATTEMPTS), as where its volume is off by more than MAX_VOLUME_CHANGE. The first
     closed one within it and without crossings is taken, else the closed one nearest the volume
-    (what is wrong with it for the caller's checks to tell), else ValueError. Each original
+    (what is wrong with it for the caller's checks to tell), else ValueError. Without it (for
+    what is only drawn), the first collapse is taken as it comes, its folds dropped: on a site's
+    millions of faces the checks take many minutes that a picture does not need. Each original
     vertex carries its albedo to the nearest kept vertex, which takes the area-weighted mean of
     what it receives (a kept vertex that receives nothing takes its nearest original vertex's
     albedo). Not thread-safe: the library keeps one mesh in a global.
     """
     if not 4 <= target_faces < len(mesh.faces):
         raise ValueError(f"target_faces must be in [4, {len(mesh.faces)}), got {target_faces}")
-    closed = _closed(welded(mesh).faces, len(mesh.vertices))
+    closed = keep_closed and _closed(welded(mesh).faces, len(mesh.vertices))
     volume = _volume(mesh) if closed else 0.0
     best: tuple[float, Mesh] | None = None
     for agg, scale in ATTEMPTS:

@@ -337,6 +337,33 @@ def test_decimate_keeps_shape_and_albedo(bennu):
         decimate(mesh, len(mesh.faces))
 
 
+
+def test_a_decimation_only_drawn_takes_the_first_collapse_unchecked(bennu, monkeypatch):
+    # the console's 3D view decimates every published version; on a site's millions of faces
+    # the closed-surface checks took many minutes per version and a picture needs none of them
+    import pwm.decimate as module
+    mesh = _subdivided(bennu, 2)
+    collapses = []
+    simplify = module.fast_simplification.simplify
+
+    def counted(*args, **kwargs):
+        collapses.append(kwargs.get("agg"))
+        return simplify(*args, **kwargs)
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("a drawn decimation checked for crossing faces")
+
+    monkeypatch.setattr(module.fast_simplification, "simplify", counted)
+    monkeypatch.setattr(module, "self_intersections", forbidden)
+    target = 5000
+    small = decimate(mesh, target, keep_closed=False)
+    assert collapses == [module.ATTEMPTS[0][0]]
+    assert abs(len(small.faces) - target) <= 0.05 * target
+    size = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    assert ClosestPoint(mesh).query(small.vertices)[0].max() < 0.01 * size
+    with pytest.raises(AssertionError, match="crossing"):
+        decimate(mesh, target)
+
 def _site(tmp_path: Path, **overrides):
     frame = local_frame(np.array([0.12, -0.2, 0.15]), np.array([0.4, -0.5, 0.6]))
     x = np.arange(40) * 1e-3 - 0.02

@@ -155,7 +155,7 @@ def mesh_document(data_dir: Path, request: MeshRequest, *, cache_bytes: int | No
             index, full, labels = tiled_mesh(data_dir, request.mesh)
         else:
             full = artifact_mesh(data_dir, request.mesh)
-        mesh = decimate(full, faces) if len(full.faces) > faces else full
+        mesh = decimate(full, faces, keep_closed=False) if len(full.faces) > faces else full
         header, arrays = _mesh_fields(request, mesh, full=full, change=_change(data_dir, request, full))
         if tiled:
             if mesh is not full:  # each decimated face in the tile of the full face nearest it
