@@ -10,12 +10,16 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from pwm.camera import Camera, Pose
+from pwm.evaluate.images import ncc
 from pwm.evaluate.profiles import boulder_height_ratio
 from pwm.evaluate.report import evaluate
 from pwm.frames import latlon_to_unit
 from pwm.io.meshio import read_obj, write_ply
 from pwm.io.pds4 import read_image_product
 from pwm.mesh import Mesh
+from pwm.raytrace import RayTracer
+from pwm.render import render
 from pwm.simulate.campaign import start_model
 from pwm.simulate.landforms import Clearing, apply_landforms, sample_landforms
 from pwm.simulate.missions import MISSIONS, SHAPES_DIR
@@ -138,6 +142,21 @@ def test_a_campaign_is_its_downlinks_in_time_order_over_one_truth(campaign):
         for site in (site_a, site_b):
             assert np.linalg.norm(np.subtract(form.origin_km, site.site_frame.origin)) > form.reach_km
 
+
+
+def test_a_site_is_judged_on_views_imaged_as_its_camera_images(campaign):
+    # the held-out views integrate 2 x 2 rays per pixel: the truth imaged the same way matches
+    # them; imaged one ray per pixel it would not (0.98 NCC, 0.96 SSIM), which a model was judged on
+    site_dir = campaign / "truth" / "2-campaign-tiny-site-a"
+    perfect = evaluate(site_dir / "mesh.ply", truth_dir=site_dir)
+    assert perfect["views"] and all(v["ncc"] > 0.9999 and v["ssim"] > 0.9999 for v in perfect["views"])
+    manifest = json.loads((site_dir / "manifest.json").read_text())
+    view = np.load(site_dir / manifest["validation"][0]["file"])
+    camera = Camera(**{k: manifest["camera"][k] for k in ("width", "height", "fx", "fy", "cx", "cy")})
+    one_ray = render(RayTracer(load_truth(site_dir).mesh), camera=camera,
+                     pose=Pose(position=view["position"], rotation=view["rotation"]), sun_direction=view["sun"])
+    mask = view["in_site"] & view["hit"] & ~view["shadow"] & one_ray.hit & ~one_ray.shadow
+    assert ncc(view["reflectance"].astype(float), one_ray.reflectance, mask) < 0.995
 
 def test_global_scope_judges_the_whole_body(campaign, tmp_path):
     survey_dir = campaign / "truth" / "1-campaign-tiny-survey"

@@ -40,7 +40,7 @@ from pwm.frames import LocalFrame
 from pwm.io.meshio import read_mesh
 from pwm.mesh import Mesh
 from pwm.raytrace import RayTracer
-from pwm.render import render
+from pwm.render import render_supersampled
 from pwm.sampling import drop_rays
 from pwm.simulate.terrain import Boulder
 from pwm.simulate.truth import Truth, load as load_truth, sampled
@@ -338,16 +338,19 @@ def _profile(boulder, x: np.ndarray, y: np.ndarray, truth_h: np.ndarray, model_h
 
 def _views(manifest: dict, truth_dir: Path, tracer: RayTracer, *, plots_dir: Path | None, whole_body: bool) -> dict:
     """NCC and SSIM of the model rendered with its albedo against each held-out truth view,
-    over the pixels lit and seen in both (on the site, or anywhere on the body). The model image
-    is first scaled to the truth's brightness by least squares: a model's albedo is only known up
-    to the images' calibration."""
+    over the pixels lit and seen in both (on the site, or anywhere on the body). The model is
+    imaged as the view's camera imaged the truth, its pixels the mean of as many rays
+    (the scenario's supersample): a model sampled one ray per pixel would be judged on aliasing
+    the truth's view does not have. The model image is first scaled to the truth's brightness by
+    least squares: a model's albedo is only known up to the images' calibration."""
     c = manifest["camera"]
     camera = Camera(width=c["width"], height=c["height"], fx=c["fx"], fy=c["fy"], cx=c["cx"], cy=c["cy"])
+    rays = int(manifest["scenario"].get("supersample", 1))
     scores = []
     for view in manifest["validation"]:
         data = np.load(truth_dir / view["file"])
         pose = Pose(position=data["position"], rotation=data["rotation"])
-        model = render(tracer, camera=camera, pose=pose, sun_direction=data["sun"])
+        model = render_supersampled(tracer, camera=camera, pose=pose, sun_direction=data["sun"], factor=rays)
         truth_img = data["reflectance"].astype(float)
         seen = data["hit"] if whole_body else data["in_site"] & data["hit"]
         mask = seen & ~data["shadow"] & model.hit & ~model.shadow
