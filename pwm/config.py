@@ -105,11 +105,15 @@ class RefinementConfig:
     mode: 'pwm' or 'standard' (pwm.photoclinometry.refine). nodes: nodes per side of a maplet.
     overlap: fraction of a maplet's side shared with each neighbour. spacing_gsd: node spacing in
     image GSDs (the median pixel scale of the images that see the region). passes: refinement
-    passes of `pwm refine`, each from the previous pass's fused model (the catalog refines a
-    maplet once per input, against the current published model). search_px: how far (px) the
-    images may be off the maplets, from the pose knowledge; beyond a pixel they are registered
-    first (pwm.pipeline.refine_maplet). height_sweep_px: within a pixel, how much parallax between
-    the images a maplet's height is swept over before it is refined (0: not swept).
+    passes every maplet gets, each from the previous pass's fused model. max_passes: at most this
+    many (never fewer than passes; after one pass, none: `most_passes`) for a maplet that has
+    not settled, one whose last pass changed its solution by more than settled_spacings node
+    spacings (RMS, pwm.maplets.solution_change): the model it started from still held it back (a
+    site under a survey's model that has none of the site's relief; `another_pass`).
+    search_px: how far (px) the images may be off the maplets, from the pose knowledge; beyond a
+    pixel they are registered first (pwm.pipeline.refine_maplet).
+    height_sweep_px: within a pixel, how much parallax between the images a maplet's height is
+    swept over before it is refined (0: not swept).
     shape_window_nodes: within a pixel, a maplet of at least twice this many nodes a side is also
     bent by the parallax its images show in square parts of about this many nodes a side (0: not).
     min_images: fewest usable images a maplet is refined from; with fewer it keeps its start.
@@ -132,6 +136,8 @@ class RefinementConfig:
     overlap: float = 0.25
     spacing_gsd: float = 1.0
     passes: int = 2
+    max_passes: int = 3
+    settled_spacings: float = 0.25
     search_px: float = 1.0
     height_sweep_px: float = 16.0
     shape_window_nodes: int = 20
@@ -156,6 +162,8 @@ class RefinementConfig:
             raise ValueError(f"spacing {self.spacing_gsd} GSD is outside [0.25, 2]")
         if self.passes < 1:
             raise ValueError("at least one pass")
+        if not self.settled_spacings > 0:
+            raise ValueError(f"settled at {self.settled_spacings} node spacings: must be positive")
         if self.search_px < 0:
             raise ValueError(f"search of {self.search_px} px: must be non-negative")
         if self.height_sweep_px < 0:
@@ -168,6 +176,19 @@ class RefinementConfig:
             raise ValueError(f"tile radius {self.tile_radius_km} km: must be positive")
         if not self.knowledge_sigmas > 0:
             raise ValueError(f"knowledge sigmas {self.knowledge_sigmas}: must be positive")
+
+    @property
+    def most_passes(self) -> int:
+        """The most passes a maplet is refined: a pass's change is measured against the pass
+        before it, so a single pass is never followed by another."""
+        return self.passes if self.passes < 2 else max(self.passes, self.max_passes)
+
+    def another_pass(self, *, done: int, changed_spacings: float | None) -> bool:
+        """Whether a maplet refined `done` passes, whose last pass changed its solution by
+        `changed_spacings` node spacings (pwm.maplets.solution_change; None: not known, as
+        settled), is due for another."""
+        return done < self.passes or (done < self.most_passes and changed_spacings is not None
+                                      and changed_spacings > self.settled_spacings)
 
     def digest(self) -> str:
         """sha256 of the settings that change one maplet's refinement (`digested`)."""

@@ -115,6 +115,20 @@ def grid_heights(maplet: MapletGrid, xy_km: np.ndarray, heights: np.ndarray | No
     return (interpolation_matrix(maplet, xy_km) @ (maplet.heights if heights is None else heights).ravel())
 
 
+def solution_change(previous: MapletGrid, refined: MapletGrid) -> float:
+    """How far a maplet's refined surface lies from an earlier solution of the same place: the
+    RMS over its nodes of their heights above the earlier surface (along the earlier frame's z,
+    bilinear between its nodes), in node spacings of `refined`; nodes beyond the earlier grid are
+    left out (inf where none is within it). Frames that coincide, as a catalogued maplet's do
+    from pass to pass, give the RMS of the height differences node by node."""
+    local = previous.frame.to_local(refined.nodes_body().reshape(-1, 3))
+    within = np.all(np.abs(local[:, :2]) <= previous.axis_km[-1] * (1 + 1e-9), axis=1)
+    if not within.any():
+        return float("inf")
+    above = local[within, 2] - grid_heights(previous, local[within, :2])
+    return float(np.sqrt(np.mean(above**2)) / refined.spacing_km)
+
+
 def interpolation_matrix(maplet: MapletGrid, xy_km: np.ndarray) -> sp.csr_matrix:
     """(M, n*n) sparse bilinear interpolation from the row-major node grid to local points (M, 2)
     over it (clamped onto the grid's border)."""

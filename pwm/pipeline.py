@@ -23,7 +23,7 @@ from pwm.alignment import parallax_height, register, rise_motion, sweep_height, 
 from pwm.camera import project
 from pwm.config import DEFAULTS, Placement, RefinementConfig
 from pwm.levels import LevelGrids
-from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, Spots, grid_heights, spots_over
+from pwm.maplets import NO_SPOTS, MapletGrid, MapletSpots, Spots, grid_heights, solution_change, spots_over
 from pwm.mesh import Mesh
 from pwm.parallel import Progress, map_processes
 from pwm.photoclinometry import MapletImages, Refinement, coarsened, extract, refine
@@ -435,24 +435,48 @@ def imaged_region(views: list[View], start: Mesh, *, radius_fraction: float = 0.
 def refine_region(start: Mesh, views: list[View], region: Region, *, config: RefinementConfig = DEFAULTS,
                   workers: int = 1, progress: Progress | None = None,
                   spots: Spots | None = None) -> tuple[Mesh, list[MapletResult]]:
-    """Tile `region` of `start`, refine every maplet and fuse them, config.passes times: each later
+    """Tile `region` of `start`, refine its maplets and fuse them, pass after pass: each later
     pass tiles the previous one's fused model afresh, so that a maplet starts from what its
     neighbours made of its edges, and its visibility and shadows come from a shape that has the
-    relief (the start's lacks most of what casts shadows). Each pass takes the shape only: the
-    albedo comes from the images. Returns the last fused model and the last pass's results.
-    progress: told how far each pass's refinement has come (stage "refine pass P/N"). spots: the
-    lidar's, which every pass's maplets are refined with (`refine_maplets`)."""
-    model, results = start, []
-    for done in range(config.passes):
+    relief (the start's lacks most of what casts shadows). Every maplet gets config.passes passes,
+    and more while it has not settled (RefinementConfig.another_pass): a settled maplet keeps its
+    last result. Each pass takes the shape only: the albedo comes from the images. Returns the
+    last fused model and each maplet's last result. progress: told how far each pass's
+    refinement has come (stage "refine pass P/N", N the most passes). spots: the lidar's, which
+    every pass's maplets are refined with (`refine_maplets`)."""
+    model = start
+    settled: list[MapletResult] = []  # the maplets that settled, by their last results
+    latest: list[MapletResult] = []  # the last pass's results of the rest
+    for done in range(1, config.most_passes + 1):
         shape = Mesh(model.vertices, model.faces)
         maplets = tile(shape, spacing_km=region.spacing_km, nodes=config.nodes, overlap=config.overlap,
                        centre_lat_deg=region.lat_deg, centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
-        log.info("pass %d/%d: %d maplets of %d nodes at %.3f m", done + 1, config.passes, len(maplets), config.nodes,
+        # a place is the same from pass to pass, not its name: its origin moves with the surface
+        maplets = [m for m in maplets if _same_place(m, settled) is None]
+        if not maplets:
+            break
+        log.info("pass %d/%d: %d maplets of %d nodes at %.3f m", done, config.most_passes, len(maplets), config.nodes,
                  region.spacing_km * 1e3)
         results = refine_maplets(maplets, views, shape, config=config, workers=workers, progress=progress,
-                                 stage=f"refine pass {done + 1}/{config.passes}", spots=spots)
-        model, _ = fuse([r.maplet for r in results], shape, overlap=config.overlap)
-    return model, results
+                                 stage=f"refine pass {done}/{config.most_passes}", spots=spots)
+        before, latest = latest, []
+        for result in results:
+            earlier = _same_place(result.maplet, before)
+            changed = None if earlier is None else solution_change(earlier.maplet, result.maplet)
+            (latest if config.another_pass(done=done, changed_spacings=changed) else settled).append(result)
+        model, _ = fuse([r.maplet for r in settled + latest], shape, overlap=config.overlap)
+    return model, settled + latest
+
+
+def _same_place(maplet: MapletGrid, results: list[MapletResult]) -> MapletResult | None:
+    """The result of `results` whose maplet lies where `maplet` does (origins within an eighth of
+    its side; neighbours lie at least a quarter of a side apart, at the most overlap), or None."""
+    if not results:
+        return None
+    origins = np.array([r.maplet.frame.origin for r in results])
+    distance = np.linalg.norm(origins - maplet.frame.origin, axis=1)
+    nearest = int(np.argmin(distance))
+    return results[nearest] if distance[nearest] < 0.25 * maplet.axis_km[-1] else None
 
 
 def fuse(maplets: list[MapletGrid], base: Mesh, *, overlap: float) -> tuple[Mesh, LevelGrids]:

@@ -15,8 +15,10 @@ revision made from the maplet's current images under the configuration it record
 (service.downlinks.other_configurations).
 
 Passes, as `pwm refine` makes them: a maplet is refined from the same images config.passes
-times, each later pass against the model that fused the pass before (pass p + 1 is due once the
-latest version holds the maplet's pass-p revision). A new input starts again at pass 1.
+times, and up to config.max_passes while its last pass still changed it (RefinementConfig.
+another_pass, on the revision's "changed_spacings"), each later pass against the model that fused
+the pass before (pass p + 1 is due once the latest version holds the maplet's pass-p revision).
+A new input starts again at pass 1.
 
 The refinement itself is pwm.pipeline.refine_maplet, on the maplet's nodes at the heights of
 the current model (the latest version), with visibility against that model.
@@ -27,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -39,7 +42,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from pwm.config import DEFAULTS, RefinementConfig
 from pwm.io.fusion_state import read_maplet, write_maplet
-from pwm.maplets import MapletGrid
+from pwm.maplets import MapletGrid, solution_change
 from pwm.pipeline import refine_maplet
 from pwm.raytrace import RayTracer
 from pwm.tiling import sample_surface
@@ -138,7 +141,7 @@ def _inputs(session: Session, config: RefinementConfig, maplet_ids: Collection[i
     for m, rows in images.items():
         keys = tuple(k for _, k in rows)
         inputs[m] = _Input(tuple(i for i, _ in rows), keys, grids[m],
-                           _pass_hashes(keys, grids[m], digest, config.passes))
+                           _pass_hashes(keys, grids[m], digest, config.most_passes))
     return inputs
 
 
@@ -151,7 +154,7 @@ def stale_maplets(session: Session, *, config: RefinementConfig = DEFAULTS,
     revision not fused yet is awaited: its next pass starts from the model that holds it.
 
     A current revision made with another configuration (its config_digest) from the maplet's
-    current images, at any of config.passes passes, is up to date: a changed configuration
+    current images, at any of its passes, is up to date: a changed configuration
     alone re-refines only with refine_on_config_change (then such a maplet is due at pass 1).
     Revisions made before digests were recorded (config_digest None) are of another input once
     the configuration changed: due, once."""
@@ -162,14 +165,14 @@ def stale_maplets(session: Session, *, config: RefinementConfig = DEFAULTS,
     # whether the latest version holds the current revision, for these maplets alone
     rows = session.execute(
         select(Maplet.id, Maplet.name, MapletRevision.input_hash, MapletRevision.config_digest,
-               held.maplet_revision_id.is_not(None))
+               held.maplet_revision_id.is_not(None), MapletRevision.statistics["changed_spacings"].as_float())
         .outerjoin(MapletRevision, MapletRevision.id == Maplet.current_revision_id)
         .outerjoin(model_version_maplet_revisions,
                    (held.maplet_revision_id == MapletRevision.id)
                    & (held.model_version_id == (None if latest is None else latest.id)))
         .where(Maplet.id.in_(list(inputs))).order_by(Maplet.id))
     work = []
-    for m, name, current, made_with, fused in rows:
+    for m, name, current, made_with, fused, changed in rows:
         if len(inputs[m].image_ids) < config.min_images:
             continue
         # up to date under the configuration it was made with: the operator chooses when to change
@@ -177,7 +180,7 @@ def stale_maplets(session: Session, *, config: RefinementConfig = DEFAULTS,
                 and inputs[m].under(made_with).pass_of(current) is not None):
             continue
         done = inputs[m].pass_of(current)
-        if done == config.passes or (done is not None and not fused):
+        if done is not None and not (fused and config.another_pass(done=done, changed_spacings=changed)):
             continue
         due = 1 if done is None else done + 1
         work.append(MapletWork(maplet_id=m, name=name, input_hash=inputs[m].hashes[due - 1],
@@ -226,10 +229,18 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
         ordered = [views[i] for i in current.image_ids if i in views]
         grid = row.grid()
         model_version, model_ply = model.version, model.mesh_artifact
+        # the pass before, for how much this one changes the solution (the pass rule)
+        previous = session.get(MapletRevision, row.current_revision_id) if row.current_revision_id else None
+        before = (load_revision_maplet(data_dir, previous)
+                  if previous is not None and pass_number > 1
+                  and current.pass_of(previous.input_hash) == pass_number - 1 else None)
     say(0.2, f"refining (pass {pass_number}) against version {model_version}")
     tracer = _tracer(data_dir, model_ply["path"], model_ply["sha256"])
     grid.heights, grid.albedo = sample_surface(tracer, grid)
     result = refine_maplet(grid, ordered, tracer, config=config)
+    changed = None if before is None else solution_change(before, result.maplet)
+    if changed is not None and not math.isfinite(changed):
+        changed = None  # no node over the pass before's grid (JSON has no infinity): not known
     say(0.9, "storing the revision")
     with scratch_file(data_dir, ".npz") as scratch:
         write_maplet(scratch, result.maplet)
@@ -243,13 +254,14 @@ def refine_catalog_maplet(sessions: sessionmaker[Session], *, data_dir: Path, ma
                   "registrations": {name: list(xy) for name, xy in result.registrations.items()},
                   "raised_m": result.raised_km * 1e3,
                   "height_change_rms_m": float(np.sqrt(np.mean(
-                      (result.maplet.heights - grid.heights) ** 2)) * 1e3)}
+                      (result.maplet.heights - grid.heights) ** 2)) * 1e3),
+                  "changed_spacings": changed}
     revision_id = _store_revision(sessions, maplet_id=maplet_id, input_hash=input_hash,
                                   config=config, artifact=artifact, statistics=statistics)
     say(1.0, "done")
-    log.debug("maplet %s: revision %d (pass %d) from %d images, %d iterations (%.1f s)",
-              grid.name, revision_id, pass_number, len(result.images), result.iterations,
-              result.seconds)
+    log.debug("maplet %s: revision %d (pass %d) from %d images, %d iterations, changed by %s node spacings "
+              "(%.1f s)", grid.name, revision_id, pass_number, len(result.images), result.iterations,
+              "?" if changed is None else f"{changed:.2f}", result.seconds)
     return revision_id
 
 

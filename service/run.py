@@ -135,14 +135,14 @@ def refine_and_fuse(sessions: sessionmaker[Session], work: list[MapletWork], *, 
     feedback (service.conductor.feed_back; none without a downlink). A version is published when
     some maplet's current revision changed; then the maplets due after it
     (service.conductor.due_after_fusion, refine_on_config_change as there) are refined against it
-    and fused again, until none is due (at most config.passes rounds, one more where the feedback
+    and fused again, until none is due (at most config.most_passes rounds, one more where the feedback
     corrected the poses). The console's 3D document is made for the last version. `progress` is
     told how far each round's refinement has come (stage "refine round R")."""
     clock = time.perf_counter()
     done = Refinements()
     url = sessions.kw["bind"].url.render_as_string(hide_password=False)
     refine = partial(_refine_in_process, data_dir=data_dir, config=config)
-    rounds = config.passes
+    rounds = config.most_passes
     round_number = 0
     while round_number < rounds:
         round_number += 1

@@ -33,8 +33,8 @@ DATABASE_DRIVERS = frozenset({"sqlite", "sqlite+pysqlite", "postgresql", "postgr
 # Settings whose value is never repeated in an error: they may hold a password or a token.
 _UNSHOWN = frozenset({"api_token", "broker_url", "database_url"})
 # The settings that are fields of pwm.config.RefinementConfig, with those fields' names.
-_REFINEMENT_FIELDS = {"refine_mode": "mode", "refine_passes": "passes", "maplet_nodes": "nodes",
-                      "tile_radius_km": "tile_radius_km"}
+_REFINEMENT_FIELDS = {"refine_mode": "mode", "refine_passes": "passes", "refine_max_passes": "max_passes",
+                      "maplet_nodes": "nodes", "tile_radius_km": "tile_radius_km"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,9 +83,10 @@ class Settings(BaseSettings):
     heartbeat_grace_s: PWM_HEARTBEAT_GRACE_S, how long after its latest heartbeat an attempt is
         lost (shown so, and taken over by the next delivery); several heartbeats, so that a
         loaded database or a paused process is not taken for a dead one.
-    refine_mode, refine_passes, maplet_nodes, tile_radius_km: PWM_REFINE_MODE,
-        PWM_REFINE_PASSES, PWM_MAPLET_NODES and PWM_TILE_RADIUS_KM, the catalog's refinement
-        settings (`refinement`); their defaults and every other setting are pwm.config.DEFAULTS.
+    refine_mode, refine_passes, refine_max_passes, maplet_nodes, tile_radius_km:
+        PWM_REFINE_MODE, PWM_REFINE_PASSES, PWM_REFINE_MAX_PASSES, PWM_MAPLET_NODES and
+        PWM_TILE_RADIUS_KM, the catalog's refinement settings (`refinement`); their defaults and
+        every other setting are pwm.config.DEFAULTS.
     refine_on_config_change: PWM_REFINE_ON_CONFIG_CHANGE, whether a downlink's plan and the
         passes after it also refine the maplets whose current revision was made with another
         refinement configuration (another pwm.config.RefinementConfig.digest; the whole catalog,
@@ -126,6 +127,7 @@ class Settings(BaseSettings):
     heartbeat_grace_s: float = Field(60.0, gt=0)
     refine_mode: Mode = DEFAULTS.mode
     refine_passes: int = DEFAULTS.passes
+    refine_max_passes: int = DEFAULTS.max_passes
     maplet_nodes: int = DEFAULTS.nodes
     tile_radius_km: float | None = DEFAULTS.tile_radius_km
     refine_on_config_change: bool = False

@@ -57,6 +57,8 @@ NOT_DIGESTED = {
     "overlap": "tiling and fusion: other maplets, and how they fade into each other",
     "spacing_gsd": "tiling: other maplets",
     "passes": "how often maplets are refined; the catalog's input hash names the pass",
+    "max_passes": "how often maplets that have not settled are refined; the input hash names the pass",
+    "settled_spacings": "when a maplet is refined again, not how",
     "tile_radius_km": "tiling: which places get maplets",
     "knowledge": "drives the pose adjustment, whose corrections and sigmas are in the input hash",
 }
@@ -225,3 +227,22 @@ def test_a_new_tuning_constant_in_the_pipeline_would_be_found(tmp_path, monkeypa
     monkeypatch.syspath_prepend(str(tmp_path))
     found = _module_constants({"pwm_probe.pipeline"})
     assert set(found) == {"pwm_probe.pipeline.SWEEP_AGAIN_PX", "pwm_probe.pipeline._QUIET_STEPS"}
+
+
+def test_passes_go_on_where_a_maplet_has_not_settled():
+    config = dataclasses.replace(DEFAULTS, passes=2, max_passes=4, settled_spacings=0.3)
+    assert config.most_passes == 4
+    # every maplet gets its passes, whatever it did
+    assert config.another_pass(done=1, changed_spacings=None)
+    assert config.another_pass(done=1, changed_spacings=0.0)
+    # then another while its last pass still changed it, up to the most passes
+    assert config.another_pass(done=2, changed_spacings=0.31)
+    assert not config.another_pass(done=2, changed_spacings=0.29)
+    assert not config.another_pass(done=2, changed_spacings=None)  # not known: as settled
+    assert config.another_pass(done=3, changed_spacings=5.0)
+    assert not config.another_pass(done=4, changed_spacings=5.0)
+    # never fewer than the passes every maplet gets; one pass has nothing to compare with
+    assert dataclasses.replace(config, passes=5).most_passes == 5
+    assert dataclasses.replace(config, passes=1).most_passes == 1
+    with pytest.raises(ValueError, match="settled"):
+        dataclasses.replace(config, settled_spacings=0.0)

@@ -137,12 +137,15 @@ def test_a_second_pass_refines_the_first_pass_model(tiny_sim):
         refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=0))
     first, _ = refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=1), workers=2)
     told: list[tuple[str, int, int]] = []
-    second, results = refine_region(start, views, region, config=RefinementConfig(nodes=48, passes=2), workers=2,
+    # two passes, and a third for the maplets that the second changed by more than half a node spacing
+    config = RefinementConfig(nodes=48, passes=2, max_passes=3, settled_spacings=0.5)
+    second, results = refine_region(start, views, region, config=config, workers=2,
                                     progress=lambda stage, done, total: told.append((stage, done, total)))
     assert second.albedo is not None
-    # each pass's progress, from none to all of its maplets
+    # each pass's progress, from none to all of its maplets; one result per place, its last
     stages = {stage: total for stage, _, total in told}
-    assert list(stages) == ["refine pass 1/2", "refine pass 2/2"] and stages["refine pass 2/2"] == len(results)
+    assert list(stages) == ["refine pass 1/3", "refine pass 2/3", "refine pass 3/3"]
+    assert stages["refine pass 1/3"] == stages["refine pass 2/3"] == len(results) > stages["refine pass 3/3"] > 0
     assert told == [(stage, k, total) for stage, total in stages.items() for k in range(total + 1)]
     # on the second pass's maplets: its refined heights, the first pass's model and the start
     first_tracer, start_tracer = RayTracer(first), RayTracer(start)

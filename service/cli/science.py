@@ -264,7 +264,11 @@ def refine(
                                   help="fraction of a maplet shared with each neighbour"),
     workers: int = typer.Option(2, min=1, help="processes refining maplets in parallel"),
     passes: int = typer.Option(DEFAULTS.passes,
-                               help="refinement passes; each later one re-tiles the previous pass's fused model"),
+                               help="refinement passes every maplet gets; each later one re-tiles the previous "
+                                    "pass's fused model"),
+    max_passes: int = typer.Option(DEFAULTS.max_passes,
+                                   help="at most this many passes for a maplet whose last pass still changed it "
+                                        "(never fewer than --passes)"),
     search_px: float = typer.Option(DEFAULTS.search_px, parser=finite(),
                                     help="how far images may be off the maplets (px), from the pose knowledge"),
     corrections: Path | None = typer.Option(None, exists=True, dir_okay=False,
@@ -290,7 +294,7 @@ def refine(
 
     setup_logging(verbose)
     config = refinement_config(mode=mode, nodes=nodes, spacing_gsd=spacing_gsd, overlap=overlap, passes=passes,
-                               search_px=search_px)
+                               max_passes=max_passes, search_px=search_px)
     clock = time.perf_counter()
     read = downlink_views(downlink, instrument=instrument, target=target, body_frame=body_frame,
                           corrections=None if corrections is None else read_corrections(corrections))
@@ -311,7 +315,8 @@ def refine(
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "refined.ply", model)
     write_obj(out / "refined.obj", model)
-    report = {"mode": mode, "passes": passes, "region": dataclasses.asdict(region), "images": len(views),
+    report = {"mode": mode, "passes": passes, "max_passes": config.most_passes,
+              "region": dataclasses.asdict(region), "images": len(views),
               **downlink_report(read), "seconds": time.perf_counter() - clock,
               "maplets": [{"name": r.maplet.name, "origin_km": r.maplet.frame.origin.tolist(),
                            "rotation": r.maplet.frame.rotation.tolist(), "half_km": float(r.maplet.axis_km[-1]),

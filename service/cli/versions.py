@@ -37,6 +37,9 @@ def run(
     workers: int = typer.Option(1, min=1, help="processes refining maplets in parallel"),
     passes: int | None = typer.Option(None, help="refinement passes, each fused into a version of its own; "
                                                  "default PWM_REFINE_PASSES"),
+    max_passes: int | None = typer.Option(None, help="at most this many passes for a maplet whose last pass still "
+                                                     "changed it (never fewer than --passes); default "
+                                                     "PWM_REFINE_MAX_PASSES"),
     maplet_nodes: int | None = typer.Option(None,
                                             help="nodes per side of maplets tiled where the images look and none is "
                                                  "catalogued; default PWM_MAPLET_NODES"),
@@ -58,8 +61,8 @@ def run(
 
     setup_logging(verbose)
     settings = get_settings()
-    config = refinement_config(settings.refinement(), mode=mode, passes=passes, nodes=maplet_nodes,
-                               tile_radius_km=tile_radius_km)
+    config = refinement_config(settings.refinement(), mode=mode, passes=passes, max_passes=max_passes,
+                               nodes=maplet_nodes, tile_radius_km=tile_radius_km)
     try:
         with progress_bar() as progress:
             report = run_directory(open_catalog(settings), directory, data_dir=settings.data_dir, start=start,

@@ -12,7 +12,8 @@ from pwm.config import RefinementConfig
 from service.rows import Image
 from service.run import run_directory
 
-CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008)  # a few maplets about the site's centre
+# a few maplets about the site's centre, two passes each (the settling passes: tests/service/test_settling.py)
+CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008, max_passes=2)
 
 
 def test_a_downlink_is_weighed_once_for_all_its_passes(tiny_sim, sqlite_url, open_catalog_at, tmp_path,

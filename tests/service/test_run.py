@@ -40,7 +40,9 @@ from service.run import run_directory
 from service.settings import get_settings
 from service.versions import get_version, version_mesh
 
-CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008)  # a few maplets about the site's centre: seconds
+# a few maplets about the site's centre: seconds; two passes, however far a maplet's second pass still
+# moved it (the settling passes: tests/service/test_settling.py)
+CONFIG = RefinementConfig(nodes=40, tile_radius_km=0.0008, max_passes=2)
 
 
 def _second_downlink(sim: Path, out: Path) -> Path:

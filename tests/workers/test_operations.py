@@ -271,7 +271,7 @@ def test_downlinks_dropped_into_the_watched_folder_become_versions(
     assert again.returncode != 0 and "nothing new to refine" in again.stderr
 
 
-@pytest.mark.parametrize("settings", [{"refine_passes": 2}], indirect=True)
+@pytest.mark.parametrize("settings", [{"refine_passes": 2, "refine_max_passes": 2}], indirect=True)
 def test_each_pass_of_a_downlink_is_fused_into_a_version_of_its_own(
         tiny_sim: Path, catalog: sessionmaker[Session], settings: WorkerSettings, client: Celery,
         start_worker: Callable[..., Worker], open_catalog_at: Callable[[str], sessionmaker[Session]],

@@ -76,7 +76,7 @@ def test_watch_once_without_a_broker_runs_the_downlink_in_process(tiny_sim: Path
     data = tmp_path / "data"
     env = os.environ | {"PWM_DATA_DIR": str(data), "PWM_BROKER_URL": "",
                         "PWM_DATABASE_URL": "", "PWM_MAPLET_NODES": "24",
-                        "PWM_TILE_RADIUS_KM": "0.0008"}
+                        "PWM_TILE_RADIUS_KM": "0.0008", "PWM_REFINE_MAX_PASSES": "2"}
     for _ in range(2):  # a restarted watcher submits again, and nothing new is done
         run = subprocess.run([str(PWM), "watch", str(incoming), "--once"], cwd=REPO, env=env,
                              capture_output=True, text=True, timeout=300)
@@ -135,7 +135,7 @@ def test_a_downlink_whose_data_arrived_after_its_ingest_is_ingested_again(
     data = tmp_path / "data"
     env = os.environ | {"PWM_DATA_DIR": str(data), "PWM_BROKER_URL": "",
                         "PWM_DATABASE_URL": "", "PWM_MAPLET_NODES": "24",
-                        "PWM_TILE_RADIUS_KM": "0.0008"}
+                        "PWM_TILE_RADIUS_KM": "0.0008", "PWM_REFINE_MAX_PASSES": "2"}
 
     def image() -> tuple[str, str | None, int]:
         engine = make_engine(f"sqlite:///{data / 'catalog.sqlite'}")
