@@ -198,7 +198,8 @@ class Settings(BaseSettings):
         """How the catalog tiles and refines maplets: pwm.config.DEFAULTS with these settings."""
         knowledge = None if not self.pose_knowledge else parse_knowledge_errors(self.pose_knowledge)
         return dataclasses.replace(DEFAULTS, mode=self.refine_mode, passes=self.refine_passes,
-                                   nodes=self.maplet_nodes, tile_radius_km=self.tile_radius_km, knowledge=knowledge)
+                                   max_passes=self.refine_max_passes, nodes=self.maplet_nodes,
+                                   tile_radius_km=self.tile_radius_km, knowledge=knowledge)
 
 
 S = TypeVar("S", bound=Settings)

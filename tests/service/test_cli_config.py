@@ -36,14 +36,16 @@ def test_the_defaults_are_shown_with_their_digest(pwm, tmp_path):
 def test_the_environment_changes_what_is_shown_and_the_digest(pwm, monkeypatch):
     monkeypatch.setenv("PWM_REFINE_MODE", "standard")
     monkeypatch.setenv("PWM_REFINE_PASSES", "3")
+    monkeypatch.setenv("PWM_REFINE_MAX_PASSES", "5")
     monkeypatch.setenv("PWM_MAPLET_NODES", "64")
     monkeypatch.setenv("PWM_POSE_KNOWLEDGE", "1,1e-4")
     shown = _shown(pwm)
-    expected = dataclasses.replace(DEFAULTS, mode="standard", passes=3, nodes=64,
+    expected = dataclasses.replace(DEFAULTS, mode="standard", passes=3, max_passes=5, nodes=64,
                                    knowledge=IndependentErrors(position_m=1.0, pointing_rad=1e-4))
     assert shown["digest"] == expected.digest() != DEFAULTS.digest()
     refinement = shown["refinement"]
-    assert (refinement["mode"], refinement["passes"], refinement["nodes"]) == ("standard", 3, 64)
+    assert (refinement["mode"], refinement["passes"], refinement["max_passes"], refinement["nodes"]) == (
+        "standard", 3, 5, 64)
     assert refinement["knowledge"] == "1,0.0001"
 
 

@@ -37,9 +37,10 @@ from service.settings import get_settings
 from service.spg import ASSUMED, start_from_images
 from service.versions import get_version, import_model, version_mesh
 
-# A few maplets, seconds: about the survey's imaged centre, and the tiny site's
-SURVEY = RefinementConfig(nodes=16, tile_radius_km=0.1)
-SITE = RefinementConfig(nodes=40, tile_radius_km=0.0008)
+# A few maplets, seconds: about the survey's imaged centre, and the tiny site's; two passes each,
+# however far the second changed them (the settling passes: tests/service/test_settling.py)
+SURVEY = RefinementConfig(nodes=16, tile_radius_km=0.1, max_passes=2)
+SITE = RefinementConfig(nodes=40, tile_radius_km=0.0008, max_passes=2)
 BENNU_RADII_KM = np.array([0.283065, 0.271215, 0.24972])  # the simulated downlinks' PCK
 
 
