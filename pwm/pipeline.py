@@ -452,7 +452,7 @@ def refine_region(start: Mesh, views: list[View], region: Region, *, config: Ref
         maplets = tile(shape, spacing_km=region.spacing_km, nodes=config.nodes, overlap=config.overlap,
                        centre_lat_deg=region.lat_deg, centre_lon_deg=region.lon_deg, radius_km=region.radius_km)
         # a place is the same from pass to pass, not its name: its origin moves with the surface
-        maplets = [m for m in maplets if _same_place(m, settled) is None]
+        maplets = [m for m, kept in zip(maplets, _same_places(maplets, settled), strict=True) if kept is None]
         if not maplets:
             break
         log.info("pass %d/%d: %d maplets of %d nodes at %.3f m", done, config.most_passes, len(maplets), config.nodes,
@@ -460,23 +460,22 @@ def refine_region(start: Mesh, views: list[View], region: Region, *, config: Ref
         results = refine_maplets(maplets, views, shape, config=config, workers=workers, progress=progress,
                                  stage=f"refine pass {done}/{config.most_passes}", spots=spots)
         before, latest = latest, []
-        for result in results:
-            earlier = _same_place(result.maplet, before)
+        for result, earlier in zip(results, _same_places([r.maplet for r in results], before), strict=True):
             changed = None if earlier is None else solution_change(earlier.maplet, result.maplet)
             (latest if config.another_pass(done=done, changed_spacings=changed) else settled).append(result)
         model, _ = fuse([r.maplet for r in settled + latest], shape, overlap=config.overlap)
     return model, settled + latest
 
 
-def _same_place(maplet: MapletGrid, results: list[MapletResult]) -> MapletResult | None:
-    """The result of `results` whose maplet lies where `maplet` does (origins within an eighth of
-    its side; neighbours lie at least a quarter of a side apart, at the most overlap), or None."""
-    if not results:
-        return None
-    origins = np.array([r.maplet.frame.origin for r in results])
-    distance = np.linalg.norm(origins - maplet.frame.origin, axis=1)
-    nearest = int(np.argmin(distance))
-    return results[nearest] if distance[nearest] < 0.25 * maplet.axis_km[-1] else None
+def _same_places(maplets: list[MapletGrid], results: list[MapletResult]) -> list[MapletResult | None]:
+    """For each maplet, the result of `results` whose maplet lies where it does (origins within an
+    eighth of its side; neighbours lie at least a quarter of a side apart, at the most overlap), or
+    None."""
+    if not maplets or not results:
+        return [None] * len(maplets)
+    distance, nearest = cKDTree([r.maplet.frame.origin for r in results]).query([m.frame.origin for m in maplets])
+    return [results[k] if d < 0.25 * m.axis_km[-1] else None
+            for m, d, k in zip(maplets, distance, nearest, strict=True)]
 
 
 def fuse(maplets: list[MapletGrid], base: Mesh, *, overlap: float) -> tuple[Mesh, LevelGrids]:
